@@ -1,0 +1,1 @@
+"""Benchmarks run by ``groundstation bench NAME``; each module exposes ``add_arguments`` and ``run``."""

@@ -1,0 +1,1 @@
+"""Sinks: zenoh publisher and Rerun stream (IO lives here, not in dsp/sysid/gap)."""

@@ -1,0 +1,2 @@
+"""Hardware in the loop without hardware: virtual serial ports replaying recorded links, and a simulated
+helicopter flight controller with injectable unmodelled effects. Never imports groundstation.sysid/gap."""
