@@ -1,0 +1,267 @@
+"""A virtual serial port: a Linux pseudo-terminal exposed at a stable symlink path.
+
+The flight-controller side (replay player, simulated FC) holds the pty *master*; the ground
+station opens the *slave* through the symlink with pyserial (``serial:///tmp/.../ttyFC``), the
+same code path as a USB serial adapter. :meth:`VirtualSerialPort.unplug` closes the pty and removes
+the symlink (the device vanishes, as when a USB cable is pulled: a reader gets an error);
+:meth:`VirtualSerialPort.replug` creates a new pty and points the same symlink at it (as a USB
+re-enumeration).
+
+IO on the master is non-blocking. Writes never drop bytes silently: :meth:`write_nowait` returns how
+many bytes the kernel accepted, :meth:`write` blocks (select) and :meth:`awrite` awaits (event-loop
+writer callback) until everything is written. Reads return the bytes the ground station wrote.
+
+A Linux pty reports POLLHUP on the master while no process has the slave open; this module uses
+that to tell whether a reader is attached (:meth:`reader_attached`, :meth:`wait_for_reader`).
+pyserial flushes the input queue when it opens a port, so bytes written before a reader is attached
+(or in the few milliseconds while it opens) are lost, exactly as on a real serial line; callers
+that must deliver every byte wait for a reader first.
+
+Not thread-safe: use one port from one thread (or one event loop) at a time. Leaves MAVLink,
+timing and fault injection to :mod:`hil_replay.player` and :mod:`hil_replay.fc`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import os
+import select
+import shutil
+import tempfile
+import termios
+import time
+import tty
+from pathlib import Path
+
+__all__ = ["PortUnplugged", "VirtualSerialPort"]
+
+
+class PortUnplugged(OSError):
+    """IO was attempted on a virtual port while it is unplugged (or closed)."""
+
+
+class VirtualSerialPort:
+    """A pseudo-terminal whose slave device is reachable at a stable symlink path.
+
+    Parameters
+    ----------
+    link_path : where the symlink to the slave device is created. ``None`` makes a private
+        temporary directory ``/tmp/gs-replay-XXXX/ttyFC`` (removed by :meth:`close`). An existing
+        symlink at that path (a stale port) is replaced; any other existing file is an error.
+    settle_s : after a reader attaches, :meth:`wait_for_reader` waits this long more so the
+        reader's open-time input flush has happened before anything is written.
+    """
+
+    def __init__(self, link_path: str | os.PathLike[str] | None = None, *, settle_s: float = 0.05) -> None:
+        self._own_dir: Path | None = None
+        if link_path is None:
+            self._own_dir = Path(tempfile.mkdtemp(prefix="gs-replay-"))
+            path = self._own_dir / "ttyFC"
+        else:
+            path = Path(link_path)
+            if path.exists() and not path.is_symlink():
+                raise FileExistsError(f"{path}: exists and is not a symlink; refusing to replace it")
+            path.parent.mkdir(parents=True, exist_ok=True)
+        self._path = path
+        self._settle_s = settle_s
+        self._master: int | None = None
+        self._device = ""
+        self._poll: select.poll | None = None
+        self._closed = False
+        self.unplug_count = 0
+        self._plug()
+
+    # ---------------------------------------------------------------- state
+
+    @property
+    def path(self) -> str:
+        """The stable symlink path (what the ground station opens)."""
+        return str(self._path)
+
+    link_path = path
+
+    @property
+    def device(self) -> str:
+        """The current slave device (``/dev/pts/N``); changes on every replug."""
+        return self._device
+
+    @property
+    def plugged(self) -> bool:
+        return self._master is not None
+
+    def fileno(self) -> int:
+        """The master file descriptor (for event-loop readers/writers)."""
+        if self._master is None:
+            raise PortUnplugged(errno.ENODEV, f"{self._path}: virtual port is unplugged")
+        return self._master
+
+    def _plug(self) -> None:
+        master, slave = os.openpty()
+        try:
+            tty.setraw(slave)  # no echo, no line discipline: bytes through unchanged
+            attrs = termios.tcgetattr(slave)
+            attrs[3] &= ~termios.ECHO
+            termios.tcsetattr(slave, termios.TCSANOW, attrs)
+            device = os.ttyname(slave)
+        finally:
+            # The slave is not held open here: POLLHUP on the master then tells us whether a
+            # reader is attached, and the termios settings persist while the master is open.
+            os.close(slave)
+        os.set_blocking(master, False)
+        tmp = self._path.with_name(f".{self._path.name}.{os.getpid()}.tmp")
+        if tmp.is_symlink() or tmp.exists():
+            tmp.unlink()
+        os.symlink(device, tmp)
+        os.replace(tmp, self._path)  # atomic: the path never points at a dead device
+        self._master = master
+        self._device = device
+        self._poll = select.poll()
+        self._poll.register(master, select.POLLOUT | select.POLLHUP)
+
+    def unplug(self) -> None:
+        """Close the pty and remove the symlink: the port vanishes; an attached reader errors out."""
+        if self._master is None:
+            return
+        try:
+            if self._path.is_symlink():
+                self._path.unlink()
+        finally:
+            os.close(self._master)
+            self._master = None
+            self._poll = None
+            self.unplug_count += 1
+
+    def replug(self) -> None:
+        """Create a fresh pty and point the same symlink path at it."""
+        if self._closed:
+            raise PortUnplugged(errno.ENODEV, f"{self._path}: virtual port is closed")
+        if self._master is None:
+            self._plug()
+
+    def close(self) -> None:
+        """Unplug for good and remove the private temporary directory, if any."""
+        self.unplug()
+        self._closed = True
+        if self._own_dir is not None:
+            shutil.rmtree(self._own_dir, ignore_errors=True)
+            self._own_dir = None
+
+    def __enter__(self) -> VirtualSerialPort:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = self._device if self.plugged else "unplugged"
+        return f"VirtualSerialPort({self.path!s} -> {state})"
+
+    # ---------------------------------------------------------------- reader presence
+
+    def reader_attached(self) -> bool:
+        """Whether some process has the slave side open right now."""
+        if self._poll is None:
+            return False
+        for _fd, ev in self._poll.poll(0):
+            if ev & select.POLLHUP:
+                return False
+        return True
+
+    def wait_for_reader(self, timeout_s: float | None = None, *, poll_s: float = 0.005) -> bool:
+        """Block until a reader has the port open (plus ``settle_s``); False on timeout."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while not self.reader_attached():
+            if deadline is not None and time.monotonic() >= deadline:
+                return False
+            time.sleep(poll_s)
+        if self._settle_s > 0:
+            time.sleep(self._settle_s)
+        return self.reader_attached()
+
+    async def await_reader(self, timeout_s: float | None = None, *, poll_s: float = 0.005) -> bool:
+        """:meth:`wait_for_reader` for coroutines."""
+        loop = asyncio.get_running_loop()
+        deadline = None if timeout_s is None else loop.time() + timeout_s
+        while not self.reader_attached():
+            if deadline is not None and loop.time() >= deadline:
+                return False
+            await asyncio.sleep(poll_s)
+        if self._settle_s > 0:
+            await asyncio.sleep(self._settle_s)
+        return self.reader_attached()
+
+    # ---------------------------------------------------------------- writing
+
+    def write_nowait(self, data: bytes | memoryview) -> int:
+        """Write as much as the pty accepts now; returns the number of bytes written (maybe 0)."""
+        fd = self.fileno()
+        try:
+            return os.write(fd, data)
+        except BlockingIOError:
+            return 0
+        except OSError as exc:
+            if exc.errno == errno.EIO:
+                return 0
+            raise
+
+    def write(self, data: bytes, timeout_s: float | None = None) -> None:
+        """Write all of ``data``, blocking while the pty buffer is full.
+
+        Raises TimeoutError (with the number of bytes written so far in the message) if
+        ``timeout_s`` passes first, PortUnplugged if the port is unplugged.
+        """
+        view = memoryview(data)
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while view:
+            n = self.write_nowait(view)
+            view = view[n:]
+            if not view:
+                break
+            wait = None if deadline is None else deadline - time.monotonic()
+            if wait is not None and wait <= 0:
+                raise TimeoutError(f"{self._path}: reader not draining; "
+                                   f"{len(data) - len(view)} of {len(data)} bytes written")
+            select.select([], [self.fileno()], [], 0.05 if wait is None else min(wait, 0.05))
+
+    async def awrite(self, data: bytes) -> None:
+        """Write all of ``data``, awaiting writability (back-pressure) while the pty buffer is full."""
+        loop = asyncio.get_running_loop()
+        view = memoryview(data)
+        while view:
+            n = self.write_nowait(view)
+            view = view[n:]
+            if not view:
+                break
+            fd = self.fileno()
+            fut: asyncio.Future[None] = loop.create_future()
+            loop.add_writer(fd, lambda f=fut: f.done() or f.set_result(None))
+            try:
+                # the timeout re-checks the port (unplugged meanwhile -> fileno() raises)
+                await asyncio.wait_for(fut, 0.05)
+            except TimeoutError:
+                pass
+            finally:
+                loop.remove_writer(fd)
+
+    # ---------------------------------------------------------------- reading
+
+    def read_nowait(self, max_bytes: int = 65536) -> bytes:
+        """Bytes the ground station has written, or b"" if none (or no reader attached)."""
+        fd = self.fileno()
+        try:
+            return os.read(fd, max_bytes)
+        except BlockingIOError:
+            return b""
+        except OSError as exc:
+            if exc.errno == errno.EIO:  # no slave open
+                return b""
+            raise
+
+    async def aread(self, max_bytes: int = 65536, *, poll_s: float = 0.02) -> bytes:
+        """Bytes from the ground station; waits up to ``poll_s`` and returns b"" if none came."""
+        data = self.read_nowait(max_bytes)
+        if data:
+            return data
+        await asyncio.sleep(poll_s)
+        return self.read_nowait(max_bytes) if self.plugged else b""
