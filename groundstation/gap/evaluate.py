@@ -1,0 +1,233 @@
+"""Held-out scoring of the base model and of augmented models on rotating windows (k-fold).
+
+The flight is cut into windows of ``window_s``; window i belongs to fold ``i % folds``, so every
+excitation of the flight-test card is in some training fold. A model variant (inputs transformed,
+outputs delayed, extra forcing ...) is simulated once at the base parameters ``theta0``; the base
+parameters are then re-fitted on the training folds by one regularised Gauss-Newton step with the
+Jacobian of the base model (computed once, batched finite differences), together with the variant's
+linear parameters (extra columns), and the re-fitted variant is scored on the held-out fold.
+The base model goes through the same step, so base and variants are compared on equal terms.
+
+Residuals are weighted per channel by 1/scale (channel standard deviation), i.e. the paper's
+eq.-11 normalisation; samples before ``start_s`` in each window (initial transient) are ignored.
+
+Array conventions: windows (W, L, ...) as in :mod:`groundstation.gap.linsim`; held-out costs (W, 8).
+Pure numpy; no IO.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from groundstation.gap.linsim import simulate
+from groundstation.sysid.model import N_PARAMS
+
+
+@dataclass(frozen=True)
+class SegmentArrays:
+    """One uniformly sampled in-air segment (the fields of ``dsp.prepare.Segment`` the diagnosis uses).
+
+    Attributes: ``t_s (n,)``, ``inputs (n, 4)``, ``outputs (n, 8)`` smoothed, ``outputs_raw (n, 8)``,
+    ``alt_m (n,)`` (NaN if unknown), ``flight`` index.
+    """
+
+    t_s: np.ndarray
+    inputs: np.ndarray
+    outputs: np.ndarray
+    outputs_raw: np.ndarray
+    alt_m: np.ndarray
+    flight: int = 0
+
+
+def window_starts(segments: list[SegmentArrays], length: int) -> list[tuple[int, int]]:
+    """(segment index, first sample) of every whole window of ``length`` samples."""
+    out = []
+    for si, seg in enumerate(segments):
+        n = seg.t_s.shape[0]
+        for i0 in range(0, n - length + 1, length):
+            out.append((si, i0))
+    return out
+
+
+def cut(arrays: list[np.ndarray], starts: list[tuple[int, int]], length: int) -> np.ndarray:
+    """Stack windows: arrays per segment (n, ...) -> (W, length, ...)."""
+    return np.stack([arrays[si][i0:i0 + length] for si, i0 in starts])
+
+
+class Evaluator:
+    """Windows of a flight, the base model, its Jacobian and k-fold held-out scoring.
+
+    Parameters
+    ----------
+    segments : list of SegmentArrays
+    dt_s : float, sample period (s)
+    theta0 : array (31,), base parameters
+    available : array (8,) bool, measured output channels
+    window_s, folds, start_s : windowing (s), number of folds, ignored start of each window (s)
+    """
+
+    def __init__(self, segments: list[SegmentArrays], dt_s: float, theta0: np.ndarray,
+                 available: np.ndarray, *, window_s: float = 5.0, folds: int = 3, start_s: float = 0.4):
+        self.segments = segments
+        self.dt_s = float(dt_s)
+        self.theta0 = np.asarray(theta0, float).copy()
+        self.available = np.asarray(available, bool)
+        self.L = max(int(round(window_s / dt_s)), 20)
+        self.starts = window_starts(segments, self.L)
+        if len(self.starts) < 2 * folds:
+            raise ValueError(f"too little in-air data for diagnosis: {len(self.starts)} windows of "
+                             f"{window_s:g} s (need at least {2 * folds})")
+        self.W = len(self.starts)
+        self.folds = folds
+        self.fold = np.arange(self.W) % folds
+        self.start = min(int(round(start_s / dt_s)), self.L // 4)
+        self.U = self.cut([s.inputs for s in segments])
+        self.Y = self.cut([s.outputs for s in segments])
+        self.Yraw = self.cut([s.outputs_raw for s in segments])
+        self.T = self.cut([s.t_s for s in segments])
+        self.flight = np.array([segments[si].flight for si, _ in self.starts])
+        yv = self.Y[:, self.start:, :].reshape(-1, 8)
+        sc = yv.std(axis=0)
+        sc = np.where(self.available & (sc > 0), sc, 1.0)
+        self.scale = sc
+        self.w8 = np.where(self.available, 1.0 / sc, 0.0)
+        self.mask = np.zeros(self.L, bool)
+        self.mask[self.start:] = True
+        # per-window, per-channel energy of the (weighted) target about the overall mean
+        yc = (self.Y - self.Y[:, self.start:].reshape(-1, 8).mean(0)) * self.w8
+        self.energy = (yc[:, self.start:] ** 2).sum(axis=1)  # (W, 8)
+        self.set_theta(self.theta0)
+
+    # ---------------------------------------------------------------------------------------
+    def cut(self, arrays: list[np.ndarray]) -> np.ndarray:
+        return cut(arrays, self.starts, self.L)
+
+    def simulate(self, theta: np.ndarray, U: np.ndarray | None = None, Y: np.ndarray | None = None,
+                 F: np.ndarray | None = None, nuisance: np.ndarray | None = None,
+                 stop: int | None = None) -> np.ndarray:
+        """yhat (C, W, L, 8) of ``theta`` (C, 31) on the windows (optionally modified U, Y, forcing F).
+
+        ``stop``: initial states (and nuisance) are fitted on samples ``start:stop`` only.
+        """
+        return simulate(theta, self.U if U is None else U, self.Y if Y is None else Y, self.dt_s,
+                        forcing=F, weights=self.w8, available=self.available, nuisance=nuisance,
+                        start=self.start, stop=stop)
+
+    def residual(self, yhat: np.ndarray, Y: np.ndarray | None = None) -> np.ndarray:
+        """Weighted, masked residual (..., W, L, 8) of a simulation against Y (default: measured)."""
+        Yt = self.Y if Y is None else Y
+        r = (Yt - yhat) * self.w8
+        return r * self.mask[:, None]
+
+    def set_theta(self, theta: np.ndarray) -> None:
+        """Set the base parameters; recompute base residual and Jacobian (batched finite differences)."""
+        self.theta0 = np.asarray(theta, float).copy()
+        h = 1e-4 * np.maximum(np.abs(self.theta0), 1e-2)
+        batch = np.vstack([self.theta0[None], self.theta0[None] + np.diag(h)])
+        yh = self.simulate(batch)
+        r = self.residual(yh)
+        self.r0 = r[0]
+        # d residual / d theta ; column-normalised for conditioning
+        J = (r[1:] - r[0][None]) / h[:, None, None, None]  # (31, W, L, 8)
+        self.J = np.moveaxis(J, 0, -1)  # (W, L, 8, 31)
+        self._prepare_folds()
+
+    def _prepare_folds(self) -> None:
+        Jf = self.J.reshape(self.W, -1, N_PARAMS)
+        self.Jw = Jf
+        self.col = np.sqrt((Jf ** 2).sum(axis=(0, 1))) + 1e-30
+        self.JtJ = np.einsum("wni,wnj->wij", Jf / self.col, Jf / self.col)  # per window (W, 31, 31)
+
+    # ---------------------------------------------------------------------------------------
+    def heldout(self, r: np.ndarray, X: np.ndarray | None = None,
+                ridge: float = 1e-3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Held-out costs of a variant after the k-fold re-fit.
+
+        Parameters
+        ----------
+        r : array (W, L, 8), weighted residual of the variant at theta0
+        X : array (W, L, 8, K) or None, weighted sensitivities d yhat / d b of the variant's linear
+            parameters b (the re-fit solves r ~ -J d_theta + X b)
+        ridge : Levenberg damping relative to the mean diagonal of the normal matrix
+
+        Returns
+        -------
+        sse : array (W, 8), held-out sum of squared weighted residuals per window and channel
+        train : array (folds,), training cost of each fold's re-fit
+        coef : array (folds, K), the fitted linear parameters per fold (K = 0 if X is None)
+        """
+        W = self.W
+        rf = r.reshape(W, -1)
+        Jn = self.Jw / self.col
+        K = 0 if X is None else X.shape[-1]
+        if K:
+            assert X is not None
+            Xf = X.reshape(W, -1, K)
+            xs = np.sqrt((Xf ** 2).sum(axis=(0, 1))) + 1e-30
+            M = np.concatenate([Jn, Xf / xs], axis=2)
+            MtM = np.einsum("wni,wnj->wij", M, M)
+        else:
+            M = Jn
+            xs = np.ones(0)
+            MtM = self.JtJ
+        P = M.shape[2]
+        Mtr = np.einsum("wni,wn->wi", M, rf)
+        rr = (rf ** 2).sum(axis=1)
+        sse = np.empty((W, 8))
+        train = np.empty(self.folds)
+        coef = np.zeros((self.folds, K))
+        for f in range(self.folds):
+            tr = self.fold != f
+            te = ~tr
+            G = MtM[tr].sum(0)
+            b = Mtr[tr].sum(0)
+            lam = ridge * np.trace(G) / P
+            d = np.linalg.solve(G + lam * np.eye(P), b)
+            train[f] = rr[tr].sum() - 2 * d @ b + d @ G @ d
+            e = rf[te] - np.einsum("wni,i->wn", M[te], d)
+            sse[te] = (e.reshape(int(te.sum()), self.L, 8) ** 2).sum(axis=1)
+            if K:
+                coef[f] = d[N_PARAMS:] / xs
+        return sse, train, coef
+
+    def fit_all(self, r: np.ndarray, X: np.ndarray | None = None, ridge: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+        """One Gauss-Newton step on all windows: returns (d_theta (31,), linear params (K,))."""
+        W = self.W
+        rf = r.reshape(W, -1)
+        Jn = self.Jw / self.col
+        K = 0 if X is None else X.shape[-1]
+        if K:
+            Xf = X.reshape(W, -1, K)
+            xs = np.sqrt((Xf ** 2).sum(axis=(0, 1))) + 1e-30
+            M = np.concatenate([Jn, Xf / xs], axis=2)
+        else:
+            xs = np.ones(0)
+            M = Jn
+        G = np.einsum("wni,wnj->ij", M, M)
+        b = np.einsum("wni,wn->i", M, rf)
+        lam = ridge * np.trace(G) / M.shape[2]
+        d = np.linalg.solve(G + lam * np.eye(M.shape[2]), b)
+        # residual r = y - yhat; r ~ M d  =>  yhat_new = yhat + M d  => theta_new = theta0 - d/col
+        return -d[:N_PARAMS] / self.col, d[N_PARAMS:] / xs
+
+    def refine(self, iterations: int = 6, ridge: float = 1e-3) -> float:
+        """Levenberg-Marquardt refinement of theta0 on all windows; returns the final total cost."""
+        cost = float((self.r0 ** 2).sum())
+        lam = ridge
+        for _ in range(iterations):
+            dth, _ = self.fit_all(self.r0, None, ridge=lam)
+            cand = self.theta0 + dth
+            rc = self.residual(self.simulate(cand))[0]
+            c = float((rc ** 2).sum())
+            if np.isfinite(c) and c < cost:
+                self.set_theta(cand)
+                if cost - c < 1e-4 * cost:
+                    cost = c
+                    break
+                cost = c
+                lam = max(lam / 3, 1e-6)
+            else:
+                lam *= 10
+        return cost

@@ -1,0 +1,383 @@
+"""The hypothesis library: one augmented model per effect of the DESIGN.md catalogue.
+
+Each ``scan_*`` function builds the variants of one effect (the base model plus the effect, for
+every candidate channel and every value of the effect's nonlinear parameter on a grid referred to
+the data: delays in seconds, slew limits and deadband widths as quantiles of the channel's own
+input rate / amplitude), scores each variant on held-out windows after the k-fold re-fit of the
+base parameters and of the effect's linear parameters (:meth:`Evaluator.heldout`), and selects
+channel and grid value *inside each fold on the training cost* (nested selection), so the held-out
+cost of the hypothesis carries the penalty for what it adds.
+
+``rotor_vibration`` is not a model change at the sample rate of the cost: it is tested by
+:mod:`groundstation.gap.fingerprints` on the raw residual spectrum. Pure numpy; no IO.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from groundstation.gap.evaluate import Evaluator, SegmentArrays
+from groundstation.gap.linsim import full_matrices
+from groundstation.gap.linsim import simulate as lsim
+from groundstation.sysid.model import INPUTS
+
+#: Candidate delays / latencies (s); the grid is physical time, not samples.
+DELAY_GRID_S = (0.02, 0.04, 0.06, 0.08, 0.10, 0.13, 0.16, 0.20, 0.25)
+#: Slew limits as quantiles of the channel's own |input rate|.
+RATE_QUANTILES = (0.5, 0.7, 0.8, 0.88, 0.93, 0.96, 0.98, 0.99)
+#: Deadband half-widths as quantiles of the channel's own |input|.
+DEADBAND_QUANTILES = (0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5)
+#: Ground-effect decay heights relative to the smallest height flown (m, added to it).
+GROUND_DECAY_M = (0.25, 0.5, 1.0, 2.0)
+
+VEL = (0, 1, 2)
+RATE_CH = {"p": 3, "q": 4, "r": 5}
+
+
+@dataclass
+class Hypothesis:
+    """Result of one effect's scan."""
+
+    effect: str
+    input: str | None = None
+    output: str | None = None
+    estimate: dict[str, float] = field(default_factory=dict)
+    sse: np.ndarray | None = None  # (W, 8) nested held-out cost
+    channels: tuple[int, ...] = ()  # outputs the effect acts on most
+    evidence: str = ""
+    testable: bool = True
+    reason: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------------------------
+# signal transforms (segment level, (n,) arrays)
+# ---------------------------------------------------------------------------------------------
+def shift(x: np.ndarray, d: float) -> np.ndarray:
+    """x(t - d) for a (n, ...) array sampled at unit steps, d in samples (may be fractional/negative)."""
+    n = x.shape[0]
+    src = np.clip(np.arange(n) - d, 0, n - 1)
+    i0 = np.floor(src).astype(int)
+    i1 = np.minimum(i0 + 1, n - 1)
+    a = (src - i0).reshape((n,) + (1,) * (x.ndim - 1))
+    return (1 - a) * x[i0] + a * x[i1]
+
+
+def rate_limit(x: np.ndarray, max_step: np.ndarray) -> np.ndarray:
+    """Slew-limit x (n,) with per-variant maximum step per sample (V,) -> (n, V)."""
+    n = x.shape[0]
+    out = np.empty((n, max_step.shape[0]))
+    y = np.full(max_step.shape[0], x[0])
+    for k in range(n):
+        y = y + np.clip(x[k] - y, -max_step, max_step)
+        out[k] = y
+    return out
+
+
+def deadzone(x: np.ndarray, b: float) -> np.ndarray:
+    return np.sign(x) * np.maximum(np.abs(x) - b, 0.0)
+
+
+def backlash(x: np.ndarray, b: float) -> np.ndarray:
+    """Mechanical play of total width 2b: the output follows only when pushed past +-b."""
+    n = x.shape[0]
+    out = np.empty(n)
+    y = x[0]
+    for k in range(n):
+        if x[k] > y + b:
+            y = x[k] - b
+        elif x[k] < y - b:
+            y = x[k] + b
+        out[k] = y
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+class Context:
+    """Base-model windows plus the cached base held-out cost, shared by every scan."""
+
+    def __init__(self, ev: Evaluator, segments: list[SegmentArrays]):
+        self.ev = ev
+        self.segments = segments
+        self.base_sse, self.base_train, _ = ev.heldout(ev.r0)
+        self.dt_s = ev.dt_s
+
+    def variants_residual(self, U_list: list[np.ndarray] | None = None,
+                          Y_list: list[np.ndarray] | None = None) -> np.ndarray:
+        """Residuals (V, W, L, 8) at theta0 of V input (or initial-state) variants, simulated in one batch."""
+        ev = self.ev
+        V = len(U_list) if U_list is not None else len(Y_list or [])
+        U = np.concatenate(U_list) if U_list is not None else np.tile(ev.U, (V, 1, 1))
+        Y = np.concatenate(Y_list) if Y_list is not None else np.tile(ev.Y, (V, 1, 1))
+        yh = lsim(ev.theta0, U, Y, ev.dt_s, weights=ev.w8, available=ev.available, start=ev.start)[0]
+        yh = yh.reshape(V, ev.W, ev.L, 8)
+        return yh
+
+    def nested(self, effect: str, variants: list[tuple[dict[str, Any], np.ndarray, np.ndarray | None]]
+               ) -> tuple[np.ndarray, int, list[np.ndarray]]:
+        """Nested selection over variants (label, r (W,L,8), X or None).
+
+        Returns the nested held-out cost (W, 8), the index of the variant with the lowest total
+        training cost, and the per-variant linear-parameter estimates (folds, K).
+        """
+        ev = self.ev
+        sses, trains, coefs = [], [], []
+        for _, r, X in variants:
+            s, t, c = ev.heldout(r, X)
+            sses.append(s)
+            trains.append(t)
+            coefs.append(c)
+        T = np.array(trains)  # (V, folds)
+        out = np.empty((ev.W, 8))
+        for f in range(ev.folds):
+            v = int(np.argmin(T[:, f]))
+            te = ev.fold == f
+            out[te] = sses[v][te]
+        best = int(np.argmin(T.sum(axis=1)))
+        return out, best, coefs
+
+
+def _mask_w(ev: Evaluator, yh: np.ndarray) -> np.ndarray:
+    return (yh * ev.w8) * ev.mask[:, None]
+
+
+# ---------------------------------------------------------------------------------------------
+def input_excitation(segments: list[SegmentArrays]) -> np.ndarray:
+    """Per input channel: standard deviation of the input (normalised units), (4,)."""
+    u = np.concatenate([s.inputs for s in segments])
+    return u.std(axis=0)
+
+
+def scan_input_delay(ctx: Context, channels: list[int]) -> Hypothesis:
+    ev, segs = ctx.ev, ctx.segments
+    variants = []
+    U_list = []
+    labels = []
+    for c in channels:
+        for d_s in DELAY_GRID_S:
+            d = d_s / ev.dt_s
+            Us = [s.inputs.copy() for s in segs]
+            for u in Us:
+                u[:, c] = shift(u[:, c], d)
+            U_list.append(ev.cut(Us))
+            labels.append({"channel": c, "delay_s": d_s})
+    yh = ctx.variants_residual(U_list=U_list)
+    for lab, y in zip(labels, yh, strict=True):
+        variants.append((lab, ev.residual(y), None))
+    sse, best, _ = ctx.nested("input_delay", variants)
+    lab = labels[best]
+    return Hypothesis("input_delay", input=INPUTS[lab["channel"]], estimate={"delay_s": lab["delay_s"]},
+                      sse=sse, channels=(3, 4, 5, 6, 7), extra={"variants": len(variants)})
+
+
+def scan_rate_limit(ctx: Context, channels: list[int]) -> Hypothesis:
+    ev, segs = ctx.ev, ctx.segments
+    U_list, labels = [], []
+    for c in channels:
+        du = np.concatenate([np.abs(np.diff(s.inputs[:, c])) for s in segs])
+        steps = np.quantile(du, RATE_QUANTILES)
+        steps = np.maximum(steps, 1e-9)
+        lim = [rate_limit(s.inputs[:, c], steps) for s in segs]
+        for j, q in enumerate(RATE_QUANTILES):
+            Us = [s.inputs.copy() for s in segs]
+            for u, lm in zip(Us, lim, strict=True):
+                u[:, c] = lm[:, j]
+            U_list.append(ev.cut(Us))
+            labels.append({"channel": c, "rate_per_s": float(steps[j] / ev.dt_s), "quantile": q})
+    yh = ctx.variants_residual(U_list=U_list)
+    variants = [(lab, ev.residual(y), None) for lab, y in zip(labels, yh, strict=True)]
+    sse, best, _ = ctx.nested("rate_limit", variants)
+    lab = labels[best]
+    return Hypothesis("rate_limit", input=INPUTS[lab["channel"]],
+                      estimate={"rate_limit_per_s": lab["rate_per_s"],
+                                "rate_limit_pwm_us_per_s": lab["rate_per_s"] * ctx_pwm(ctx)},
+                      sse=sse, channels=(3, 4, 5, 6, 7))
+
+
+def ctx_pwm(ctx: Context) -> float:
+    return float(getattr(ctx, "pwm_per_unit", 500.0))
+
+
+def scan_deadband(ctx: Context, channels: list[int]) -> Hypothesis:
+    ev, segs = ctx.ev, ctx.segments
+    U_list, labels = [], []
+    for c in channels:
+        au = np.concatenate([np.abs(s.inputs[:, c]) for s in segs])
+        widths = np.quantile(au, DEADBAND_QUANTILES)
+        for kind, fn in (("deadzone", deadzone), ("backlash", backlash)):
+            for b in widths:
+                Us = [s.inputs.copy() for s in segs]
+                for u in Us:
+                    u[:, c] = fn(u[:, c], float(b))
+                U_list.append(ev.cut(Us))
+                labels.append({"channel": c, "width": float(b), "kind": kind})
+    yh = ctx.variants_residual(U_list=U_list)
+    variants = [(lab, ev.residual(y), None) for lab, y in zip(labels, yh, strict=True)]
+    sse, best, _ = ctx.nested("deadband", variants)
+    lab = labels[best]
+    return Hypothesis("deadband", input=INPUTS[lab["channel"]],
+                      estimate={"deadband": lab["width"], "deadband_pwm_us": lab["width"] * ctx_pwm(ctx)},
+                      sse=sse, channels=(3, 4, 5, 6, 7), extra={"kind": lab["kind"]})
+
+
+def scan_velocity_latency(ctx: Context) -> Hypothesis:
+    ev, segs = ctx.ev, ctx.segments
+    if not ev.available[list(VEL)].any():
+        return Hypothesis("velocity_latency", testable=False, reason="no velocity measurements")
+    Y_list, labels = [], []
+    for d_s in DELAY_GRID_S:
+        d = d_s / ev.dt_s
+        Ys = [s.outputs.copy() for s in segs]
+        for y in Ys:
+            y[:, :3] = shift(y[:, :3], -d)  # true-time velocity = measurement d later
+        Y_list.append(ev.cut(Ys))
+        labels.append({"latency_s": d_s})
+    yh = ctx.variants_residual(Y_list=Y_list)
+    variants = []
+    for lab, y in zip(labels, yh, strict=True):
+        y2 = y.copy()
+        d = lab["latency_s"] / ev.dt_s
+        y2[:, :, :3] = np.moveaxis(shift(np.moveaxis(y[:, :, :3], 1, 0), d), 0, 1)
+        variants.append((lab, ev.residual(y2), None))
+    sse, best, _ = ctx.nested("velocity_latency", variants)
+    return Hypothesis("velocity_latency", estimate={"latency_s": labels[best]["latency_s"]}, sse=sse,
+                      channels=VEL)
+
+
+def scan_gyro_bias(ctx: Context) -> Hypothesis:
+    ev = ctx.ev
+    b = 0.01
+    variants, labels = [], []
+    for name, c in RATE_CH.items():
+        if not ev.available[c]:
+            continue
+        Y2 = ev.Y.copy()
+        Y2[:, :, c] -= b
+        yh = ev.simulate(ev.theta0, Y=Y2)[0]
+        yh[:, :, c] += b
+        base = ev.simulate(ev.theta0)[0]
+        X = _mask_w(ev, (yh - base) / b)[..., None]
+        variants.append(({"output": name}, ev.r0, X))
+        labels.append(name)
+    if not variants:
+        return Hypothesis("gyro_bias", testable=False, reason="no body-rate measurements")
+    sse, best, coefs = ctx.nested("gyro_bias", variants)
+    est = float(np.mean(coefs[best][:, 0]))
+    return Hypothesis("gyro_bias", output=labels[best], estimate={"bias_rad_s": est}, sse=sse,
+                      channels=(RATE_CH[labels[best]],))
+
+
+def _forcing_columns(ctx: Context, F_list: list[np.ndarray]) -> np.ndarray:
+    """Weighted sensitivities (W, L, 8, K) of the outputs to K forcing patterns (W, L, 11) each."""
+    ev = ctx.ev
+    K = len(F_list)
+    U = np.tile(ev.U, (K + 1, 1, 1))
+    Y = np.tile(ev.Y, (K + 1, 1, 1))
+    F = np.concatenate([np.zeros_like(F_list[0])] + F_list)
+    yh = lsim(ev.theta0, U, Y, ev.dt_s, forcing=F, weights=ev.w8, available=ev.available,
+              start=ev.start)[0].reshape(K + 1, ev.W, ev.L, 8)
+    X = _mask_w(ev, yh[1:] - yh[0][None])
+    return np.moveaxis(X, 0, -1)
+
+
+def scan_quadratic_drag(ctx: Context) -> Hypothesis:
+    ev = ctx.ev
+    if not ev.available[list(VEL)].any():
+        return Hypothesis("quadratic_drag", testable=False, reason="no velocity measurements")
+    F_list = []
+    rows = (0, 1, 8)
+    used = []
+    # the drag acts on the model's own velocity (output error): using the measured velocity here
+    # would feed measurements into the simulation and reward any term that does so
+    ysim = ev.simulate(ev.theta0)[0]
+    for j, row in enumerate(rows):
+        if not ev.available[j]:
+            continue
+        v = ysim[:, :, j]
+        F = np.zeros((ev.W, ev.L, 11))
+        F[:, :, row] = -np.abs(v) * v
+        F_list.append(F)
+        used.append("uvw"[j])
+    X = _forcing_columns(ctx, F_list)
+    sse, best, coefs = ctx.nested("quadratic_drag", [({}, ev.r0, X)])
+    c = coefs[0].mean(axis=0)
+    est = {f"drag_{n}_per_m": float(v) for n, v in zip(used, c, strict=True)}
+    return Hypothesis("quadratic_drag", estimate=est, sse=sse, channels=(0, 1))
+
+
+def scan_ground_effect(ctx: Context) -> Hypothesis:
+    ev = ctx.ev
+    alt = np.concatenate([s.alt_m for s in ctx.segments])
+    finite = np.isfinite(alt)
+    if finite.mean() < 0.5:
+        return Hypothesis("ground_effect", testable=False, reason="no altitude in the log")
+    A = ev.cut([np.nan_to_num(s.alt_m, nan=np.nanmedian(alt)) for s in ctx.segments])
+    h = np.maximum(A, 0.0)
+    hmin = float(np.quantile(h, 0.02))
+    variants, labels = [], []
+    for h0 in GROUND_DECAY_M:
+        F = np.zeros((ev.W, ev.L, 11))
+        F[:, :, 8] = np.exp(-(h - hmin) / h0)
+        X = _forcing_columns(ctx, [F])
+        variants.append(({"h0": h0}, ev.r0, X))
+        labels.append(h0)
+    sse, best, coefs = ctx.nested("ground_effect", variants)
+    span = float(np.quantile(h, 0.98) - hmin)
+    return Hypothesis("ground_effect", estimate={"accel_m_s2": float(-coefs[best].mean()),
+                                                  "decay_height_m": labels[best]},
+                      sse=sse, channels=(2,), extra={"height_span_m": span, "min_height_m": hmin})
+
+
+def scan_wind_gust(ctx: Context) -> Hypothesis:
+    """Air-mass motion: an airspeed offset estimated on one window predicts the adjacent one.
+
+    In every window the base model is fitted with three extra per-window nuisance parameters, a
+    constant air-mass velocity (u, v, w) entering the model wherever the body velocity does (the
+    columns of A for u, v, w: drag and speed-stability moments act on airspeed). That estimate is
+    then applied, as a fixed forcing, to the *adjacent* window of the same segment, whose initial
+    states are fitted as usual, and compared with the base model there. A persistent air-mass
+    motion predicts its neighbour; noise fitted by three extra parameters does not.
+    """
+    ev = ctx.ev
+    if not ev.available[list(VEL)].any():
+        return Hypothesis("wind_gust", testable=False, reason="no velocity measurements")
+    A, _ = full_matrices(ev.theta0)
+    cols = (0, 1, 8)
+    Fdir = np.stack([-A[0, :, s_idx] for s_idx in cols])  # (3, 11) forcing per unit air velocity
+    Z = np.zeros_like(ev.U)
+    Y0 = np.zeros_like(ev.Y)
+    N_cols = []
+    for j in range(3):
+        F = np.broadcast_to(Fdir[j], (ev.W, ev.L, 11)).copy()
+        out = lsim(ev.theta0, Z, Y0, ev.dt_s, forcing=F, fit_initial=False)
+        N_cols.append(np.asarray(out)[0])
+    nuis = np.stack(N_cols, axis=-1) * ev.available[None, None, :, None]  # (W, L, 8, 3)
+    _, coef = lsim(ev.theta0, ev.U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available,
+                   nuisance=nuis, start=ev.start, return_coef=True)
+    wind = coef[0, :, -3:]  # (W, 3) m/s
+    # neighbours: window j follows window i directly in the same segment
+    nxt = np.full(ev.W, -1)
+    prv = np.full(ev.W, -1)
+    for i in range(ev.W - 1):
+        (s0, a0), (s1, a1) = ev.starts[i], ev.starts[i + 1]
+        if s0 == s1 and a1 == a0 + ev.L:
+            nxt[i] = i + 1
+            prv[i + 1] = i
+    has = (nxt >= 0) | (prv >= 0)
+    # predicted wind of each window: mean of its neighbours' estimates
+    pred = np.zeros((ev.W, 3))
+    for i in range(ev.W):
+        nb = [j for j in (nxt[i], prv[i]) if j >= 0]
+        if nb:
+            pred[i] = wind[nb].mean(axis=0)
+    F = np.einsum("wj,jn->wn", pred, Fdir)[:, None, :] * np.ones((1, ev.L, 1))
+    yg = ev.simulate(ev.theta0, F=F)[0]
+    sse_g = (ev.residual(yg) ** 2).sum(axis=1)
+    sse_b = (ev.r0 ** 2).sum(axis=1)
+    sse_g[~has] = sse_b[~has]
+    rms = float(np.sqrt((wind[has] ** 2).sum(axis=1).mean())) if has.any() else 0.0
+    return Hypothesis("wind_gust", estimate={"air_velocity_rms_m_s": rms}, sse=sse_g,
+                      channels=(0, 1, 3, 4, 6, 7), extra={"base_sse": sse_b})
