@@ -1,0 +1,502 @@
+"""A simulated ArduPilot helicopter flight controller speaking MAVLink 2 on a virtual serial port.
+
+The helicopter itself (dynamics, pilot, card, effects) comes from a frame source such as
+:class:`hil_replay.sim.SimulatedSession`: its ``frames()`` yields one frame per 50 Hz tick on the FC
+clock with ``t_boot_s``, ``armed``, ``available`` (message names with fresh data this tick) and
+``build(name, mav) -> MAVLink_message``. This module adds what the autopilot's GCS link does:
+
+* HEARTBEAT at 1 Hz always (sysid 1, compid 1, MAV_TYPE_HELICOPTER, MAV_AUTOPILOT_ARDUPILOTMEGA,
+  SAFETY_ARMED from the frame), and no telemetry stream until the ground station asks, as
+  ArduPilot on a fresh link;
+* COMMAND_LONG MAV_CMD_SET_MESSAGE_INTERVAL (param2 µs; 0 = default, -1 = off) and
+  MAV_CMD_REQUEST_MESSAGE, answered with COMMAND_ACK (unknown message -> MAV_RESULT_DENIED, other
+  commands -> MAV_RESULT_UNSUPPORTED; ``refuse_message_interval`` answers UNSUPPORTED so a ground
+  station's REQUEST_DATA_STREAM fallback can be exercised);
+* REQUEST_DATA_STREAM with ArduPilot's stream groups (no ACK, as ArduPilot);
+* each requested message decimated from the 50 Hz frames to the requested rate on the FC clock
+  (never faster than the source provides it);
+* link packet loss (seeded), applied after encoding so the MAVLink ``seq`` shows the gap.
+
+:class:`FcProtocol` is the IO-free part (bytes in, frames in, packets out).
+:class:`SimulatedFlightController` drives it on a :class:`hil_replay.pty.VirtualSerialPort` in
+real time or ``speed``× faster; :func:`serve_simulated_fc` (asyncio) and :class:`SimulatedFCThread`
+(for synchronous callers) are the entry points. Bytes written while no ground station has the port
+open are discarded, as on a real serial line.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import random
+import threading
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from hil_replay.pty import PortUnplugged, VirtualSerialPort
+
+__all__ = [
+    "DEFAULT_RATE_HZ",
+    "STREAM_GROUPS",
+    "TELEMETRY_MESSAGES",
+    "FcConfig",
+    "FcProtocol",
+    "FcStats",
+    "SimulatedFCThread",
+    "SimulatedFlightController",
+    "serve_simulated_fc",
+]
+
+# Telemetry the simulated FC can stream: name -> MAVLink message id.
+TELEMETRY_MESSAGES: dict[str, int] = {
+    name: getattr(mavlink, f"MAVLINK_MSG_ID_{name}")
+    for name in ("SERVO_OUTPUT_RAW", "ATTITUDE", "LOCAL_POSITION_NED", "GLOBAL_POSITION_INT",
+                 "RAW_IMU", "GPS_RAW_INT", "EXTENDED_SYS_STATE", "SYS_STATUS")
+}
+_ID_TO_NAME = {v: k for k, v in TELEMETRY_MESSAGES.items()}
+
+# ArduPilot's REQUEST_DATA_STREAM groups restricted to the messages simulated here.
+# EXTENDED_SYS_STATE sits with EXTENDED_STATUS (as ArduPlane; ArduCopter only sends it on request).
+STREAM_GROUPS: dict[int, tuple[str, ...]] = {
+    mavlink.MAV_DATA_STREAM_RAW_SENSORS: ("RAW_IMU",),
+    mavlink.MAV_DATA_STREAM_EXTENDED_STATUS: ("SYS_STATUS", "GPS_RAW_INT", "EXTENDED_SYS_STATE"),
+    mavlink.MAV_DATA_STREAM_RC_CHANNELS: ("SERVO_OUTPUT_RAW",),
+    mavlink.MAV_DATA_STREAM_POSITION: ("LOCAL_POSITION_NED", "GLOBAL_POSITION_INT"),
+    mavlink.MAV_DATA_STREAM_EXTRA1: ("ATTITUDE",),
+    mavlink.MAV_DATA_STREAM_EXTRA2: (),
+    mavlink.MAV_DATA_STREAM_EXTRA3: (),
+}
+
+# Rate used for SET_MESSAGE_INTERVAL with interval 0 ("default rate").
+DEFAULT_RATE_HZ: dict[str, float] = {
+    "SERVO_OUTPUT_RAW": 4.0, "ATTITUDE": 4.0, "LOCAL_POSITION_NED": 4.0, "GLOBAL_POSITION_INT": 4.0,
+    "RAW_IMU": 4.0, "GPS_RAW_INT": 2.0, "EXTENDED_SYS_STATE": 2.0, "SYS_STATUS": 2.0,
+}
+
+_FRAME_RATE_HZ = 50.0
+
+
+class Frame(Protocol):
+    """What the FC needs from one simulator tick (see :mod:`hil_replay.sim`)."""
+
+    t_boot_s: float
+    armed: bool
+    available: Sequence[str]
+
+    def build(self, name: str, mav: mavlink.MAVLink) -> Any: ...
+
+
+class FrameSource(Protocol):
+    def frames(self) -> Iterable[Frame]: ...
+
+
+@dataclass(frozen=True)
+class FcConfig:
+    """Behaviour of the simulated flight controller.
+
+    ``packet_loss`` is the probability that one outgoing packet is lost on the link (seeded by
+    ``seed``). ``refuse_message_interval`` answers SET_MESSAGE_INTERVAL with UNSUPPORTED.
+    ``idle_after_end`` keeps sending (disarmed) heartbeats after the frame source ends.
+    """
+
+    sysid: int = 1
+    compid: int = 1
+    packet_loss: float = 0.001
+    seed: int = 0
+    refuse_message_interval: bool = False
+    heartbeat_rate_hz: float = 1.0
+    idle_after_end: bool = True
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.packet_loss < 1.0:
+            raise ValueError(f"packet_loss: {self.packet_loss} not in [0, 1)")
+        if not self.heartbeat_rate_hz > 0:
+            raise ValueError(f"heartbeat_rate_hz: {self.heartbeat_rate_hz} must be > 0")
+
+
+@dataclass
+class FcStats:
+    """Counters of one simulated-FC run."""
+
+    frames: int = 0
+    packets_sent: int = 0
+    packets_lost: int = 0          # dropped by the simulated link loss
+    packets_unheard: int = 0       # written while no ground station had the port open
+    bytes_sent: int = 0
+    gcs_messages: int = 0
+    commands: int = 0
+    acks: int = 0
+    last_t_boot_s: float = 0.0
+    sent_by_type: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class _IdleFrame:
+    t_boot_s: float
+    armed: bool = False
+    flight_index: int | None = None
+    available: tuple[str, ...] = ()
+
+    def build(self, name: str, mav: mavlink.MAVLink) -> Any:
+        raise KeyError(name)
+
+
+class FcProtocol:
+    """IO-free MAVLink behaviour of the simulated FC.
+
+    Feed the ground station's bytes with :meth:`receive_data`; call :meth:`on_frame` once per
+    simulator tick; it returns the encoded packets to put on the wire for that tick (after the
+    simulated link loss).
+    """
+
+    def __init__(self, config: FcConfig | None = None) -> None:
+        self.config = config or FcConfig()
+        self.mav = mavlink.MAVLink(None, srcSystem=self.config.sysid, srcComponent=self.config.compid)
+        self._parser = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+        self._parser.robust_parsing = True
+        self._rng = random.Random(self.config.seed)
+        self.intervals_s: dict[str, float] = {}       # active streams: name -> interval (FC clock)
+        self._next_due: dict[str, float] = {}
+        self._once: set[str] = set()                  # REQUEST_MESSAGE one-shots
+        self._heartbeat_once = False
+        self._acks: list[tuple[int, int]] = []
+        self._next_heartbeat_s: float | None = None
+        self.stats = FcStats()
+
+    # ------------------------------------------------------------------ ground station -> FC
+
+    def receive_data(self, data: bytes) -> None:
+        msgs = self._parser.parse_buffer(data) or []
+        for msg in msgs:
+            if msg.get_type() == "BAD_DATA":
+                continue
+            self.stats.gcs_messages += 1
+            self._handle(msg)
+
+    def _for_me(self, target_system: int, target_component: int) -> bool:
+        return (target_system in (0, self.config.sysid)
+                and target_component in (0, self.config.compid))
+
+    def _handle(self, msg: Any) -> None:
+        kind = msg.get_type()
+        if kind == "COMMAND_LONG":
+            if not self._for_me(msg.target_system, msg.target_component):
+                return
+            self.stats.commands += 1
+            self._acks.append((msg.command, self._command(msg)))
+        elif kind == "REQUEST_DATA_STREAM":
+            if self._for_me(msg.target_system, msg.target_component):
+                self._request_data_stream(msg.req_stream_id, msg.req_message_rate, msg.start_stop)
+
+    def _command(self, msg: Any) -> int:
+        if msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            if self.config.refuse_message_interval:
+                return mavlink.MAV_RESULT_UNSUPPORTED
+            msg_id = int(round(msg.param1))
+            name = _ID_TO_NAME.get(msg_id)
+            if name is None:
+                return mavlink.MAV_RESULT_DENIED
+            interval_us = float(msg.param2)
+            if interval_us < 0:
+                self._set_interval(name, None)
+            elif interval_us == 0:
+                self._set_interval(name, 1.0 / DEFAULT_RATE_HZ[name])
+            else:
+                self._set_interval(name, interval_us * 1e-6)
+            return mavlink.MAV_RESULT_ACCEPTED
+        if msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE:
+            msg_id = int(round(msg.param1))
+            if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+                self._heartbeat_once = True
+                return mavlink.MAV_RESULT_ACCEPTED
+            name = _ID_TO_NAME.get(msg_id)
+            if name is None:
+                return mavlink.MAV_RESULT_DENIED
+            self._once.add(name)
+            return mavlink.MAV_RESULT_ACCEPTED
+        return mavlink.MAV_RESULT_UNSUPPORTED
+
+    def _set_interval(self, name: str, interval_s: float | None) -> None:
+        if interval_s is None:
+            self.intervals_s.pop(name, None)
+            self._next_due.pop(name, None)
+            return
+        self.intervals_s[name] = max(interval_s, 1.0 / _FRAME_RATE_HZ)
+        self._next_due.pop(name, None)  # starts at the next frame that has it
+
+    def _request_data_stream(self, stream_id: int, rate_hz: int, start_stop: int) -> None:
+        if stream_id == mavlink.MAV_DATA_STREAM_ALL:
+            groups = list(STREAM_GROUPS.values())
+        else:
+            groups = [STREAM_GROUPS.get(stream_id, ())]
+        on = bool(start_stop) and rate_hz > 0
+        for names in groups:
+            for name in names:
+                self._set_interval(name, 1.0 / min(float(rate_hz), _FRAME_RATE_HZ) if on else None)
+
+    # ------------------------------------------------------------------ FC -> ground station
+
+    def _encode(self, msg: Any, out: list[bytes]) -> None:
+        buf = msg.pack(self.mav)
+        self.mav.seq = (self.mav.seq + 1) % 256
+        if self.config.packet_loss > 0 and self._rng.random() < self.config.packet_loss:
+            self.stats.packets_lost += 1
+            return
+        out.append(buf)
+        kind = msg.get_type()
+        self.stats.sent_by_type[kind] = self.stats.sent_by_type.get(kind, 0) + 1
+
+    def heartbeat(self, armed: bool) -> Any:
+        base_mode = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_STABILIZE_ENABLED
+        if armed:
+            base_mode |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+        status = mavlink.MAV_STATE_ACTIVE if armed else mavlink.MAV_STATE_STANDBY
+        return self.mav.heartbeat_encode(mavlink.MAV_TYPE_HELICOPTER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                         base_mode, 0, status)
+
+    def on_frame(self, frame: Frame) -> list[bytes]:
+        """Packets to send at this simulator tick (ACKs first, then heartbeat, then telemetry)."""
+        t = float(frame.t_boot_s)
+        self.stats.frames += 1
+        self.stats.last_t_boot_s = t
+        out: list[bytes] = []
+        for command, result in self._acks:
+            self._encode(self.mav.command_ack_encode(command, result), out)
+            self.stats.acks += 1
+        self._acks.clear()
+        if self._next_heartbeat_s is None or t >= self._next_heartbeat_s - 1e-6 or self._heartbeat_once:
+            self._encode(self.heartbeat(bool(frame.armed)), out)
+            self._heartbeat_once = False
+            period = 1.0 / self.config.heartbeat_rate_hz
+            if self._next_heartbeat_s is None or t >= self._next_heartbeat_s + period:
+                self._next_heartbeat_s = t + period
+            elif t >= self._next_heartbeat_s - 1e-6:
+                self._next_heartbeat_s += period
+        available = frame.available
+        # A quarter frame of slack absorbs FC-clock jitter in the frame timestamps.
+        slack = 0.25 / _FRAME_RATE_HZ
+        for name in available:
+            interval = self.intervals_s.get(name)
+            due = False
+            if interval is not None:
+                nxt = self._next_due.get(name)
+                if nxt is None or t >= nxt - slack:
+                    due = True
+                    if nxt is None or t >= nxt + interval:   # first time, or fell behind
+                        self._next_due[name] = t + interval
+                    else:
+                        self._next_due[name] = nxt + interval
+            if name in self._once:
+                self._once.discard(name)
+                due = True
+            if due:
+                self._encode(frame.build(name, self.mav), out)
+        self.stats.packets_sent += len(out)
+        return out
+
+
+def _idle_frames(t0_s: float) -> Iterator[_IdleFrame]:
+    k = 1
+    while True:
+        yield _IdleFrame(t_boot_s=t0_s + k / _FRAME_RATE_HZ)
+        k += 1
+
+
+class SimulatedFlightController:
+    """Drive :class:`FcProtocol` from a frame source onto a virtual serial port.
+
+    Parameters
+    ----------
+    session : frame source (``hil_replay.sim.SimulatedSession`` or anything with ``frames()``)
+    port : the virtual serial port the ground station opens
+    speed : wall-clock speed-up; 1 = real time, ``0`` or ``inf`` = as fast as the reader drains
+    config : protocol behaviour (:class:`FcConfig`)
+    """
+
+    def __init__(self, session: FrameSource, port: VirtualSerialPort, *, speed: float = 1.0,
+                 config: FcConfig | None = None) -> None:
+        if speed < 0 or math.isnan(speed):
+            raise ValueError(f"speed: {speed} must be >= 0 (0 or inf = as fast as possible)")
+        self.session = session
+        self.port = port
+        self.speed = math.inf if speed == 0 else float(speed)
+        self.protocol = FcProtocol(config)
+
+    @property
+    def stats(self) -> FcStats:
+        return self.protocol.stats
+
+    async def _read_loop(self, stop: asyncio.Event) -> None:
+        while not stop.is_set():
+            try:
+                data = await self.port.aread()
+            except PortUnplugged:
+                await asyncio.sleep(0.02)
+                continue
+            if data:
+                self.protocol.receive_data(data)
+
+    async def _send(self, packets: list[bytes]) -> None:
+        if not packets:
+            return
+        data = b"".join(packets)
+        try:
+            if not self.port.reader_attached():
+                self.stats.packets_unheard += len(packets)
+                return
+            await self.port.awrite(data)
+            self.stats.bytes_sent += len(data)
+        except PortUnplugged:
+            self.stats.packets_unheard += len(packets)
+
+    async def run(self, stop_event: asyncio.Event | None = None) -> FcStats:
+        """Serve until the frame source ends (or, with ``idle_after_end``, until ``stop_event``)."""
+        stop = stop_event or asyncio.Event()
+        loop = asyncio.get_running_loop()
+        reader = asyncio.create_task(self._read_loop(stop))
+        try:
+            wall0: float | None = None
+            t0 = 0.0
+            last_t = 0.0
+            frames: Iterator[Frame] = iter(self.session.frames())
+            idle = False
+            while not stop.is_set():
+                try:
+                    frame = next(frames)
+                except StopIteration:
+                    if idle or not self.protocol.config.idle_after_end:
+                        break
+                    frames, idle = _idle_frames(last_t), True
+                    # idle frames come at 50 Hz real time at most: nothing to simulate
+                    if math.isinf(self.speed):
+                        wall0, t0, self.speed = loop.time(), last_t, 1.0
+                    continue
+                last_t = float(frame.t_boot_s)
+                if wall0 is None:
+                    wall0, t0 = loop.time(), last_t
+                if math.isinf(self.speed):
+                    await asyncio.sleep(0)
+                else:
+                    delay = wall0 + (last_t - t0) / self.speed - loop.time()
+                    if delay > 0:
+                        await asyncio.sleep(delay)
+                    elif delay < -1.0:  # far behind (stalled reader): do not burst to catch up
+                        wall0 -= delay
+                    else:
+                        await asyncio.sleep(0)
+                await self._send(self.protocol.on_frame(frame))
+        finally:
+            stop.set()
+            reader.cancel()
+            try:
+                await reader
+            except asyncio.CancelledError:
+                pass
+        return self.stats
+
+
+def _make_session(seed: int, flights: int, effects: Sequence[Any], aircraft: Any) -> FrameSource:
+    from hil_replay.sim import SimulatedSession  # the SIM engineer's package
+
+    parsed = []
+    for eff in effects:
+        if isinstance(eff, str):
+            from hil_replay.sim.effects import parse_effect
+            parsed.append(parse_effect(eff))
+        else:
+            parsed.append(eff)
+    return SimulatedSession(seed=seed, flights=flights, effects=tuple(parsed), aircraft=aircraft)
+
+
+async def serve_simulated_fc(link_path: str | None = None, *, speed: float = 1.0, seed: int = 0,
+                             flights: int = 2, effects: Sequence[Any] = (), stop_event: asyncio.Event | None = None,
+                             aircraft: Any = None, config: FcConfig | None = None,
+                             session: FrameSource | None = None,
+                             on_ready: Callable[[str], None] | None = None) -> FcStats:
+    """Run a simulated helicopter FC on a new virtual serial port until ``stop_event`` is set.
+
+    ``on_ready(port_path)`` is called once the port exists (print it there). ``effects`` are
+    ``hil_replay.sim`` effect objects or ``"name:key=value"`` strings; ``session`` overrides the
+    simulator entirely. The FC seed for link loss is ``seed`` unless ``config`` says otherwise.
+    """
+    src = session if session is not None else _make_session(seed, flights, effects, aircraft)
+    cfg = config if config is not None else FcConfig(seed=seed)
+    port = VirtualSerialPort(link_path)
+    try:
+        if on_ready is not None:
+            on_ready(port.path)
+        fc = SimulatedFlightController(src, port, speed=speed, config=cfg)
+        return await fc.run(stop_event)
+    finally:
+        port.close()
+
+
+class SimulatedFCThread:
+    """A simulated FC on its own thread and event loop, for synchronous callers and tests.
+
+    The port exists as soon as the object is constructed (``port_path``); :meth:`start` begins
+    serving, :meth:`stop` ends it, closes the port and re-raises any error from the thread.
+    """
+
+    def __init__(self, link_path: str | None = None, *, speed: float = 1.0, seed: int = 0,
+                 flights: int = 2, effects: Sequence[Any] = (), aircraft: Any = None,
+                 config: FcConfig | None = None, session: FrameSource | None = None) -> None:
+        src = session if session is not None else _make_session(seed, flights, effects, aircraft)
+        self.port = VirtualSerialPort(link_path)
+        self.fc = SimulatedFlightController(src, self.port, speed=speed,
+                                            config=config if config is not None else FcConfig(seed=seed))
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._thread = threading.Thread(target=self._main, name="simulated-fc", daemon=True)
+        self.error: BaseException | None = None
+
+    @property
+    def port_path(self) -> str:
+        return self.port.path
+
+    @property
+    def stats(self) -> FcStats:
+        return self.fc.stats
+
+    def _main(self) -> None:
+        async def body() -> None:
+            self._loop = asyncio.get_running_loop()
+            self._stop = asyncio.Event()
+            self._ready.set()
+            await self.fc.run(self._stop)
+
+        try:
+            asyncio.run(body())
+        except BaseException as exc:  # handed to the caller in stop()
+            self.error = exc
+        finally:
+            self._ready.set()
+
+    def start(self) -> SimulatedFCThread:
+        self._thread.start()
+        self._ready.wait()
+        return self
+
+    def is_alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def stop(self, timeout_s: float = 10.0) -> FcStats:
+        if self._loop is not None and self._stop is not None and self._thread.is_alive():
+            self._loop.call_soon_threadsafe(self._stop.set)
+        self._thread.join(timeout_s)
+        self.port.close()
+        if self.error is not None:
+            raise self.error
+        if self._thread.is_alive():
+            raise TimeoutError(f"{self.port_path}: simulated FC did not stop within {timeout_s} s")
+        return self.stats
+
+    def __enter__(self) -> SimulatedFCThread:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

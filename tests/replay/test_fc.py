@@ -1,0 +1,160 @@
+"""Simulated flight controller protocol over a real pty with a pyserial/pymavlink ground station."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from hil_replay.fc import FcConfig, FcProtocol, SimulatedFCThread
+from tests.replay.conftest import FakeHelicopter, GcsReader
+
+TELEMETRY = {"ATTITUDE", "SERVO_OUTPUT_RAW", "RAW_IMU", "LOCAL_POSITION_NED", "GLOBAL_POSITION_INT",
+             "GPS_RAW_INT", "SYS_STATUS", "EXTENDED_SYS_STATE"}
+
+
+def _set_interval(gcs: GcsReader, msg_id: int, interval_us: float) -> None:
+    gcs.send(gcs.out.command_long_encode(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                         msg_id, interval_us, 0, 0, 0, 0, 0))
+
+
+def _fc_times(msgs, kind: str) -> np.ndarray:
+    return np.array([m.time_boot_ms / 1000 for m in msgs if m.get_type() == kind])
+
+
+def test_heartbeats_only_until_asked_then_requested_rates():
+    heli = FakeHelicopter(duration_s=60.0, armed_s=((5.0, 40.0),))
+    with SimulatedFCThread(speed=10.0, session=heli, config=FcConfig(packet_loss=0.0)) as fc:
+        gcs = GcsReader(fc.port_path)
+        try:
+            gcs.wait_for(lambda m: m.get_type() == "HEARTBEAT")
+            time.sleep(0.3)  # 3 s of FC time with nobody asking
+            before = gcs.snapshot()
+            assert {m.get_type() for m in before} == {"HEARTBEAT"}
+            hb = before[0]
+            assert (hb.type, hb.autopilot) == (mavlink.MAV_TYPE_HELICOPTER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+            assert hb.get_srcSystem() == 1 and hb.get_srcComponent() == 1
+            n_before = len(before)
+
+            _set_interval(gcs, mavlink.MAVLINK_MSG_ID_ATTITUDE, 1e6 / 20)       # 20 Hz
+            _set_interval(gcs, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 1e6 / 10)
+            _set_interval(gcs, 9999, 1e6)                                         # unknown id
+            acks = []
+            deadline = time.monotonic() + 5
+            while len(acks) < 3 and time.monotonic() < deadline:
+                acks = [m for m in gcs.snapshot() if m.get_type() == "COMMAND_ACK"]
+                time.sleep(0.01)
+            assert [(a.command, a.result) for a in acks] == [
+                (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_ACCEPTED),
+                (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_ACCEPTED),
+                (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_DENIED)]
+            time.sleep(2.5)  # 25 s of FC time
+            msgs = gcs.snapshot()[n_before:]
+        finally:
+            gcs.close()
+    kinds = {m.get_type() for m in msgs}
+    assert kinds == {"HEARTBEAT", "COMMAND_ACK", "ATTITUDE", "LOCAL_POSITION_NED"}
+    for kind, rate_hz in (("ATTITUDE", 20.0), ("LOCAL_POSITION_NED", 10.0)):
+        t = _fc_times(msgs, kind)
+        assert len(t) > 100
+        measured = (len(t) - 1) / (t[-1] - t[0])
+        assert abs(measured / rate_hz - 1) < 0.10, (kind, measured)
+    # heartbeats carry the armed flag of their frame (armed at FC time 8..43 s): date each heartbeat
+    # by the ATTITUDE sent just before it in the same tick stream
+    hbs = [m for m in gcs.msgs if m.get_type() == "HEARTBEAT"]
+    assert not any(h.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED for h in hbs[:3])
+    checked = 0
+    t_last = None
+    for m in gcs.msgs:
+        if m.get_type() == "ATTITUDE":
+            t_last = m.time_boot_ms / 1000
+        elif m.get_type() == "HEARTBEAT" and t_last is not None:
+            if min(abs(t_last - 8.0), abs(t_last - 43.0)) > 0.1:
+                assert bool(m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED) == (8.0 <= t_last < 43.0)
+                checked += 1
+    assert checked >= 20
+
+
+def test_request_data_stream_fallback_when_interval_refused():
+    heli = FakeHelicopter(duration_s=40.0)
+    cfg = FcConfig(packet_loss=0.0, refuse_message_interval=True)
+    with SimulatedFCThread(speed=10.0, session=heli, config=cfg) as fc:
+        gcs = GcsReader(fc.port_path)
+        try:
+            gcs.wait_for(lambda m: m.get_type() == "HEARTBEAT")
+            _set_interval(gcs, mavlink.MAVLINK_MSG_ID_ATTITUDE, 1e6 / 20)
+            ack = gcs.wait_for(lambda m: m.get_type() == "COMMAND_ACK")
+            assert ack.result == mavlink.MAV_RESULT_UNSUPPORTED
+            time.sleep(0.2)
+            assert not any(m.get_type() == "ATTITUDE" for m in gcs.snapshot())
+            gcs.send(gcs.out.request_data_stream_encode(1, 1, mavlink.MAV_DATA_STREAM_EXTRA1, 25, 1))
+            gcs.send(gcs.out.request_data_stream_encode(1, 1, mavlink.MAV_DATA_STREAM_EXTENDED_STATUS, 2, 1))
+            gcs.wait_for(lambda m: m.get_type() == "ATTITUDE")
+            time.sleep(2.0)
+            gcs.send(gcs.out.request_data_stream_encode(1, 1, mavlink.MAV_DATA_STREAM_EXTRA1, 0, 0))
+            time.sleep(0.3)
+            n_stop = len(gcs.snapshot())
+            time.sleep(0.5)
+            msgs = gcs.snapshot()
+        finally:
+            gcs.close()
+    t = _fc_times(msgs, "ATTITUDE")
+    assert abs((len(t) - 1) / (t[-1] - t[0]) / 25.0 - 1) < 0.10
+    kinds = {m.get_type() for m in msgs}
+    assert {"SYS_STATUS", "GPS_RAW_INT", "EXTENDED_SYS_STATE"} <= kinds
+    assert "RAW_IMU" not in kinds and "SERVO_OUTPUT_RAW" not in kinds
+    assert not any(m.get_type() == "ATTITUDE" for m in msgs[n_stop:])  # stream stopped
+
+
+def _feed(proto: FcProtocol, gcs_mav: mavlink.MAVLink, msg) -> None:
+    proto.receive_data(msg.pack(gcs_mav))
+
+
+def test_protocol_request_message_disable_and_link_loss():
+    heli = FakeHelicopter(duration_s=200.0)
+    proto = FcProtocol(FcConfig(packet_loss=0.05, seed=3))
+    gcs = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+    parser = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+    frames = iter(heli.frames())
+    out: list[bytes] = []
+    for _ in range(10):
+        out += proto.on_frame(next(frames))
+    _feed(proto, gcs, gcs.command_long_encode(1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
+                                              mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, 0, 0, 0, 0, 0, 0))
+    _feed(proto, gcs, gcs.command_long_encode(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                              mavlink.MAVLINK_MSG_ID_RAW_IMU, 0, 0, 0, 0, 0, 0))
+    _feed(proto, gcs, gcs.command_long_encode(1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0,
+                                              1, 0, 0, 0, 0, 0, 0))
+    _feed(proto, gcs, gcs.command_long_encode(7, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                              mavlink.MAVLINK_MSG_ID_ATTITUDE, 20000, 0, 0, 0, 0, 0))
+    for _ in range(5000):
+        out += proto.on_frame(next(frames))
+    _feed(proto, gcs, gcs.command_long_encode(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                              mavlink.MAVLINK_MSG_ID_RAW_IMU, -1, 0, 0, 0, 0, 0))
+    for _ in range(500):
+        more = proto.on_frame(next(frames))
+        out += more
+    msgs = [m for m in parser.parse_buffer(b"".join(out)) or []]
+    kinds = [m.get_type() for m in msgs]
+    assert kinds.count("GPS_RAW_INT") == 1                    # one-shot
+    assert "ATTITUDE" not in kinds                             # command for another system ignored
+    acks = [(m.command, m.result) for m in msgs if m.get_type() == "COMMAND_ACK"]
+    assert acks == [(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAV_RESULT_ACCEPTED),
+                    (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_ACCEPTED),
+                    (mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_RESULT_UNSUPPORTED),
+                    (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_ACCEPTED)]
+    imu_t = np.array([m.time_usec * 1e-6 for m in msgs if m.get_type() == "RAW_IMU"])
+    # default rate (4 Hz) until disabled after frame 5010 (FC time 3 + 100.2 s), thinned by 5 % loss
+    assert imu_t.max() < 3.0 + 5010 / 50
+    assert abs(np.median(np.diff(imu_t)) - 0.25) < 0.01
+    # link loss: seq gaps in the received stream match the loss counter, roughly 5 %
+    seqs = np.array([m.get_seq() for m in msgs])
+    steps = np.diff(seqs) % 256
+    assert np.all(steps >= 1)
+    encoded = proto.stats.packets_sent + proto.stats.packets_lost
+    last_index = int(seqs[0] + steps.sum())
+    missing = int(seqs[0]) + int(np.sum(steps - 1)) + (encoded - 1 - last_index)
+    assert missing == proto.stats.packets_lost
+    total = proto.stats.packets_lost + len(msgs)
+    assert 0.03 < proto.stats.packets_lost / total < 0.07
