@@ -69,10 +69,12 @@ class Evaluator:
     """
 
     def __init__(self, segments: list[SegmentArrays], dt_s: float, theta0: np.ndarray,
-                 available: np.ndarray, *, window_s: float = 5.0, folds: int = 3, start_s: float = 0.4):
+                 available: np.ndarray, *, window_s: float = 3.0, folds: int = 3, start_s: float = 0.4,
+                 ridge: float = 1e-2):
         self.segments = segments
         self.dt_s = float(dt_s)
         self.theta0 = np.asarray(theta0, float).copy()
+        self.ridge = float(ridge)
         self.available = np.asarray(available, bool)
         self.L = max(int(round(window_s / dt_s)), 20)
         self.starts = window_starts(segments, self.L)
@@ -142,7 +144,7 @@ class Evaluator:
 
     # ---------------------------------------------------------------------------------------
     def heldout(self, r: np.ndarray, X: np.ndarray | None = None,
-                ridge: float = 1e-3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                ridge: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Held-out costs of a variant after the k-fold re-fit.
 
         Parameters
@@ -150,7 +152,7 @@ class Evaluator:
         r : array (W, L, 8), weighted residual of the variant at theta0
         X : array (W, L, 8, K) or None, weighted sensitivities d yhat / d b of the variant's linear
             parameters b (the re-fit solves r ~ -J d_theta + X b)
-        ridge : Levenberg damping relative to the mean diagonal of the normal matrix
+        ridge : Levenberg damping relative to the mean diagonal of the normal matrix (default: self.ridge)
 
         Returns
         -------
@@ -158,6 +160,7 @@ class Evaluator:
         train : array (folds,), training cost of each fold's re-fit
         coef : array (folds, K), the fitted linear parameters per fold (K = 0 if X is None)
         """
+        ridge = self.ridge if ridge is None else ridge
         W = self.W
         rf = r.reshape(W, -1)
         Jn = self.Jw / self.col
@@ -191,6 +194,24 @@ class Evaluator:
             if K:
                 coef[f] = d[N_PARAMS:] / xs
         return sse, train, coef
+
+    def heldout_residual(self, r: np.ndarray, ridge: float | None = None) -> np.ndarray:
+        """Weighted held-out residual (W, L, 8) of the base-model k-fold re-fit (for locating the gap)."""
+        ridge = self.ridge if ridge is None else ridge
+        W = self.W
+        rf = r.reshape(W, -1)
+        Jn = self.Jw / self.col
+        Mtr = np.einsum("wni,wn->wi", Jn, rf)
+        out = np.empty_like(rf)
+        for f in range(self.folds):
+            tr = self.fold != f
+            te = ~tr
+            G = self.JtJ[tr].sum(0)
+            b = Mtr[tr].sum(0)
+            lam = ridge * np.trace(G) / N_PARAMS
+            d = np.linalg.solve(G + lam * np.eye(N_PARAMS), b)
+            out[te] = rf[te] - np.einsum("wni,i->wn", Jn[te], d)
+        return out.reshape(r.shape)
 
     def fit_all(self, r: np.ndarray, X: np.ndarray | None = None, ridge: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
         """One Gauss-Newton step on all windows: returns (d_theta (31,), linear params (K,))."""

@@ -1,0 +1,308 @@
+"""``diagnose(model, prepared)``: locate the gap, attribute it to a catalogue effect, measure the shrink.
+
+Steps (all on the prepared in-air segments, cut into windows rotating through k folds):
+
+1. base model: the given model (or ``groundstation.sysid.identify.identify`` when None), refined
+   by Levenberg-Marquardt on the windows, with every initial state fitted per window;
+2. locate: k-fold held-out residual of the base model per channel / window / band / condition
+   (:mod:`groundstation.gap.locate`), noise floors from the raw data (:mod:`groundstation.gap.noise`);
+3. attribute: every hypothesis of :mod:`groundstation.gap.hypotheses` scored on held-out windows
+   (nested selection, paired bootstrap, Bonferroni), plus the model-free fingerprints of
+   :mod:`groundstation.gap.fingerprints` (spectral lines for rotor vibration, Euler kinematics
+   for gyro bias);
+4. report: the DESIGN.md ``heli-gap-report/1`` dict (:mod:`groundstation.gap.report`).
+
+What it leaves to others: reading logs and preparing data (``dsp.prepare``), identification
+(``sysid.identify``), files, plots and printing (the ``diagnose`` command). Pure: no IO.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from groundstation.gap import attribute, fingerprints, hypotheses, locate, noise
+from groundstation.gap.evaluate import Evaluator, SegmentArrays
+from groundstation.gap.report import build_report
+from groundstation.sysid.model import INPUTS, OUTPUTS, HoverModel
+
+CATALOGUE = ("input_delay", "rate_limit", "deadband", "ground_effect", "wind_gust", "quadratic_drag",
+             "gyro_bias", "rotor_vibration", "velocity_latency")
+
+
+@dataclass(frozen=True)
+class DiagnoseConfig:
+    """Hyper-parameters of the diagnosis (none is a threshold on a signal level)."""
+
+    window_s: float = 3.0  # scoring window
+    folds: int = 3  # rotating hold-out
+    refine_iterations: int = 8  # Levenberg-Marquardt polish of the base model
+    alpha: float = 0.01  # family-wise false-alarm probability of the verdict
+    n_boot: int = 2000
+    min_windows: int = 6
+    excitation_snr: float = 3.0  # channel std / noise std below which a channel is "not excited"
+    ridge: float = 1e-2  # damping of the per-fold re-fit
+
+
+@dataclass
+class Diagnosis:
+    """The report plus the arrays the command plots."""
+
+    report: dict[str, Any]
+    arrays: dict[str, Any] = field(default_factory=dict)
+
+
+def segments_from_prepared(prepared: Any) -> tuple[list[SegmentArrays], np.ndarray]:
+    """SegmentArrays of a ``dsp.prepare.PreparedData`` and the channels available in all of them."""
+    segs, avail = [], np.ones(8, bool)
+    for s in prepared.segments:
+        n = np.asarray(s.t_s).shape[0]
+        alt = getattr(s, "alt_m", None)
+        alt = np.full(n, np.nan) if alt is None else np.asarray(alt, float)
+        raw = getattr(s, "outputs_raw", None)
+        out = np.asarray(s.outputs, float)
+        segs.append(SegmentArrays(t_s=np.asarray(s.t_s, float), inputs=np.asarray(s.inputs, float),
+                                  outputs=out, outputs_raw=out if raw is None else np.asarray(raw, float),
+                                  alt_m=alt, flight=int(getattr(s, "flight", 0))))
+        a = getattr(s, "available", None)
+        if a is not None:
+            avail &= np.asarray(a, bool)
+    # a channel that is all-NaN or constant is not available either
+    for c in range(8):
+        y = np.concatenate([s.outputs[:, c] for s in segs]) if segs else np.zeros(0)
+        if y.size == 0 or not np.isfinite(y).all() or np.nanstd(y) == 0:
+            avail[c] = False
+    cleaned = []
+    for s in segs:
+        cleaned.append(SegmentArrays(t_s=s.t_s, inputs=np.nan_to_num(s.inputs),
+                                     outputs=np.where(avail, np.nan_to_num(s.outputs), 0.0),
+                                     outputs_raw=np.where(avail, np.nan_to_num(s.outputs_raw), 0.0),
+                                     alt_m=s.alt_m, flight=s.flight))
+    return cleaned, avail
+
+
+def _trims(prepared: Any) -> np.ndarray:
+    tr = getattr(prepared, "output_trim", None)
+    if tr is None:
+        return np.zeros(8)
+    if isinstance(tr, dict):
+        return np.array([float(tr.get(k, 0.0) or 0.0) for k in OUTPUTS])
+    arr = np.asarray(tr, float).ravel()
+    return arr if arr.shape == (8,) else np.zeros(8)
+
+
+def diagnose(model: HoverModel | None, prepared: Any, *, seed: int = 0,
+             config: DiagnoseConfig | None = None) -> dict[str, Any]:
+    """The ``heli-gap-report/1`` gap report of ``model`` on ``prepared`` (see module docstring)."""
+    return run_diagnosis(model, prepared, seed=seed, config=config).report
+
+
+def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
+                  config: DiagnoseConfig | None = None) -> Diagnosis:
+    """Like :func:`diagnose` but also returns the arrays behind the report (for plots)."""
+    cfg = config or DiagnoseConfig()
+    rng = np.random.default_rng(seed)
+    segs, avail = segments_from_prepared(prepared)
+    dt = float(prepared.dt_s)
+    L = int(round(cfg.window_s / dt))
+    segs = [s for s in segs if s.t_s.shape[0] >= L]
+    if not segs:
+        raise ValueError(f"no in-air segment of at least {cfg.window_s:g} s to diagnose")
+    if avail.sum() < 2:
+        raise ValueError(f"too few measured output channels to diagnose: {[OUTPUTS[c] for c in np.flatnonzero(avail)]}")
+    notes: list[str] = list(getattr(prepared, "notes", []) or [])
+    identified_here = model is None
+    if model is None:
+        from groundstation.sysid.identify import identify
+
+        model = identify(prepared, seed=seed)
+        notes.append("base model identified on the same data; hold-out by k-fold re-fit over windows")
+    theta_given = model.theta
+    ev = Evaluator(segs, dt, theta_given, avail, window_s=cfg.window_s, folds=cfg.folds, ridge=cfg.ridge)
+    if ev.W < cfg.min_windows:
+        raise ValueError(f"too little in-air data: {ev.W} windows of {cfg.window_s:g} s")
+    given_metrics = None
+    if not identified_here:
+        yg = ev.simulate(theta_given)[0]
+        given_metrics = locate.channel_metrics(ev.Y, yg, ev.mask, avail)
+    ev.refine(cfg.refine_iterations)
+
+    # ---------------------------------------------------------------- noise floor, excitation
+    nf = noise.noise_floor([s.outputs_raw for s in segs], [s.outputs for s in segs])
+    out_excited = avail & (nf["signal_std"] > cfg.excitation_snr * nf["sigma_smoothed"])
+    u_all = np.concatenate([s.inputs for s in segs])
+    u_noise = noise.raw_noise_std([s.inputs for s in segs])
+    u_std = u_all.std(axis=0)
+    in_excited = (u_std > cfg.excitation_snr * np.maximum(u_noise, 1e-12)) & (u_std > 1e-4)
+
+    # ---------------------------------------------------------------- locate
+    e_w = ev.heldout_residual(ev.r0)  # weighted
+    e = e_w / np.where(ev.w8 > 0, ev.w8, 1.0)
+    yhat_ho = ev.Y - e
+    chan = locate.channel_metrics(ev.Y, yhat_ho, ev.mask, avail)
+    energy_w = (e_w ** 2).sum(axis=(1, 2))
+    flag, nominal = locate.flag_windows(energy_w)
+    windows_s = locate.merge_intervals([(float(ev.T[i, 0]), float(ev.T[i, -1] + dt)) for i in np.flatnonzero(flag)])
+    noise_psd = 2 * dt * nf["sigma_smoothed"] ** 2
+    band = locate.worst_band(e[:, ev.start:], ev.U[:, ev.start:], dt, noise_psd, ev.w8)
+    feats = _window_features(ev)
+    cond = locate.conditions(energy_w, feats)
+    ho_nrmse = np.array([np.sqrt((e_w[:, ev.start:, c] ** 2).sum() / ev.energy[:, c].sum())
+                         if ev.energy[:, c].sum() > 0 else np.nan for c in range(8)])
+    gap_ratio = ho_nrmse / np.where(nf["nrmse_floor"] > 0, nf["nrmse_floor"], np.nan)
+    order = np.argsort(-np.nan_to_num(gap_ratio, nan=-1))
+    worst = [OUTPUTS[c] for c in order[:2] if avail[c]]
+
+    # ---------------------------------------------------------------- attribute
+    ctx = hypotheses.Context(ev, segs)
+    ctx.pwm_per_unit = float(getattr(prepared, "pwm_per_unit", 500.0))  # type: ignore[attr-defined]
+    in_ch = [c for c in range(4) if in_excited[c]]
+    hyps: list[hypotheses.Hypothesis] = []
+    if in_ch:
+        hyps += [hypotheses.scan_input_delay(ctx, in_ch), hypotheses.scan_rate_limit(ctx, in_ch),
+                 hypotheses.scan_deadband(ctx, in_ch)]
+    else:
+        for name in ("input_delay", "rate_limit", "deadband"):
+            hyps.append(hypotheses.Hypothesis(name, testable=False, reason="no excited input channel"))
+    hyps += [hypotheses.scan_velocity_latency(ctx), hypotheses.scan_gyro_bias(ctx),
+             hypotheses.scan_quadratic_drag(ctx), hypotheses.scan_ground_effect(ctx),
+             hypotheses.scan_wind_gust(ctx)]
+
+    # model-free fingerprints
+    yfit = ev.simulate(ev.theta0)[0]
+    resid_raw = (ev.Yraw - yfit)[:, ev.start:]
+    lines, spectra = fingerprints.spectral_lines(resid_raw, ev.U[:, ev.start:], dt, avail, alpha=cfg.alpha)
+    kin = fingerprints.kinematic_rate_offsets(ev.Y, dt, avail, trims=_trims(prepared))
+
+    n_tests = sum(h.testable for h in hyps) + 1
+    crit = cfg.alpha / n_tests
+    results = []
+    for h in hyps:
+        if not h.testable or h.sse is None:
+            continue
+        base = h.extra.get("base_sse", ctx.base_sse)
+        s = attribute.score(base, h.sse, ev.energy, h.channels, rng, n_boot=min(cfg.n_boot, 1000))
+        s.p_value = attribute.paired_bootstrap(base.sum(1), h.sse.sum(1), rng, cfg.n_boot)
+        results.append((h, s))
+    # rotor vibration: score on the raw residual of the line channels
+    vib = None
+    if lines:
+        vib = _vibration_candidate(lines, resid_raw, ev, dt)
+        results.append(vib)
+    # gyro bias: the kinematic evidence decides p and q (model-free); r relies on the model scan
+    kin_sig = {k: v for k, v in kin.items() if v.log10_p < np.log10(crit)}
+
+    candidates = []
+    for h, s in results:
+        sig = s.p_value < crit and s.score_pct > 0
+        ev_txt = _evidence(h, s, kin, lines)
+        if h.effect == "gyro_bias" and h.output in ("p", "q"):
+            sig = h.output in kin_sig and sig
+        candidates.append({"hyp": h, "score": s, "significant": bool(sig), "evidence": ev_txt})
+    # a significant kinematic offset on a channel the model scan did not pick still counts
+    if kin_sig:
+        best_k = min(kin_sig.values(), key=lambda r: r.log10_p)
+        gb = next((c for c in candidates if c["hyp"].effect == "gyro_bias"), None)
+        if gb is not None and gb["hyp"].output != best_k.channel:
+            gb["hyp"].output = best_k.channel
+            gb["hyp"].estimate = {"bias_rad_s": best_k.offset_rad_s}
+            gb["significant"] = gb["score"].score_pct > 0
+            gb["evidence"] = _evidence(gb["hyp"], gb["score"], kin, lines)
+
+    sig = [c for c in candidates if c["significant"]]
+    sig.sort(key=lambda c: -c["score"].score_pct)
+    gap_significant = bool(np.nanmax(np.where(out_excited, gap_ratio, np.nan)) > 3.0) if out_excited.any() else False
+    if sig:
+        verdict = sig[0]["hyp"].effect
+    elif gap_significant and flag.sum() >= max(2, int(0.1 * ev.W)):
+        verdict = "unexplained"
+    else:
+        verdict = "none"
+
+    untestable = {h.effect: h.reason for h in hyps if not h.testable}
+    if hypotheses.Hypothesis and "ground_effect" not in untestable:
+        ge = next(h for h in hyps if h.effect == "ground_effect")
+        if ge.extra.get("height_span_m", 1.0) < 0.5:
+            untestable["ground_effect"] = "height barely varies: ground effect not excited"
+    excitation = {"inputs": {INPUTS[c]: ("ok" if in_excited[c] else "too little excitation") for c in range(4)},
+                  "outputs": {OUTPUTS[c]: ("ok" if out_excited[c] else ("not measured" if not avail[c] else "too little excitation"))
+                              for c in range(8)}}
+    report = build_report(
+        verdict=verdict, channels=chan, worst=worst, windows_s=windows_s, band=band, cond=cond,
+        ranked=sig, others=[c for c in candidates if not c["significant"]], untestable=untestable,
+        noise=nf, gap_ratio=gap_ratio, excitation=excitation, notes=notes, given_metrics=given_metrics,
+        base_params=ev.theta0, kinematic=kin, lines=lines, nominal=nominal, n_windows=ev.W,
+        window_s=cfg.window_s, folds=cfg.folds, alpha=cfg.alpha, gap_significant=gap_significant,
+    )
+    arrays = {"t_s": ev.T, "Y": ev.Y, "Yraw": ev.Yraw, "yhat": yhat_ho, "mask": ev.mask, "flag": flag,
+              "spectra": spectra, "band": band, "candidates": candidates, "evaluator": ev, "ctx": ctx}
+    return Diagnosis(report=report, arrays=arrays)
+
+
+def _window_features(ev: Evaluator) -> dict[str, np.ndarray]:
+    alt = ev.cut([s.alt_m for s in ev.segments])
+    feats = {
+        "input_amplitude": np.sqrt((ev.U[:, ev.start:] ** 2).mean(axis=(1, 2))),
+        "input_rate": np.sqrt((np.diff(ev.U[:, ev.start:], axis=1) ** 2).mean(axis=(1, 2))) / ev.dt_s,
+    }
+    if np.isfinite(alt).mean() > 0.5:
+        feats["height_m"] = np.nanmean(alt, axis=1)
+    if ev.available[0] and ev.available[1]:
+        feats["speed_m_s"] = np.sqrt((ev.Y[:, :, 0] ** 2 + ev.Y[:, :, 1] ** 2).mean(axis=1))
+    return feats
+
+
+def _vibration_candidate(lines: list[fingerprints.Line], resid_raw: np.ndarray, ev: Evaluator,
+                         dt: float) -> tuple[hypotheses.Hypothesis, attribute.Score]:
+    """Rotor vibration: per-window sinusoid at each line removed from the raw residual (held-out not
+    needed: two parameters per window and line, whose chance share of the energy is subtracted)."""
+    chans = sorted({OUTPUTS.index(c) for ln in lines for c in ln.channels})
+    base = (resid_raw * ev.w8) ** 2
+    after = resid_raw.copy()
+    for ln in lines:
+        for c in chans:
+            after[..., c] -= fingerprints.sinusoid_fit(after[..., c], dt, ln.frequency_hz)
+    alt = (after * ev.w8) ** 2
+    Lw = resid_raw.shape[1]
+    chance = 1.0 - 2.0 * len(lines) / Lw  # expected share left if the "line" were white noise
+    sse_b = base.sum(axis=1)
+    sse_a = alt.sum(axis=1) / max(chance, 0.5)
+    energy = ((ev.Yraw[:, ev.start:] - ev.Yraw[:, ev.start:].reshape(-1, 8).mean(0)) * ev.w8) ** 2
+    sc = attribute.score(sse_b, np.minimum(sse_a, sse_b * 1.5), energy.sum(axis=1), tuple(chans),
+                         np.random.default_rng(0), n_boot=500)
+    sc.p_value = 10 ** max(min(ln.log10_p for ln in lines), -300)
+    top = lines[0]
+    h = hypotheses.Hypothesis("rotor_vibration", estimate={"frequency_hz": round(top.frequency_hz, 3),
+                                                            **{f"amplitude_{k}": v for k, v in top.amplitude.items()}},
+                              sse=None, channels=tuple(chans), extra={"lines": lines})
+    return h, sc
+
+
+def _evidence(h: hypotheses.Hypothesis, s: attribute.Score, kin: dict, lines: list) -> str:
+    base = f"held-out cost {s.score_pct:+.1f}% (p={s.p_value:.2g})"
+    e = h.effect
+    if e == "input_delay":
+        return f"{h.input} delayed {1000 * h.estimate['delay_s']:.0f} ms fits best; {base}"
+    if e == "rate_limit":
+        return f"{h.input} slew-limited at {h.estimate['rate_limit_per_s']:.2f} /s fits best; {base}"
+    if e == "deadband":
+        return f"{h.input} {h.extra.get('kind', 'deadband')} of +-{h.estimate['deadband']:.4f} fits best; {base}"
+    if e == "velocity_latency":
+        return f"velocities lag attitude by {1000 * h.estimate['latency_s']:.0f} ms; {base}"
+    if e == "gyro_bias":
+        k = kin.get(h.output or "")
+        kt = f"; Euler-kinematics offset {1000 * k.offset_rad_s:.2f} mrad/s (t={k.t_stat:.1f})" if k else ""
+        return f"constant offset on {h.output} of {1000 * h.estimate['bias_rad_s']:.2f} mrad/s{kt}; {base}"
+    if e == "quadratic_drag":
+        return f"-|v|v drag terms {h.estimate}; {base}"
+    if e == "ground_effect":
+        return f"w force decaying with height ({h.estimate.get('decay_height_m')} m); {base}"
+    if e == "wind_gust":
+        return f"air-mass velocity from one window predicts the next (rms {h.estimate.get('air_velocity_rms_m_s', 0):.2f} m/s); {base}"
+    if e == "rotor_vibration":
+        ln = lines[0]
+        return (f"narrow line at {ln.frequency_hz:.2f} Hz in {','.join(ln.channels)} "
+                f"({ln.ratio:.1f}x local median, log10 p={ln.log10_p:.1f})")
+    return base

@@ -1,0 +1,200 @@
+"""Model-light fingerprints: statistics that point at one effect, each referred to its own noise floor.
+
+* :func:`spectral_lines` — narrow lines in the raw output residual spectra (rotor vibration aliased
+  into the 50 Hz rates): the window-averaged periodogram of each channel against the median of its
+  neighbouring bins, significant by the chi-square law of an average of ``W`` periodograms
+  (Bonferroni over bins and channels), and not present in the input spectra.
+* :func:`kinematic_rate_offsets` — a constant offset between a measured body rate and the rate
+  implied by the measured Euler angles (eq. 3 inverted:
+  ``theta_dot = q cos(phi) - r sin(phi)``, ``phi_dot = p + (q sin(phi) + r cos(phi)) tan(theta)``),
+  tested by a t statistic over windows (the between-window scatter is the noise floor). Needs no
+  model at all.
+
+Arrays: windows ``(W, L, C)``. Pure numpy/scipy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from groundstation.sysid.model import OUTPUTS
+
+
+@dataclass
+class Line:
+    frequency_hz: float
+    channels: list[str]
+    ratio: float  # peak power / local median (largest channel)
+    log10_p: float  # log10 of the Bonferroni-corrected p-value (most significant channel)
+    amplitude: dict[str, float] = field(default_factory=dict)  # sinusoid amplitude per channel
+
+
+def _detrend(x: np.ndarray) -> np.ndarray:
+    """Remove mean and linear trend along axis 1 of (W, L, C)."""
+    L = x.shape[1]
+    t = np.linspace(-1, 1, L)
+    xm = x - x.mean(axis=1, keepdims=True)
+    slope = np.einsum("wlc,l->wc", xm, t) / (t @ t)
+    return xm - slope[:, None, :] * t[None, :, None]
+
+
+def averaged_periodogram(x: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Hann-tapered periodograms of (W, L, C) windows averaged over W: (f (F,), P (F, C))."""
+    L = x.shape[1]
+    win = np.hanning(L)
+    X = np.fft.rfft(_detrend(x) * win[None, :, None], axis=1)
+    P = (np.abs(X) ** 2).mean(axis=0) * 2 * dt_s / (win @ win)
+    f = np.fft.rfftfreq(L, dt_s)
+    return f, P
+
+
+def _line_stats(P: np.ndarray, n_avg: int, half: int = 6, guard: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Ratio to the local median and log10 survival probability per bin, (F, C)."""
+    F = P.shape[0]
+    ratio = np.ones_like(P)
+    for k in range(F):
+        lo, hi = max(0, k - half - guard), min(F, k + half + guard + 1)
+        idx = [j for j in range(lo, hi) if abs(j - k) > guard]
+        if len(idx) < 4:
+            continue
+        ref = np.median(P[idx], axis=0)
+        ratio[k] = P[k] / np.where(ref > 0, ref, np.inf)
+    dof = 2 * n_avg
+    # the median of chi2_dof/dof sits slightly below its mean: correct the reference
+    med = stats.chi2.median(dof) / dof
+    logp = stats.chi2.logsf(ratio * med * dof, dof) / np.log(10)
+    return ratio, logp
+
+
+def spectral_lines(resid: np.ndarray, inputs: np.ndarray, dt_s: float, available: np.ndarray,
+                   *, alpha: float = 1e-3, min_hz: float | None = None) -> tuple[list[Line], dict]:
+    """Significant narrow spectral lines in output residuals that the inputs do not contain.
+
+    Parameters
+    ----------
+    resid : array (W, L, 8), raw output residuals (measured raw minus model), per window
+    inputs : array (W, L, 4), inputs on the same windows
+    dt_s : float, sample period (s)
+    available : array (8,) bool
+    alpha : family-wise false-alarm probability (Bonferroni over bins x channels)
+    min_hz : lowest frequency tested (default: 3 frequency bins)
+
+    Returns
+    -------
+    lines : list of Line, strongest first
+    spectra : dict with ``f_hz`` (F,), ``psd`` (F, 8), ``ratio`` (F, 8), ``log10_p`` (F, 8)
+    """
+    W, L, _ = resid.shape
+    f, P = averaged_periodogram(resid, dt_s)
+    _, Pu = averaged_periodogram(inputs, dt_s)
+    ratio, logp = _line_stats(P, W)
+    uratio, ulogp = _line_stats(Pu, W)
+    lo = 3 if min_hz is None else max(3, int(np.ceil(min_hz / (f[1] - f[0]))))
+    test = np.zeros_like(ratio, bool)
+    test[lo:-1] = True
+    test &= available[None, :]
+    n_tests = max(int(test.sum()), 1)
+    thr = np.log10(alpha / n_tests)
+    sig = test & (logp < thr)
+    in_input = (ulogp < np.log10(alpha / max(Pu.size, 1))).any(axis=1)
+    sig &= ~in_input[:, None]
+    lines: list[Line] = []
+    used = np.zeros(len(f), bool)
+    order = np.argsort(np.where(sig, logp, 0).min(axis=1))
+    for k in order:
+        if not sig[k].any() or used[max(0, k - 2):k + 3].any():
+            continue
+        used[k] = True
+        chans = [OUTPUTS[c] for c in np.flatnonzero(sig[k])]
+        fk = refine_frequency(resid, dt_s, f[k], f[1] - f[0])
+        amp = {OUTPUTS[c]: sinusoid_amplitude(resid[..., c], dt_s, fk) for c in np.flatnonzero(sig[k])}
+        cmax = int(np.argmin(np.where(sig[k], logp[k], 0)))
+        lines.append(Line(frequency_hz=float(fk), channels=chans, ratio=float(ratio[k, cmax]),
+                          log10_p=float(logp[k, cmax] - thr + np.log10(alpha)), amplitude=amp))
+    spectra = {"f_hz": f, "psd": P, "ratio": ratio, "log10_p": logp, "threshold_log10_p": thr}
+    return lines, spectra
+
+
+def refine_frequency(resid: np.ndarray, dt_s: float, f0: float, df: float) -> float:
+    """Frequency (Hz) near f0 maximising the summed per-window sinusoid fit power (all channels)."""
+    grid = f0 + np.linspace(-df, df, 41)
+    L = resid.shape[1]
+    t = np.arange(L) * dt_s
+    x = _detrend(resid)
+    best, fbest = -1.0, f0
+    for fq in grid:
+        if fq <= 0:
+            continue
+        e = np.exp(-2j * np.pi * fq * t)
+        pw = float((np.abs(np.einsum("wlc,l->wc", x, e)) ** 2).sum())
+        if pw > best:
+            best, fbest = pw, fq
+    return float(fbest)
+
+
+def sinusoid_fit(x: np.ndarray, dt_s: float, f_hz: float) -> np.ndarray:
+    """Per-window least-squares sinusoid at f_hz: returns the fitted sinusoid, same shape as x (W, L)."""
+    L = x.shape[1]
+    t = np.arange(L) * dt_s
+    B = np.stack([np.cos(2 * np.pi * f_hz * t), np.sin(2 * np.pi * f_hz * t), np.ones(L)], axis=1)
+    coef, *_ = np.linalg.lstsq(B, x.T, rcond=None)
+    fit = (B[:, :2] @ coef[:2]).T
+    return fit
+
+
+def sinusoid_amplitude(x: np.ndarray, dt_s: float, f_hz: float) -> float:
+    """RMS-over-windows amplitude of the per-window sinusoid at f_hz in x (W, L)."""
+    fit = sinusoid_fit(x, dt_s, f_hz)
+    return float(np.sqrt(2.0 * (fit ** 2).mean()))
+
+
+@dataclass
+class RateOffset:
+    channel: str
+    offset_rad_s: float
+    t_stat: float
+    log10_p: float
+    n_windows: int
+
+
+def kinematic_rate_offsets(Y: np.ndarray, dt_s: float, available: np.ndarray,
+                           trims: np.ndarray | None = None, start: int = 2) -> dict[str, RateOffset]:
+    """Offsets between measured p, q and the Euler-angle kinematics, per window, tested over windows.
+
+    Parameters
+    ----------
+    Y : array (W, L, 8), smoothed outputs u v w p q r theta phi (trim removed)
+    dt_s : sample period (s)
+    available : (8,) bool
+    trims : (8,) output trims to add back (absolute angles and rates), or None for zeros
+    start : samples ignored at each window edge (finite differences)
+
+    Returns
+    -------
+    dict channel -> RateOffset for p and q (r needs heading, which the prepared data do not carry)
+    """
+    tr = np.zeros(8) if trims is None else np.asarray(trims, float)
+    need = [3, 4, 5, 6, 7]
+    if not all(available[c] for c in need):
+        return {}
+    y = Y + tr
+    p, q, r, th, ph = (y[:, :, c] for c in (3, 4, 5, 6, 7))
+    thd = np.gradient(th, dt_s, axis=1)
+    phd = np.gradient(ph, dt_s, axis=1)
+    e_q = thd - (q * np.cos(ph) - r * np.sin(ph))  # = -(b_q cos phi - b_r sin phi)
+    e_p = phd - p - (q * np.sin(ph) + r * np.cos(ph)) * np.tan(th)  # = -b_p - ...
+    out = {}
+    for name, e in (("q", e_q), ("p", e_p)):
+        m = -e[:, start:-start].mean(axis=1)  # per-window offset estimate (rad/s)
+        n = m.shape[0]
+        if n < 4:
+            continue
+        mu = float(m.mean())
+        se = float(m.std(ddof=1) / np.sqrt(n))
+        t = mu / se if se > 0 else 0.0
+        logp = float(stats.t.logsf(abs(t), n - 1) / np.log(10) + np.log10(2))
+        out[name] = RateOffset(name, mu, float(t), logp, n)
+    return out

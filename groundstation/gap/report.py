@@ -1,0 +1,99 @@
+"""The ``heli-gap-report/1`` document (DESIGN.md) and the rows of its terminal summary.
+
+:func:`build_report` assembles plain JSON types only (floats rounded, no numpy); the command
+renders :func:`summary_rows` with rich. Pure.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from groundstation.sysid.model import OUTPUTS, theta_to_dict
+
+SCHEMA = "heli-gap-report/1"
+
+
+def _r(x: float, nd: int = 4) -> float | None:
+    x = float(x)
+    return round(x, nd) if np.isfinite(x) else None
+
+
+def _effect_entry(c: dict[str, Any]) -> dict[str, Any]:
+    h, s = c["hyp"], c["score"]
+    return {
+        "effect": h.effect,
+        "input": h.input,
+        "output": h.output,
+        "estimate": {k: _r(v, 6) for k, v in h.estimate.items()},
+        "gap_before": _r(s.gap_before),
+        "gap_after": _r(s.gap_after),
+        "shrink_pct": _r(s.shrink_pct, 2),
+        "score": _r(s.score_pct, 3),
+        "p_value": _r(s.p_value, 6),
+        "shrink_interval": [_r(s.shrink_interval[0], 2), _r(s.shrink_interval[1], 2)],
+        "per_channel_shrink": {OUTPUTS[k]: _r(v, 2) for k, v in s.per_channel_shrink.items()},
+        "evidence": c["evidence"],
+    }
+
+
+def build_report(*, verdict: str, channels: dict, worst: list[str], windows_s: list, band: dict,
+                 cond: dict, ranked: list[dict], others: list[dict], untestable: dict[str, str],
+                 noise: dict, gap_ratio: np.ndarray, excitation: dict, notes: list[str],
+                 given_metrics: dict | None, base_params: np.ndarray, kinematic: dict, lines: list,
+                 nominal: float, n_windows: int, window_s: float, folds: int, alpha: float,
+                 gap_significant: bool) -> dict[str, Any]:
+    effects = [_effect_entry(c) for c in ranked]
+    top = effects[0] if effects else None
+    rep: dict[str, Any] = {
+        "schema": SCHEMA,
+        "verdict": verdict,
+        "gap": {
+            "channels": channels,
+            "worst_channels": worst,
+            "windows_s": [[_r(a, 2), _r(b, 2)] for a, b in windows_s],
+            "band_hz": band.get("band_hz"),
+            "band_input_coherence": _r(band.get("input_coherence", 0.0), 3),
+            "conditions": cond["label"],
+            "condition_stats": {k: v for k, v in cond["features"].items()},
+            "significant": gap_significant,
+            "gap_to_noise_ratio": {OUTPUTS[c]: _r(gap_ratio[c], 2) for c in range(8) if np.isfinite(gap_ratio[c])},
+            "nominal_window_cost": _r(nominal, 6),
+        },
+        "effects": effects,
+        "candidates": [_effect_entry(c) for c in sorted(others, key=lambda c: -c["score"].score_pct)],
+        "untestable": untestable,
+        "shrink_interval": top["shrink_interval"] if top else None,
+        "per_channel_shrink": top["per_channel_shrink"] if top else {},
+        "noise_floor": {OUTPUTS[c]: {"sigma_raw": _r(noise["sigma_raw"][c], 6),
+                                     "sigma_smoothed": _r(noise["sigma_smoothed"][c], 6),
+                                     "nrmse_floor": _r(noise["nrmse_floor"][c], 4)} for c in range(8)},
+        "excitation": excitation,
+        "fingerprints": {
+            "kinematic_rate_offsets": {k: {"offset_rad_s": _r(v.offset_rad_s, 6), "t": _r(v.t_stat, 2),
+                                           "log10_p": _r(v.log10_p, 2)} for k, v in kinematic.items()},
+            "spectral_lines": [{"frequency_hz": _r(ln.frequency_hz, 3), "channels": ln.channels,
+                                "ratio": _r(ln.ratio, 2), "log10_p": _r(ln.log10_p, 2),
+                                "amplitude": {k: _r(v, 6) for k, v in ln.amplitude.items()}} for ln in lines],
+        },
+        "method": {"windows": n_windows, "window_s": window_s, "folds": folds, "alpha": alpha,
+                   "base_parameters": theta_to_dict(base_params)},
+        "notes": notes,
+    }
+    if given_metrics is not None:
+        rep["gap"]["channels_model_as_given"] = given_metrics
+    return rep
+
+
+def summary_rows(report: dict[str, Any]) -> dict[str, list[list[str]]]:
+    """Tables (title -> rows of strings) summarising a report for the terminal."""
+    ch = report["gap"]["channels"]
+    ratio = report["gap"].get("gap_to_noise_ratio", {})
+    chan_rows = [[k, f"{v['match']:.1f}", f"{v['tic']:.3f}", f"{ratio.get(k, float('nan'))}"] for k, v in ch.items()]
+    eff_rows = []
+    for e in report["effects"] + report.get("candidates", [])[:4]:
+        sig = "yes" if e in report["effects"] else "no"
+        eff_rows.append([e["effect"], e["input"] or e["output"] or "-", sig, f"{e['score']}",
+                         f"{e['gap_before']} -> {e['gap_after']}", f"{e['shrink_pct']}", e["evidence"]])
+    return {"channels": chan_rows, "effects": eff_rows}
