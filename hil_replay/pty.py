@@ -25,9 +25,11 @@ from __future__ import annotations
 
 import asyncio
 import errno
+import fcntl
 import os
 import select
 import shutil
+import struct
 import tempfile
 import termios
 import time
@@ -190,6 +192,31 @@ class VirtualSerialPort:
         if self._settle_s > 0:
             await asyncio.sleep(self._settle_s)
         return self.reader_attached()
+
+    def unread_bytes(self) -> int:
+        """Bytes written to the port that the reader has not read yet (0 if unplugged)."""
+        if self._master is None:
+            return 0
+        # A second, short-lived slave descriptor: opening it does not flush, closing it does not
+        # hang up while the reader keeps its own descriptor open.
+        fd = os.open(self._device, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        try:
+            return int(struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0])
+        finally:
+            os.close(fd)
+
+    def drain(self, timeout_s: float = 2.0, *, poll_s: float = 0.005) -> bool:
+        """Wait until the reader has read everything written (True) or ``timeout_s`` passes."""
+        deadline = time.monotonic() + timeout_s
+        zeros = 0
+        while zeros < 2:  # twice: bytes may still be in flight into the line discipline
+            if not self.reader_attached():
+                return False
+            zeros = zeros + 1 if self.unread_bytes() == 0 else 0
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(poll_s)
+        return True
 
     # ---------------------------------------------------------------- writing
 

@@ -121,3 +121,66 @@ class GcsReader:
 @pytest.fixture
 def fake_heli():
     return FakeHelicopter
+
+
+def make_tlog(path, duration_s: float = 2.0, rate_hz: float = 50.0, t0_unix_s: float = 1.7e9) -> list[bytes]:
+    """A .tlog of ATTITUDE + SERVO_OUTPUT_RAW at ``rate_hz`` and HEARTBEAT at 1 Hz; returns packets."""
+    from firmware_interface.tlog import TlogWriter
+
+    heli = FakeHelicopter(duration_s, armed_s=((0.5, duration_s),), t0_s=10.0)
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    packets = []
+    step = int(round(50 / rate_hz))
+    with TlogWriter(path) as w:
+        for fr in heli.frames():
+            if fr.k % step:
+                continue
+            msgs = [fr.build("ATTITUDE", mav), fr.build("SERVO_OUTPUT_RAW", mav)]
+            if fr.k % 50 == 0:
+                base = mavlink.MAV_MODE_FLAG_SAFETY_ARMED if fr.armed else 0
+                msgs.insert(0, mav.heartbeat_encode(mavlink.MAV_TYPE_HELICOPTER,
+                                                    mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, base, 0, 4))
+            for j, m in enumerate(msgs):
+                buf = m.pack(mav)
+                mav.seq = (mav.seq + 1) % 256
+                w.write(buf, t0_unix_s + fr.t_boot_s - 10.0 + 2e-4 * j)
+                packets.append(buf)
+    return packets
+
+
+class RawReconnectingReader:
+    """Reads raw bytes from a serial path on a thread, reopening it after an unplug."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self.chunks: list[tuple[float, bytes]] = []
+        self.connections = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                ser = serial.Serial(self.path, 921600, timeout=0.02)
+            except (serial.SerialException, OSError):
+                time.sleep(0.01)
+                continue
+            self.connections += 1
+            try:
+                while not self._stop.is_set():
+                    data = ser.read(65536)
+                    if data:
+                        self.chunks.append((time.monotonic(), data))
+            except (serial.SerialException, OSError):
+                pass
+            finally:
+                ser.close()
+
+    @property
+    def data(self) -> bytes:
+        return b"".join(c for _, c in self.chunks)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
