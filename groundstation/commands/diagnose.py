@@ -1,0 +1,121 @@
+"""``groundstation diagnose LOG... [--model model.json] --out report.json [--plots DIR] [--seed N]``.
+
+Reads the logs (``firmware_interface.readers.load_log``), prepares them (``dsp.prepare``), loads
+the model file if given (else ``diagnose`` identifies one first), runs
+:func:`groundstation.gap.diagnose.run_diagnosis`, writes the gap-report JSON, prints a summary
+table and optionally PNG plots and a Rerun .rrd recording of the residuals.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+HELP = "diagnose where and why the hover model departs from flight data (gap report JSON)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("logs", nargs="+", type=Path, help=".tlog / .bin / .px4log flight logs")
+    parser.add_argument("--model", type=Path, default=None, help="heli-hover-model/1 JSON (default: identify first)")
+    parser.add_argument("--out", type=Path, required=True, help="gap report JSON to write")
+    parser.add_argument("--plots", type=Path, default=None, help="directory for PNG plots")
+    parser.add_argument("--rrd", type=Path, default=None, help="write the residuals to a Rerun .rrd file")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--window-s", type=float, default=3.0, help="scoring window length (s)")
+    parser.add_argument("--quiet", action="store_true", help="no terminal table")
+
+
+def load_model(path: Path):
+    from groundstation.sysid.model import HoverModel
+
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    try:
+        return HoverModel.from_json(doc)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    from firmware_interface.readers import load_log
+
+    from groundstation.dsp.prepare import prepare
+    from groundstation.gap.diagnose import DiagnoseConfig, run_diagnosis
+
+    for p in args.logs:
+        if not p.exists():
+            raise OSError(f"{p}: no such log file")
+    model = load_model(args.model) if args.model else None
+    logs = [load_log(p) for p in args.logs]
+    prepared = prepare(logs)
+    cfg = DiagnoseConfig(window_s=args.window_s)
+    diag = run_diagnosis(model, prepared, seed=args.seed, config=cfg)
+    report = diag.report
+    report["source"] = {"logs": [str(p) for p in args.logs], "model": str(args.model) if args.model else None}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.out.with_suffix(args.out.suffix + ".tmp")
+    tmp.write_text(json.dumps(report, indent=1, allow_nan=False))
+    tmp.replace(args.out)
+    if args.plots:
+        from groundstation.gap.plots import write_all
+
+        write_all(diag.arrays, report, args.plots)
+    if args.rrd:
+        write_rrd(diag.arrays, report, args.rrd)
+    if not args.quiet:
+        print_summary(report)
+    return 0
+
+
+def print_summary(report: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    from groundstation.gap.report import summary_rows
+
+    rows = summary_rows(report)
+    con = Console(width=max(Console().width, 160))
+    t = Table(title=f"gap per channel (held-out) — verdict: [bold]{report['verdict']}[/bold]")
+    for col in ("channel", "match %", "Theil U", "gap / noise floor"):
+        t.add_column(col)
+    for r in rows["channels"]:
+        t.add_row(*r)
+    con.print(t)
+    t2 = Table(title="effects (ranked) and best rejected candidates")
+    for col in ("effect", "channel", "significant", "score %", "gap before -> after", "shrink %", "evidence"):
+        t2.add_column(col)
+    for r in rows["effects"]:
+        t2.add_row(*r)
+    con.print(t2)
+    g = report["gap"]
+    con.print(f"worst channels {g['worst_channels']}, band {g['band_hz']} Hz, condition: {g['conditions']}, "
+              f"flagged windows {g['windows_s'][:6]}")
+    if report.get("untestable"):
+        con.print(f"untestable: {report['untestable']}")
+
+
+def write_rrd(arrays: dict, report: dict, path: Path) -> None:
+    """Residuals per channel on the fc_time timeline, saved as a Rerun recording."""
+    import numpy as np
+    import rerun as rr
+
+    from groundstation.sysid.model import OUTPUTS
+
+    rec = rr.RecordingStream("groundstation-diagnose")
+    rec.save(str(path))
+    T, Y, yh, mask = arrays["t_s"], arrays["Y"], arrays["yhat"], arrays["mask"]
+    t = T[:, mask].ravel()
+    order = np.argsort(t)
+    for c, name in enumerate(OUTPUTS):
+        if name not in report["gap"]["channels"]:
+            continue
+        for kind, data in (("measured", Y[:, mask, c]), ("model", yh[:, mask, c]),
+                           ("residual", Y[:, mask, c] - yh[:, mask, c])):
+            rec.send_columns(f"/gap/{name}/{kind}", indexes=[rr.TimeColumn("fc_time", duration=t[order])],
+                             columns=rr.Scalars.columns(scalars=data.ravel()[order]))
+    rec.log("/gap/verdict", rr.TextDocument(json.dumps({"verdict": report["verdict"],
+                                                        "effects": report["effects"][:3]}, indent=1)), static=True)
+    rec.flush()
