@@ -1,0 +1,192 @@
+"""``groundstation bench diagnose --cases N --seed S [--combined M]``: blind test of the diagnosis.
+
+Generates N simulated flights with ``hil_replay.sim.write_tlog`` (the independent simulator),
+each with one random catalogue effect (``hil_replay.sim.effects.random_effect``: random channel
+and magnitude) or none, classes taken in turn; hides the label; reads the .tlog back through the
+ordinary reader, prepares it and diagnoses it (identifying the model first unless
+``--model-source truth``). Prints the confusion matrix, top-1 accuracy, false-alarm rate on
+effect-free flights, channel accuracy, the error of the estimated effect parameter, predicted shrink
+and (``--fresh``) the shrink of the same effect measured on a fresh flight, wall time per case,
+and M combined cases with two effects at once (are both found?). Cases run in a process pool.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+HELP = "blind test of the gap diagnosis on simulated flights with hidden random effects"
+
+CLASSES = ("none", "input_delay", "rate_limit", "deadband", "ground_effect", "wind_gust", "quadratic_drag",
+           "gyro_bias", "rotor_vibration", "velocity_latency")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--cases", type=int, default=20)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--combined", type=int, default=0, help="extra cases with two effects at once")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--classes", default=",".join(CLASSES), help="comma-separated classes to draw from")
+    parser.add_argument("--model-source", choices=("identify", "truth"), default="identify",
+                        help="base model: identified from the flight (blind) or the simulator's truth parameters")
+    parser.add_argument("--fresh", action="store_true", help="also measure the shrink on a fresh flight")
+    parser.add_argument("--aircraft", default=None, help="simulator aircraft name (default: the simulator's)")
+    parser.add_argument("--json", type=Path, default=None, help="write every case result to this JSON file")
+
+
+def _effect_channel(e: dict[str, Any]) -> str | None:
+    return e.get("input") or e.get("output")
+
+
+def _main_param(name: str, params: dict[str, float]) -> tuple[str, float] | None:
+    """The truth effect parameter comparable with our estimate (key, value), best guess by name."""
+    keys = {"input_delay": ("delay_s",), "velocity_latency": ("latency_s", "delay_s"),
+            "gyro_bias": ("bias_rad_s", "bias"), "rotor_vibration": ("frequency_hz", "freq_hz"),
+            "rate_limit": ("rate_limit_per_s", "rate_per_s", "rate"), "deadband": ("deadband", "width", "half_width")}
+    for k in keys.get(name, ()):
+        for pk, pv in params.items():
+            if pk == k or pk.startswith(k):
+                try:
+                    return pk, float(pv)
+                except (TypeError, ValueError):
+                    continue
+    return None
+
+
+def _estimate_for(name: str, est: dict[str, float]) -> float | None:
+    keys = {"input_delay": "delay_s", "velocity_latency": "latency_s", "gyro_bias": "bias_rad_s",
+            "rotor_vibration": "frequency_hz", "rate_limit": "rate_limit_per_s", "deadband": "deadband"}
+    k = keys.get(name)
+    return None if k is None or est.get(k) is None else float(est[k])
+
+
+def run_case(job: dict[str, Any]) -> dict[str, Any]:
+    """Simulate, read back, prepare, diagnose one case (runs in a worker process)."""
+    from firmware_interface.readers import load_log
+    from hil_replay.sim import write_tlog
+    from hil_replay.sim.effects import random_effect
+
+    from groundstation.dsp.prepare import prepare
+    from groundstation.gap.diagnose import run_diagnosis
+    from groundstation.sysid.model import HoverModel
+
+    rng = np.random.default_rng(job["seed"])
+    effects = [random_effect(n, rng) for n in job["effects"]]
+    out: dict[str, Any] = {"case": job["case"], "truth_effects": job["effects"]}
+    with tempfile.TemporaryDirectory() as td:
+        path = Path(td) / f"case{job['case']}.tlog"
+        kw = {} if job.get("aircraft") is None else {"aircraft": job["aircraft"]}
+        truth = write_tlog(path, seed=job["seed"], flights=1, effects=effects, **kw)
+        out["truth"] = truth.get("effects", [])
+        t0 = time.perf_counter()
+        prepared = prepare([load_log(path)])
+        model = None
+        if job["model_source"] == "truth":
+            model = HoverModel(params=dict(truth["parameters"]))
+        diag = run_diagnosis(model, prepared, seed=job["seed"])
+        out["seconds"] = time.perf_counter() - t0
+        out["flight_s"] = float(sum(s.t_s[-1] - s.t_s[0] for s in prepared.segments))
+        rep = diag.report
+        out["verdict"] = rep["verdict"]
+        out["effects"] = [{k: e[k] for k in ("effect", "input", "output", "estimate", "shrink_pct", "score")}
+                          for e in rep["effects"]]
+        if job.get("fresh") and job["effects"]:
+            path2 = Path(td) / "fresh.tlog"
+            rng2 = np.random.default_rng(job["seed"])
+            eff2 = [random_effect(n, rng2) for n in job["effects"]]  # same draw: same effect and magnitude
+            write_tlog(path2, seed=job["seed"] + 100000, flights=1, effects=eff2, **kw)
+            d2 = run_diagnosis(model, prepare([load_log(path2)]), seed=job["seed"])
+            allc = d2.report["effects"] + d2.report["candidates"]
+            same = [e for e in allc if e["effect"] == job["effects"][0]]
+            out["fresh_shrink_pct"] = same[0]["shrink_pct"] if same else None
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    classes = [c.strip() for c in args.classes.split(",") if c.strip()]
+    unknown = set(classes) - set(CLASSES)
+    if unknown:
+        raise ValueError(f"--classes: unknown effect name(s) {sorted(unknown)}; allowed {CLASSES}")
+    rng = np.random.default_rng(args.seed)
+    jobs = []
+    for i in range(args.cases):
+        name = classes[i % len(classes)]
+        jobs.append({"case": i, "seed": int(args.seed * 1000 + i), "effects": [] if name == "none" else [name],
+                     "model_source": args.model_source, "fresh": args.fresh, "aircraft": args.aircraft})
+    real = [c for c in CLASSES if c != "none"]
+    for j in range(args.combined):
+        pair = list(rng.choice(real, 2, replace=False))
+        jobs.append({"case": args.cases + j, "seed": int(args.seed * 1000 + 500 + j), "effects": pair,
+                     "model_source": args.model_source, "fresh": False, "aircraft": args.aircraft,
+                     "combined": True})
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
+        results = list(pool.map(run_case, jobs))
+    wall = time.perf_counter() - t0
+    singles = [r for r, j in zip(results, jobs, strict=True) if not j.get("combined")]
+    combos = [r for r, j in zip(results, jobs, strict=True) if j.get("combined")]
+    print_summary(singles, combos, classes, wall)
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1, default=float))
+    return 0
+
+
+def print_summary(singles: list[dict], combos: list[dict], classes: list[str], wall: float) -> None:
+    labels = list(classes) + [c for c in ("unexplained",) if c not in classes]
+    idx = {c: i for i, c in enumerate(labels)}
+    cm = np.zeros((len(classes), len(labels)), int)
+    chan_ok = chan_n = 0
+    param_err: list[str] = []
+    shrinks: list[str] = []
+    for r in singles:
+        truth = r["truth_effects"][0] if r["truth_effects"] else "none"
+        pred = r["verdict"]
+        cm[classes.index(truth), idx.get(pred, idx["unexplained"])] += 1
+        if truth != "none" and pred == truth and r["truth"]:
+            t = r["truth"][0]
+            ch = _effect_channel(t)
+            if ch is not None:
+                chan_n += 1
+                chan_ok += int(ch in (r["effects"][0]["input"], r["effects"][0]["output"]))
+            tp = _main_param(truth, t.get("params", {}))
+            ev = _estimate_for(truth, r["effects"][0]["estimate"])
+            if tp is not None and ev is not None:
+                param_err.append(f"{truth}: est {ev:.4g} vs true {tp[1]:.4g} ({tp[0]})")
+            shrinks.append(f"{truth}: predicted {r['effects'][0]['shrink_pct']}% fresh {r.get('fresh_shrink_pct')}%")
+    n = len(singles)
+    correct = int(sum(cm[i, idx[c]] for i, c in enumerate(classes)))
+    print("confusion matrix (rows truth, columns verdict):")
+    w = max(len(c) for c in labels) + 1
+    print(" " * w + " ".join(f"{c[:7]:>7}" for c in labels))
+    for i, c in enumerate(classes):
+        print(f"{c:<{w}}" + " ".join(f"{v:>7d}" for v in cm[i]))
+    print(f"top-1 accuracy: {correct}/{n} = {100.0 * correct / max(n, 1):.1f}%")
+    if "none" in classes:
+        nn = int(cm[classes.index("none")].sum())
+        fa = nn - int(cm[classes.index("none"), idx["none"]])
+        print(f"false alarms on effect-free flights: {fa}/{nn}")
+    print(f"channel accuracy (correct verdicts with a channel): {chan_ok}/{chan_n}")
+    for s in param_err:
+        print("  parameter " + s)
+    for s in shrinks:
+        print("  shrink " + s)
+    if combos:
+        both = 0
+        for r in combos:
+            found = {e["effect"] for e in r["effects"]}
+            ok = all(t in found for t in r["truth_effects"])
+            both += int(ok)
+            print(f"  combined {r['truth_effects']} -> found {[e['effect'] for e in r['effects']]}")
+        print(f"combined cases with both effects found: {both}/{len(combos)}")
+    secs = [r["seconds"] for r in singles + combos]
+    fl = [r["flight_s"] for r in singles + combos]
+    if secs:
+        print(f"diagnosis wall per case: median {np.median(secs):.1f} s (max {np.max(secs):.1f} s) for median "
+              f"{np.median(fl):.0f} s of in-air data; total bench wall {wall:.0f} s")
