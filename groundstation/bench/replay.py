@@ -1,0 +1,210 @@
+"""``groundstation bench replay``: replay throughput through a pty into the recorder.
+
+Makes a 50 Hz full-telemetry flight (the SIM engineer's ``hil_replay.sim.write_tlog`` when present,
+else a synthetic one encoded with pymavlink: ATTITUDE, SERVO_OUTPUT_RAW, RAW_IMU,
+LOCAL_POSITION_NED, GLOBAL_POSITION_INT at 50 Hz, GPS_RAW_INT 5 Hz, SYS_STATUS and
+EXTENDED_SYS_STATE 2 Hz, HEARTBEAT 1 Hz), replays it with :class:`hil_replay.player.TlogPlayer`
+at maximum speed on a :class:`hil_replay.pty.VirtualSerialPort` into a recorder, and prints the
+real-time factor (log seconds per wall second, target >= 20) and the packets lost (target 0),
+median of ``--runs`` runs.
+
+The recorder is ``groundstation record --link serial://PORT --out DIR`` in a subprocess (the
+LINK engineer's command, the real path) when it exists; otherwise an in-process pyserial reader
+that frames packets with pymavlink and writes them with :class:`firmware_interface.tlog.TlogWriter`
+(``--recorder direct`` forces it). Packets lost = source packets missing from the recorded .tlog.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+HELP = "replay a 50 Hz full-telemetry flight through a pty into the recorder at max speed"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--duration", type=float, default=300.0, help="flight length in s (synthetic log)")
+    parser.add_argument("--runs", type=int, default=3, help="number of runs (median reported)")
+    parser.add_argument("--speed", type=float, default=0.0, help="replay speed (0 = as fast as read)")
+    parser.add_argument("--recorder", choices=("auto", "record", "direct"), default="auto",
+                        help="record = groundstation record subprocess; direct = in-process reader")
+    parser.add_argument("--tlog", type=Path, default=None, help="replay this .tlog instead")
+    parser.add_argument("--source", choices=("auto", "sim", "synthetic"), default="auto",
+                        help="where the flight comes from when --tlog is not given")
+
+
+def synthesize_tlog(path: Path, duration_s: float, t0_unix_s: float = 1.7e9) -> int:
+    """Write a 50 Hz full-telemetry synthetic flight; returns the packet count."""
+    import math
+
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from firmware_interface.tlog import TlogWriter
+
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    n = 0
+    with TlogWriter(path) as w:
+        for k in range(int(round(duration_s * 50))):
+            t = k / 50
+            ms, us = int(t * 1000) + 5000, int(t * 1e6) + 5_000_000
+            armed = 5.0 <= t < duration_s - 5.0
+            s = math.sin(2 * math.pi * 0.3 * t)
+            msgs = [
+                mav.attitude_encode(ms, 0.05 * s, -0.03 * s, 1.0, 0.1 * s, 0.05 * s, 0.01),
+                mav.servo_output_raw_encode(us & 0xFFFFFFFF, 0, 1500 + int(40 * s), 1500 - int(30 * s),
+                                            1560, 1480, 0, 0, 0, 0),
+                mav.raw_imu_encode(us, int(100 * s), 2, -1000, 3, 4, 5, 100, 200, 300),
+                mav.local_position_ned_encode(ms, s, 0.5 * s, -2.0, 0.3 * s, 0.1, 0.0),
+                mav.global_position_int_encode(ms, 473977420, 85455940, 500000, 2000, 30, 10, 0, 9000),
+            ]
+            if k % 10 == 0:
+                msgs.append(mav.gps_raw_int_encode(us, 3, 473977420, 85455940, 500000, 100, 100, 30,
+                                                   9000, 12))
+            if k % 25 == 0:
+                msgs.append(mav.sys_status_encode(0, 0, 0, 500, 16000, 1000, 90, 0, 0, 0, 0, 0, 0))
+                msgs.append(mav.extended_sys_state_encode(0, 2 if armed else 1))
+            if k % 50 == 0:
+                base = (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0) | 1
+                msgs.append(mav.heartbeat_encode(mavlink.MAV_TYPE_HELICOPTER,
+                                                 mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, base, 0, 4))
+            for j, m in enumerate(msgs):
+                w.write(m.pack(mav), t0_unix_s + t + 1e-4 * j)
+                mav.seq = (mav.seq + 1) % 256
+                n += 1
+    return n
+
+
+def _make_flight(tmp: Path, args: argparse.Namespace) -> tuple[Path, str]:
+    if args.tlog is not None:
+        return args.tlog, str(args.tlog)
+    path = tmp / "flight.tlog"
+    if args.source in ("auto", "sim") and importlib.util.find_spec("hil_replay.sim") is not None:
+        try:
+            from hil_replay.sim import write_tlog
+
+            write_tlog(path, seed=0, flights=1, effects=(), aircraft=None)
+            return path, "hil_replay.sim.write_tlog(seed=0, flights=1)"
+        except (ImportError, AttributeError) as exc:
+            if args.source == "sim":
+                raise
+            print(f"# sim unavailable ({exc}); using a synthetic flight", file=sys.stderr)
+    synthesize_tlog(path, args.duration)
+    return path, f"synthetic {args.duration:.0f} s, 50 Hz full telemetry"
+
+
+class _DirectRecorder:
+    """In-process fallback: pyserial reader -> pymavlink framing -> TlogWriter."""
+
+    def __init__(self, port_path: str, out: Path) -> None:
+        import serial
+        from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+        from firmware_interface.tlog import TlogWriter
+
+        self.out = out
+        self._ser = serial.Serial(port_path, 921600, timeout=0.05)
+        self._parser = mavlink.MAVLink(None)
+        self._parser.robust_parsing = True
+        self._writer = TlogWriter(out)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            data = self._ser.read(65536)
+            if data:
+                now = time.time()
+                for m in self._parser.parse_buffer(data) or []:
+                    if m.get_type() != "BAD_DATA":
+                        self._writer.write(bytes(m.get_msgbuf()), now)
+
+    def finish(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self._ser.close()
+        self._writer.close()
+
+
+class _RecordSubprocess:
+    """``groundstation record --link serial://PORT --out DIR`` stopped with SIGINT."""
+
+    def __init__(self, port_path: str, out_dir: Path) -> None:
+        self.out_dir = out_dir
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "groundstation.cli", "record", "--link", f"serial://{port_path}:921600",
+             "--out", str(out_dir)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def finish(self) -> str:
+        time.sleep(0.3)  # let it write what it read
+        self.proc.send_signal(signal.SIGINT)
+        try:
+            out, err = self.proc.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            out, err = self.proc.communicate()
+        return out + err
+
+    def recorded(self) -> Path:
+        logs = sorted(self.out_dir.rglob("*.tlog"), key=lambda p: p.stat().st_size)
+        if not logs:
+            raise OSError(f"{self.out_dir}: groundstation record wrote no .tlog")
+        return logs[-1]  # the session file holds everything
+
+
+def _one_run(flight: Path, tmp: Path, recorder: str, speed: float) -> tuple[float, int, int, float]:
+    from hil_replay.player import TlogPlayer, read_tlog_packets
+    from hil_replay.pty import VirtualSerialPort
+
+    packets = read_tlog_packets(flight)
+    out_dir = Path(tempfile.mkdtemp(dir=tmp, prefix="rec-"))
+    with VirtualSerialPort(out_dir / "ttyFC") as port:
+        rec: _RecordSubprocess | _DirectRecorder
+        if recorder == "record":
+            rec = _RecordSubprocess(port.path, out_dir / "out")
+        else:
+            rec = _DirectRecorder(port.path, out_dir / "direct.tlog")
+        player = TlogPlayer(packets, port, speed=speed, reader_timeout_s=30.0)
+        report = player.run()
+        if isinstance(rec, _RecordSubprocess):
+            rec.finish()
+            recorded_path = rec.recorded()
+        else:
+            rec.finish()
+            recorded_path = rec.out
+    got = Counter(p.data for p in read_tlog_packets(recorded_path))
+    want = Counter(p.data for p in packets)
+    lost = sum((want - got).values())
+    return report.real_time_factor, lost, len(packets), report.log_s
+
+
+def run(args: argparse.Namespace) -> int:
+    recorder = args.recorder
+    if recorder == "auto":
+        recorder = "record" if importlib.util.find_spec("groundstation.commands.record") else "direct"
+    with tempfile.TemporaryDirectory(prefix="gs-bench-replay-") as d:
+        tmp = Path(d)
+        flight, desc = _make_flight(tmp, args)
+        rtf, lost = [], []
+        n = 0
+        log_s = 0.0
+        for i in range(args.runs):
+            f, l_, n, log_s = _one_run(flight, tmp, recorder, args.speed)
+            rtf.append(f)
+            lost.append(l_)
+            print(f"run {i + 1}: real-time factor {f:.1f}x, packets lost {l_}/{n}", flush=True)
+    print(f"flight: {desc}; {n} packets, {log_s:.1f} s of log; recorder: {recorder}; "
+          f"{os.cpu_count()} cpus")
+    print(f"median real-time factor: {statistics.median(rtf):.1f}x (target >= 20x)")
+    print(f"median packets lost: {statistics.median(lost):.0f} (target 0)")
+    return 0
