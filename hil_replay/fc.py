@@ -30,7 +30,7 @@ import asyncio
 import math
 import random
 import threading
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -398,7 +398,8 @@ class SimulatedFlightController:
         return self.stats
 
 
-def _make_session(seed: int, flights: int, effects: Sequence[Any], aircraft: Any) -> FrameSource:
+def _make_session(seed: int, flights: int, effects: Sequence[Any], aircraft: Any,
+                  sim_options: Mapping[str, Any] | None = None) -> FrameSource:
     from hil_replay.sim import SimulatedSession  # the SIM engineer's package
 
     parsed = []
@@ -408,21 +409,24 @@ def _make_session(seed: int, flights: int, effects: Sequence[Any], aircraft: Any
             parsed.append(parse_effect(eff))
         else:
             parsed.append(eff)
-    return SimulatedSession(seed=seed, flights=flights, effects=tuple(parsed), aircraft=aircraft)
+    return SimulatedSession(seed=seed, flights=flights, effects=tuple(parsed), aircraft=aircraft,
+                            **dict(sim_options or {}))
 
 
 async def serve_simulated_fc(link_path: str | None = None, *, speed: float = 1.0, seed: int = 0,
                              flights: int = 2, effects: Sequence[Any] = (), stop_event: asyncio.Event | None = None,
                              aircraft: Any = None, config: FcConfig | None = None,
                              session: FrameSource | None = None,
-                             on_ready: Callable[[str], None] | None = None) -> FcStats:
+                             on_ready: Callable[[str], None] | None = None,
+                             sim_options: Mapping[str, Any] | None = None) -> FcStats:
     """Run a simulated helicopter FC on a new virtual serial port until ``stop_event`` is set.
 
     ``on_ready(port_path)`` is called once the port exists (print it there). ``effects`` are
     ``hil_replay.sim`` effect objects or ``"name:key=value"`` strings; ``session`` overrides the
-    simulator entirely. The FC seed for link loss is ``seed`` unless ``config`` says otherwise.
+    simulator entirely; ``sim_options`` are passed on to ``SimulatedSession`` (e.g. ``pause_s``).
+    The FC seed for link loss is ``seed`` unless ``config`` says otherwise.
     """
-    src = session if session is not None else _make_session(seed, flights, effects, aircraft)
+    src = session if session is not None else _make_session(seed, flights, effects, aircraft, sim_options)
     cfg = config if config is not None else FcConfig(seed=seed)
     port = VirtualSerialPort(link_path)
     try:
@@ -443,8 +447,9 @@ class SimulatedFCThread:
 
     def __init__(self, link_path: str | None = None, *, speed: float = 1.0, seed: int = 0,
                  flights: int = 2, effects: Sequence[Any] = (), aircraft: Any = None,
-                 config: FcConfig | None = None, session: FrameSource | None = None) -> None:
-        src = session if session is not None else _make_session(seed, flights, effects, aircraft)
+                 config: FcConfig | None = None, session: FrameSource | None = None,
+                 sim_options: Mapping[str, Any] | None = None) -> None:
+        src = session if session is not None else _make_session(seed, flights, effects, aircraft, sim_options)
         self.port = VirtualSerialPort(link_path)
         self.fc = SimulatedFlightController(src, self.port, speed=speed,
                                             config=config if config is not None else FcConfig(seed=seed))

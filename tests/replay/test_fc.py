@@ -158,3 +158,33 @@ def test_protocol_request_message_disable_and_link_loss():
     assert missing == proto.stats.packets_lost
     total = proto.stats.packets_lost + len(msgs)
     assert 0.03 < proto.stats.packets_lost / total < 0.07
+
+
+def test_async_entry_point_runs_session_to_end_without_reader():
+    import asyncio
+    import os
+
+    from hil_replay.fc import serve_simulated_fc
+
+    paths: list[str] = []
+    heli = FakeHelicopter(duration_s=20.0)
+    stats = asyncio.run(serve_simulated_fc(speed=0, session=heli, on_ready=paths.append,
+                                           config=FcConfig(idle_after_end=False, packet_loss=0.0)))
+    assert stats.frames == 1000
+    assert stats.packets_unheard == 20 and stats.bytes_sent == 0   # 20 heartbeats, nobody listening
+    assert len(paths) == 1 and not os.path.lexists(paths[0])          # port removed at the end
+
+
+def test_thread_keeps_heartbeating_after_the_session_ends():
+    heli = FakeHelicopter(duration_s=1.0)
+    with SimulatedFCThread(speed=0, session=heli, config=FcConfig(packet_loss=0.0)) as fc:
+        gcs = GcsReader(fc.port_path)
+        try:
+            time.sleep(1.6)
+            hbs = [m for m in gcs.snapshot() if m.get_type() == "HEARTBEAT"]
+        finally:
+            gcs.close()
+        assert fc.is_alive()
+    assert len(hbs) >= 1
+    assert not any(h.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED for h in hbs)
+    assert fc.stats.frames > 50  # idle frames kept coming at real time after the 50 session frames
