@@ -329,6 +329,16 @@ class SimulatedFlightController:
     def stats(self) -> FcStats:
         return self.protocol.stats
 
+    def unplug(self, duration_s: float) -> None:
+        """Pull the virtual cable now and plug it back after ``duration_s`` wall seconds.
+
+        Call on the event loop running :meth:`run` (see :meth:`SimulatedFCThread.unplug` from
+        other threads). What the FC sends meanwhile is lost (counted as unheard).
+        """
+        loop = asyncio.get_running_loop()
+        self.port.unplug()
+        loop.call_later(duration_s, self.port.replug)
+
     async def _read_loop(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
             try:
@@ -480,6 +490,21 @@ class SimulatedFCThread:
             self.error = exc
         finally:
             self._ready.set()
+
+    def unplug(self, duration_s: float) -> None:
+        """Thread-safe: the port vanishes now and comes back at the same path after ``duration_s``."""
+        if self._loop is None or not self._thread.is_alive():
+            raise RuntimeError(f"{self.port_path}: simulated FC is not running")
+        done = threading.Event()
+
+        def do() -> None:
+            try:
+                self.fc.unplug(duration_s)
+            finally:
+                done.set()
+
+        self._loop.call_soon_threadsafe(do)
+        done.wait(5.0)
 
     def start(self) -> SimulatedFCThread:
         self._thread.start()

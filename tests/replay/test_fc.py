@@ -188,3 +188,26 @@ def test_thread_keeps_heartbeating_after_the_session_ends():
     assert len(hbs) >= 1
     assert not any(h.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED for h in hbs)
     assert fc.stats.frames > 50  # idle frames kept coming at real time after the 50 session frames
+
+
+def test_unplug_and_replug_while_serving():
+    from tests.replay.conftest import RawReconnectingReader
+
+    heli = FakeHelicopter(duration_s=600.0)
+    with SimulatedFCThread(speed=5.0, session=heli, config=FcConfig(packet_loss=0.0)) as fc:
+        reader = RawReconnectingReader(fc.port_path)
+        try:
+            deadline = time.monotonic() + 5
+            while not reader.data and time.monotonic() < deadline:
+                time.sleep(0.01)
+            n_before = len(reader.data)
+            assert n_before > 0
+            fc.unplug(0.5)
+            time.sleep(1.5)
+            after = reader.data[n_before:]
+        finally:
+            reader.close()
+    assert reader.connections == 2
+    parser = mavlink.MAVLink(None)
+    assert any(m.get_type() == "HEARTBEAT" for m in parser.parse_buffer(after) or [])
+    assert fc.stats.packets_unheard >= 1  # heartbeats while unplugged went nowhere
