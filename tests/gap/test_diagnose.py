@@ -1,0 +1,82 @@
+"""diagnose() on linear flights with one known effect: verdict, channel, schema, untestable."""
+
+import json
+
+import numpy as np
+import pytest
+
+from groundstation.gap.diagnose import CATALOGUE, diagnose
+from groundstation.sysid.model import HoverModel, theta_to_dict
+
+
+@pytest.fixture(scope="module")
+def start_model(paper_theta):
+    # a base model 5 % off the truth: the diagnosis must polish it itself
+    th = paper_theta * (1 + 0.05 * np.random.default_rng(0).standard_normal(paper_theta.shape))
+    return HoverModel(params=theta_to_dict(th))
+
+
+@pytest.fixture(scope="module")
+def reports(flight_factory, start_model):
+    cases = {
+        "none": None,
+        "input_delay": ("input_delay", 1, 4),
+        "gyro_bias": ("gyro_bias", 4, 0.008),
+        "velocity_latency": ("velocity_latency", None, 5),
+    }
+    return {k: diagnose(start_model, flight_factory(T_s=90.0, seed=11, effect=e), seed=0) for k, e in cases.items()}
+
+
+def test_effect_free_flight_is_none(reports):
+    assert reports["none"]["verdict"] == "none"
+    assert reports["none"]["effects"] == []
+
+
+def test_input_delay_found_on_its_channel(reports):
+    r = reports["input_delay"]
+    assert r["verdict"] == "input_delay"
+    top = r["effects"][0]
+    assert top["input"] == "lon"
+    assert 0.04 <= top["estimate"]["delay_s"] <= 0.13  # truth 0.08 s
+    assert top["shrink_pct"] > 0 and top["gap_after"] < top["gap_before"]
+
+
+def test_gyro_bias_found_on_q(reports):
+    r = reports["gyro_bias"]
+    assert r["verdict"] == "gyro_bias"
+    assert r["effects"][0]["output"] == "q"
+    assert abs(r["effects"][0]["estimate"]["bias_rad_s"] - 0.008) < 0.002
+
+
+def test_velocity_latency_found(reports):
+    r = reports["velocity_latency"]
+    assert r["verdict"] == "velocity_latency"
+    assert 0.06 <= r["effects"][0]["estimate"]["latency_s"] <= 0.13  # truth 0.10 s
+
+
+def test_report_schema(reports):
+    for r in reports.values():
+        json.dumps(r, allow_nan=False)
+        assert r["schema"] == "heli-gap-report/1"
+        assert r["verdict"] in CATALOGUE + ("none", "unexplained")
+        g = r["gap"]
+        assert set(g["channels"]) == {"u", "v", "w", "p", "q", "r", "theta", "phi"}
+        assert all({"match", "tic"} <= set(v) for v in g["channels"].values())
+        assert len(g["worst_channels"]) >= 1 and isinstance(g["windows_s"], list)
+        assert isinstance(g["band_hz"], list) and isinstance(g["conditions"], str)
+        for e in r["effects"]:
+            assert {"effect", "input", "output", "estimate", "gap_before", "gap_after", "shrink_pct",
+                    "score", "evidence"} <= set(e)
+        assert {"untestable", "shrink_interval", "noise_floor", "per_channel_shrink"} <= set(r)
+
+
+def test_missing_altitude_makes_ground_effect_untestable(flight_factory, start_model):
+    r = diagnose(start_model, flight_factory(T_s=60.0, seed=12, alt=False), seed=0)
+    assert "ground_effect" in r["untestable"]
+    assert "altitude" in r["untestable"]["ground_effect"]
+    assert all(e["effect"] != "ground_effect" for e in r["effects"] + r["candidates"])
+
+
+def test_too_short_flight_is_a_clear_error(flight_factory, start_model):
+    with pytest.raises(ValueError, match="in-air"):
+        diagnose(start_model, flight_factory(T_s=8.0, seed=12), seed=0)
