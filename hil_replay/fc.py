@@ -371,7 +371,7 @@ class SimulatedFlightController:
             wall0: float | None = None
             t0 = 0.0
             last_t = 0.0
-            frames: Iterator[Frame] = iter(self.session.frames())
+            frames: Iterator[Any] = iter(self.session.frames())
             idle = False
             while not stop.is_set():
                 try:

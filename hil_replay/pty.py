@@ -39,6 +39,11 @@ from pathlib import Path
 __all__ = ["PortUnplugged", "VirtualSerialPort"]
 
 
+def _wake(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_result(None)
+
+
 class PortUnplugged(OSError):
     """IO was attempted on a virtual port while it is unplugged (or closed)."""
 
@@ -262,7 +267,7 @@ class VirtualSerialPort:
                 break
             fd = self.fileno()
             fut: asyncio.Future[None] = loop.create_future()
-            loop.add_writer(fd, lambda f=fut: f.done() or f.set_result(None))
+            loop.add_writer(fd, _wake, fut)
             try:
                 # the timeout re-checks the port (unplugged meanwhile -> fileno() raises)
                 await asyncio.wait_for(fut, 0.05)
