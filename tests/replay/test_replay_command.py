@@ -60,3 +60,30 @@ def test_bad_rate_rejected(tmp_path):
     res = subprocess.run([*CLI, str(tmp_path / "a.tlog"), "--corrupt", "1.5"], capture_output=True,
                          text=True, timeout=30)
     assert res.returncode == 2 and "--corrupt" in res.stderr and len(res.stderr.strip().splitlines()) == 1
+
+
+def test_ctrl_c_stops_cleanly(tmp_path):
+    import signal
+    import time
+
+    make_tlog(tmp_path / "a.tlog", duration_s=30.0)
+    proc = subprocess.Popen([*CLI, str(tmp_path / "a.tlog"), "--report", str(tmp_path / "rep.json")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        path = proc.stdout.readline().strip()
+        reader = RawReconnectingReader(path)
+        try:
+            time.sleep(1.0)
+            proc.send_signal(signal.SIGINT)
+            assert proc.wait(timeout=10) == 130
+        finally:
+            reader.close()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert "(interrupted)" in proc.stderr.read()
+    rep = json.loads((tmp_path / "rep.json").read_text())
+    assert not rep["finished"] and 0 < len(rep["intact"]) < rep["n_packets"]
+    import os
+    assert not os.path.lexists(path)
