@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -63,9 +66,6 @@ def test_bad_rate_rejected(tmp_path):
 
 
 def test_ctrl_c_stops_cleanly(tmp_path):
-    import signal
-    import time
-
     make_tlog(tmp_path / "a.tlog", duration_s=30.0)
     proc = subprocess.Popen([*CLI, str(tmp_path / "a.tlog"), "--report", str(tmp_path / "rep.json")],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -85,5 +85,4 @@ def test_ctrl_c_stops_cleanly(tmp_path):
     assert "(interrupted)" in proc.stderr.read()
     rep = json.loads((tmp_path / "rep.json").read_text())
     assert not rep["finished"] and 0 < len(rep["intact"]) < rep["n_packets"]
-    import os
     assert not os.path.lexists(path)
