@@ -56,7 +56,7 @@ class Diagnosis:
 
 def segments_from_prepared(prepared: Any) -> tuple[list[SegmentArrays], np.ndarray]:
     """SegmentArrays of a ``dsp.prepare.PreparedData`` and the channels available in all of them."""
-    segs, avail = [], np.ones(8, bool)
+    segs, avails = [], []
     for s in prepared.segments:
         n = np.asarray(s.t_s).shape[0]
         alt = getattr(s, "alt_m", None)
@@ -67,8 +67,16 @@ def segments_from_prepared(prepared: Any) -> tuple[list[SegmentArrays], np.ndarr
                                   outputs=out, outputs_raw=out if raw is None else np.asarray(raw, float),
                                   alt_m=alt, flight=int(getattr(s, "flight", 0))))
         a = getattr(s, "available", None)
-        if a is not None:
-            avail &= np.asarray(a, bool)
+        avails.append(np.isfinite(out).all(axis=0) if a is None else np.asarray(a, bool))
+    # channels measured in most of the data are kept; segments lacking one of them are left out
+    if segs:
+        dur = np.array([s.t_s.shape[0] for s in segs], float)
+        share = (np.array(avails, float) * dur[:, None]).sum(axis=0) / dur.sum()
+        avail = share >= 0.7
+        keep = [i for i, a in enumerate(avails) if a[avail].all()]
+        segs = [segs[i] for i in keep]
+    else:
+        avail = np.zeros(8, bool)
     # a channel that is all-NaN or constant is not available either
     for c in range(8):
         y = np.concatenate([s.outputs[:, c] for s in segs]) if segs else np.zeros(0)
