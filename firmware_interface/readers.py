@@ -1,0 +1,401 @@
+"""Log readers: .tlog, ArduPilot dataflash .bin and PX4 .px4log into one :class:`LogData`.
+
+:func:`load_log` picks the reader by content (a dataflash FMT header, else .tlog records). The .tlog
+path scans records tolerantly (:mod:`firmware_interface.tlogread`) and decodes them through the same
+:class:`~firmware_interface.session.MavlinkSession` as the live link (passive: nothing is sent), so
+units, clock unwrapping and reboot handling are identical offline and live. Dataflash logs go
+through pymavlink's ``DFReader`` and are mapped onto the same MAVLink-named series.
+
+Messages without an FC time field (HEARTBEAT, SYS_STATUS, EXTENDED_SYS_STATE) get ``t_fc_s`` from
+the lower envelope of ``host - fc`` over the timed messages, interpolated at their host time.
+
+``LogData.flights``: armed intervals of the FC's HEARTBEAT (dataflash: ARM / EV arming events);
+without any arming information the whole log is one flight. In-air time from EXTENDED_SYS_STATE
+``landed_state`` (2 in air, 3 taking off, 4 landing), else height > ``in_air_height_m`` above the
+height at the start of the armed interval (LOCAL_POSITION_NED z, else GLOBAL_POSITION_INT
+relative_alt); NaN when neither exists.
+
+Leaves to others: resampling, trims and smoothing (``groundstation.dsp``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from firmware_interface.errors import LogError
+from firmware_interface.samples import (
+    SERIES_FIELDS,
+    Attitude,
+    ExtendedSysState,
+    FlightInterval,
+    GlobalPositionInt,
+    GpsRawInt,
+    Heartbeat,
+    Imu,
+    LinkStats,
+    LocalPositionNed,
+    LogData,
+    RcChannels,
+    Series,
+    ServoOutputRaw,
+    SysStatus,
+)
+from firmware_interface.session import MavlinkSession, SessionConfig
+from firmware_interface.tlogread import TlogScan, scan_tlog
+
+__all__ = ["build_logdata", "find_flights", "load_log", "load_tlog_bytes", "load_dataflash"]
+
+_UNTIMED = ("HEARTBEAT", "SYS_STATUS", "EXTENDED_SYS_STATE")
+_DF_MAGIC = b"\xa3\x95\x80"  # dataflash FMT record header
+_MAV_AUTOPILOT_INVALID = 8
+_MAV_TYPE_GCS = 6
+
+
+def load_log(path: str | os.PathLike[str]) -> LogData:
+    """Read a .tlog, dataflash .bin or PX4 .px4log into :class:`LogData` (raises LogError)."""
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except FileNotFoundError:
+        raise LogError(f"{p}: no such file") from None
+    except IsADirectoryError:
+        raise LogError(f"{p}: is a directory, not a log file") from None
+    except OSError as exc:
+        raise LogError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    if not data:
+        raise LogError(f"{p}: empty file")
+    if data[:3] == _DF_MAGIC:
+        return load_dataflash(p)
+    return load_tlog_bytes(data, str(p))
+
+
+def load_tlog_bytes(data: bytes, source: str = "<bytes>") -> LogData:
+    """Decode .tlog content (tolerant) into LogData; raises LogError if no record is valid."""
+    scan = TlogScan()
+    session = MavlinkSession(SessionConfig(request_streams=False, link_timeout_s=math.inf))
+    events: list[Any] = []
+    recv = session.receive_packet
+    pull = session.events
+    ext = events.extend
+    for t_host_s, pkt in scan_tlog(data, scan):
+        recv(pkt, t_host_s)
+        ext(pull())
+    if scan.records == 0:
+        raise LogError(f"{source}: not a MAVLink telemetry log (no valid .tlog record in {len(data)} bytes)")
+    stats = session.stats
+    stats.corrupt_bytes = scan.corrupt_bytes
+    stats.truncated_tail_bytes = scan.truncated_tail_bytes
+    return build_logdata(events, source, stats, dict(session.message_counts))
+
+
+# ---------------------------------------------------------------------- events -> columns
+
+
+def _rows(ev: Any) -> tuple[str, tuple[float, ...]] | None:
+    t = type(ev)
+    if t is Attitude:
+        return "ATTITUDE", (ev.roll_rad, ev.pitch_rad, ev.yaw_rad, ev.p_rad_s, ev.q_rad_s, ev.r_rad_s)
+    if t is ServoOutputRaw:
+        if ev.port != 0:
+            return None
+        return "SERVO_OUTPUT_RAW", ev.pwm_us
+    if t is LocalPositionNed:
+        return "LOCAL_POSITION_NED", (ev.x_m, ev.y_m, ev.z_m, ev.vx_m_s, ev.vy_m_s, ev.vz_m_s)
+    if t is Heartbeat:
+        if ev.autopilot == _MAV_AUTOPILOT_INVALID or ev.mav_type == _MAV_TYPE_GCS:
+            return None
+        return "HEARTBEAT", (float(ev.armed), ev.base_mode, ev.custom_mode, ev.mav_type)
+    if t is GlobalPositionInt:
+        return "GLOBAL_POSITION_INT", (ev.lat_deg, ev.lon_deg, ev.alt_m, ev.relative_alt_m, ev.vx_m_s,
+                                       ev.vy_m_s, ev.vz_m_s)
+    if t is Imu:
+        return "IMU:" + ev.source, ev.acc_m_s2 + ev.gyro_rad_s
+    if t is GpsRawInt:
+        return "GPS_RAW_INT", (ev.fix_type, ev.lat_deg, ev.lon_deg, ev.alt_m, ev.ground_speed_m_s,
+                               ev.satellites)
+    if t is ExtendedSysState:
+        return "EXTENDED_SYS_STATE", (ev.landed_state,)
+    if t is SysStatus:
+        return "SYS_STATUS", (ev.voltage_v, ev.current_a, ev.drop_rate_comm_pct)
+    if t is RcChannels:
+        return "RC_CHANNELS", ev.pwm_us
+    return None
+
+
+def build_logdata(events: Iterable[Any], source: str, stats: LinkStats | None = None,
+                  message_counts: dict[str, int] | None = None) -> LogData:
+    """Stack typed sample events (from a session) into a :class:`LogData`."""
+    rows: dict[str, list[tuple[float, ...]]] = {}
+    times: dict[str, list[tuple[float, float]]] = {}
+    fc_sysid: int | None = None
+    for ev in events:
+        r = _rows(ev)
+        if r is None:
+            continue
+        if type(ev) is Heartbeat and fc_sysid is None:
+            fc_sysid = ev.sysid
+        if fc_sysid is not None and ev.sysid != fc_sysid:
+            continue
+        name, vals = r
+        lst = rows.get(name)
+        if lst is None:
+            lst = rows[name] = []
+            times[name] = []
+        lst.append(vals)
+        times[name].append((ev.t_fc_s, ev.t_host_s))
+    # IMU: the first source in priority order
+    for src in ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3"):
+        if "IMU:" + src in rows:
+            rows["IMU"], times["IMU"] = rows["IMU:" + src], times["IMU:" + src]
+            break
+    series: dict[str, Series] = {}
+    for name, fields in SERIES_FIELDS.items():
+        if name not in rows:
+            continue
+        vals = np.asarray(rows[name], dtype=float).reshape(-1, len(fields))
+        tt = np.asarray(times[name], dtype=float).reshape(-1, 2)
+        series[name] = Series(tt[:, 0], tt[:, 1], {f: vals[:, k] for k, f in enumerate(fields)})
+    series = _fix_untimed(series)
+    return _finish(source, series, dict(message_counts or {}), stats or LinkStats())
+
+
+def _fix_untimed(series: dict[str, Series], untimed: tuple[str, ...] = _UNTIMED) -> dict[str, Series]:
+    """Give messages without an FC time field t_fc_s from the host-fc lower envelope."""
+    th, tf = [], []
+    for name, s in series.items():
+        if name not in untimed and len(s):
+            ok = np.isfinite(s.t_fc_s)
+            th.append(s.t_host_s[ok])
+            tf.append(s.t_fc_s[ok])
+    if not th:
+        base = min((float(s.t_host_s[0]) for s in series.values() if len(s)), default=0.0)
+        env_t, env_o = np.array([0.0]), np.array([base])
+    else:
+        h = np.concatenate(th)
+        o = h - np.concatenate(tf)
+        order = np.argsort(h, kind="stable")
+        h, o = h[order], o[order]
+        b = np.floor((h - h[0]) / 1.0).astype(np.int64)
+        starts = np.flatnonzero(np.r_[True, b[1:] != b[:-1]])
+        env_o = np.minimum.reduceat(o, starts)
+        env_t = h[starts]
+    out = dict(series)
+    for name in untimed:
+        s = series.get(name)
+        if s is None or not len(s):
+            continue
+        t_fc = s.t_host_s - np.interp(s.t_host_s, env_t, env_o)
+        out[name] = Series(t_fc, s.t_host_s, s.columns)
+    return out
+
+
+def _finish(source: str, series: dict[str, Series], counts: dict[str, int], stats: LinkStats) -> LogData:
+    sorted_series: dict[str, Series] = {}
+    for name, s in series.items():
+        order = np.argsort(s.t_fc_s, kind="stable")
+        if np.all(order == np.arange(len(order))):
+            sorted_series[name] = s
+        else:
+            sorted_series[name] = Series(s.t_fc_s[order], s.t_host_s[order],
+                                         {k: v[order] for k, v in s.columns.items()})
+    return LogData(source, sorted_series, counts, stats, find_flights(sorted_series))
+
+
+# ---------------------------------------------------------------------- flights
+
+
+def _span(series: dict[str, Series]) -> tuple[float, float] | None:
+    lo, hi = math.inf, -math.inf
+    for s in series.values():
+        if len(s):
+            t = s.t_fc_s[np.isfinite(s.t_fc_s)]
+            if t.size:
+                lo, hi = min(lo, float(t[0])), max(hi, float(t[-1]))
+    return (lo, hi) if lo <= hi else None
+
+
+def _hold_intervals(t: np.ndarray, flag: np.ndarray, lo: float, hi: float) -> list[tuple[float, float]]:
+    """Intervals within [lo, hi] where a sample-and-hold boolean signal is true."""
+    sel = (t >= lo) & (t <= hi)
+    t, flag = t[sel], flag[sel]
+    out: list[tuple[float, float]] = []
+    start: float | None = None
+    for k in range(len(t)):
+        if flag[k] and start is None:
+            start = float(t[k])
+        elif not flag[k] and start is not None:
+            out.append((start, float(t[k])))
+            start = None
+    if start is not None:
+        out.append((start, hi))
+    return out
+
+
+def _runs(flag: np.ndarray) -> list[tuple[int, int]]:
+    """(first, last) index of each run of True."""
+    d = np.diff(np.r_[0, flag.astype(np.int8), 0])
+    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1) - 1, strict=True))
+
+
+def find_flights(series: dict[str, Series], *, in_air_height_m: float = 0.3) -> list[FlightInterval]:
+    """Armed intervals (FC clock) with their in-air time; see the module docstring."""
+    span = _span(series)
+    if span is None:
+        return []
+    hb = series.get("HEARTBEAT")
+    intervals: list[tuple[float, float]] = []
+    if hb is not None and len(hb):
+        armed = hb["armed"] > 0.5
+        t = hb.t_fc_s
+        for i0, i1 in _runs(armed):
+            end = float(t[i1 + 1]) if i1 + 1 < len(t) else span[1]
+            intervals.append((float(t[i0]), end))
+    else:
+        intervals.append(span)
+    flights = []
+    for k, (lo, hi) in enumerate(intervals):
+        air = _in_air(series, lo, hi, in_air_height_m)
+        in_air_s = math.nan if air is None else float(sum(b - a for a, b in air))
+        flights.append(FlightInterval(k, lo, hi, in_air_s, tuple(air or ())))
+    return flights
+
+
+def _in_air(series: dict[str, Series], lo: float, hi: float, height_m: float
+            ) -> list[tuple[float, float]] | None:
+    ess = series.get("EXTENDED_SYS_STATE")
+    if ess is not None and len(ess):
+        ls = ess["landed_state"]
+        sel = (ess.t_fc_s >= lo) & (ess.t_fc_s <= hi)
+        if np.any(sel & (ls > 0)):
+            return _hold_intervals(ess.t_fc_s, (ls >= 2) & (ls <= 4), lo, hi)
+    for name, col, sign in (("LOCAL_POSITION_NED", "z_m", -1.0), ("GLOBAL_POSITION_INT", "relative_alt_m", 1.0)):
+        s = series.get(name)
+        if s is None or not len(s):
+            continue
+        sel = (s.t_fc_s >= lo) & (s.t_fc_s <= hi) & np.isfinite(s[col])
+        if not np.any(sel):
+            continue
+        t, h = s.t_fc_s[sel], sign * s[col][sel]
+        h0 = float(np.median(h[t <= t[0] + 1.0]))
+        return _hold_intervals(t, h - h0 > height_m, lo, hi)
+    return None
+
+
+# ---------------------------------------------------------------------- dataflash (.bin, .px4log)
+
+
+def load_dataflash(path: str | os.PathLike[str]) -> LogData:
+    """ArduPilot .bin / PX4 sdlog2 .px4log through pymavlink's DFReader, mapped to MAVLink series."""
+    from pymavlink import DFReader
+
+    p = Path(path)
+    try:
+        log = DFReader.DFReader_binary(str(p), zero_time_base=False)
+    except Exception as exc:  # DFReader raises bare exceptions on malformed files
+        raise LogError(f"{p}: not a readable dataflash log ({type(exc).__name__}: {exc})") from None
+    cols: dict[str, list[tuple[float, ...]]] = {}
+    tms: dict[str, list[tuple[float, float]]] = {}
+    counts: dict[str, int] = {}
+    gyro: list[tuple[float, float, float, float]] = []
+    rate: list[tuple[float, float, float, float]] = []
+    px4 = False
+
+    def add(name: str, t_fc: float, t_host: float, vals: tuple[float, ...]) -> None:
+        if name not in cols:
+            cols[name], tms[name] = [], []
+        cols[name].append(vals)
+        tms[name].append((t_fc, t_host))
+
+    t0: float | None = None
+    d2r = math.pi / 180.0
+    while True:
+        try:
+            m = log.recv_msg()
+        except Exception as exc:  # a damaged record ends the import, as a truncated tlog does
+            counts["_DFREADER_ERROR"] = counts.get("_DFREADER_ERROR", 0) + 1
+            del exc
+            break
+        if m is None:
+            break
+        typ = m.get_type()
+        counts[typ] = counts.get(typ, 0) + 1
+        t_host = float(getattr(m, "_timestamp", 0.0) or 0.0)
+        tus = getattr(m, "TimeUS", None)
+        if tus is None:
+            tms_ = getattr(m, "TimeMS", None)
+            if tms_ is not None:
+                t_fc = tms_ * 1e-3
+            else:
+                if t0 is None:
+                    t0 = t_host
+                t_fc = t_host - t0
+        else:
+            t_fc = tus * 1e-6
+        f = m.__dict__ if hasattr(m, "__dict__") else {}
+        g = f.get
+        inst = g("I", g("C", 0)) or 0
+        if typ == "ATT":
+            if g("RollRate") is not None:  # PX4 sdlog2: radians
+                px4 = True
+                add("ATTITUDE", t_fc, t_host, (g("Roll"), g("Pitch"), g("Yaw"), g("RollRate"), g("PitchRate"),
+                                               g("YawRate")))
+            else:
+                add("ATTITUDE", t_fc, t_host, (g("Roll", 0.0) * d2r, g("Pitch", 0.0) * d2r, g("Yaw", 0.0) * d2r,
+                                               math.nan, math.nan, math.nan))
+        elif typ == "RATE":
+            rate.append((t_fc, g("R", 0.0) * d2r, g("P", 0.0) * d2r, g("Y", 0.0) * d2r))
+        elif typ == "IMU" and inst == 0:
+            if g("GyrX") is not None:
+                gyro.append((t_fc, g("GyrX"), g("GyrY"), g("GyrZ")))
+                add("IMU", t_fc, t_host, (g("AccX"), g("AccY"), g("AccZ"), g("GyrX"), g("GyrY"), g("GyrZ")))
+            elif g("GyroX") is not None:  # PX4
+                add("IMU", t_fc, t_host, (g("AccX"), g("AccY"), g("AccZ"), g("GyroX"), g("GyroY"), g("GyroZ")))
+        elif typ == "RCOU":
+            add("SERVO_OUTPUT_RAW", t_fc, t_host, tuple(float(g(f"C{k}", 0) or 0) for k in range(1, 17)))
+        elif typ == "OUT0":
+            add("SERVO_OUTPUT_RAW", t_fc, t_host, tuple(float(g(f"Out{k}", 0) or 0) for k in range(16)))
+        elif typ == "GPS" and inst == 0:
+            if g("Lng") is not None:
+                add("GPS_RAW_INT", t_fc, t_host, (g("Status", 0), g("Lat"), g("Lng"), g("Alt"), g("Spd", math.nan),
+                                                  g("NSats", 0)))
+            elif g("Lon") is not None:  # PX4
+                vn, ve = g("VelN", math.nan), g("VelE", math.nan)
+                add("GPS_RAW_INT", t_fc, t_host, (g("Fix", 0), g("Lat"), g("Lon"), g("Alt"), math.hypot(vn, ve),
+                                                  g("nSat", 0)))
+        elif typ in ("XKF1", "NKF1") and inst == 0:
+            add("LOCAL_POSITION_NED", t_fc, t_host, (g("PN", math.nan), g("PE", math.nan), g("PD", math.nan),
+                                                     g("VN", math.nan), g("VE", math.nan), g("VD", math.nan)))
+        elif typ == "LPOS":  # PX4
+            add("LOCAL_POSITION_NED", t_fc, t_host, (g("X"), g("Y"), g("Z"), g("VX"), g("VY"), g("VZ")))
+        elif typ == "POS":
+            rel = g("RelHomeAlt", g("RelOriginAlt", math.nan))
+            add("GLOBAL_POSITION_INT", t_fc, t_host, (g("Lat"), g("Lng"), g("Alt"), rel, math.nan, math.nan,
+                                                      math.nan))
+        elif typ == "ARM":
+            add("HEARTBEAT", t_fc, t_host, (float(bool(g("ArmState", 0))), 0, 0, 0))
+        elif typ == "EV" and g("Id") in (10, 11):
+            add("HEARTBEAT", t_fc, t_host, (1.0 if g("Id") == 10 else 0.0, 0, 0, 0))
+        elif typ == "STAT" and g("ArmS") is not None:  # PX4 sdlog2 arming_state: 2 armed, 3 armed error
+            add("HEARTBEAT", t_fc, t_host, (1.0 if g("ArmS") in (2, 3) else 0.0, 0, 0, 0))
+    series: dict[str, Series] = {}
+    for name, rows in cols.items():
+        vals = np.asarray(rows, dtype=float)
+        tt = np.asarray(tms[name], dtype=float)
+        series[name] = Series(tt[:, 0], tt[:, 1], {f: vals[:, k] for k, f in enumerate(SERIES_FIELDS[name])})
+    if "ATTITUDE" in series and not px4:
+        src = rate or gyro
+        att = series["ATTITUDE"]
+        if src:
+            r = np.asarray(src, dtype=float)
+            for k, c in enumerate(("p_rad_s", "q_rad_s", "r_rad_s")):
+                att.columns[c][:] = np.interp(att.t_fc_s, r[:, 0], r[:, k + 1])
+    if not series:
+        raise LogError(f"{p}: dataflash log holds none of ATT, RCOU, IMU, GPS, XKF1/NKF1, POS, OUT0, LPOS")
+    stats = LinkStats(packets=sum(counts.values()))
+    return _finish(str(p), series, counts, stats)

@@ -1,0 +1,118 @@
+"""Tolerant .tlog record scanner (pure: works on bytes already read).
+
+A .tlog is a sequence of records: 8-byte big-endian microseconds since the Unix epoch, then one
+MAVLink frame exactly as received. Files in the field are damaged in a few typical ways, all handled
+here without raising:
+
+* a truncated last record (the logger was killed): counted in ``truncated_tail_bytes``;
+* garbage between records (a serial glitch written by a careless logger, a partly overwritten file):
+  skipped and counted in ``corrupt_bytes``;
+* timestamp bytes that happen to contain 0xFD/0xFE (every timestamp may): the scanner walks the
+  *record* structure (timestamp, then a CRC-valid frame), and only when that breaks does it
+  resynchronise, on a position where a CRC-valid frame follows a timestamp plausibly near the
+  previous record's (within ``max_step_s``).
+
+Leaves decoding to :mod:`firmware_interface.session` and file IO to :mod:`firmware_interface.readers`.
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+from firmware_interface.codec import NEED_MORE, OK, check_frame
+
+__all__ = ["TlogScan", "scan_tlog"]
+
+_TS = struct.Struct(">Q")
+_MAGIC_RE = re.compile(b"[\xfd\xfe]")
+# a plausible first timestamp (when resynchronising before any record was accepted): 1990..2100
+_TS_MIN_US = 631152000 * 10**6
+_TS_MAX_US = 4102444800 * 10**6
+
+
+@dataclass
+class TlogScan:
+    """Counters of one scan (bytes)."""
+
+    records: int = 0
+    corrupt_bytes: int = 0
+    truncated_tail_bytes: int = 0
+    resyncs: int = 0
+
+
+def scan_tlog(data: bytes, scan: TlogScan | None = None, *, max_step_s: float = 86400.0
+              ) -> Iterator[tuple[float, bytes]]:
+    """Yield ``(t_host_s, frame_bytes)`` for every intact record of ``data``.
+
+    Counters go to ``scan`` (pass a :class:`TlogScan` to read them after iteration).
+    """
+    st = scan if scan is not None else TlogScan()
+    n = len(data)
+    p = 0
+    prev_us: int | None = None
+    max_step_us = int(max_step_s * 1e6)
+    unpack_ts = _TS.unpack_from
+    while p + 8 < n:
+        j = p + 8
+        b = data[j]
+        if b == 0xFD or b == 0xFE:
+            status, total, _ = check_frame(data, j, n)
+            if status == OK:
+                ts = unpack_ts(data, p)[0]
+                if (prev_us is None or abs(ts - prev_us) <= max_step_us
+                        or _chains(data, j + total, n, ts, max_step_us)):
+                    st.records += 1
+                    prev_us = ts
+                    yield ts * 1e-6, data[j : j + total]
+                    p = j + total
+                    continue
+        # the record structure broke at p: find the next plausible record
+        q = _resync(data, p + 1, n, prev_us, max_step_us)
+        if q is None:
+            status = NEED_MORE
+            if b == 0xFD or b == 0xFE:
+                status, _, _ = check_frame(data, j, n)
+            if status == NEED_MORE:
+                st.truncated_tail_bytes += n - p
+            else:
+                st.corrupt_bytes += n - p
+            return
+        st.resyncs += 1
+        st.corrupt_bytes += q - p
+        p = q
+    if p < n:
+        st.truncated_tail_bytes += n - p
+
+
+def _chains(data: bytes, q: int, n: int, ts: int, max_step_us: int) -> bool:
+    """True when a valid record with a timestamp near ``ts`` starts at ``q`` (a host clock jump)."""
+    if q + 8 >= n or data[q + 8] not in (0xFD, 0xFE):
+        return False
+    if check_frame(data, q + 8, n)[0] != OK:
+        return False
+    return abs(_TS.unpack_from(data, q)[0] - ts) <= max_step_us
+
+
+def _resync(data: bytes, start: int, n: int, prev_us: int | None, max_step_us: int) -> int | None:
+    """Start of the next record at or after ``start`` whose frame is valid and timestamp plausible."""
+    pos = start + 8
+    while True:
+        mo = _MAGIC_RE.search(data, pos)
+        if mo is None:
+            return None
+        j = mo.start()
+        pos = j + 1
+        if j - 8 < start:
+            continue
+        status, _, _ = check_frame(data, j, n)
+        if status != OK:
+            continue
+        ts = _TS.unpack_from(data, j - 8)[0]
+        if prev_us is None:
+            if _TS_MIN_US <= ts <= _TS_MAX_US:
+                return j - 8
+        elif abs(ts - prev_us) <= max_step_us:
+            return j - 8
