@@ -1,0 +1,569 @@
+"""The live ground-station service: asyncio wiring of link, session, recorder, live DSP and sinks.
+
+One :class:`Service` per run, one ``asyncio.TaskGroup``:
+
+* ``reader``    -- ``await link.read()`` into a bounded queue (back-pressure onto the link, nothing
+  dropped); on a link error the link is closed, the session told (``link_down``) and the URL reopened
+  every ``reconnect_s`` (a USB cable pulled and plugged back);
+* ``processor`` -- bytes -> :class:`firmware_interface.session.MavlinkSession` -> events; RawPacket and
+  Heartbeat to the :class:`firmware_interface.recorder.Recorder` first (recording never depends on
+  anything after it), then :class:`groundstation.dsp.live.LivePipeline`; windows to zenoh, rows to
+  Rerun (both through their own threads: the loop never blocks on a sink);
+* ``timer``     -- session timers and the bytes it wants to send (heartbeats, stream requests),
+  recorder flushes, the status record at ``status_rate_hz``;
+* ``stopper``   -- waits for Ctrl-C/SIGTERM, ``exit_after_flights`` or :meth:`Service.request_stop`.
+
+On disarm (a flight ends) the flight's .tlog is handed to :func:`groundstation.worker.run_job` in a
+``ProcessPoolExecutor(max_workers=1)`` with the spawn context; its result (model, gap report) is
+published on zenoh and logged to Rerun when it comes back. Shutdown closes the recorder first, then
+kills the worker, then closes the sinks and the link: well within 2 s.
+
+The numbers are computed elsewhere (``dsp``, ``sysid``, ``gap``); this module only wires.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import inspect
+import math
+import multiprocessing
+import signal
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from firmware_interface.samples import (
+    FcRebooted,
+    Heartbeat,
+    LinkLost,
+    LinkRestored,
+    RawPacket,
+)
+from groundstation.config import ServiceConfig
+from groundstation.dsp.live import FlightEnded, FlightStarted, LiveConfig, LivePipeline, RateMeter, Window
+from groundstation.sinks.background import BackgroundCalls
+from groundstation.worker import IdentifyJob, run_job
+
+
+class _Stop(Exception):
+    """Raised inside the TaskGroup to end the run cleanly."""
+
+
+@dataclass
+class IdentState:
+    state: str = "idle"            # idle | running | done | failed | off
+    flight: int | None = None
+    queued: int = 0
+    done: int = 0
+    failed: int = 0
+    last_error: str | None = None
+    last_seconds: float | None = None
+
+
+@dataclass
+class RunReport:
+    """What the run did (returned by :meth:`Service.run`, printed by the commands)."""
+
+    record_dir: str
+    session_tlog: str | None = None
+    flight_tlogs: list[str] = field(default_factory=list)
+    results: list[dict[str, Any]] = field(default_factory=list)
+    rrd: str | None = None
+    zenoh_endpoint: str = ""
+    packets: int = 0
+    packets_lost: int = 0
+    bad_crc: int = 0
+    windows_published: int = 0
+    windows_dropped: int = 0
+    flights: int = 0
+    warnings: list[str] = field(default_factory=list)
+    stopped_by: str = ""
+
+
+def live_config(cfg: ServiceConfig) -> LiveConfig:
+    lv, inp = cfg.live, cfg.inputs
+    return LiveConfig(
+        grid_rate_hz=lv.grid_rate_hz, smoothing_passes=lv.smoothing_passes, window_s=lv.window_s,
+        hop_s=lv.hop_s, stale_s=lv.stale_s, in_air_alt_m=lv.in_air_alt_m,
+        servo_numbers=(inp.lat_servo, inp.lon_servo, inp.col_servo, inp.ped_servo),
+        trim_pwm=inp.trim_pwm, pwm_per_unit=inp.pwm_per_unit)
+
+
+async def _maybe_await(x: Any) -> Any:
+    return await x if inspect.isawaitable(x) else x
+
+
+class Service:
+    """The live service.
+
+    Parameters
+    ----------
+    config : the whole service configuration
+    log : one-line messages for the operator (default ``print``)
+    sim_options : extra keyword arguments for the built-in simulator's ``SimulatedSession``
+    fc_config : :class:`hil_replay.fc.FcConfig` for the built-in simulator (faults in tests)
+    """
+
+    def __init__(self, config: ServiceConfig, *, log: Callable[[str], None] = print,
+                 sim_options: dict[str, Any] | None = None, fc_config: Any = None) -> None:
+        self.config = config
+        self.log = log
+        self.sim_options = sim_options
+        self.fc_config = fc_config
+        self.vehicle = config.service.vehicle
+        self.record_dir = Path(config.service.record_dir)
+        self.report = RunReport(record_dir=str(self.record_dir))
+        self.ident = IdentState(state="idle" if config.identification.enabled else "off")
+        self.ready = asyncio.Event()
+        self.sim: Any = None                 # hil_replay.fc.SimulatedFCThread when built in
+        self.link_url = config.link.url
+        self.link: Any = None
+        self.link_up = False
+        self.session: Any = None
+        self.recorder: Any = None
+        self.zenoh: Any = None
+        self.rerun: Any = None
+        self._rerun_calls: BackgroundCalls | None = None
+        self.live = LivePipeline(live_config(config))
+        self.rates = RateMeter(2.0)
+        self._stop = asyncio.Event()
+        self._stop_reason = ""
+        self._bytes_q: asyncio.Queue[tuple[bytes, float]] = asyncio.Queue(config.service.queue_size)
+        self._executor: concurrent.futures.ProcessPoolExecutor | None = None
+        self._pending: set[asyncio.Future[Any]] = set()
+        self._flight_tlogs: dict[int, str] = {}
+        self._rows_buf: list[tuple[np.ndarray, ...]] = []
+        self._sm_buf: list[tuple[np.ndarray, np.ndarray]] = []
+        self.flights_completed = 0
+        self.packets = 0
+        self.window_seq_published = 0
+        self.on_window: Callable[[Window], None] | None = None     # test/bench hook (loop thread)
+
+    # ------------------------------------------------------------------ control
+
+    def request_stop(self, reason: str = "requested") -> None:
+        if not self._stop.is_set():
+            self._stop_reason = reason
+            self._stop.set()
+
+    # ------------------------------------------------------------------ setup
+
+    def _open_recorder(self) -> None:
+        from firmware_interface.recorder import Recorder
+
+        try:
+            self.record_dir.mkdir(parents=True, exist_ok=True)
+            probe = self.record_dir / ".write-test"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as exc:
+            raise OSError(f"{self.record_dir}: record directory not writable ({exc.strerror or exc})") from None
+        self.recorder = Recorder(self.record_dir)
+        self.report.session_tlog = str(getattr(self.recorder, "session_path", "") or "") or None
+
+    def _open_sinks(self, loop: asyncio.AbstractEventLoop) -> None:
+        zc = self.config.zenoh
+        if zc.enabled:
+            from groundstation.sinks.zenoh_sink import ZenohSink, ZenohSinkError
+
+            try:
+                self.zenoh = ZenohSink(self.vehicle, config_path=zc.config_file or None,
+                                       listen_port=zc.listen_port, window_queue=zc.window_queue, loop=loop)
+                self.report.zenoh_endpoint = self.zenoh.endpoint
+                if self.zenoh.error:
+                    self._warn(self.zenoh.error + " (retrying; recording goes on)")
+            except ZenohSinkError as exc:
+                self._warn(f"{exc}; running without zenoh (recording goes on)")
+        rc = self.config.rerun
+        if rc.mode != "off":
+            from groundstation.sinks.rerun_sink import RerunSink, RerunSinkError
+
+            try:
+                self.rerun = RerunSink(self.vehicle, rc.mode, rc.target)
+                self._rerun_calls = BackgroundCalls("rerun-logger", maxsize=256)
+                if rc.mode == "save":
+                    self.report.rrd = rc.target
+            except RerunSinkError as exc:
+                self._warn(f"{exc}; running without Rerun (recording goes on)")
+
+    def _start_builtin_sim(self) -> str:
+        from hil_replay.fc import SimulatedFCThread
+
+        sc = self.config.sim
+        self.sim = SimulatedFCThread(speed=sc.speed, seed=sc.seed, flights=sc.flights, effects=sc.effects,
+                                     config=self.fc_config, sim_options=self.sim_options)
+        self.sim.start()
+        return f"serial://{self.sim.port_path}:{self.config.link.baud}"
+
+    async def _open_link(self) -> Any:
+        from firmware_interface.transports import open_link
+
+        return await _maybe_await(open_link(self.link_url))
+
+    def _warn(self, msg: str) -> None:
+        self.report.warnings.append(msg)
+        self.log(f"warning: {msg}")
+
+    # ------------------------------------------------------------------ run
+
+    async def run(self) -> RunReport:
+        """Run until stopped; returns the report. Raises OSError/ValueError for bad input (one line)."""
+        loop = asyncio.get_running_loop()
+        self._open_recorder()
+        try:
+            from firmware_interface.session import MavlinkSession
+
+            self.session = MavlinkSession()
+            self._open_sinks(loop)
+            if self.config.identification.enabled:
+                self._executor = concurrent.futures.ProcessPoolExecutor(
+                    max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+            if not self.link_url:
+                self.link_url = self._start_builtin_sim()
+                self.log(f"built-in simulated flight controller on {self.sim.port_path} "
+                         f"(speed {self.config.sim.speed:g}x, {self.config.sim.flights} flight(s))")
+            self.link = await self._open_link()
+            self.link_up = True
+            self.log(f"link {self.link_url} open; recording to {self.record_dir}")
+            installed = self._install_signals(loop)
+            self.ready.set()
+            try:
+                async with asyncio.TaskGroup() as tg:
+                    tg.create_task(self._reader(), name="reader")
+                    tg.create_task(self._processor(), name="processor")
+                    tg.create_task(self._timer(), name="timer")
+                    tg.create_task(self._stopper(), name="stopper")
+            except* _Stop:
+                pass
+            finally:
+                for sig in installed:
+                    loop.remove_signal_handler(sig)
+        finally:
+            await self._shutdown()
+        self.report.stopped_by = self._stop_reason
+        return self.report
+
+    def _install_signals(self, loop: asyncio.AbstractEventLoop) -> list[int]:
+        installed = []
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                loop.add_signal_handler(sig, self.request_stop, signal.Signals(sig).name)
+                installed.append(sig)
+            except (NotImplementedError, RuntimeError, ValueError):   # not the main thread
+                pass
+        return installed
+
+    async def _stopper(self) -> None:
+        await self._stop.wait()
+        raise _Stop
+
+    # ------------------------------------------------------------------ link
+
+    async def _reader(self) -> None:
+        reconnect_s = 0.25
+        while True:
+            if self.link is None:
+                try:
+                    self.link = await self._open_link()
+                    self.link_up = True
+                    self.log(f"link {self.link_url} reopened")
+                except OSError:
+                    await asyncio.sleep(reconnect_s)
+                    continue
+            try:
+                data = await self.link.read()
+            except (OSError, EOFError) as exc:
+                data = None
+                reason = f"{type(exc).__name__}: {exc}"
+            else:
+                reason = "end of stream"
+            if not data:
+                if data is not None and data == b"" and not getattr(self.link, "at_eof", True):
+                    continue
+                await self._drop_link(reason)
+                continue
+            await self._bytes_q.put((data, time.time()))
+
+    async def _drop_link(self, reason: str) -> None:
+        link, self.link = self.link, None
+        if self.link_up:
+            self.log(f"link lost ({reason}); reconnecting")
+        self.link_up = False
+        self.session.link_down(time.time(), reason[:200])
+        try:
+            await _maybe_await(link.close())
+        except OSError:
+            pass
+        await asyncio.sleep(0.05)
+
+    async def _timer(self) -> None:
+        period = 0.02
+        status_every = 1.0 / self.config.service.status_rate_hz
+        next_status = time.monotonic()
+        while True:
+            now = time.time()
+            self.session.handle_timer(now)
+            out = self.session.data_to_send(now)
+            if out and self.link is not None:
+                try:
+                    await self.link.write(out)
+                except OSError as exc:
+                    await self._drop_link(f"write: {exc}")
+            self._drain_session(now)
+            tick = getattr(self.recorder, "tick", None)
+            if tick is not None:
+                tick()
+            if time.monotonic() >= next_status:
+                next_status += status_every
+                if next_status < time.monotonic():
+                    next_status = time.monotonic() + status_every
+                self._publish_status()
+            await asyncio.sleep(period)
+
+    # ------------------------------------------------------------------ processing
+
+    async def _processor(self) -> None:
+        while True:
+            data, t_host = await self._bytes_q.get()
+            self.session.receive_data(data, t_host)
+            self._drain_session(t_host)
+            # let the other tasks run between chunks even when the queue is full
+            await asyncio.sleep(0)
+
+    def _drain_session(self, now: float) -> None:
+        events = self.session.events()
+        if not events:
+            return
+        rec = self.recorder
+        for ev in events:
+            if isinstance(ev, RawPacket):
+                self.packets += 1
+                self.rates.add(ev.msg_type, now)
+                rec.handle(ev)
+            elif isinstance(ev, Heartbeat):
+                rec.handle(ev)
+            elif isinstance(ev, LinkLost):
+                self.link_up = False
+                self._rerun_event(f"link lost: {ev.reason}", "WARN")
+            elif isinstance(ev, LinkRestored):
+                self.link_up = True
+                self._rerun_event("link restored", "INFO")
+            elif isinstance(ev, FcRebooted):
+                self._rerun_event("flight controller rebooted", "WARN")
+        out = self.live.feed(events)
+        if len(out.t_fc_s):
+            self._rows_buf.append((out.t_fc_s, out.t_host_s, out.inputs, out.outputs_raw))
+        if len(out.t_smoothed_s):
+            self._sm_buf.append((out.t_smoothed_s, out.outputs_smoothed))
+        for w in out.windows:
+            self._on_window(w)
+        for fe in out.flight_events:
+            self._on_flight_event(fe)
+
+    def _on_window(self, w: Window) -> None:
+        if self.zenoh is not None:
+            doc = w.to_json(self.vehicle)
+            if self.zenoh.publish_window(doc, seq=w.seq, t_host_last_s=w.t_host_last_s):
+                self.window_seq_published += 1
+        if self.rerun is not None and self._rerun_calls is not None:
+            if self._rows_buf:
+                cols = [np.concatenate([r[i] for r in self._rows_buf]) for i in range(4)]
+                self._rerun_calls.submit(self.rerun.log_rows, cols[0], cols[1], cols[2], cols[3], "raw")
+            if self._sm_buf:
+                ts = np.concatenate([r[0] for r in self._sm_buf])
+                ys = np.concatenate([r[1] for r in self._sm_buf])
+                self._rerun_calls.submit(self.rerun.log_rows, ts, np.full(len(ts), math.nan), None, ys,
+                                         "smoothed")
+        self._rows_buf.clear()
+        self._sm_buf.clear()
+        if self.on_window is not None:
+            self.on_window(w)
+
+    def _rerun_event(self, text: str, level: str) -> None:
+        if self.rerun is not None and self._rerun_calls is not None:
+            t = float(self.live.aligner._newest) if math.isfinite(self.live.aligner._newest) else 0.0
+            self._rerun_calls.submit(self.rerun.log_event, text, t, level)
+
+    # ------------------------------------------------------------------ flights
+
+    def _on_flight_event(self, fe: FlightStarted | FlightEnded) -> None:
+        if isinstance(fe, FlightStarted):
+            self.log(f"flight {fe.flight}: armed at FC {fe.t_fc_s:.1f} s")
+            self._rerun_event(f"flight {fe.flight} armed", "INFO")
+            return
+        self.flights_completed += 1
+        self.report.flights = self.flights_completed
+        path = self._last_flight_tlog()
+        if path:
+            self._flight_tlogs[fe.flight] = path
+            self.report.flight_tlogs.append(path)
+        self.log(f"flight {fe.flight}: disarmed after {fe.duration_s:.1f} s; recorded {path or '(no file)'}")
+        self._rerun_event(f"flight {fe.flight} disarmed ({fe.duration_s:.1f} s)", "INFO")
+        if self._executor is not None and path:
+            ic = self.config.identification
+            tlogs = (tuple(self._flight_tlogs[k] for k in sorted(self._flight_tlogs)) if ic.scope == "all"
+                     else (path,))
+            job = IdentifyJob(flight=fe.flight, tlogs=tlogs, out_dir=str(Path(path).parent),
+                              vehicle=self.vehicle, algorithm=ic.algorithm, seed=ic.seed, maxiter=ic.maxiter,
+                              refine=ic.refine, diagnose=ic.diagnose, plots=ic.plots)
+            fut = asyncio.wrap_future(self._executor.submit(run_job, job))
+            self._pending.add(fut)
+            self.ident.queued += 1
+            self.ident.state = "running"
+            self.ident.flight = fe.flight
+            fut.add_done_callback(self._on_result)
+        self._check_exit()
+
+    def _last_flight_tlog(self) -> str | None:
+        rec = self.recorder
+        for name in ("last_flight_path", "flight_paths"):
+            v = getattr(rec, name, None)
+            if callable(v):
+                v = v()
+            if isinstance(v, list | tuple):
+                v = v[-1] if v else None
+            if v:
+                return str(v)
+        return None
+
+    def _on_result(self, fut: asyncio.Future[Any]) -> None:
+        self._pending.discard(fut)
+        self.ident.queued -= 1
+        if fut.cancelled():
+            return
+        exc = fut.exception()
+        res: dict[str, Any] = ({"error": f"worker: {type(exc).__name__}: {exc}".splitlines()[0]}
+                               if exc is not None else fut.result())
+        flight = res.get("flight")
+        overlay = res.pop("overlay", None)
+        self.report.results.append(res)
+        if "error" in res:
+            self.ident.failed += 1
+            self.ident.state = "failed" if not self._pending else "running"
+            self.ident.last_error = res["error"]
+            self._warn(f"identification: {res['error']}")
+        else:
+            self.ident.done += 1
+            self.ident.state = "done" if not self._pending else "running"
+            self.ident.last_seconds = res.get("seconds")
+            match = res.get("match_degree", {})
+            table = " ".join(f"{k}={v:.1f}" for k, v in match.items() if isinstance(v, int | float))
+            self.log(f"flight {flight}: model {res.get('model_path')} ({res.get('seconds', 0):.1f} s); match % {table}")
+            if self.zenoh is not None:
+                self.zenoh.publish_model(flight, res["model"])
+                if res.get("gap") is not None:
+                    self.zenoh.publish_gap(flight, res["gap"])
+            if res.get("gap") is not None:
+                self.log(f"flight {flight}: gap report {res.get('gap_path')} verdict {res['gap'].get('verdict')}")
+            if self.rerun is not None and self._rerun_calls is not None:
+                if overlay and overlay.get("t_fc_s"):
+                    self._rerun_calls.submit(self.rerun.log_model_overlay, np.asarray(overlay["t_fc_s"]),
+                                             np.asarray(overlay["model"]))
+                gap = res.get("gap") or {}
+                t_end = float(overlay["t_fc_s"][-1]) if overlay and overlay.get("t_fc_s") else 0.0
+                self._rerun_calls.submit(self.rerun.log_gap, int(flight), match, str(gap.get("verdict", "")),
+                                         _gap_text(gap), t_end)
+        self._check_exit()
+
+    def _check_exit(self) -> None:
+        k = self.config.service.exit_after_flights
+        if k and self.flights_completed >= k and not self._pending:
+            self.request_stop(f"{k} flight(s) done")
+
+    # ------------------------------------------------------------------ status
+
+    def status(self) -> dict[str, Any]:
+        now = time.time()
+        stats = getattr(self.session, "stats", None)
+        lost = int(getattr(stats, "packets_lost", 0) or 0)
+        pk = int(getattr(stats, "packets", 0) or self.packets)
+        ft = self.live.flights
+        z = self.zenoh
+        return {
+            "vehicle": self.vehicle, "t_host_s": now,
+            "link": {"up": self.link_up, "url": self.link_url, "packets": pk, "packets_lost": lost,
+                     "loss_pct": round(100.0 * lost / max(1, pk + lost), 3),
+                     "bad_crc": int(getattr(stats, "bad_crc", 0) or 0),
+                     "corrupt_bytes": int(getattr(stats, "corrupt_bytes", 0) or 0)},
+            "rates_hz": self.rates.rates(now),
+            "armed": ft.armed, "in_air": ft.in_air, "flight": ft.flight if ft.armed else None,
+            "flights_completed": self.flights_completed,
+            "height_m": ft.height_m if math.isfinite(ft.height_m) else None,
+            "recording": {"dir": str(self.record_dir), "session": self.report.session_tlog,
+                          "flights": list(self.report.flight_tlogs)},
+            "identification": {"state": self.ident.state, "flight": self.ident.flight,
+                               "queued": self.ident.queued, "done": self.ident.done, "failed": self.ident.failed,
+                               "last_error": self.ident.last_error, "last_seconds": self.ident.last_seconds},
+            "windows": {"published": self.window_seq_published,
+                        "dropped": z.windows_dropped if z is not None else 0},
+        }
+
+    def _publish_status(self) -> None:
+        if self.zenoh is not None:
+            self.zenoh.publish_status(self.status())
+
+    # ------------------------------------------------------------------ shutdown
+
+    async def _shutdown(self) -> None:
+        # 1. recording first: whatever happens next, the files are closed and valid
+        if self.recorder is not None:
+            try:
+                self.recorder.close()
+            except OSError as exc:
+                self._warn(f"closing recorder: {exc}")
+            self.report.session_tlog = self.report.session_tlog or str(
+                getattr(self.recorder, "session_path", "") or "") or None
+        # 2. the worker: cancel queued jobs, kill a running identification
+        if self._executor is not None:
+            procs = list(getattr(self._executor, "_processes", {}).values())
+            self._executor.shutdown(wait=False, cancel_futures=True)
+            for p in procs:
+                if p.is_alive():
+                    p.terminate()
+            for p in procs:
+                p.join(0.5)
+                if p.is_alive():
+                    p.kill()
+        # 3. sinks (bounded waits)
+        if self._rerun_calls is not None:
+            self._rerun_calls.close(0.5)
+        if self.rerun is not None:
+            try:
+                self.rerun.close()
+            except Exception as exc:  # a viewer gone at exit must not stop the shutdown
+                self._warn(f"closing Rerun: {type(exc).__name__}: {exc}")
+        if self.zenoh is not None:
+            self._publish_status()
+            self.zenoh.close(0.5)
+            self.report.windows_dropped = self.zenoh.windows_dropped
+        self.report.windows_published = self.window_seq_published
+        stats = getattr(self.session, "stats", None)
+        self.report.packets = int(getattr(stats, "packets", 0) or self.packets)
+        self.report.packets_lost = int(getattr(stats, "packets_lost", 0) or 0)
+        self.report.bad_crc = int(getattr(stats, "bad_crc", 0) or 0)
+        # 4. link and built-in simulator
+        if self.link is not None:
+            try:
+                await asyncio.wait_for(_maybe_await(self.link.close()), 0.5)
+            except (OSError, TimeoutError):
+                pass
+            self.link = None
+        if self.sim is not None:
+            try:
+                await asyncio.to_thread(self.sim.stop, 1.0)
+            except (OSError, TimeoutError, RuntimeError) as exc:
+                self._warn(f"stopping the simulator: {exc}")
+
+
+def _gap_text(gap: dict[str, Any]) -> str:
+    effects = gap.get("effects") or []
+    if not effects:
+        return "no effect candidates"
+    e = effects[0]
+    where = e.get("input") or e.get("output") or ""
+    return f"best: {e.get('effect')} {where} (shrink {e.get('shrink_pct', 0):.0f}%)"

@@ -1,0 +1,164 @@
+"""Identification and diagnosis of a just-closed flight, run in a worker process.
+
+:func:`run_job` is the picklable entry point the service submits to a
+``ProcessPoolExecutor(max_workers=1, mp_context=spawn)``: it reads the flight's .tlog file(s)
+(:func:`firmware_interface.readers.load_log`), prepares them (:func:`groundstation.dsp.prepare.prepare`),
+identifies the hover model (:func:`groundstation.sysid.identify.identify`), validates it, writes
+``model-flightNN.json`` next to the recording, diagnoses the gap when :mod:`groundstation.gap` is there
+(``gap-flightNN.json``), draws a model-vs-measured PNG, and returns a JSON-able dict for the service to
+publish. Errors come back as ``{"error": "one line"}`` so a bad flight never stops the service.
+
+The numerical work is the other packages'; this module only chains them and writes files.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+OUTPUTS = ("u", "v", "w", "p", "q", "r", "theta", "phi")
+
+
+@dataclass(frozen=True)
+class IdentifyJob:
+    flight: int
+    tlogs: tuple[str, ...]          # the flight's .tlog (scope "last") or all flights so far ("all")
+    out_dir: str
+    vehicle: str = "heli"
+    algorithm: str = "cabc"
+    seed: int = 0
+    maxiter: int = 0                 # 0 = identifier default
+    refine: bool = True
+    diagnose: bool = True
+    plots: bool = True
+
+
+def _warm() -> bool:
+    """Imported-and-ready probe (submitted once at start so the first flight does not pay imports)."""
+    import groundstation.dsp.prepare  # noqa: F401
+    import groundstation.sysid.model  # noqa: F401
+    return True
+
+
+def _overlay(model: Any, prepared: Any) -> dict[str, Any]:
+    """Model-predicted outputs on every segment (windowed simulation, measured initial states)."""
+    from groundstation.sysid.simulate import simulate_windows
+
+    theta = np.array([[model.parameters[n] for n in _param_names()]])
+    trim = np.array([prepared.output_trim.get(c, 0.0) for c in OUTPUTS])
+    t_all, y_all, m_all = [], [], []
+    win = max(10, int(round(5.0 / prepared.dt_s)))
+    for seg in prepared.segments:
+        n = (seg.n // win) * win
+        if n == 0:
+            continue
+        inp = seg.inputs[:n].reshape(-1, win, 4)
+        out = seg.outputs[:n].reshape(-1, win, 8)
+        yhat = simulate_windows(theta, inp, out, prepared.dt_s, seg.available)[0].reshape(n, 8)
+        t_all.append(seg.t_s[:n])
+        y_all.append(seg.outputs[:n] + trim)
+        m_all.append(yhat + trim)
+    if not t_all:
+        return {"t_fc_s": [], "measured": [], "model": []}
+    return {"t_fc_s": np.concatenate(t_all), "measured": np.vstack(y_all), "model": np.vstack(m_all)}
+
+
+def _param_names() -> tuple[str, ...]:
+    from groundstation.sysid.model import PARAM_NAMES
+
+    return PARAM_NAMES
+
+
+def _plot(overlay: dict[str, Any], path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(4, 2, figsize=(12, 9), sharex=True)
+    t = overlay["t_fc_s"]
+    for i, (ax, c) in enumerate(zip(axes.T.ravel(), OUTPUTS, strict=True)):
+        ax.plot(t, overlay["measured"][:, i], ".", ms=1.5, color="0.5", label="measured (smoothed)")
+        ax.plot(t, overlay["model"][:, i], "-", lw=0.8, color="tab:red", label="model")
+        ax.set_ylabel(c)
+    axes[0, 0].legend(loc="upper right", fontsize=7)
+    for ax in axes[-1]:
+        ax.set_xlabel("FC time (s)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def run_job(job: IdentifyJob) -> dict[str, Any]:
+    """Identify (and diagnose) one flight; returns a JSON-able result dict (``error`` on failure)."""
+    t0 = time.perf_counter()
+    out_dir = Path(job.out_dir)
+    res: dict[str, Any] = {"flight": job.flight, "tlogs": list(job.tlogs)}
+    try:
+        from firmware_interface.readers import load_log
+
+        from groundstation.dsp.prepare import prepare
+        from groundstation.sysid.identify import identify
+
+        logs = [load_log(p) for p in job.tlogs]
+        prepared = prepare(logs)
+        if not prepared.segments:
+            notes = "; ".join(prepared.notes) or "no in-air data"
+            return {**res, "error": f"flight {job.flight}: nothing to identify ({notes})"}
+        kwargs: dict[str, Any] = {"algorithm": job.algorithm, "seed": job.seed, "refine": job.refine}
+        if job.maxiter:
+            kwargs["maxiter"] = job.maxiter
+        model = identify(prepared, **kwargs)
+        doc = model.to_json()
+        match: dict[str, Any] = {}
+        try:
+            from groundstation.sysid.validate import validate
+
+            val = validate(model, prepared)
+            res["validation"] = val
+            md = val.get("match_degree") if isinstance(val, dict) else None
+            if isinstance(md, dict):
+                match = md
+        except ImportError:
+            pass
+        if not match:
+            match = dict(doc.get("fit", {}).get("match_degree", {}) or {})
+        res["match_degree"] = match
+        model_path = out_dir / f"model-flight{job.flight:02d}.json"
+        model_path.write_text(json.dumps(doc, indent=1, default=float))
+        res["model"] = doc
+        res["model_path"] = str(model_path)
+        overlay = _overlay(model, prepared)
+        if job.plots and len(overlay["t_fc_s"]):
+            png = out_dir / f"model-flight{job.flight:02d}.png"
+            _plot(overlay, png, f"{job.vehicle} flight {job.flight}: model vs measured")
+            res["png"] = [str(png)]
+        # decimate the overlay for Rerun (every sample is fine up to a few minutes of flight)
+        res["overlay"] = {"t_fc_s": np.asarray(overlay["t_fc_s"]).tolist(),
+                          "model": np.asarray(overlay["model"]).tolist()}
+        res["identify_s"] = time.perf_counter() - t0
+        if job.diagnose:
+            try:
+                from groundstation.gap.diagnose import diagnose
+            except ImportError:
+                diagnose = None  # type: ignore[assignment]
+            if diagnose is not None:
+                gap = diagnose(model, prepared, seed=job.seed)
+                gap_path = out_dir / f"gap-flight{job.flight:02d}.json"
+                gap_path.write_text(json.dumps(gap, indent=1, default=float))
+                res["gap"] = gap
+                res["gap_path"] = str(gap_path)
+        res["seconds"] = time.perf_counter() - t0
+        return res
+    except Exception as exc:  # reported to the service as one line; the service keeps running
+        last = traceback.extract_tb(exc.__traceback__)[-1] if exc.__traceback__ else None
+        where = f" ({Path(last.filename).name}:{last.lineno})" if last else ""
+        return {**res, "error": f"flight {job.flight}: {type(exc).__name__}: {exc}{where}".splitlines()[0],
+                "seconds": time.perf_counter() - t0}
