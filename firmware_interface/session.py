@@ -136,11 +136,13 @@ class SessionConfig:
 
     stream_rates_hz : (message name, rate) pairs requested from the FC
     request_streams : False for passive listening (log reading, a link someone else configures)
+    send_heartbeat : False to send nothing at all (with request_streams False)
     target_sysid : the FC's system id; None = the first autopilot heartbeat seen
     """
 
     stream_rates_hz: tuple[tuple[str, float], ...] = DEFAULT_STREAM_RATES_HZ
     request_streams: bool = True
+    send_heartbeat: bool = True
     heartbeat_interval_s: float = 1.0
     ack_timeout_s: float = 1.0
     ack_retries: int = 2
@@ -385,7 +387,7 @@ class MavlinkSession:
             self._events.append(LinkLost(now, f"no valid MAVLink frame for {self.config.link_timeout_s:g} s"))
         if self.target is None or self._lost:
             return
-        if now >= self._next_hb:
+        if self.config.send_heartbeat and now >= self._next_hb:
             self.send_message(self._mav.heartbeat_encode(
                 mavlink2.MAV_TYPE_GCS, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, mavlink2.MAV_STATE_ACTIVE))
             nxt = self._next_hb + self.config.heartbeat_interval_s
