@@ -62,6 +62,7 @@ def simulate(
     fit_initial: bool = True,
     all_initial: bool = True,
     return_coef: bool = False,
+    fit_mask: np.ndarray | None = None,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Simulate windows for a batch of parameter vectors.
 
@@ -125,8 +126,9 @@ def simulate(
         Nn = np.moveaxis(nuisance, 3, 1)  # (W, K, L, 8)
         S = np.concatenate([S, np.broadcast_to(Nn[None], (C,) + Nn.shape)], axis=2)
     r = outputs[None] - yhat  # (C, W, L, 8)
-    Sw = (S * w8)[:, :, :, start:stop, :].reshape(C, Wn, S.shape[2], -1)
-    rw = (r * w8)[:, :, start:stop, :].reshape(C, Wn, -1)
+    sel = slice(start, stop) if fit_mask is None else np.flatnonzero(fit_mask)
+    Sw = (S * w8)[:, :, :, sel, :].reshape(C, Wn, S.shape[2], -1)
+    rw = (r * w8)[:, :, sel, :].reshape(C, Wn, -1)
     G = np.einsum("cwil,cwjl->cwij", Sw, Sw)
     h = np.einsum("cwil,cwl->cwi", Sw, rw)
     ridge = 1e-9 * np.trace(G, axis1=2, axis2=3)[..., None, None] / G.shape[-1] + 1e-12
