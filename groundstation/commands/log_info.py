@@ -1,0 +1,122 @@
+"""``groundstation log-info LOG [--json]``: flights, message rates, gaps, corruption and loss of a log.
+
+Reads .tlog, dataflash .bin or PX4 .px4log through :func:`firmware_interface.readers.load_log` and
+prints one JSON object (``--json``) or the same as readable tables (rich)::
+
+    {"source": ..., "flights": [{"index", "start_s", "end_s", "duration_s", "in_air_s"}],
+     "messages": {TYPE: {"count", "rate_hz"}},
+     "gaps": [{"message", "start_s", "duration_s"}], "gaps_total": n,
+     "corrupt_bytes": n, "truncated_tail_bytes": n, "fc_reboots": n,
+     "packet_loss": {"lost": n, "by_source": {"sysid:compid": n}}}
+
+Times are on the FC clock (s). ``rate_hz`` is the mean rate over the message's own span (series
+types) or over the log span (other types). A gap is an interval longer than 3 median sample periods
+of that series. Leaves analysis beyond this to ``groundstation.dsp``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from typing import Any
+
+import numpy as np
+
+HELP = "summarise a flight log (.tlog, .bin, .px4log): flights, message rates, gaps, corruption"
+
+MAX_GAPS_LISTED = 200
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("log", help="the log file")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def _num(x: float) -> float | None:
+    return None if not math.isfinite(x) else round(float(x), 6)
+
+
+def summarise(log: Any) -> dict[str, Any]:
+    """The log-info dict of a :class:`firmware_interface.samples.LogData`."""
+    spans = [(float(s.t_fc_s[0]), float(s.t_fc_s[-1])) for s in log.series.values()
+             if len(s) and np.isfinite(s.t_fc_s[0]) and np.isfinite(s.t_fc_s[-1])]
+    log_span = (max(b for _, b in spans) - min(a for a, _ in spans)) if spans else math.nan
+    messages: dict[str, dict[str, Any]] = {}
+    for name, count in sorted(log.message_counts.items()):
+        s = log.series.get(name)
+        rate = math.nan
+        if s is not None and len(s) >= 2:
+            span = float(s.t_fc_s[-1] - s.t_fc_s[0])
+            rate = (len(s) - 1) / span if span > 0 else math.nan
+        elif log_span and log_span > 0:
+            rate = count / log_span
+        messages[name] = {"count": int(count), "rate_hz": _num(rate)}
+    gaps: list[dict[str, Any]] = []
+    for name, s in log.series.items():
+        if len(s) < 3:
+            continue
+        t = s.t_fc_s[np.isfinite(s.t_fc_s)]
+        dt = np.diff(t)
+        pos = dt[dt > 0]
+        if not pos.size:
+            continue
+        period = float(np.median(pos))
+        for k in np.flatnonzero(dt > 3 * period):
+            gaps.append({"message": name, "start_s": _num(t[k]), "duration_s": _num(dt[k])})
+    gaps.sort(key=lambda g: (g["start_s"] if g["start_s"] is not None else 0.0, g["message"]))
+    st = log.stats
+    return {
+        "source": log.source,
+        "flights": [{"index": f.index, "start_s": _num(f.start_fc_s), "end_s": _num(f.end_fc_s),
+                     "duration_s": _num(f.duration_s), "in_air_s": _num(f.in_air_s)} for f in log.flights],
+        "messages": messages,
+        "gaps": gaps[:MAX_GAPS_LISTED],
+        "gaps_total": len(gaps),
+        "corrupt_bytes": int(st.corrupt_bytes),
+        "truncated_tail_bytes": int(st.truncated_tail_bytes),
+        "fc_reboots": int(st.fc_reboots),
+        "packet_loss": {"lost": int(st.packets_lost), "by_source": dict(st.loss_by_source)},
+    }
+
+
+def _print_tables(info: dict[str, Any]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    con = Console()
+    con.print(f"[bold]{info['source']}[/bold]")
+    ft = Table(title="flights (FC clock)")
+    for c in ("#", "start s", "end s", "duration s", "in air s"):
+        ft.add_column(c, justify="right")
+    for f in info["flights"]:
+        ft.add_row(str(f["index"]), *(("-" if f[k] is None else f"{f[k]:.1f}")
+                                      for k in ("start_s", "end_s", "duration_s", "in_air_s")))
+    con.print(ft)
+    mt = Table(title="messages")
+    for c in ("type", "count", "rate Hz"):
+        mt.add_column(c, justify="right" if c != "type" else "left")
+    for name, m in info["messages"].items():
+        mt.add_row(name, str(m["count"]), "-" if m["rate_hz"] is None else f"{m['rate_hz']:.2f}")
+    con.print(mt)
+    if info["gaps"]:
+        gt = Table(title=f"gaps > 3 sample periods ({info['gaps_total']} total)")
+        for c in ("message", "start s", "duration s"):
+            gt.add_column(c)
+        for g in info["gaps"][:30]:
+            gt.add_row(g["message"], f"{g['start_s']:.3f}", f"{g['duration_s']:.3f}")
+        con.print(gt)
+    pl = info["packet_loss"]
+    con.print(f"corrupt bytes {info['corrupt_bytes']}, truncated tail {info['truncated_tail_bytes']} B, "
+              f"packets lost {pl['lost']} {pl['by_source'] or ''}, FC reboots {info['fc_reboots']}")
+
+
+def run(args: argparse.Namespace) -> int:
+    from firmware_interface.readers import load_log
+
+    info = summarise(load_log(args.log))
+    if args.json:
+        print(json.dumps(info))
+    else:
+        _print_tables(info)
+    return 0
