@@ -319,11 +319,13 @@ def scan_ground_effect(ctx: Context) -> Hypothesis:
     hmin = float(np.quantile(h, 0.02))
     variants, labels = [], []
     for h0 in GROUND_DECAY_M:
-        F = np.zeros((ev.W, ev.L, 11))
-        F[:, :, 8] = np.exp(-(h - hmin) / h0)
-        X = _forcing_columns(ctx, [F])
-        variants.append(({"h0": h0}, ev.r0, X))
-        labels.append(h0)
+        # two shapes: exponential decay and the Cheeseman-Bennett-like inverse square
+        for kind, shape in (("exp", np.exp(-(h - hmin) / h0)), ("inv_square", (h0 / (h - hmin + h0)) ** 2)):
+            F = np.zeros((ev.W, ev.L, 11))
+            F[:, :, 8] = shape
+            X = _forcing_columns(ctx, [F])
+            variants.append(({"h0": h0, "kind": kind}, ev.r0, X))
+            labels.append(h0)
     sse, best, coefs = ctx.nested("ground_effect", variants)
     span = float(np.quantile(h, 0.98) - hmin)
     return Hypothesis("ground_effect", estimate={"accel_m_s2": float(-coefs[best].mean()),
