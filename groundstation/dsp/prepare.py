@@ -1,0 +1,392 @@
+"""Offline data preparation for identification: logs -> in-air segments on a uniform FC-clock grid.
+
+What it does, per log (:class:`firmware_interface.samples.LogData`):
+
+1. flights = armed intervals (``LogData.flights``); in-air from EXTENDED_SYS_STATE landed_state,
+   else altitude above the take-off point; the first/last ``edge_trim_s`` of each in-air interval
+   are dropped (take-off and landing transients are not hover);
+2. every needed series is interpolated linearly onto a uniform grid at ``rate_hz`` on the FC clock;
+   gaps no longer than ``max(max_gap_s, gap_factor * native interval)`` are bridged, longer gaps
+   split the segment; segments shorter than ``min_segment_s`` are dropped;
+3. body velocities u v w from LOCAL_POSITION_NED vx vy vz rotated by roll/pitch/yaw
+   (GLOBAL_POSITION_INT as fallback); where velocities are missing for long stretches the
+   segment is split into a part with and a part without velocity channels (``available``);
+4. inputs ``delta = (pwm - trim) / pwm_per_unit`` (trim = median in-air PWM unless configured);
+   output trims: theta, phi and u v w = in-air median (attitude and velocity sensors carry offsets:
+   the real TREX 550 log reads 4.5 m/s down velocity on the ground), p q r = 0 (a steady hover has
+   zero body rates; a gyro offset is an unmodelled effect for the diagnosis, not a trim);
+5. the paper's eq. 18 smoothing (``smooth_passes``, default 1: see ``PrepConfig``) of the outputs;
+   ``outputs_raw`` keeps the unsmoothed values.
+
+Arrays: ``inputs (n, 4)`` lat lon col ped; ``outputs (n, 8)`` u v w p q r theta phi. Unavailable
+output channels are NaN. Pure numpy; reading files is the caller's (``firmware_interface.readers``).
+Train/validation splitting lives in :mod:`groundstation.dsp.split`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from groundstation.dsp.frames import ned_to_body
+from groundstation.dsp.grid import (
+    fill_short_holes,
+    interpolate_holes,
+    interpolate_onto,
+    median_interval_s,
+    runs,
+    uniform_grid,
+)
+from groundstation.dsp.smoothing import smooth5
+
+INPUTS: tuple[str, ...] = ("lat", "lon", "col", "ped")
+OUTPUTS: tuple[str, ...] = ("u", "v", "w", "p", "q", "r", "theta", "phi")
+#: MAV_LANDED_STATE values counted as airborne (IN_AIR, TAKEOFF, LANDING).
+AIRBORNE_LANDED_STATES = (2, 3, 4)
+
+
+@dataclass(frozen=True)
+class PrepConfig:
+    """Data-preparation settings (loaded from the ``[prepare]`` TOML table by the CLI).
+
+    ``smooth_passes`` default 1: on simulated flights one pass of eq. 18 gave the lowest parameter
+    errors; more passes bias the fast rotor/rate dynamics (the paper's warning), zero passes
+    leaves the noise (measured with ``groundstation bench identify --passes``).
+    """
+
+    rate_hz: float = 50.0
+    smooth_passes: int = 1
+    max_gap_s: float = 0.1
+    gap_factor: float = 2.5
+    min_segment_s: float = 5.0
+    edge_trim_s: float = 1.0
+    input_source: str = "SERVO_OUTPUT_RAW"  # or "RC_CHANNELS"
+    input_channels: tuple[int, int, int, int] = (1, 2, 3, 4)  # 1-based servo/RC numbers of lat lon col ped
+    input_trim_pwm: tuple[float, float, float, float] | None = None
+    pwm_per_unit: float = 500.0
+    in_air_alt_m: float = 0.5
+    velocity_source: str = "auto"  # "auto", "local", "global", "none"
+
+    def __post_init__(self) -> None:
+        if self.rate_hz <= 0:
+            raise ValueError(f"prepare.rate_hz must be > 0, got {self.rate_hz}")
+        if self.smooth_passes < 0:
+            raise ValueError(f"prepare.smooth_passes must be >= 0, got {self.smooth_passes}")
+        if self.pwm_per_unit == 0:
+            raise ValueError("prepare.pwm_per_unit must be non-zero")
+        if self.input_source not in ("SERVO_OUTPUT_RAW", "RC_CHANNELS"):
+            raise ValueError(f"prepare.input_source must be SERVO_OUTPUT_RAW or RC_CHANNELS, got {self.input_source!r}")
+        if self.velocity_source not in ("auto", "local", "global", "none"):
+            raise ValueError(f"prepare.velocity_source must be auto|local|global|none, got {self.velocity_source!r}")
+        if len(self.input_channels) != 4:
+            raise ValueError("prepare.input_channels needs 4 channel numbers (lat lon col ped)")
+
+
+@dataclass(frozen=True, eq=False)
+class Segment:
+    """One contiguous in-air stretch on the uniform grid.
+
+    Attributes
+    ----------
+    t_s : (n,) FC-clock time, s, uniform
+    inputs : (n, 4) normalised lat lon col ped, trim removed
+    outputs : (n, 8) u v w (m/s) p q r (rad/s) theta phi (rad), smoothed, trim removed; NaN if unavailable
+    outputs_raw : (n, 8) the same unsmoothed
+    alt_m : (n,) height above the take-off point (NaN if unknown)
+    available : (8,) bool, channel measured in this segment
+    flight : flight index within its log
+    source : log name
+    """
+
+    t_s: np.ndarray
+    inputs: np.ndarray
+    outputs: np.ndarray
+    outputs_raw: np.ndarray
+    alt_m: np.ndarray
+    available: np.ndarray
+    flight: int
+    source: str
+
+    @property
+    def n(self) -> int:
+        return int(self.t_s.shape[0])
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.t_s[-1] - self.t_s[0]) if self.n else 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class PreparedData:
+    """Segments of one or more logs with the trims used (see module docstring)."""
+
+    segments: list[Segment]
+    dt_s: float
+    input_trim_pwm: dict[str, float]
+    pwm_per_unit: float
+    output_trim: dict[str, float]
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def available(self) -> np.ndarray:
+        """(8,) channel measured in at least one segment."""
+        if not self.segments:
+            return np.zeros(8, dtype=bool)
+        return np.any([s.available for s in self.segments], axis=0)
+
+    @property
+    def input_active(self) -> np.ndarray:
+        """(4,) input channel moves at all (std above 1e-4 units) in some segment."""
+        if not self.segments:
+            return np.zeros(4, dtype=bool)
+        return np.any([np.nanstd(s.inputs, axis=0) > 1e-4 for s in self.segments], axis=0)
+
+    @property
+    def duration_s(self) -> float:
+        return float(sum(s.n for s in self.segments) * self.dt_s)
+
+    def subset(self, indices: list[int]) -> PreparedData:
+        """The same trims with only the chosen segments."""
+        return replace(self, segments=[self.segments[i] for i in indices], notes=list(self.notes))
+
+
+@dataclass
+class _Raw:
+    """A segment before trims: raw PWM and physical outputs."""
+
+    t_s: np.ndarray
+    pwm: np.ndarray  # (n, 4)
+    outputs: np.ndarray  # (n, 8) NaN where unavailable
+    alt_m: np.ndarray
+    available: np.ndarray
+    flight: int
+    source: str
+
+
+def _series_gap(cfg: PrepConfig, t_src: np.ndarray) -> float:
+    return max(cfg.max_gap_s, cfg.gap_factor * median_interval_s(t_src))
+
+
+def _in_air_intervals(log: Any, flight: Any, cfg: PrepConfig) -> list[tuple[float, float]]:
+    given = list(getattr(flight, "in_air_intervals_fc_s", ()) or ())
+    if given:
+        return [(float(a), float(b)) for a, b in given]
+    a, b = float(flight.start_fc_s), float(flight.end_fc_s)
+    if log.has("EXTENDED_SYS_STATE"):
+        s = log.series["EXTENDED_SYS_STATE"]
+        sel = (s.t_fc_s >= a) & (s.t_fc_s <= b)
+        if sel.any():
+            air = np.isin(np.asarray(s["landed_state"])[sel], AIRBORNE_LANDED_STATES)
+            t = s.t_fc_s[sel]
+            out = []
+            for i, j in runs(air):
+                out.append((float(t[i]), float(t[j - 1]) if j - 1 > i else float(t[i])))
+            return out
+    alt_t, alt = _altitude(log, a, b)
+    if alt_t is None:
+        # no way to tell: the whole armed interval counts as in the air
+        return [(a, b)]
+    air = alt > cfg.in_air_alt_m
+    return [(float(alt_t[i]), float(alt_t[j - 1])) for i, j in runs(air) if j - 1 > i]
+
+
+def _altitude(log: Any, a: float, b: float) -> tuple[np.ndarray | None, np.ndarray]:
+    """Height above the value at the flight start from LOCAL_POSITION_NED z or GLOBAL relative_alt."""
+    for name, col, sign in (("LOCAL_POSITION_NED", "z_m", -1.0), ("GLOBAL_POSITION_INT", "relative_alt_m", 1.0)):
+        if log.has(name):
+            s = log.series[name]
+            sel = (s.t_fc_s >= a) & (s.t_fc_s <= b) & np.isfinite(np.asarray(s[col], dtype=float))
+            if sel.sum() >= 2:
+                h = sign * np.asarray(s[col], dtype=float)[sel]
+                return s.t_fc_s[sel], h - h[0]
+    return None, np.zeros(0)
+
+
+def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str]) -> list[_Raw]:
+    src = log.source
+    if not log.has(cfg.input_source):
+        raise ValueError(f"{src}: no {cfg.input_source} messages (servo outputs needed for the inputs lat lon col ped)")
+    if not log.has("ATTITUDE"):
+        raise ValueError(f"{src}: no ATTITUDE messages (attitude and body rates needed for the outputs)")
+    flights = list(log.flights)
+    if not flights:
+        if log.has("HEARTBEAT"):
+            raise ValueError(f"{src}: the vehicle was never armed (no flight in HEARTBEAT base_mode)")
+        from types import SimpleNamespace
+
+        att = log.series["ATTITUDE"]
+        flights = [SimpleNamespace(index=0, start_fc_s=float(att.t_fc_s[0]), end_fc_s=float(att.t_fc_s[-1]),
+                                   in_air_intervals_fc_s=())]
+        notes.append(f"{src}: no HEARTBEAT, whole log treated as one flight")
+    servo = log.series[cfg.input_source]
+    att = log.series["ATTITUDE"]
+    pwm_cols = [f"pwm_us_{c}" for c in cfg.input_channels]
+    for c in pwm_cols:
+        if c not in servo.columns:
+            raise ValueError(f"{src}: {cfg.input_source} has no column {c}")
+    pwm_src = np.stack([np.asarray(servo[c], dtype=float) for c in pwm_cols], axis=1)
+    pwm_src[pwm_src <= 0] = np.nan  # 0 / 65535 mean "not set"
+    pwm_src[pwm_src >= 65535] = np.nan
+    att_cols = ("roll_rad", "pitch_rad", "yaw_rad", "p_rad_s", "q_rad_s", "r_rad_s")
+    att_src = np.stack([np.asarray(att[c], dtype=float) for c in att_cols], axis=1)
+    yaw_unwrapped = np.unwrap(np.nan_to_num(att_src[:, 2]))
+    att_src[:, 2] = np.where(np.isfinite(att_src[:, 2]), yaw_unwrapped, np.nan)
+
+    vel_series = None
+    if cfg.velocity_source in ("auto", "local") and log.has("LOCAL_POSITION_NED"):
+        vel_series = ("LOCAL_POSITION_NED", log.series["LOCAL_POSITION_NED"])
+    elif cfg.velocity_source in ("auto", "global") and log.has("GLOBAL_POSITION_INT"):
+        vel_series = ("GLOBAL_POSITION_INT", log.series["GLOBAL_POSITION_INT"])
+    if vel_series is None and cfg.velocity_source != "none":
+        notes.append(f"{src}: no LOCAL_POSITION_NED or GLOBAL_POSITION_INT: u v w unavailable")
+
+    out: list[_Raw] = []
+    n_air = 0
+    for fl in flights:
+        intervals = _in_air_intervals(log, fl, cfg)
+        for a, b in intervals:
+            a2, b2 = a + cfg.edge_trim_s, b - cfg.edge_trim_s
+            if b2 - a2 < cfg.min_segment_s:
+                continue
+            n_air += 1
+            t = uniform_grid(a2, b2, cfg.rate_hz)
+            pwm, pwm_ok = interpolate_onto(servo.t_fc_s, pwm_src, t, _series_gap(cfg, servo.t_fc_s))
+            at, at_ok = interpolate_onto(att.t_fc_s, att_src, t, _series_gap(cfg, att.t_fc_s))
+            req = pwm_ok.all(axis=1) & at_ok.all(axis=1)
+            vel = np.full((t.size, 3), np.nan)
+            vel_ok = np.zeros(t.size, dtype=bool)
+            if vel_series is not None:
+                vs = vel_series[1]
+                vsrc = np.stack([np.asarray(vs[c], dtype=float) for c in ("vx_m_s", "vy_m_s", "vz_m_s")], axis=1)
+                vel, vok = interpolate_onto(vs.t_fc_s, vsrc, t, _series_gap(cfg, vs.t_fc_s))
+                vel_ok = vok.all(axis=1)
+            alt_t, alt = _altitude(log, float(fl.start_fc_s), float(fl.end_fc_s))
+            if alt_t is not None:
+                alt_g, _ = interpolate_onto(alt_t, alt, t, _series_gap(cfg, alt_t))
+            else:
+                alt_g = np.full(t.size, np.nan)
+            max_hole = max(1, int(round(cfg.max_gap_s * cfg.rate_hz)))
+            vel_ok = fill_short_holes(vel_ok, max_hole) & req
+            min_n = int(np.ceil(cfg.min_segment_s * cfg.rate_hz))
+            # label: 0 unusable, 1 inputs+attitude, 2 with velocities
+            label = np.where(req, np.where(vel_ok, 2, 1), 0)
+            for i, j in runs(label == 2):
+                if j - i < min_n:
+                    label[i:j] = 1
+            for i, j in runs(req):
+                if j - i < min_n:
+                    continue
+                sub = label[i:j]
+                # split at label changes
+                edges = np.flatnonzero(np.diff(sub)) + 1
+                bounds = np.concatenate([[0], edges, [j - i]])
+                for p0, p1 in zip(bounds[:-1], bounds[1:], strict=True):
+                    if p1 - p0 < min_n:
+                        continue
+                    sl = slice(i + p0, i + p1)
+                    lab = int(sub[p0])
+                    outputs = np.full((p1 - p0, 8), np.nan)
+                    avail = np.zeros(8, dtype=bool)
+                    roll, pitch, yaw = at[sl, 0], at[sl, 1], at[sl, 2]
+                    outputs[:, 3] = at[sl, 3]
+                    outputs[:, 4] = at[sl, 4]
+                    outputs[:, 5] = at[sl, 5]
+                    outputs[:, 6] = pitch
+                    outputs[:, 7] = roll
+                    avail[3:] = True
+                    if lab == 2:
+                        v = interpolate_holes(vel[sl], np.isfinite(vel[sl]))
+                        outputs[:, 0:3] = ned_to_body(v, roll, pitch, yaw)
+                        avail[0:3] = True
+                    out.append(_Raw(t_s=t[sl], pwm=pwm[sl], outputs=outputs, alt_m=alt_g[sl], available=avail,
+                                    flight=int(fl.index), source=src))
+    if n_air == 0:
+        raise ValueError(
+            f"{src}: never in the air for at least {cfg.min_segment_s:g} s "
+            f"(no in-air segment from EXTENDED_SYS_STATE landed_state or altitude within the armed flights)"
+        )
+    return out
+
+
+def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
+    """Turn logs into trimmed, smoothed in-air segments (see module docstring).
+
+    Raises ValueError with one line naming the log and the missing message or segment.
+    """
+    cfg = config or PrepConfig()
+    if not logs:
+        raise ValueError("no logs given")
+    notes: list[str] = []
+    raws: list[_Raw] = []
+    for log in logs:
+        got = _raw_segments(log, cfg, notes)
+        if not got:
+            raise ValueError(
+                f"{log.source}: no in-air segment of at least {cfg.min_segment_s:g} s with servo outputs and attitude "
+                f"(gaps longer than {cfg.max_gap_s:g} s split segments)"
+            )
+        raws.extend(got)
+    pwm_all = np.concatenate([r.pwm for r in raws], axis=0)
+    if cfg.input_trim_pwm is not None:
+        trim_pwm = np.asarray(cfg.input_trim_pwm, dtype=float)
+    else:
+        trim_pwm = np.nanmedian(pwm_all, axis=0)
+    out_all = np.concatenate([r.outputs for r in raws], axis=0)
+    out_trim = np.zeros(8)
+    with np.errstate(all="ignore"):
+        med = np.nanmedian(np.where(np.isfinite(out_all), out_all, np.nan), axis=0) if np.isfinite(out_all).any() else np.zeros(8)
+    for j in (0, 1, 2, 6, 7):
+        if np.isfinite(med[j]):
+            out_trim[j] = med[j]
+    for k, name in enumerate(INPUTS):
+        if np.nanstd(pwm_all[:, k]) < 1e-6 * max(abs(cfg.pwm_per_unit), 1.0):
+            notes.append(f"input {name} never moves (held at {trim_pwm[k]:g} us): its parameters are not identifiable")
+    avail_any = np.any([r.available for r in raws], axis=0)
+    for j, name in enumerate(OUTPUTS):
+        if not avail_any[j]:
+            notes.append(f"output {name} not measured in any segment")
+        elif not all(r.available[j] for r in raws):
+            notes.append(f"output {name} missing in part of the data")
+    segs: list[Segment] = []
+    for r in raws:
+        inputs = (r.pwm - trim_pwm) / cfg.pwm_per_unit
+        raw_out = r.outputs - out_trim
+        sm = smooth5(np.nan_to_num(raw_out), cfg.smooth_passes)
+        sm[:, ~r.available] = np.nan
+        raw_out[:, ~r.available] = np.nan
+        segs.append(Segment(t_s=r.t_s, inputs=inputs, outputs=sm, outputs_raw=raw_out, alt_m=r.alt_m,
+                            available=r.available.copy(), flight=r.flight, source=r.source))
+    return PreparedData(
+        segments=segs,
+        dt_s=1.0 / cfg.rate_hz,
+        input_trim_pwm={n: float(v) for n, v in zip(INPUTS, trim_pwm, strict=True)},
+        pwm_per_unit=float(cfg.pwm_per_unit),
+        output_trim={n: float(v) for n, v in zip(OUTPUTS, out_trim, strict=True)},
+        notes=notes,
+    )
+
+
+def prepared_from_arrays(
+    inputs: np.ndarray, outputs: np.ndarray, dt_s: float, *, smooth_passes: int = 1,
+    available: np.ndarray | None = None, source: str = "arrays", flight: int = 0,
+) -> PreparedData:
+    """One-segment PreparedData from already-trimmed arrays (tests, simulators, the live service).
+
+    inputs (n, 4) normalised; outputs (n, 8) trim removed, NaN where unmeasured.
+    """
+    u = np.asarray(inputs, dtype=float)
+    y = np.asarray(outputs, dtype=float)
+    if u.ndim != 2 or u.shape[1] != 4 or y.ndim != 2 or y.shape[1] != 8 or u.shape[0] != y.shape[0]:
+        raise ValueError(f"inputs must be (n, 4) and outputs (n, 8) with equal n, got {u.shape} and {y.shape}")
+    avail = np.isfinite(y).all(axis=0) if available is None else np.asarray(available, dtype=bool)
+    sm = smooth5(np.nan_to_num(y), smooth_passes)
+    sm[:, ~avail] = np.nan
+    raw = y.copy()
+    raw[:, ~avail] = np.nan
+    t = np.arange(u.shape[0]) * dt_s
+    seg = Segment(t_s=t, inputs=u, outputs=sm, outputs_raw=raw, alt_m=np.full(t.size, np.nan),
+                  available=avail, flight=flight, source=source)
+    return PreparedData(segments=[seg], dt_s=dt_s, input_trim_pwm={k: 1500.0 for k in INPUTS}, pwm_per_unit=500.0,
+                        output_trim={k: 0.0 for k in OUTPUTS}, notes=[])

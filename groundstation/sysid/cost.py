@@ -1,0 +1,117 @@
+"""Windows cut from prepared segments and the vectorised identification cost over free parameters.
+
+``make_windows`` cuts non-overlapping windows of ``window_s`` from every segment (tails shorter than
+a window are dropped). :class:`WindowedCost` maps a batch of free-parameter vectors ``(C, D)`` onto
+full 31-parameter vectors (fixed parameters keep their value), simulates all windows
+(:class:`~groundstation.sysid.simulate.WindowSimulator`) and returns the paper's eq. 11 cost (C,),
+counting evaluations. ``residuals`` gives the per-channel normalised residual vector used by the
+local refinement. Which parameters are free is decided in :mod:`groundstation.sysid.identify`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from groundstation.sysid.model import N_PARAMS
+from groundstation.sysid.simulate import WindowSimulator, objective_from_sse
+
+
+@dataclass(frozen=True, eq=False)
+class Windows:
+    """inputs (W, L, 4), outputs (W, L, 8), available (W, 8), segment (W,) index, t0_s (W,) start time."""
+
+    inputs: np.ndarray
+    outputs: np.ndarray
+    available: np.ndarray
+    segment: np.ndarray
+    t0_s: np.ndarray
+    dt_s: float
+
+    @property
+    def count(self) -> int:
+        return int(self.inputs.shape[0])
+
+    @property
+    def length(self) -> int:
+        return int(self.inputs.shape[1])
+
+
+def make_windows(segments: list, dt_s: float, window_s: float, *, raw: bool = False) -> Windows:
+    """Non-overlapping windows of ``round(window_s / dt_s)`` samples from each segment.
+
+    Raises ValueError when no segment holds one window.
+    """
+    L = int(round(window_s / dt_s))
+    if L < 5:
+        raise ValueError(f"window_s={window_s} gives fewer than 5 samples at dt_s={dt_s}")
+    ins, outs, av, seg, t0 = [], [], [], [], []
+    for i, s in enumerate(segments):
+        y = s.outputs_raw if raw else s.outputs
+        nwin = s.n // L
+        for k in range(nwin):
+            sl = slice(k * L, (k + 1) * L)
+            ins.append(s.inputs[sl])
+            outs.append(y[sl])
+            av.append(np.asarray(s.available, dtype=bool))
+            seg.append(i)
+            t0.append(float(s.t_s[k * L]))
+    if not ins:
+        longest = max((s.duration_s for s in segments), default=0.0)
+        raise ValueError(f"no segment is at least one window long (window_s={window_s:g}, longest segment {longest:.1f} s)")
+    return Windows(np.stack(ins), np.stack(outs), np.stack(av), np.array(seg), np.array(t0), float(dt_s))
+
+
+class WindowedCost:
+    """Vectorised cost over free parameters.
+
+    Parameters
+    ----------
+    windows : the data windows
+    free : (31,) bool, parameters searched
+    theta_fixed : (31,) values of the parameters that are not free
+    estimate_all_initial, subsystems : see WindowSimulator
+    """
+
+    def __init__(self, windows: Windows, free: np.ndarray, theta_fixed: np.ndarray, *,
+                 estimate_all_initial: bool = False, subsystems: tuple[int, ...] = (0, 1)) -> None:
+        self.windows = windows
+        self.free = np.asarray(free, dtype=bool)
+        self.theta_fixed = np.asarray(theta_fixed, dtype=float).copy()
+        if self.free.shape != (N_PARAMS,) or self.theta_fixed.shape != (N_PARAMS,):
+            raise ValueError("free and theta_fixed must have 31 entries")
+        self.sim = WindowSimulator(windows.inputs, windows.outputs, windows.dt_s, windows.available,
+                                   estimate_all_initial=estimate_all_initial, subsystems=subsystems)
+        self.nfev = 0
+        self.used = self.sim.mask.any(axis=0)  # (8,) channels in the cost
+
+    @property
+    def dim(self) -> int:
+        return int(self.free.sum())
+
+    def full(self, x: np.ndarray) -> np.ndarray:
+        """Free vectors (C, D) -> full parameter vectors (C, 31)."""
+        xx = np.atleast_2d(np.asarray(x, dtype=float))
+        th = np.broadcast_to(self.theta_fixed, (xx.shape[0], N_PARAMS)).copy()
+        th[:, self.free] = xx
+        return th
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        th = self.full(x)
+        self.nfev += th.shape[0]
+        return objective_from_sse(self.sim, th)
+
+    def simulate(self, x: np.ndarray) -> np.ndarray:
+        return self.sim.simulate(self.full(x))
+
+    def residuals(self, x: np.ndarray, sigma: np.ndarray | None = None) -> np.ndarray:
+        """Residuals ``(yhat - y) / sigma_ch`` of C candidates, shape (C, W, L, n_used).
+
+        ``sigma`` (8,) per-channel noise scale; default the channel scales of eq. 11.
+        """
+        th = self.full(x)
+        self.nfev += th.shape[0]
+        e = self.sim.errors(th)
+        s = self.sim.scales if sigma is None else np.asarray(sigma, dtype=float)
+        return (e / s[None, None, None, :])[..., self.used]

@@ -1,0 +1,297 @@
+"""Batched windowed output-error simulation of the eq.-8 hover model and the paper's objective.
+
+Array conventions
+-----------------
+* ``theta (C, 31)``: C candidate parameter vectors (a whole colony) in ``model.PARAM_NAMES`` order.
+* ``inputs (W, L, 4)``: W data windows of L samples, normalised ``lat lon col ped``.
+* ``outputs (W, L, 8)``: measured ``u v w p q r theta phi`` (trim removed); NaN / unavailable
+  channels are ignored (``available (8,)`` or ``(W, 8)`` bool).
+* ``yhat (C, W, L, 8)``: simulated outputs.
+
+Each window starts from an initial state: measured states (u v theta phi q p; w r) are taken from the
+first sample of the window, the unmeasured ones (a_s b_s; r_fb, and any measured channel that is
+unavailable in that window) are estimated per candidate per window by linear least squares - the
+outputs are linear in the initial state (``y = Phi x0 + forced``), so this is a small solve with
+the same channel weighting as the objective. Windows keep unstable hover modes from blowing up.
+Discretisation is the exact zero-order hold (``model.discretize``). The horizontal (8 states) and
+vertical (3 states) subsystems are stepped separately, all C*W systems per time step at once.
+
+Pure numpy/scipy; which windows to cut from which segments is :mod:`groundstation.sysid.cost`'s.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from groundstation.sysid.model import build_matrices, discretize
+
+# (state index, output column) of the measured states per subsystem
+_HOR_MEAS: tuple[tuple[int, int], ...] = ((0, 0), (1, 1), (5, 3), (4, 4), (2, 6), (3, 7))
+_VER_MEAS: tuple[tuple[int, int], ...] = ((0, 2), (1, 5))
+
+
+@dataclass(frozen=True)
+class _Sub:
+    n: int
+    inputs: tuple[int, ...]
+    meas: tuple[tuple[int, int], ...]
+
+
+_SUBS = (_Sub(8, (0, 1), _HOR_MEAS), _Sub(3, (2, 3), _VER_MEAS))
+
+
+def _avail_2d(available: np.ndarray | None, outputs: np.ndarray) -> np.ndarray:
+    W = outputs.shape[0]
+    finite = np.isfinite(outputs).all(axis=1)  # (W, 8)
+    if available is None:
+        return finite
+    a = np.asarray(available, dtype=bool)
+    if a.ndim == 1:
+        a = np.broadcast_to(a, (W, 8))
+    return a & finite
+
+
+def channel_scales(outputs: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Per-channel ``||y - mean(y)||`` over all windows where the channel is used; shape (8,).
+
+    outputs (W, L, 8); mask (W, 8). Unused channels get 1.
+    """
+    y = np.nan_to_num(outputs)
+    m = mask[:, None, :].astype(float)
+    cnt = m.sum(axis=(0, 1))
+    mean = (y * m).sum(axis=(0, 1)) / np.maximum(cnt, 1)
+    ss = (((y - mean) ** 2) * m).sum(axis=(0, 1))
+    s = np.sqrt(ss)
+    return np.where((cnt > 0) & (s > 0), s, 1.0)
+
+
+class WindowSimulator:
+    """Precomputed windows; ``simulate(theta)`` returns ``yhat (C, W, L, 8)``, ``sse(theta)`` (C, 8).
+
+    Parameters
+    ----------
+    inputs : (W, L, 4)
+    outputs : (W, L, 8), used for the initial states and the least-squares weights
+    dt_s : sample interval, s
+    available : (8,) or (W, 8) bool, channel measured
+    estimate_all_initial : estimate every initial state by least squares (not only the unmeasured)
+    ridge : relative Tikhonov weight that keeps unobservable initial states finite
+    block : time-lifting block length (samples); the simulation steps ``L / block`` lifted
+        systems and does the within-block response as one batched matrix product
+    subsystems : which decoupled subsystems to simulate (0 horizontal, 1 vertical/yaw); the
+        outputs of the others stay zero and their channels are not used
+
+    Notes
+    -----
+    The forced response is computed by time lifting: with blocks of b samples,
+    ``x_{i+1} = A^b x_i + Cb U_i`` and ``Y_i = Ob x_i + T U_i`` (``Ob`` the stacked ``C A^j``, ``T`` the
+    block-Toeplitz Markov parameters, ``Cb`` the block controllability matrix) - exactly the same
+    numbers as stepping ``x[k+1] = A x[k] + B u[k]`` sample by sample, but in a few large products.
+    """
+
+    def __init__(self, inputs: np.ndarray, outputs: np.ndarray, dt_s: float, available: np.ndarray | None = None,
+                 *, estimate_all_initial: bool = False, ridge: float = 1e-6, block: int = 10,
+                 subsystems: tuple[int, ...] = (0, 1)) -> None:
+        u = np.asarray(inputs, dtype=float)
+        y = np.asarray(outputs, dtype=float)
+        if u.ndim != 3 or u.shape[2] != 4 or y.ndim != 3 or y.shape[2] != 8 or u.shape[:2] != y.shape[:2]:
+            raise ValueError(f"inputs must be (W, L, 4) and outputs (W, L, 8), got {u.shape} and {y.shape}")
+        if not np.isfinite(u).all():
+            raise ValueError("inputs contain NaN/inf")
+        self.inputs = u
+        self.dt_s = float(dt_s)
+        self.subsystems = tuple(sorted(set(subsystems)))
+        if not self.subsystems or any(i not in (0, 1) for i in self.subsystems):
+            raise ValueError(f"subsystems must be a subset of (0, 1), got {subsystems}")
+        keep = np.zeros(8, dtype=bool)
+        for i in self.subsystems:
+            keep[[o for _, o in _SUBS[i].meas]] = True
+        self.mask = _avail_2d(available, y) & keep[None, :]  # (W, 8)
+        self.outputs = np.where(self.mask[:, None, :], np.nan_to_num(y), 0.0)
+        self.scales = channel_scales(self.outputs, self.mask)
+        self.weights = self.mask / self.scales[None, :] ** 2  # (W, 8) LS weights, same as eq. 11 normalisation
+        self.estimate_all_initial = estimate_all_initial
+        self.ridge = ridge
+        self.W, self.L = u.shape[0], u.shape[1]
+        self.b = max(1, min(int(block), self.L))
+        self.nb = -(-self.L // self.b)
+        Lp = self.nb * self.b
+        self._prep = []
+        for sub in _SUBS:
+            if _SUBS.index(sub) not in self.subsystems:
+                self._prep.append({})
+                continue
+            s_idx = np.array([s for s, _ in sub.meas])
+            o_idx = np.array([o for _, o in sub.meas])
+            nch = len(sub.meas)
+            up = np.zeros((self.W, Lp, len(sub.inputs)))
+            up[:, :self.L] = u[:, :, list(sub.inputs)]
+            U = up.reshape(1, self.W * self.nb, self.b * len(sub.inputs))  # block input vectors
+            known = np.zeros((self.W, sub.n), dtype=bool)
+            if not estimate_all_initial:
+                known[:, s_idx] = self.mask[:, o_idx]
+            xm = np.zeros((self.W, sub.n))
+            xm[:, s_idx] = self.outputs[:, 0, o_idx]
+            xm = np.where(known, xm, 0.0)
+            yflat = self.outputs[:, :, o_idx].reshape(self.W, self.L * nch)
+            w_ch = self.weights[:, o_idx]
+            wflat = np.repeat(w_ch[:, None, :], self.L, axis=1).reshape(self.W, self.L * nch)
+            mflat = np.repeat(self.mask[:, None, o_idx], self.L, axis=1).reshape(self.W, self.L * nch)
+            self._prep.append(dict(s_idx=s_idx, o_idx=o_idx, nch=nch, U=U, known=known, xm=xm, yflat=yflat,
+                                   w_ch=w_ch, wflat=wflat, mflat=mflat, unk=(~known).astype(float),
+                                   uniform=bool((w_ch == w_ch[:1]).all()), full_mask=bool(self.mask[:, o_idx].all())))
+
+    @property
+    def state_updates_per_call(self) -> int:
+        """State updates (one x[k+1] = A x[k] + B u[k]) per candidate per call."""
+        return self.W * self.L
+
+    def _run(self, theta: np.ndarray):
+        th = np.atleast_2d(np.asarray(theta, dtype=float))
+        Ah, Bh, Av, Bv = build_matrices(th)
+        out = []
+        with np.errstate(all="ignore"):
+            for i in self.subsystems:
+                A, B = ((Ah, Bh), (Av, Bv))[i]
+                Ad, Bd = discretize(A, B, self.dt_s)
+                out.append((i, self._sub(_SUBS[i], self._prep[i], Ad, Bd)))
+        return out
+
+    def simulate(self, theta: np.ndarray, *, return_x0: bool = False):
+        """yhat (C, W, L, 8) (unavailable channels hold the simulation too; x0 per subsystem if asked)."""
+        res = self._run(theta)
+        C = res[0][1][0].shape[0]
+        yhat = np.zeros((C, self.W, self.L, 8))
+        for i, (e, _x0) in res:
+            pre = self._prep[i]
+            yhat[:, :, :, pre["o_idx"]] = (e + pre["yflat"][None]).reshape(C, self.W, self.L, pre["nch"])
+        yhat = np.where(np.isfinite(yhat), yhat, 1e6)
+        if return_x0:
+            return yhat, {i: r[1] for i, r in res}
+        return yhat
+
+    def sse(self, theta: np.ndarray) -> np.ndarray:
+        """Sum of squared output errors per candidate and channel over used samples; shape (C, 8)."""
+        res = self._run(theta)
+        C = res[0][1][0].shape[0]
+        out = np.zeros((C, 8))
+        for i, (e, _x0) in res:
+            pre = self._prep[i]
+            if not pre["full_mask"]:
+                e *= pre["mflat"][None]
+            e *= e
+            out[:, pre["o_idx"]] = e.reshape(C, self.W * self.L, pre["nch"]).sum(axis=1)
+        return np.where(np.isfinite(out), out, 1e300)
+
+    def errors(self, theta: np.ndarray) -> np.ndarray:
+        """Output errors ``yhat - y`` (C, W, L, 8), zero where a channel is unused."""
+        res = self._run(theta)
+        C = res[0][1][0].shape[0]
+        out = np.zeros((C, self.W, self.L, 8))
+        for i, (e, _x0) in res:
+            pre = self._prep[i]
+            out[:, :, :, pre["o_idx"]] = (e * pre["mflat"][None]).reshape(C, self.W, self.L, pre["nch"])
+        return np.where(np.isfinite(out), out, 1e6)
+
+    def _sub(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray):
+        C = Ad.shape[0]
+        W, L, n, b, nb = self.W, self.L, sub.n, self.b, self.nb
+        s_idx, nch = pre["s_idx"], pre["nch"]
+        m = Bd.shape[-1]
+        # powers A^0..A^b
+        pw = [np.broadcast_to(np.eye(n), (C, n, n))]
+        for _ in range(b):
+            pw.append(np.matmul(Ad, pw[-1]))
+        Apow = np.stack(pw, axis=1)  # (C, b+1, n, n)
+        Ob = Apow[:, :b][:, :, s_idx, :].reshape(C, b * nch, n)  # rows (j, ch): C A^j
+        AB = np.matmul(Apow[:, :b], Bd[:, None])  # (C, b, n, m): A^q B
+        CAB = AB[:, :, s_idx, :]  # (C, b, nch, m) Markov parameters C A^q B
+        T = np.zeros((C, b, nch, b, m))
+        for j in range(1, b):
+            for l in range(j):
+                T[:, j, :, l, :] = CAB[:, j - 1 - l]
+        T = T.reshape(C, b * nch, b * m)
+        Cb = np.stack([AB[:, b - 1 - l] for l in range(b)], axis=-2)  # (C, n, b, m)
+        Cb = Cb.reshape(C, n, b * m)
+        Ab = Apow[:, b]
+        U = pre["U"][0]  # (W*nb, b*m)
+        # one BLAS product: (W*nb, b*m) x (b*m, C*n)
+        CbU = (U @ Cb.transpose(2, 0, 1).reshape(b * m, C * n)).reshape(W, nb, C, n).transpose(2, 0, 1, 3)
+        # block states (zero initial state)
+        xm, unk = pre["xm"], pre["unk"]
+        xs = np.empty((C, W, nb, n + b * m))
+        xs[..., n:] = U.reshape(W, nb, b * m)[None]
+        x = np.broadcast_to(xm, (C, W, n))  # known initial states; the unknown part is added below
+        AbT = np.swapaxes(Ab, 1, 2)
+        for i in range(nb):
+            xs[:, :, i, :n] = x
+            x = np.matmul(x, AbT) + CbU[:, :, i]
+        ObT = np.concatenate([Ob, T], axis=2)  # Y_i = Ob x_i + T U_i
+        yf = np.matmul(xs.reshape(C, W * nb, n + b * m), np.ascontiguousarray(np.swapaxes(ObT, 1, 2)))
+        r = yf.reshape(C, W, nb * b * nch)[:, :, : L * nch]
+        np.subtract(pre["yflat"][None], r, out=r)  # r = y - forced - known free response, (C, W, L*nch)
+        # free response basis Phi (C, L*nch, n): rows (k, ch) = C A^k
+        Abp = [np.broadcast_to(np.eye(n), (C, n, n))]
+        for _ in range(nb - 1):
+            Abp.append(np.matmul(Ab, Abp[-1]))
+        Phi = np.ascontiguousarray(np.matmul(Ob[:, None], np.stack(Abp, axis=1)).reshape(C, nb * b * nch, n)[:, : L * nch])
+        # normal equations per candidate per window: G = sum_ch w_ch Phi_ch^T Phi_ch
+        Phi4 = Phi.reshape(C, L, nch, n).transpose(0, 2, 3, 1)  # (C, nch, n, L)
+        H = np.matmul(Phi4, np.swapaxes(Phi4, -1, -2))  # (C, nch, n, n)
+        G = np.matmul(pre["w_ch"][None], H.reshape(C, nch, n * n)).reshape(C, W, n, n)
+        if pre["uniform"]:
+            PhiW = Phi * pre["wflat"][0][None, :, None]
+            rhs = np.matmul(r, PhiW)  # (C, W, n)
+        else:
+            rhs = np.matmul(r * pre["wflat"][None], Phi)
+        G *= (unk[:, :, None] * unk[:, None, :])[None]
+        diag = np.einsum("cwii->cwi", G)
+        scale = np.maximum(diag.max(axis=-1, keepdims=True), 1e-300)
+        reg = np.where(unk[None] > 0, self.ridge * scale, 1.0)
+        G += reg[..., :, None] * np.eye(n)
+        z = np.linalg.solve(G, (rhs * unk[None])[..., None])[..., 0]  # (C, W, n), zero on known dims
+        e = np.matmul(z, np.swapaxes(Phi, 1, 2))
+        e -= r  # yhat - y
+        x0 = xm[None] + z
+        return e, x0
+
+
+def simulate_windows(theta: np.ndarray, inputs: np.ndarray, outputs: np.ndarray, dt_s: float,
+                     available: np.ndarray | None = None, *, estimate_all_initial: bool = False) -> np.ndarray:
+    """Windowed simulation of C candidates on W windows: returns ``yhat (C, W, L, 8)``.
+
+    See the module docstring for the array shapes and the initial-state estimate.
+    """
+    sim = WindowSimulator(inputs, outputs, dt_s, available, estimate_all_initial=estimate_all_initial)
+    return sim.simulate(theta)
+
+
+def objective(yhat: np.ndarray, y: np.ndarray, available: np.ndarray | None = None) -> np.ndarray:
+    """Paper eq. (11): ``F = sum_ch ||y - yhat|| / ||y - mean(y)||`` over all windows; shape (C,).
+
+    yhat (C, W, L, 8); y (W, L, 8) (NaN or unavailable channels are skipped).
+    """
+    yy = np.asarray(y, dtype=float)
+    mask = _avail_2d(available, yy)
+    y0 = np.where(mask[:, None, :], np.nan_to_num(yy), 0.0)
+    scales = channel_scales(y0, mask)
+    used = mask.any(axis=0)
+    err = (np.asarray(yhat) - y0[None]) * mask[None, :, None, :]
+    num = np.sqrt((err ** 2).sum(axis=(1, 2)))  # (C, 8)
+    F = (num / scales[None, :])[:, used].sum(axis=1)
+    return np.where(np.isfinite(F), F, 1e12)
+
+
+def objective_from_sse(sim: WindowSimulator, theta: np.ndarray) -> np.ndarray:
+    """Eq. (11) for C candidates without assembling yhat; shape (C,)."""
+    sse = sim.sse(theta)
+    used = sim.mask.any(axis=0)
+    F = (np.sqrt(sse) / sim.scales[None, :])[:, used].sum(axis=1)
+    return np.where(np.isfinite(F), F, 1e12)
+
+
+def fitness(F: np.ndarray) -> np.ndarray:
+    """Paper eq. (12): ``1 / (1 + F)``."""
+    return 1.0 / (1.0 + np.asarray(F, dtype=float))
