@@ -1,0 +1,50 @@
+"""The simulated FC on a real pty, recorded by ``groundstation record`` (subprocess, pyserial):
+stream setup over SET_MESSAGE_INTERVAL completes, two armed intervals give two flight files,
+and the recorded ATTITUDE stream runs at the requested rate on the FC clock.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from hil_replay.fc import FcConfig, SimulatedFCThread
+from hil_replay.player import read_tlog_packets
+from tests.replay.conftest import FakeHelicopter
+
+
+def test_simulated_fc_into_record(tmp_path):
+    heli = FakeHelicopter(duration_s=40.0, armed_s=((8.0, 18.0), (24.0, 34.0)))
+    with SimulatedFCThread(speed=10.0, session=heli, config=FcConfig(packet_loss=0.0)) as fc:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "groundstation.cli", "record", "--link", f"serial://{fc.port_path}:921600",
+             "--out", str(tmp_path / "rec"), "--rate", "ATTITUDE=50", "--rate", "GPS_RAW_INT=5"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 30
+            while fc.stats.last_t_boot_s < 3.0 + 40.0 - 0.1 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            time.sleep(0.3)
+            proc.send_signal(signal.SIGINT)
+            stdout, stderr = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert proc.returncode == 0, stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert summary["streams"] == {"ATTITUDE": "ok", "GPS_RAW_INT": "ok"}
+    assert len(summary["flights"]) == 2
+    parser = mavlink.MAVLink(None)
+    msgs = [parser.decode(bytearray(p.data)) for p in read_tlog_packets(summary["session_tlog"])]
+    att_t = np.array([m.time_boot_ms / 1000 for m in msgs if m.get_type() == "ATTITUDE"])
+    assert abs((len(att_t) - 1) / (att_t[-1] - att_t[0]) / 50 - 1) < 0.10
+    gps_t = np.array([m.time_usec / 1e6 for m in msgs if m.get_type() == "GPS_RAW_INT"])
+    assert abs((len(gps_t) - 1) / (gps_t[-1] - gps_t[0]) / 5 - 1) < 0.10
+    assert {m.get_type() for m in msgs} <= {"HEARTBEAT", "COMMAND_ACK", "ATTITUDE", "GPS_RAW_INT"}
