@@ -12,6 +12,9 @@ The recorder is ``groundstation record --link serial://PORT --out DIR`` in a sub
 LINK engineer's command, the real path) when it exists; otherwise an in-process pyserial reader
 that frames packets with pymavlink and writes them with :class:`firmware_interface.tlog.TlogWriter`
 (``--recorder direct`` forces it). Packets lost = source packets missing from the recorded .tlog.
+The real-time factor is log seconds over wall seconds from the first byte written until the
+recorder has read the last one (the pty drained); the pty buffer is ~18 KB, so the writer is
+throttled by the recorder's reading and processing throughout.
 """
 
 from __future__ import annotations
