@@ -52,3 +52,37 @@ def test_corrupted_unplugged_replay_into_record(tmp_path):
     assert summary["corrupt_bytes"] > 0
     # each corrupted packet fails its CRC (or breaks its framing): the bad-CRC count is of that order
     assert 0.5 * len(report.corrupted) <= summary["bad_crc"] <= 1.5 * len(report.corrupted)
+
+
+def test_replay_command_into_record_command(tmp_path):
+    """The same through the two commands only (flags --corrupt --drop --unplug-at --report)."""
+    synthesize_tlog(tmp_path / "flight.tlog", duration_s=12.0)
+    packets = read_tlog_packets(tmp_path / "flight.tlog")
+    link = tmp_path / "ttyREPLAY"
+    replay = subprocess.Popen(
+        [sys.executable, "-m", "groundstation.cli", "replay", str(tmp_path / "flight.tlog"), "--speed", "8",
+         "--corrupt", "0.005", "--drop", "0.01", "--unplug-at", "4", "--unplug-for", "3", "--seed", "5",
+         "--link-path", str(link), "--report", str(tmp_path / "report.json")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    record = None
+    try:
+        assert replay.stdout.readline().strip() == str(link)
+        record = subprocess.Popen(
+            [sys.executable, "-m", "groundstation.cli", "record", "--link", f"serial://{link}:921600",
+             "--out", str(tmp_path / "rec")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert replay.wait(timeout=60) == 0
+        time.sleep(0.5)
+        record.send_signal(signal.SIGINT)
+        stdout, stderr = record.communicate(timeout=30)
+    finally:
+        for p in (replay, record):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.communicate()
+    assert record.returncode == 0, stderr
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["dropped"] and report["corrupted"] and report["unplugged"]
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    from_fc = [p.data for p in read_tlog_packets(summary["session_tlog"]) if _src(p.data) == (1, 1)]
+    assert from_fc == [packets[i].data for i in report["intact"]]
+    assert summary["link_lost"] >= 1
