@@ -20,8 +20,19 @@ Pure numpy.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+
+
+@dataclass
+class Candidate:
+    """A scored hypothesis (``hyp`` is a :class:`groundstation.gap.hypotheses.Hypothesis`)."""
+
+    hyp: Any
+    score: Score
+    significant: bool
+    evidence: str
 
 
 @dataclass

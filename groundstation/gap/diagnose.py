@@ -202,35 +202,33 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
     # gyro bias: the kinematic evidence decides p and q (model-free); r relies on the model scan
     kin_sig = {k: v for k, v in kin.items() if v.log10_p < np.log10(crit)}
 
-    candidates = []
+    candidates: list[attribute.Candidate] = []
     for h, s in results:
-        sig = s.p_value < crit and s.score_pct > 0
-        ev_txt = _evidence(h, s, kin, lines)
+        is_sig = s.p_value < crit and s.score_pct > 0
         if h.effect == "gyro_bias" and h.output in ("p", "q"):
-            sig = h.output in kin_sig and sig
-        candidates.append({"hyp": h, "score": s, "significant": bool(sig), "evidence": ev_txt})
+            is_sig = h.output in kin_sig and is_sig
+        candidates.append(attribute.Candidate(h, s, bool(is_sig), _evidence(h, s, kin, lines)))
     # a significant kinematic offset on a channel the model scan did not pick still counts
     if kin_sig:
         best_k = min(kin_sig.values(), key=lambda r: r.log10_p)
-        gb = next((c for c in candidates if c["hyp"].effect == "gyro_bias"), None)
-        if gb is not None and gb["hyp"].output != best_k.channel:
-            gb["hyp"].output = best_k.channel
-            gb["hyp"].estimate = {"bias_rad_s": best_k.offset_rad_s}
-            gb["significant"] = gb["score"].score_pct > 0
-            gb["evidence"] = _evidence(gb["hyp"], gb["score"], kin, lines)
+        gb = next((c for c in candidates if c.hyp.effect == "gyro_bias"), None)
+        if gb is not None and gb.hyp.output != best_k.channel:
+            gb.hyp.output = best_k.channel
+            gb.hyp.estimate = {"bias_rad_s": best_k.offset_rad_s}
+            gb.significant = gb.score.score_pct > 0
+            gb.evidence = _evidence(gb.hyp, gb.score, kin, lines)
 
-    sig = [c for c in candidates if c["significant"]]
-    sig.sort(key=lambda c: -c["score"].score_pct)
+    ranked = sorted((c for c in candidates if c.significant), key=lambda c: -c.score.score_pct)
     gap_significant = bool(np.nanmax(np.where(out_excited, gap_ratio, np.nan)) > 3.0) if out_excited.any() else False
-    if sig:
-        verdict = sig[0]["hyp"].effect
+    if ranked:
+        verdict = ranked[0].hyp.effect
     elif gap_significant and flag.sum() >= max(2, int(0.1 * ev.W)):
         verdict = "unexplained"
     else:
         verdict = "none"
 
     untestable = {h.effect: h.reason for h in hyps if not h.testable}
-    if hypotheses.Hypothesis and "ground_effect" not in untestable:
+    if "ground_effect" not in untestable:
         ge = next(h for h in hyps if h.effect == "ground_effect")
         if ge.extra.get("height_span_m", 1.0) < 0.5:
             untestable["ground_effect"] = "height barely varies: ground effect not excited"
@@ -239,7 +237,7 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
                               for c in range(8)}}
     report = build_report(
         verdict=verdict, channels=chan, worst=worst, windows_s=windows_s, band=band, cond=cond,
-        ranked=sig, others=[c for c in candidates if not c["significant"]], untestable=untestable,
+        ranked=ranked, others=[c for c in candidates if not c.significant], untestable=untestable,
         noise=nf, gap_ratio=gap_ratio, excitation=excitation, notes=notes, given_metrics=given_metrics,
         base_params=ev.theta0, kinematic=kin, lines=lines, nominal=nominal, n_windows=ev.W,
         window_s=cfg.window_s, folds=cfg.folds, alpha=cfg.alpha, gap_significant=gap_significant,

@@ -113,9 +113,11 @@ class Evaluator:
 
         ``stop``: initial states (and nuisance) are fitted on samples ``start:stop`` only.
         """
-        return simulate(theta, self.U if U is None else U, self.Y if Y is None else Y, self.dt_s,
-                        forcing=F, weights=self.w8, available=self.available, nuisance=nuisance,
-                        start=self.start, stop=stop)
+        out = simulate(theta, self.U if U is None else U, self.Y if Y is None else Y, self.dt_s,
+                       forcing=F, weights=self.w8, available=self.available, nuisance=nuisance,
+                       start=self.start, stop=stop)
+        assert isinstance(out, np.ndarray)
+        return out
 
     def residual(self, yhat: np.ndarray, Y: np.ndarray | None = None) -> np.ndarray:
         """Weighted, masked residual (..., W, L, 8) of a simulation against Y (default: measured)."""
@@ -219,7 +221,7 @@ class Evaluator:
         rf = r.reshape(W, -1)
         Jn = self.Jw / self.col
         K = 0 if X is None else X.shape[-1]
-        if K:
+        if X is not None and K:
             Xf = X.reshape(W, -1, K)
             xs = np.sqrt((Xf ** 2).sum(axis=(0, 1))) + 1e-30
             M = np.concatenate([Jn, Xf / xs], axis=2)

@@ -14,6 +14,7 @@ cost of the hypothesis carries the penalty for what it adds.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -116,7 +117,7 @@ class Context:
         yh = yh.reshape(V, ev.W, ev.L, 8)
         return yh
 
-    def nested(self, effect: str, variants: list[tuple[dict[str, Any], np.ndarray, np.ndarray | None]]
+    def nested(self, effect: str, variants: Sequence[tuple[dict[str, Any], np.ndarray, np.ndarray | None]]
                ) -> tuple[np.ndarray, int, list[np.ndarray]]:
         """Nested selection over variants (label, r (W,L,8), X or None).
 
@@ -155,7 +156,7 @@ def scan_input_delay(ctx: Context, channels: list[int]) -> Hypothesis:
     ev, segs = ctx.ev, ctx.segments
     variants = []
     U_list = []
-    labels = []
+    labels: list[dict[str, Any]] = []
     for c in channels:
         for d_s in DELAY_GRID_S:
             d = d_s / ev.dt_s
@@ -175,7 +176,8 @@ def scan_input_delay(ctx: Context, channels: list[int]) -> Hypothesis:
 
 def scan_rate_limit(ctx: Context, channels: list[int]) -> Hypothesis:
     ev, segs = ctx.ev, ctx.segments
-    U_list, labels = [], []
+    U_list: list[np.ndarray] = []
+    labels: list[dict[str, Any]] = []
     for c in channels:
         du = np.concatenate([np.abs(np.diff(s.inputs[:, c])) for s in segs])
         steps = np.quantile(du, RATE_QUANTILES)
@@ -203,7 +205,8 @@ def ctx_pwm(ctx: Context) -> float:
 
 def scan_deadband(ctx: Context, channels: list[int]) -> Hypothesis:
     ev, segs = ctx.ev, ctx.segments
-    U_list, labels = [], []
+    U_list: list[np.ndarray] = []
+    labels: list[dict[str, Any]] = []
     for c in channels:
         au = np.concatenate([np.abs(s.inputs[:, c]) for s in segs])
         widths = np.quantile(au, DEADBAND_QUANTILES)
@@ -227,7 +230,8 @@ def scan_velocity_latency(ctx: Context) -> Hypothesis:
     ev, segs = ctx.ev, ctx.segments
     if not ev.available[list(VEL)].any():
         return Hypothesis("velocity_latency", testable=False, reason="no velocity measurements")
-    Y_list, labels = [], []
+    Y_list: list[np.ndarray] = []
+    labels: list[dict[str, Any]] = []
     for d_s in DELAY_GRID_S:
         d = d_s / ev.dt_s
         Ys = [s.outputs.copy() for s in segs]

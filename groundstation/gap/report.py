@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.gap.attribute import Candidate
 from groundstation.sysid.model import OUTPUTS, theta_to_dict
 
 SCHEMA = "heli-gap-report/1"
@@ -20,8 +21,8 @@ def _r(x: float, nd: int = 4) -> float | None:
     return round(x, nd) if np.isfinite(x) else None
 
 
-def _effect_entry(c: dict[str, Any]) -> dict[str, Any]:
-    h, s = c["hyp"], c["score"]
+def _effect_entry(c: Candidate) -> dict[str, Any]:
+    h, s = c.hyp, c.score
     return {
         "effect": h.effect,
         "input": h.input,
@@ -34,12 +35,12 @@ def _effect_entry(c: dict[str, Any]) -> dict[str, Any]:
         "p_value": _r(s.p_value, 6),
         "shrink_interval": [_r(s.shrink_interval[0], 2), _r(s.shrink_interval[1], 2)],
         "per_channel_shrink": {OUTPUTS[k]: _r(v, 2) for k, v in s.per_channel_shrink.items()},
-        "evidence": c["evidence"],
+        "evidence": c.evidence,
     }
 
 
 def build_report(*, verdict: str, channels: dict, worst: list[str], windows_s: list, band: dict,
-                 cond: dict, ranked: list[dict], others: list[dict], untestable: dict[str, str],
+                 cond: dict, ranked: list[Candidate], others: list[Candidate], untestable: dict[str, str],
                  noise: dict, gap_ratio: np.ndarray, excitation: dict, notes: list[str],
                  given_metrics: dict | None, base_params: np.ndarray, kinematic: dict, lines: list,
                  nominal: float, n_windows: int, window_s: float, folds: int, alpha: float,
@@ -62,7 +63,7 @@ def build_report(*, verdict: str, channels: dict, worst: list[str], windows_s: l
             "nominal_window_cost": _r(nominal, 6),
         },
         "effects": effects,
-        "candidates": [_effect_entry(c) for c in sorted(others, key=lambda c: -c["score"].score_pct)],
+        "candidates": [_effect_entry(c) for c in sorted(others, key=lambda c: -c.score.score_pct)],
         "untestable": untestable,
         "shrink_interval": top["shrink_interval"] if top else None,
         "per_channel_shrink": top["per_channel_shrink"] if top else {},
