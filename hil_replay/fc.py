@@ -349,7 +349,7 @@ class SimulatedFlightController:
             if data:
                 self.protocol.receive_data(data)
 
-    async def _send(self, packets: list[bytes]) -> None:
+    async def _send(self, packets: list[bytes], stop: asyncio.Event) -> None:
         if not packets:
             return
         data = b"".join(packets)
@@ -357,8 +357,7 @@ class SimulatedFlightController:
             if not self.port.reader_attached():
                 self.stats.packets_unheard += len(packets)
                 return
-            await self.port.awrite(data)
-            self.stats.bytes_sent += len(data)
+            self.stats.bytes_sent += await self.port.awrite(data, stop)
         except PortUnplugged:
             self.stats.packets_unheard += len(packets)
 
@@ -397,7 +396,7 @@ class SimulatedFlightController:
                         wall0 -= delay
                     else:
                         await asyncio.sleep(0)
-                await self._send(self.protocol.on_frame(frame))
+                await self._send(self.protocol.on_frame(frame), stop)
         finally:
             stop.set()
             reader.cancel()

@@ -256,11 +256,14 @@ class VirtualSerialPort:
                                    f"{len(data) - len(view)} of {len(data)} bytes written")
             select.select([], [self.fileno()], [], 0.05 if wait is None else min(wait, 0.05))
 
-    async def awrite(self, data: bytes) -> None:
-        """Write all of ``data``, awaiting writability (back-pressure) while the pty buffer is full."""
+    async def awrite(self, data: bytes, stop: asyncio.Event | None = None) -> int:
+        """Write all of ``data``, awaiting writability (back-pressure) while the pty buffer is full.
+
+        Returns the number of bytes written: all of them unless ``stop`` was set meanwhile.
+        """
         loop = asyncio.get_running_loop()
         view = memoryview(data)
-        while view:
+        while view and not (stop is not None and stop.is_set()):
             n = self.write_nowait(view)
             view = view[n:]
             if not view:
@@ -275,6 +278,7 @@ class VirtualSerialPort:
                 pass
             finally:
                 loop.remove_writer(fd)
+        return len(data) - len(view)
 
     # ---------------------------------------------------------------- reading
 

@@ -211,3 +211,27 @@ def test_unplug_and_replug_while_serving():
     parser = mavlink.MAVLink(None)
     assert any(m.get_type() == "HEARTBEAT" for m in parser.parse_buffer(after) or [])
     assert fc.stats.packets_unheard >= 1  # heartbeats while unplugged went nowhere
+
+
+def test_stop_is_prompt_while_the_reader_does_not_read():
+    import serial
+
+    heli = FakeHelicopter(duration_s=600.0)
+    fc = SimulatedFCThread(speed=0, session=heli, config=FcConfig(packet_loss=0.0)).start()
+    ser = serial.Serial(fc.port_path, 921600, timeout=0.1)  # opened, never read: the pty fills up
+    try:
+        gcs_mav = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+        deadline = time.monotonic() + 5
+        while fc.stats.frames < 100 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        ser.write(gcs_mav.command_long_encode(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                              mavlink.MAVLINK_MSG_ID_RAW_IMU, 20000, 0, 0, 0, 0, 0).pack(gcs_mav))
+        time.sleep(1.0)
+        frames = fc.stats.frames
+        time.sleep(0.3)
+        assert fc.stats.frames == frames          # blocked by back-pressure, not racing ahead
+        t0 = time.monotonic()
+        fc.stop(timeout_s=2.0)                    # raises TimeoutError if the writer ignores stop
+        assert time.monotonic() - t0 < 2.0
+    finally:
+        ser.close()
