@@ -51,7 +51,8 @@ def averaged_periodogram(x: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.nda
     return f, P
 
 
-def _line_stats(P: np.ndarray, n_avg: int, half: int = 6, guard: int = 2) -> tuple[np.ndarray, np.ndarray]:
+def _line_stats(P: np.ndarray, n_avg: int, half: int = 6, guard: int = 2,
+                nyquist_real: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Ratio to the local median and log10 survival probability per bin, (F, C)."""
     F = P.shape[0]
     ratio = np.ones_like(P)
@@ -62,10 +63,13 @@ def _line_stats(P: np.ndarray, n_avg: int, half: int = 6, guard: int = 2) -> tup
             continue
         ref = np.median(P[idx], axis=0)
         ratio[k] = P[k] / np.where(ref > 0, ref, np.inf)
-    dof = 2 * n_avg
+    dof = np.full(F, 2 * n_avg)
+    dof[0] = n_avg  # DC and (even length) Nyquist bins are real: one degree of freedom per window
+    if nyquist_real:
+        dof[-1] = n_avg
     # the median of chi2_dof/dof sits slightly below its mean: correct the reference
     med = stats.chi2.median(dof) / dof
-    logp = stats.chi2.logsf(ratio * med * dof, dof) / np.log(10)
+    logp = stats.chi2.logsf(ratio * (med * dof)[:, None], dof[:, None]) / np.log(10)
     return ratio, logp
 
 
@@ -90,11 +94,11 @@ def spectral_lines(resid: np.ndarray, inputs: np.ndarray, dt_s: float, available
     W, L, _ = resid.shape
     f, P = averaged_periodogram(resid, dt_s)
     _, Pu = averaged_periodogram(inputs, dt_s)
-    ratio, logp = _line_stats(P, W)
-    uratio, ulogp = _line_stats(Pu, W)
+    ratio, logp = _line_stats(P, W, nyquist_real=L % 2 == 0)
+    uratio, ulogp = _line_stats(Pu, W, nyquist_real=L % 2 == 0)
     lo = 3 if min_hz is None else max(3, int(np.ceil(min_hz / (f[1] - f[0]))))
     test = np.zeros_like(ratio, bool)
-    test[lo:-1] = True
+    test[lo:] = True  # up to Nyquist: rotor lines alias anywhere in the band
     test &= available[None, :]
     n_tests = max(int(test.sum()), 1)
     thr = np.log10(alpha / n_tests)
