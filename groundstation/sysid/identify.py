@@ -172,7 +172,7 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
         "algorithm": algorithm, "seed": int(seed), "fitness": float(1.0 / (1.0 + F_total)), "cost": float(F_total),
         "search_cost": float(F_search), "refined": bool(refine and refined), "match_degree": match,
         "evaluations": int(nfev), "iterations": int(nit), "seconds": None,
-        "window_s": float(cfg.window_s), "windows": int(win.count),
+        "window_s": float(cfg.window_s), "windows": int(win.count), "estimate_all_initial": cfg.estimate_all_initial,
         "channels": [OUTPUTS[j] for j in range(8) if used[j]],
         "fixed": [PARAM_NAMES[i] for i in range(N_PARAMS) if not free[i]], "fixed_reasons": reasons,
         "noise_sigma": {OUTPUTS[j]: float(sigma_all[j]) for j in range(8) if np.isfinite(sigma_all[j])},

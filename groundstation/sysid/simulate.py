@@ -60,7 +60,7 @@ def channel_scales(outputs: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """
     y = np.nan_to_num(outputs)
     m = mask[:, None, :].astype(float)
-    cnt = m.sum(axis=(0, 1))
+    cnt = mask.sum(axis=0) * y.shape[1]
     mean = (y * m).sum(axis=(0, 1)) / np.maximum(cnt, 1)
     ss = (((y - mean) ** 2) * m).sum(axis=(0, 1))
     s = np.sqrt(ss)

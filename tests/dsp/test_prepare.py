@@ -1,0 +1,95 @@
+"""prepare(): segments, trims, velocities, availability and bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from groundstation.dsp.prepare import PrepConfig, prepare, prepared_from_arrays
+from groundstation.dsp.split import by_flight, kfold
+
+from .conftest import make_log
+
+
+def test_prepare_grid_trims_and_body_velocity():
+    p = prepare([make_log(60.0, yaw_rad=np.pi / 2, vel_ned=(1.0, 0.0, 0.0))], PrepConfig(smooth_passes=0))
+    assert p.dt_s == pytest.approx(0.02)
+    assert len(p.segments) == 1
+    s = p.segments[0]
+    assert np.allclose(np.diff(s.t_s), 0.02)
+    # in the air 3..57 s (landed_state), 1 s trimmed at both ends
+    assert s.t_s[0] == pytest.approx(4.0) and s.t_s[-1] == pytest.approx(56.0, abs=0.02)
+    assert s.available.all()
+    # flying north with the nose east -> v = -1 m/s in body axes, trimmed by the in-air median
+    assert p.output_trim["v"] == pytest.approx(-1.0, abs=0.05)
+    assert p.output_trim["p"] == 0.0 and p.output_trim["q"] == 0.0
+    assert p.input_trim_pwm["col"] == pytest.approx(1560.0, abs=3.0)
+    assert np.abs(np.nanmedian(s.inputs, axis=0)).max() < 0.01
+    assert s.inputs.shape == (s.n, 4) and s.outputs.shape == (s.n, 8)
+    assert np.isfinite(s.alt_m).all() and s.alt_m.max() == pytest.approx(5.0, abs=0.1)
+
+
+def test_long_servo_gap_splits_segment_short_gap_does_not():
+    p = prepare([make_log(80.0, drop_servo=(30.0, 32.0))])
+    assert len(p.segments) == 2
+    assert p.segments[0].t_s[-1] < 30.0 < 32.0 < p.segments[1].t_s[0]
+    p2 = prepare([make_log(80.0, drop_servo=(30.0, 30.05))])
+    assert len(p2.segments) == 1
+
+
+def test_velocity_missing_part_becomes_its_own_segment():
+    p = prepare([make_log(80.0, vel_nan_after_s=50.0)])
+    avail = [tuple(s.available[:3]) for s in p.segments]
+    assert avail == [(True, True, True), (False, False, False)]
+    assert np.isnan(p.segments[1].outputs[:, :3]).all()
+    assert np.isfinite(p.segments[1].outputs[:, 3:]).all()
+    assert any("missing in part" in n for n in p.notes)
+
+
+def test_in_air_from_altitude_without_landed_state():
+    p = prepare([make_log(60.0, landed_state=False)])
+    # altitude above 0.5 m from 2.25 s on (climb of 2 m/s from 2 s)
+    assert 3.0 < p.segments[0].t_s[0] < 4.0
+
+
+@pytest.mark.parametrize(
+    "kwargs, needle",
+    [({"with_servo": False}, "SERVO_OUTPUT_RAW"), ({"with_att": False}, "ATTITUDE"),
+     ({"duration_s": 9.0}, "never in the air")],
+)
+def test_bad_input_one_line(kwargs, needle):
+    with pytest.raises(ValueError) as e:
+        prepare([make_log(**kwargs)])
+    msg = str(e.value)
+    assert needle in msg and "synthetic.tlog" in msg and "\n" not in msg
+
+
+def test_smoothing_passes_reduce_noise_but_raw_is_kept():
+    rng = np.random.default_rng(0)
+    y = rng.normal(0, 1, (500, 8))
+    u = np.zeros((500, 4))
+    p0 = prepared_from_arrays(u, y, 0.02, smooth_passes=0)
+    p2 = prepared_from_arrays(u, y, 0.02, smooth_passes=2)
+    assert np.allclose(p2.segments[0].outputs_raw, y)
+    assert p2.segments[0].outputs.std() < 0.8 * p0.segments[0].outputs.std()
+
+
+def test_kfold_never_splits_by_sample_and_covers_everything():
+    p = prepare([make_log(100.0)])
+    folds = kfold(p, k=4, block_s=10.0)
+    n_total = sum(s.n for s in p.segments)
+    val_times = []
+    for train, val in folds:
+        assert sum(s.n for s in train.segments) + sum(s.n for s in val.segments) == n_total
+        for s in train.segments + val.segments:
+            assert s.n >= 10.0 / p.dt_s - 1 or s.t_s[-1] == p.segments[0].t_s[-1]  # whole blocks
+            assert np.allclose(np.diff(s.t_s), p.dt_s)  # contiguous
+        val_times.append(np.concatenate([s.t_s for s in val.segments]))
+    allv = np.sort(np.concatenate(val_times))
+    assert allv.size == n_total and np.unique(allv).size == n_total  # every sample validated exactly once
+
+
+def test_by_flight_needs_two_flights():
+    p = prepare([make_log(40.0)])
+    with pytest.raises(ValueError, match="two flights"):
+        by_flight(p)

@@ -1,0 +1,92 @@
+"""identify() on a short closed-loop flight of the linear model with known truth; validate metrics."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from groundstation.dsp.prepare import prepared_from_arrays
+from groundstation.sysid.identify import identify
+from groundstation.sysid.model import PARAM_NAMES, HoverModel, theta_from_dict
+from groundstation.sysid.synthetic import EXAMPLE_TRUTH, simulate_flight
+from groundstation.sysid.validate import match_degree, nrmse, theil_u, validate
+
+KEY = ("M_a", "L_b", "inv_tau_s", "A_lat", "B_lon", "Z_col", "N_ped", "N_r")
+
+
+@pytest.fixture(scope="module")
+def flights():
+    th = theta_from_dict(EXAMPLE_TRUTH)
+    u, _, ym = simulate_flight(th, 90.0, seed=11)
+    u2, _, ym2 = simulate_flight(th, 60.0, seed=12)
+    return th, prepared_from_arrays(u, ym, 0.02), prepared_from_arrays(u2, ym2, 0.02)
+
+
+@pytest.fixture(scope="module")
+def model(flights):
+    _, train, _ = flights
+    return identify(train, seed=0, maxiter=80)
+
+
+def test_identify_recovers_key_parameters(model):
+    for name in KEY:
+        assert model.params[name] == pytest.approx(EXAMPLE_TRUTH[name], rel=0.10), name
+
+
+def test_parameters_within_three_reported_standard_errors(model):
+    z = []
+    for name in PARAM_NAMES:
+        s = model.parameter_std[name]
+        assert s is not None and s > 0, name
+        z.append((model.params[name] - EXAMPLE_TRUTH[name]) / s)
+    z = np.abs(np.array(z))
+    assert np.all(z < 4.0), dict(zip(PARAM_NAMES, z.round(2), strict=True))
+    assert np.mean(z < 3.0) >= 0.9
+
+
+def test_model_file_roundtrip_and_fit_fields(model):
+    doc = model.to_json()
+    back = HoverModel.from_json(doc)
+    assert back.params == model.params
+    assert doc["fit"]["algorithm"] == "cabc" and doc["fit"]["evaluations"] > 0
+    assert set(doc["fit"]["match_degree"]) == {"u", "v", "w", "p", "q", "r", "theta", "phi"}
+    assert doc["fit"]["refined"] is True
+    assert doc["pinned_at_bound"] == []
+
+
+def test_identified_matches_truth_on_another_flight(flights, model):
+    th, _, other = flights
+    truth = HoverModel(params=dict(EXAMPLE_TRUTH))
+    v_id = validate(model, other)
+    v_true = validate(truth, other)
+    assert v_id["mean_match"] >= 0.99 * v_true["mean_match"]
+    assert set(v_id["channels"]) == set(v_true["channels"])
+
+
+def test_pinned_parameters_are_flagged(flights):
+    _, train, _ = flights
+    m = identify(train, seed=1, maxiter=30, bounds={"M_a": (10.0, 40.0)})
+    assert "M_a" in m.pinned
+
+
+def test_missing_velocities_fix_their_parameters():
+    th = theta_from_dict(EXAMPLE_TRUTH)
+    u, _, ym = simulate_flight(th, 40.0, seed=5)
+    ym[:, 0:3] = np.nan
+    u[:, 0] = 0.0  # lateral cyclic never moves (like the TREX 550 log)
+    p = prepared_from_arrays(u, ym, 0.02)
+    m = identify(p, seed=0, maxiter=20, refine=False)
+    for name in ("X_u", "Y_v", "Z_w", "A_lat", "L_lat"):
+        assert name in m.fit["fixed"] and m.params[name] == 0.0
+    assert set(m.fit["match_degree"]) == {"p", "q", "r", "theta", "phi"}
+
+
+def test_metrics_on_known_values():
+    y = np.array([1.0, -1.0, 2.0, -2.0])
+    assert match_degree(y, y) == pytest.approx(100.0)
+    assert match_degree(np.zeros(4), y) == pytest.approx(0.0)
+    assert match_degree(0.5 * y, y) == pytest.approx(50.0)
+    assert nrmse(y, y) == pytest.approx(100.0)
+    assert nrmse(np.full(4, y.mean()), y) == pytest.approx(0.0)
+    assert theil_u(y, y) == pytest.approx(0.0)
+    assert theil_u(-y, y) == pytest.approx(1.0)
