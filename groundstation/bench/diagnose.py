@@ -46,23 +46,27 @@ def _effect_channel(e: dict[str, Any]) -> str | None:
 
 
 def _main_param(name: str, params: dict[str, float]) -> tuple[str, float] | None:
-    """The truth effect parameter comparable with our estimate (key, value), best guess by name."""
-    keys = {"input_delay": ("delay_s",), "velocity_latency": ("latency_s", "delay_s"),
-            "gyro_bias": ("bias_rad_s", "bias"), "rotor_vibration": ("frequency_hz", "freq_hz"),
-            "rate_limit": ("rate_limit_per_s", "rate_per_s", "rate"), "deadband": ("deadband", "width", "half_width")}
-    for k in keys.get(name, ()):
-        for pk, pv in params.items():
-            if pk == k or pk.startswith(k):
-                try:
-                    return pk, float(pv)
-                except (TypeError, ValueError):
-                    continue
-    return None
+    """The truth effect parameter comparable with our estimate: (label, value in our units)."""
+    p = {k: float(v) for k, v in params.items()}
+    if name == "rotor_vibration" and "rpm" in p:
+        from hil_replay.sim.effects import aliased_hz
+
+        return "aliased line Hz", aliased_hz(p["rpm"] / 60.0, 50.0)
+    if name == "wind_gust" and "sigma_m_s" in p:
+        return "3-axis rms m/s", p["sigma_m_s"] * 1.5  # horizontal sigma, vertical at half
+    keys = {"input_delay": "delay_s", "velocity_latency": "latency_s", "gyro_bias": "bias_rad_s",
+            "rate_limit": "rate_per_s", "deadband": "half_width", "quadratic_drag": "c_per_m"}
+    k = keys.get(name)
+    return (k, p[k]) if k in p else None
 
 
 def _estimate_for(name: str, est: dict[str, float]) -> float | None:
+    if name == "quadratic_drag":
+        v = [float(x) for k, x in est.items() if k.startswith("drag_") and x is not None]
+        return float(np.mean(v)) if v else None
     keys = {"input_delay": "delay_s", "velocity_latency": "latency_s", "gyro_bias": "bias_rad_s",
-            "rotor_vibration": "frequency_hz", "rate_limit": "rate_limit_per_s", "deadband": "deadband"}
+            "rotor_vibration": "frequency_hz", "rate_limit": "rate_limit_per_s", "deadband": "deadband",
+            "wind_gust": "air_velocity_rms_m_s"}
     k = keys.get(name)
     return None if k is None or est.get(k) is None else float(est[k])
 
@@ -70,12 +74,11 @@ def _estimate_for(name: str, est: dict[str, float]) -> float | None:
 def run_case(job: dict[str, Any]) -> dict[str, Any]:
     """Simulate, read back, prepare, diagnose one case (runs in a worker process)."""
     from firmware_interface.readers import load_log
-    from hil_replay.sim import write_tlog
-    from hil_replay.sim.effects import random_effect
-
     from groundstation.dsp.prepare import prepare
     from groundstation.gap.diagnose import run_diagnosis
     from groundstation.sysid.model import HoverModel
+    from hil_replay.sim import write_tlog
+    from hil_replay.sim.effects import random_effect
 
     rng = np.random.default_rng(job["seed"])
     effects = [random_effect(n, rng) for n in job["effects"]]
