@@ -15,7 +15,9 @@ clock with ``t_boot_s``, ``armed``, ``available`` (message names with fresh data
 * REQUEST_DATA_STREAM with ArduPilot's stream groups (no ACK, as ArduPilot);
 * each requested message decimated from the 50 Hz frames to the requested rate on the FC clock
   (never faster than the source provides it);
-* link packet loss (seeded), applied after encoding so the MAVLink ``seq`` shows the gap.
+* link packet loss (seeded), applied after encoding so the MAVLink ``seq`` shows the gap;
+* an FC reboot on demand (:meth:`FcProtocol.reboot`): silence, boot clock and ``seq`` restart,
+  streams off until requested again.
 
 :class:`FcProtocol` is the IO-free part (bytes in, frames in, packets out).
 :class:`SimulatedFlightController` drives it on a :class:`hil_replay.pty.VirtualSerialPort` in
@@ -129,7 +131,8 @@ class FcStats:
     gcs_messages: int = 0
     commands: int = 0
     acks: int = 0
-    last_t_boot_s: float = 0.0
+    last_t_boot_s: float = 0.0     # the frame source's clock (not reset by reboots)
+    reboots: int = 0
     sent_by_type: dict[str, int] = field(default_factory=dict)
 
 
@@ -164,6 +167,10 @@ class FcProtocol:
         self._heartbeat_once = False
         self._acks: list[tuple[int, int]] = []
         self._next_heartbeat_s: float | None = None
+        self._reboot_pending: float | None = None
+        self._silent_until_s = -math.inf
+        self._silent = False
+        self._boot_offset_s = 0.0
         self.stats = FcStats()
 
     # ------------------------------------------------------------------ ground station -> FC
@@ -171,7 +178,7 @@ class FcProtocol:
     def receive_data(self, data: bytes) -> None:
         msgs = self._parser.parse_buffer(data) or []
         for msg in msgs:
-            if msg.get_type() == "BAD_DATA":
+            if msg.get_type() == "BAD_DATA" or self._silent:   # nobody listens while rebooting
                 continue
             self.stats.gcs_messages += 1
             self._handle(msg)
@@ -257,11 +264,46 @@ class FcProtocol:
         return self.mav.heartbeat_encode(mavlink.MAV_TYPE_HELICOPTER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
                                          base_mode, 0, status)
 
+    def reboot(self, boot_s: float = 2.0) -> None:
+        """Reboot (from the next frame on): silent for ``boot_s`` (frame clock), then the boot clock
+        (time_boot_ms / time_usec) restarts near 0, ``seq`` restarts at 0 and no stream is sent
+        until the ground station asks again, as ArduPilot after a reset."""
+        self._reboot_pending = boot_s
+
+    def _do_reboot(self, t_sim: float, boot_s: float) -> None:
+        self._reboot_pending = None
+        self._silent_until_s = t_sim + boot_s
+        self._boot_offset_s = t_sim + boot_s - 0.5   # the boot clock reads 0.5 s at first contact
+        self.intervals_s.clear()
+        self._next_due.clear()
+        self._once.clear()
+        self._acks.clear()
+        self._heartbeat_once = False
+        self._next_heartbeat_s = None
+        self.mav.seq = 0
+        self.stats.reboots += 1
+
+    def _shift_clock(self, msg: Any) -> Any:
+        """Re-express a built message's boot-clock fields on the rebooted clock."""
+        off = self._boot_offset_s
+        if hasattr(msg, "time_boot_ms"):
+            msg.time_boot_ms = max(0, int(msg.time_boot_ms - round(off * 1e3)))
+        if hasattr(msg, "time_usec") and msg.time_usec < 10**15:   # boot-relative, not Unix time
+            v = int(msg.time_usec - round(off * 1e6))
+            msg.time_usec = v % (1 << 32) if msg.get_type() == "SERVO_OUTPUT_RAW" else max(0, v)
+        return msg
+
     def on_frame(self, frame: Frame) -> list[bytes]:
         """Packets to send at this simulator tick (ACKs first, then heartbeat, then telemetry)."""
-        t = float(frame.t_boot_s)
+        t_sim = float(frame.t_boot_s)
         self.stats.frames += 1
-        self.stats.last_t_boot_s = t
+        self.stats.last_t_boot_s = t_sim
+        if self._reboot_pending is not None:
+            self._do_reboot(t_sim, self._reboot_pending)
+        self._silent = t_sim < self._silent_until_s
+        if self._silent:
+            return []
+        t = t_sim - self._boot_offset_s
         out: list[bytes] = []
         for command, result in self._acks:
             self._encode(self.mav.command_ack_encode(command, result), out)
@@ -293,7 +335,8 @@ class FcProtocol:
                 self._once.discard(name)
                 due = True
             if due:
-                self._encode(frame.build(name, self.mav), out)
+                msg = frame.build(name, self.mav)
+                self._encode(self._shift_clock(msg) if self._boot_offset_s else msg, out)
         self.stats.packets_sent += len(out)
         return out
 
@@ -504,6 +547,12 @@ class SimulatedFCThread:
 
         self._loop.call_soon_threadsafe(do)
         done.wait(5.0)
+
+    def reboot(self, boot_s: float = 2.0) -> None:
+        """Thread-safe: the FC reboots at its next frame (see :meth:`FcProtocol.reboot`)."""
+        if self._loop is None or not self._thread.is_alive():
+            raise RuntimeError(f"{self.port_path}: simulated FC is not running")
+        self._loop.call_soon_threadsafe(self.fc.protocol.reboot, boot_s)
 
     def start(self) -> SimulatedFCThread:
         self._thread.start()

@@ -235,3 +235,29 @@ def test_stop_is_prompt_while_the_reader_does_not_read():
         assert time.monotonic() - t0 < 2.0
     finally:
         ser.close()
+
+
+def test_reboot_restarts_clock_and_streams():
+    heli = FakeHelicopter(duration_s=100.0, t0_s=30.0)
+    proto = FcProtocol(FcConfig(packet_loss=0.0))
+    gcs = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+    parser = mavlink.MAVLink(None)
+    frames = iter(heli.frames())
+    _feed(proto, gcs, gcs.command_long_encode(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                              mavlink.MAVLINK_MSG_ID_ATTITUDE, 1e5, 0, 0, 0, 0, 0))
+    before = b"".join(b for _ in range(500) for b in proto.on_frame(next(frames)))   # 10 s
+    proto.reboot(boot_s=2.0)
+    silent = b"".join(b for _ in range(100) for b in proto.on_frame(next(frames)))   # 2 s
+    after = b"".join(b for _ in range(250) for b in proto.on_frame(next(frames)))    # 5 s
+    _feed(proto, gcs, gcs.command_long_encode(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                              mavlink.MAVLINK_MSG_ID_ATTITUDE, 1e5, 0, 0, 0, 0, 0))
+    again = b"".join(b for _ in range(250) for b in proto.on_frame(next(frames)))
+    m_before = parser.parse_buffer(before)
+    assert silent == b""
+    m_after = parser.parse_buffer(after)
+    assert {m.get_type() for m in m_after} == {"HEARTBEAT"} and m_after[0].get_seq() == 0
+    att_before = [m.time_boot_ms for m in m_before if m.get_type() == "ATTITUDE"]
+    att_again = [m.time_boot_ms for m in parser.parse_buffer(again) if m.get_type() == "ATTITUDE"]
+    assert att_before[0] >= 30_000 and len(att_again) >= 20
+    assert 5_000 < att_again[0] < 6_000        # boot clock restarted: 0.5 s + 5 s after first contact
+    assert proto.stats.reboots == 1

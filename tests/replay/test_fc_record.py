@@ -48,3 +48,39 @@ def test_simulated_fc_into_record(tmp_path):
     gps_t = np.array([m.time_usec / 1e6 for m in msgs if m.get_type() == "GPS_RAW_INT"])
     assert abs((len(gps_t) - 1) / (gps_t[-1] - gps_t[0]) / 5 - 1) < 0.10
     assert {m.get_type() for m in msgs} <= {"HEARTBEAT", "COMMAND_ACK", "ATTITUDE", "GPS_RAW_INT"}
+
+
+def test_fc_reboot_is_detected_and_streams_requested_again(tmp_path):
+    # the reboot is silent for 40 s of FC time (4 s wall at 10x): longer than the ground station's
+    # 3 s link timeout, as a real reboot (bootloader + init) is on a radio link
+    heli = FakeHelicopter(duration_s=80.0, t0_s=20.0)
+    with SimulatedFCThread(speed=10.0, session=heli, config=FcConfig(packet_loss=0.0)) as fc:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "groundstation.cli", "record", "--link", f"serial://{fc.port_path}:921600",
+             "--out", str(tmp_path / "rec"), "--rate", "ATTITUDE=10"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 30
+            while fc.stats.last_t_boot_s < 20.0 + 15.0 and time.monotonic() < deadline:
+                time.sleep(0.02)
+            fc.reboot(boot_s=40.0)
+            while fc.stats.last_t_boot_s < 20.0 + 80.0 - 0.1 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            time.sleep(0.3)
+            proc.send_signal(signal.SIGINT)
+            stdout, stderr = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert proc.returncode == 0, stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert summary["fc_reboots"] == 1
+    parser = mavlink.MAVLink(None)
+    msgs = [parser.decode(bytearray(p.data)) for p in read_tlog_packets(summary["session_tlog"])]
+    att_ms = np.array([m.time_boot_ms for m in msgs if m.get_type() == "ATTITUDE"])
+    k = int(np.argmin(np.diff(att_ms)))                # the step back of the reboot
+    assert att_ms[k] > 30_000 and att_ms[k + 1] < 5_000
+    after = att_ms[k + 1:]
+    assert len(after) > 50                            # streams requested again and flowing
+    assert abs((len(after) - 1) / ((after[-1] - after[0]) / 1000) / 10 - 1) < 0.10
