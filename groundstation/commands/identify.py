@@ -1,0 +1,126 @@
+"""``groundstation identify LOG... --out model.json [--algorithm cabc|abc|ga|de] [--seed N] [--no-refine] [--config FILE.toml]``.
+
+Reads the logs (``firmware_interface.readers.load_log``), prepares them (``dsp.prepare``), runs
+:func:`groundstation.sysid.identify.identify` with a rich progress bar, writes the DESIGN.md model
+file (atomically) and a PNG of measured vs model next to it (``model.png``), and prints a summary.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import tomllib
+from pathlib import Path
+
+HELP = "identify the hover model (paper eq. 8) from flight logs with CABC and write the model JSON"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("logs", nargs="+", type=Path, help=".tlog / .bin / .px4log flight logs")
+    parser.add_argument("--out", type=Path, required=True, help="model JSON to write")
+    parser.add_argument("--algorithm", choices=("cabc", "abc", "ga", "de"), default="cabc")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-refine", action="store_true", help="skip the least-squares refinement (no std errors)")
+    parser.add_argument("--maxiter", type=int, default=None, help="search iterations per subsystem")
+    parser.add_argument("--config", type=Path, default=None, help="TOML with [prepare], [identify], [bounds]")
+    parser.add_argument("--no-plot", action="store_true", help="do not write the PNG")
+    parser.add_argument("--quiet", action="store_true")
+
+
+def load_configs(path: Path | None):
+    from groundstation.dsp.prepare import PrepConfig
+    from groundstation.sysid.config import parse_sysid_config
+    from groundstation.sysid.identify import IdentifyConfig
+
+    if path is None:
+        return PrepConfig(), IdentifyConfig(), {}
+    try:
+        doc = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{path}: not valid TOML ({exc})") from None
+    return parse_sysid_config(doc, str(path))
+
+
+def load_logs(paths: list[Path]):
+    from firmware_interface.readers import load_log
+
+    for p in paths:
+        if not p.exists():
+            raise OSError(f"{p}: no such log file")
+    return [load_log(p) for p in paths]
+
+
+def write_json(path: Path, doc: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(doc, indent=1, allow_nan=False))
+    tmp.replace(path)
+
+
+def run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from groundstation.dsp.prepare import prepare
+    from groundstation.sysid.identify import identify
+
+    prep_cfg, id_cfg, bounds = load_configs(args.config)
+    logs = load_logs(args.logs)
+    prepared = prepare(logs, prep_cfg)
+    con = Console(stderr=True, quiet=args.quiet)
+    t0 = time.perf_counter()
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
+                  TimeElapsedColumn(), console=con, transient=True) as prog:
+        task = prog.add_task("identify", total=1.0, info="")
+
+        def cb(info: dict) -> bool:
+            frac = info["nit"] / max(info["maxiter"], 1)
+            prog.update(task, completed=min(frac, 1.0), description=info["stage"],
+                        info=f"F={info['fun']:.4g} evals={info['nfev']}")
+            return False
+
+        model = identify(prepared, algorithm=args.algorithm, seed=args.seed, refine=not args.no_refine,
+                         maxiter=args.maxiter, callback=cb, bounds=bounds or None, config=id_cfg)
+    model.fit["seconds"] = round(time.perf_counter() - t0, 3)
+    model.source["logs"] = [str(p) for p in args.logs]
+    write_json(args.out, model.to_json())
+    if not args.no_plot:
+        from groundstation.sysid.plots import plot_fit
+        from groundstation.sysid.validate import validate
+
+        v = validate(model, prepared, return_series=True)
+        plot_fit(v["series"], v["channels"], args.out.with_suffix(".png"),
+                 title=f"{args.algorithm.upper()} model on its training data ({', '.join(p.name for p in args.logs)})")
+    if not args.quiet:
+        print_model(model, con)
+    return 0
+
+
+def print_model(model, con=None) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    from groundstation.sysid.model import PARAM_NAMES
+
+    con = con or Console()
+    fit = model.fit
+    con.print(f"[bold]{fit['algorithm'].upper()}[/]: cost F={fit['cost']:.4f} (search {fit['search_cost']:.4f}), "
+              f"fitness {fit['fitness']:.4f}, {fit['evaluations']} evaluations, {fit['seconds']} s")
+    t = Table(title="match degree (eq. 19) on the training windows, %")
+    for ch in fit["match_degree"]:
+        t.add_column(ch, justify="right")
+    t.add_row(*[f"{v:.1f}" for v in fit["match_degree"].values()])
+    con.print(t)
+    p = Table(title="parameters")
+    p.add_column("name")
+    p.add_column("value", justify="right")
+    p.add_column("std error", justify="right")
+    p.add_column("note")
+    for n in PARAM_NAMES:
+        s = model.parameter_std.get(n)
+        note = "fixed (not identifiable)" if n in fit.get("fixed", []) else ("PINNED at bound" if n in model.pinned else "")
+        p.add_row(n, f"{model.params[n]:.4g}", "-" if s is None else f"{s:.3g}", note)
+    con.print(p)
+    for r in fit.get("fixed_reasons", []) + fit.get("notes", []):
+        con.print(f"note: {r}")
