@@ -190,7 +190,7 @@ class ClockModel:
             self._bin_start = t_host_s
             self._a = o
             self._t0 = t_host_s
-        elif t_host_s - self._bin_start >= self.bin_s or t_host_s < self._bin_start:
+        elif t_host_s - self._bin_start >= self.bin_s:
             self._bins.append((self._bin_host, self._bin_min))
             self._bin_start = t_host_s
             self._bin_min = math.inf
@@ -202,18 +202,29 @@ class ClockModel:
             self._a = min(self._a, o)
 
     def _fit(self) -> None:
-        pts = self._bins
+        pts = list(self._bins)
         n = len(pts)
         if n == 1:
             self._t0, self._a, self._b = pts[0][0], pts[0][1], 0.0
             return
-        mx = sum(p[0] for p in pts) / n
-        my = sum(p[1] for p in pts) / n
-        sxx = sum((p[0] - mx) ** 2 for p in pts)
-        b = sum((p[0] - mx) * (p[1] - my) for p in pts) / sxx if sxx > 0 and n >= 3 else 0.0
-        # the line is a lower envelope: shift it down to touch the lowest bin
-        a = min(p[1] - b * (p[0] - mx) for p in pts)
-        self._t0, self._a, self._b = mx, a, b
+        t0 = pts[-1][0]
+        a, b = _line([(p[0] - t0, p[1]) for p in pts], n >= 3)
+        if n >= 5:
+            # bins with a late minimum (a burst of latency) sit above the envelope: drop and refit
+            res = sorted(p[1] - (a + b * (p[0] - t0)) for p in pts)
+            med = res[n // 2]
+            mad = sorted(abs(r - med) for r in res)[n // 2]
+            keep = [(p[0] - t0, p[1]) for p in pts if p[1] - (a + b * (p[0] - t0)) <= med + 4.5 * mad]
+            if len(keep) >= 3:
+                a, b = _line(keep, True)
+                pts_used = keep
+            else:
+                pts_used = [(p[0] - t0, p[1]) for p in pts]
+        else:
+            pts_used = [(p[0] - t0, p[1]) for p in pts]
+        # the line is a lower envelope: shift it down to the lowest bin
+        a = min(p[1] - b * p[0] for p in pts_used)
+        self._t0, self._a, self._b = t0, a, b
 
     def reset(self) -> None:
         self.__init__(self.bin_s, self._bins.maxlen or 120)  # type: ignore[misc]
@@ -232,6 +243,17 @@ class ClockModel:
 
     def host_to_fc(self, t_host_s: float) -> float:
         return t_host_s - self.offset(t_host_s)
+
+
+def _line(pts: list[tuple[float, float]], slope: bool) -> tuple[float, float]:
+    """Least-squares a + b*x through (x, y) points (b = 0 unless ``slope``)."""
+    n = len(pts)
+    mx = sum(p[0] for p in pts) / n
+    y0 = pts[0][1]  # subtract a reference: y are Unix-sized numbers
+    my = sum(p[1] - y0 for p in pts) / n
+    sxx = sum((p[0] - mx) ** 2 for p in pts)
+    b = sum((p[0] - mx) * (p[1] - y0 - my) for p in pts) / sxx if slope and sxx > 0 else 0.0
+    return y0 + my - b * mx, b
 
 
 @dataclass
