@@ -79,7 +79,16 @@ def load_zenoh_config(path: str | os.PathLike[str]) -> zenoh.Config:
     try:
         return zenoh.Config.from_file(str(p))
     except zenoh.ZError as exc:
-        raise ZenohSecurityError(f"{p}: bad zenoh config: {_one_line(exc)}") from None
+        raise ZenohSecurityError(f"{p}: bad zenoh config: {_config_error(exc)}") from None
+
+
+def _config_error(exc: BaseException) -> str:
+    """zenoh's parse error in one line, without the config dump (it would print the password)."""
+    text = _one_line(exc, 10_000)
+    if "Invalid configuration" in text or "it is invalid" in text:
+        return ("zenoh rejects a value in it (e.g. transport/auth/usrpwd user without password, "
+                "or a TLS option without its file)")
+    return _one_line(text.split("{", 1)[0] if text.count("{") > 3 else text, 160)
 
 
 def _endpoints(cfg: zenoh.Config, section: str, mode: str) -> list[str]:
