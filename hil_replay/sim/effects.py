@@ -1,0 +1,297 @@
+"""Unmodelled effects the simulator can inject (the DESIGN.md catalogue), parsing and sampling.
+
+An :class:`Effect` is a frozen description ``(name, input, output, params)``; the session turns the
+list into runtime pieces (:class:`InputChain` for the input-side effects, :class:`GustModel` for the
+air mass; drag, ground effect and sensor effects are read from the params directly).
+
+=================  ======================  =====================================================
+name               channel                 params (allowed range; typical range drawn by random_effect)
+=================  ======================  =====================================================
+input_delay        input lat|lon|col|ped   delay_s (0.005-0.5; 0.04-0.2)
+rate_limit         input                   rate_per_s normalised units/s (0.2-50; 1.5-4)
+deadband           input                   half_width normalised units (0.001-0.2; 0.01-0.05)
+ground_effect      -                       gain on the Cheeseman-Bennett excess (0.1-3; 0.7-1.3)
+wind_gust          -                       sigma_m_s (0.05-5; 0.5-2), tau_s (0.2-20; 1-4)
+quadratic_drag     -                       c_per_m (0.001-0.5; 0.02-0.08)
+gyro_bias          output p|q|r            bias_rad_s (+-0.0005..0.1; +-0.003..0.02)
+rotor_vibration    -                       amplitude_rad_s (0.0005-0.2; 0.004-0.015), rpm (300-4000;
+                                           1200-1900; default: the aircraft's head speed)
+velocity_latency   -                       latency_s (0.01-1; 0.05-0.3)
+=================  ======================  =====================================================
+
+``parse_effect("input_delay:input=lon,delay_s=0.1")`` validates names, keys and ranges and raises
+``ValueError`` naming the key and what is allowed. Leaves to others: where each effect acts in the
+loop (``session.py``) and in the sensors (``telemetry.py``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+INPUT_CHANNELS: tuple[str, ...] = ("lat", "lon", "col", "ped")
+OUTPUT_CHANNELS: tuple[str, ...] = ("p", "q", "r")
+
+
+@dataclass(frozen=True)
+class _ParamSpec:
+    lo: float
+    hi: float
+    typ_lo: float
+    typ_hi: float
+    default: float | None
+    signed: bool = False  # magnitude in [lo, hi], either sign
+
+
+@dataclass(frozen=True)
+class _EffectSpec:
+    channel: str | None  # "input", "output" or None
+    params: Mapping[str, _ParamSpec]
+    default_channel: str | None = None
+
+
+SPECS: Mapping[str, _EffectSpec] = MappingProxyType({
+    "input_delay": _EffectSpec("input", {"delay_s": _ParamSpec(0.005, 0.5, 0.04, 0.2, 0.1)}, "lon"),
+    "rate_limit": _EffectSpec("input", {"rate_per_s": _ParamSpec(0.2, 50.0, 1.5, 4.0, 2.5)}, "lon"),
+    "deadband": _EffectSpec("input", {"half_width": _ParamSpec(0.001, 0.2, 0.01, 0.05, 0.03)}, "lon"),
+    "ground_effect": _EffectSpec(None, {"gain": _ParamSpec(0.1, 3.0, 0.7, 1.3, 1.0)}),
+    "wind_gust": _EffectSpec(None, {"sigma_m_s": _ParamSpec(0.05, 5.0, 0.5, 2.0, 1.0),
+                                    "tau_s": _ParamSpec(0.2, 20.0, 1.0, 4.0, 2.0)}),
+    "quadratic_drag": _EffectSpec(None, {"c_per_m": _ParamSpec(0.001, 0.5, 0.02, 0.08, 0.04)}),
+    "gyro_bias": _EffectSpec("output", {"bias_rad_s": _ParamSpec(0.0005, 0.1, 0.003, 0.02, 0.01, signed=True)}, "q"),
+    "rotor_vibration": _EffectSpec(None, {"amplitude_rad_s": _ParamSpec(0.0005, 0.2, 0.004, 0.015, 0.008),
+                                          "rpm": _ParamSpec(300.0, 4000.0, 1200.0, 1900.0, None)}),
+    "velocity_latency": _EffectSpec(None, {"latency_s": _ParamSpec(0.01, 1.0, 0.05, 0.3, 0.15)}),
+})
+EFFECT_NAMES: tuple[str, ...] = tuple(SPECS)
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One unmodelled effect: catalogue ``name``, the ``input`` or ``output`` channel it acts on
+    (or None), and its ``params`` (SI; see the module table)."""
+
+    name: str
+    input: str | None = None
+    output: str | None = None
+    params: Mapping[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "params", MappingProxyType(dict(self.params)))
+        _validate(self)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"effect": self.name, "input": self.input, "output": self.output,
+                "params": {k: float(v) for k, v in self.params.items()}}
+
+    def spec(self) -> str:
+        """The ``name:key=value,...`` string that parses back to this effect."""
+        kv = []
+        if self.input is not None:
+            kv.append(f"input={self.input}")
+        if self.output is not None:
+            kv.append(f"output={self.output}")
+        kv += [f"{k}={v:.6g}" for k, v in self.params.items()]
+        return self.name + (":" + ",".join(kv) if kv else "")
+
+
+def _validate(e: Effect) -> None:
+    if e.name not in SPECS:
+        raise ValueError(f"effect: unknown name {e.name!r}; allowed: {list(EFFECT_NAMES)}")
+    sp = SPECS[e.name]
+    if sp.channel == "input":
+        if e.input not in INPUT_CHANNELS:
+            raise ValueError(f"effect {e.name}: input={e.input!r}; allowed: {list(INPUT_CHANNELS)}")
+        if e.output is not None:
+            raise ValueError(f"effect {e.name}: key 'output' not allowed (it acts on an input channel)")
+    elif sp.channel == "output":
+        if e.output not in OUTPUT_CHANNELS:
+            raise ValueError(f"effect {e.name}: output={e.output!r}; allowed: {list(OUTPUT_CHANNELS)}")
+        if e.input is not None:
+            raise ValueError(f"effect {e.name}: key 'input' not allowed (it acts on an output channel)")
+    elif e.input is not None or e.output is not None:
+        raise ValueError(f"effect {e.name}: keys 'input'/'output' not allowed (it acts on no single channel)")
+    for k, v in e.params.items():
+        if k not in sp.params:
+            raise ValueError(f"effect {e.name}: unknown key {k!r}; allowed: {_allowed_keys(e.name)}")
+        ps = sp.params[k]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ValueError(f"effect {e.name}: {k}={v!r} is not a finite number")
+        mag = abs(v) if ps.signed else v
+        if not ps.lo <= mag <= ps.hi:
+            rng = f"+-[{ps.lo:g}, {ps.hi:g}]" if ps.signed else f"[{ps.lo:g}, {ps.hi:g}]"
+            raise ValueError(f"effect {e.name}: {k}={v:g} out of range; allowed {rng}")
+
+
+def _allowed_keys(name: str) -> list[str]:
+    sp = SPECS[name]
+    keys = [] if sp.channel is None else [sp.channel]
+    return keys + list(sp.params)
+
+
+def make_effect(name: str, *, input: str | None = None, output: str | None = None,
+                **params: float) -> Effect:
+    """Build an effect, filling the default channel and default parameter values."""
+    if name not in SPECS:
+        raise ValueError(f"effect: unknown name {name!r}; allowed: {list(EFFECT_NAMES)}")
+    sp = SPECS[name]
+    if sp.channel == "input" and input is None:
+        input = sp.default_channel
+    if sp.channel == "output" and output is None:
+        output = sp.default_channel
+    full: dict[str, float] = {}
+    for k, ps in sp.params.items():
+        if k in params:
+            full[k] = params[k]
+        elif ps.default is not None:
+            full[k] = ps.default
+    for k in params:
+        if k not in sp.params:
+            full[k] = params[k]  # reported by validation with the allowed keys
+    return Effect(name, input, output, full)
+
+
+def parse_effect(text: str) -> Effect:
+    """Parse ``"name"`` or ``"name:key=value,key=value"`` (CLI ``--effect``); ValueError on bad input."""
+    s = str(text).strip()
+    name, _, rest = s.partition(":")
+    name = name.strip()
+    if name not in SPECS:
+        raise ValueError(f"--effect {s!r}: unknown effect name {name!r}; allowed: {list(EFFECT_NAMES)}")
+    kw: dict[str, Any] = {}
+    if rest.strip():
+        for item in rest.split(","):
+            key, eq, val = item.partition("=")
+            key, val = key.strip(), val.strip()
+            if not eq or not key:
+                raise ValueError(f"--effect {s!r}: expected key=value, got {item!r}; "
+                                 f"allowed keys: {_allowed_keys(name)}")
+            if key in ("input", "output"):
+                kw[key] = val
+                continue
+            if key not in SPECS[name].params:
+                raise ValueError(f"--effect {s!r}: unknown key {key!r}; allowed: {_allowed_keys(name)}")
+            try:
+                kw[key] = float(val)
+            except ValueError:
+                raise ValueError(f"--effect {s!r}: {key}={val!r} is not a number") from None
+    try:
+        return make_effect(name, **kw)
+    except ValueError as exc:
+        raise ValueError(f"--effect {s!r}: {exc}") from None
+
+
+def random_effect(name: str, rng: np.random.Generator | int | None = None) -> Effect:
+    """An effect ``name`` with a random channel and magnitude inside its typical physical range."""
+    if name not in SPECS:
+        raise ValueError(f"effect: unknown name {name!r}; allowed: {list(EFFECT_NAMES)}")
+    g = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    sp = SPECS[name]
+    kw: dict[str, Any] = {}
+    if sp.channel == "input":
+        kw["input"] = INPUT_CHANNELS[int(g.integers(len(INPUT_CHANNELS)))]
+    elif sp.channel == "output":
+        kw["output"] = OUTPUT_CHANNELS[int(g.integers(len(OUTPUT_CHANNELS)))]
+    for k, ps in sp.params.items():
+        v = float(g.uniform(ps.typ_lo, ps.typ_hi))
+        if ps.signed and g.random() < 0.5:
+            v = -v
+        kw[k] = round(v, 6)
+    return make_effect(name, **kw)
+
+
+def resolve_effects(effects: tuple[Effect | str, ...] | list[Effect | str], rotor_rpm: float) -> tuple[Effect, ...]:
+    """Parse strings, fill aircraft-dependent defaults (vibration rpm), reject duplicates."""
+    out: list[Effect] = []
+    seen: set[tuple[str, str | None, str | None]] = set()
+    for e in effects:
+        eff = parse_effect(e) if isinstance(e, str) else e
+        if not isinstance(eff, Effect):
+            raise ValueError(f"effect: expected an Effect or 'name:key=value' string, got {e!r}")
+        if eff.name == "rotor_vibration" and "rpm" not in eff.params:
+            eff = Effect(eff.name, None, None, {**eff.params, "rpm": float(rotor_rpm)})
+        key = (eff.name, eff.input, eff.output)
+        if key in seen:
+            raise ValueError(f"effect {eff.name}: given twice for the same channel ({eff.input or eff.output})")
+        seen.add(key)
+        out.append(eff)
+    return tuple(out)
+
+
+def aliased_hz(freq_hz: float, sample_rate_hz: float) -> float:
+    """Frequency a sinusoid of ``freq_hz`` appears at when sampled at ``sample_rate_hz``."""
+    f = freq_hz % sample_rate_hz
+    return min(f, sample_rate_hz - f)
+
+
+# --------------------------------------------------------------------------------------------
+# runtime pieces
+# --------------------------------------------------------------------------------------------
+
+
+class InputChain:
+    """Input-side effects of one channel, applied per integration sub-step: transport delay
+    (fractional, linear interpolation between sub-steps), then servo slew-rate limit, then
+    play (deadband around the trim: ``sign(d) max(|d| - half_width, 0)``)."""
+
+    def __init__(self, dt_s: float, *, delay_s: float = 0.0, rate_per_s: float | None = None,
+                 half_width: float = 0.0) -> None:
+        n = delay_s / dt_s
+        self._n = int(math.floor(n))
+        self._frac = n - self._n
+        self._hist: deque[float] = deque([0.0] * (self._n + 2), maxlen=self._n + 2)
+        self._delay = delay_s > 0
+        self._max_step = None if rate_per_s is None else rate_per_s * dt_s
+        self._y = 0.0
+        self._hw = half_width
+
+    def reset(self, value: float = 0.0) -> None:
+        for i in range(len(self._hist)):
+            self._hist[i] = value
+        self._y = value
+
+    def __call__(self, d: float) -> float:
+        if self._delay:
+            h = self._hist
+            h.append(d)  # h[-1] is now, h[-1-k] k sub-steps ago
+            d = (1.0 - self._frac) * h[-1 - self._n] + self._frac * h[-2 - self._n]
+        if self._max_step is not None:
+            step = d - self._y
+            if step > self._max_step:
+                step = self._max_step
+            elif step < -self._max_step:
+                step = -self._max_step
+            self._y += step
+            d = self._y
+        if self._hw:
+            if d > self._hw:
+                d -= self._hw
+            elif d < -self._hw:
+                d += self._hw
+            else:
+                d = 0.0
+        return d
+
+
+class GustModel:
+    """Dryden-like coloured air-mass velocity: first-order Gauss-Markov per NED axis (vertical at
+    half the horizontal intensity), exact discretisation at ``dt_s``."""
+
+    def __init__(self, rng: np.random.Generator, dt_s: float, sigma_m_s: float, tau_s: float) -> None:
+        a = math.exp(-dt_s / tau_s)
+        self._a = a
+        self._sig = (sigma_m_s, sigma_m_s, 0.5 * sigma_m_s)
+        self._b = [s * math.sqrt(1.0 - a * a) for s in self._sig]
+        self._rng = rng
+        self.wind = [float(s * z) for s, z in zip(self._sig, rng.standard_normal(3), strict=False)]
+
+    def step(self) -> list[float]:
+        z = self._rng.standard_normal(3).tolist()
+        self.wind = [self._a * w + b * e for w, b, e in zip(self.wind, self._b, z, strict=False)]
+        return self.wind

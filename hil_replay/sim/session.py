@@ -1,0 +1,460 @@
+"""A simulated flight-test session: flights with disarmed pauses, as 50 Hz telemetry frames, and .tlog.
+
+:class:`SimulatedSession` plans everything from the seed at construction (per-seed trims, cards,
+schedule; :meth:`SimulatedSession.truth` is known before flying) and :meth:`SimulatedSession.frames`
+flies it, yielding one :class:`~hil_replay.sim.telemetry.TelemetryFrame` per 50 Hz tick of the FC
+clock (repeatable: every call replays the same session). The loop per tick: card -> pilot ->
+integer PWM (what SERVO_OUTPUT_RAW reports; the truth's input is exactly ``(pwm - trim) /
+pwm_per_unit``) -> measurement of the state at this tick -> frame -> four RK4 sub-steps of 5 ms
+(200 Hz) with the input effects applied per sub-step, gusts held per tick, ground contact.
+
+Always on: sensor noise (gyro, attitude, velocity, position, GPS, accelerometer), +-1 ms FC-time
+jitter; :func:`write_tlog` adds packet loss (~0.2 %, MAVLink seq shows the gap) and host-time
+jitter. Effects (``effects.py``) switch on the unmodelled physics and sensor errors.
+
+Leaves to others: the MAVLink protocol on a port (``hil_replay.fc``), reading logs back.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections import deque
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil_replay.sim.aircraft import INPUTS, PARAM_NAMES, Aircraft, resolve_aircraft
+from hil_replay.sim.card import Card, make_card
+from hil_replay.sim.dynamics import (
+    G_M_S2,
+    ground_effect_excess,
+    make_derivative,
+    make_specific_force,
+    rk4_step,
+)
+from hil_replay.sim.effects import Effect, GustModel, InputChain, aliased_hz, resolve_effects
+from hil_replay.sim.pilot import Pilot
+from hil_replay.sim.telemetry import MESSAGE_NAMES, Measurement, TelemetryFrame, heartbeat
+
+FRAME_RATE_HZ = 50.0
+SUBSTEPS = 4
+#: Field origin (ArduPilot SITL's CMAC): lat, lon (deg), altitude AMSL (m).
+FIELD_ORIGIN = (-35.363261, 149.165230, 584.0)
+#: Unix time of FC boot in written .tlog files (fixed so that the same seed gives the same bytes).
+TLOG_EPOCH_S = 1_767_225_600.0
+#: Message rates of :func:`write_tlog` (Hz; decimated from the 50 Hz frames).
+DEFAULT_TLOG_RATES_HZ: dict[str, float] = {
+    "HEARTBEAT": 1.0, "SERVO_OUTPUT_RAW": 50.0, "ATTITUDE": 50.0, "LOCAL_POSITION_NED": 50.0,
+    "GLOBAL_POSITION_INT": 10.0, "RAW_IMU": 10.0, "GPS_RAW_INT": 5.0, "EXTENDED_SYS_STATE": 5.0, "SYS_STATUS": 1.0,
+}
+_EARTH_R_M = 6378137.0
+
+
+@dataclass(frozen=True)
+class NoiseConfig:
+    """Always-on sensor noise (1 sigma) of the simulated autopilot's estimates."""
+
+    gyro_rad_s: float = 0.006
+    attitude_rad: float = 0.0015
+    yaw_rad: float = 0.003
+    vel_m_s: float = 0.03
+    vel_down_m_s: float = 0.04
+    pos_m: float = 0.03
+    alt_m: float = 0.05
+    accel_m_s2: float = 0.25
+    gps_pos_m: float = 0.3
+    gps_vel_m_s: float = 0.08
+
+
+_N_NOISE = 22  # normals drawn per tick (fixed so the stream never depends on what is built)
+
+
+class SimulatedSession:
+    """Several flights with disarmed pauses; see the module docstring.
+
+    Parameters
+    ----------
+    seed : everything random (trims, card, pilot, noise, gusts) derives from it
+    flights : number of flights (armed intervals)
+    effects : :class:`~hil_replay.sim.effects.Effect` objects or ``"name:key=value"`` strings
+    aircraft : ``None`` (TREX-600 default), an aircraft name, a TOML path or an ``Aircraft``
+    pause_s : disarmed time between flights (heartbeats continue, FC clock keeps running)
+    flight_duration_s : armed time per flight (default: the card's ~150-200 s)
+    pre_arm_s, post_s : disarmed time before the first flight and after the last
+    """
+
+    def __init__(self, seed: int = 0, flights: int = 1, effects: Sequence[Effect | str] = (),
+                 aircraft: Aircraft | str | os.PathLike[str] | None = None, pause_s: float = 10.0, *,
+                 flight_duration_s: float | None = None, pre_arm_s: float = 3.0, post_s: float = 2.0,
+                 noise: NoiseConfig | None = None) -> None:
+        if int(flights) < 1:
+            raise ValueError(f"flights: {flights} must be >= 1")
+        if not pause_s >= 0 or not pre_arm_s >= 0 or not post_s >= 0:
+            raise ValueError("pause_s, pre_arm_s and post_s must be >= 0")
+        self.seed = int(seed)
+        self.n_flights = int(flights)
+        base = resolve_aircraft(aircraft)  # type: ignore[arg-type]
+        self.effects = resolve_effects(tuple(effects), base.rotor_rpm)
+        self.noise = noise or NoiseConfig()
+        self.pause_s = float(pause_s)
+        ss = np.random.SeedSequence(self.seed)
+        self._seeds = ss.spawn(6)
+        plan = np.random.default_rng(self._seeds[0])
+        trims = {k: int(v + plan.integers(-15, 16)) for k, v in base.trim_pwm.items()}
+        self.aircraft = base.with_trim(trims)
+        self.cards: list[Card] = []
+        self.arm_times_s: list[float] = []
+        t = float(pre_arm_s)
+        for _ in range(self.n_flights):
+            card = make_card(self.aircraft, plan, duration_s=flight_duration_s)
+            self.cards.append(card)
+            self.arm_times_s.append(round(t, 6))
+            t += card.duration_s + self.pause_s
+        self.end_s = self.arm_times_s[-1] + self.cards[-1].duration_s + float(post_s)
+
+    # ------------------------------------------------------------------------------------------
+    @property
+    def duration_s(self) -> float:
+        return self.end_s
+
+    def truth(self) -> dict[str, Any]:
+        """The exact truth behind the session (the .truth.json sidecar content)."""
+        ac = self.aircraft
+        effects = []
+        for e in self.effects:
+            d = e.to_json()
+            if e.name == "rotor_vibration":
+                f = float(e.params["rpm"]) / 60.0
+                d["params"]["frequency_hz"] = f
+                d["params"]["aliased_hz"] = [aliased_hz(k * f, FRAME_RATE_HZ) for k in (1, 2)]
+            effects.append(d)
+        flights = []
+        for k, (t0, card) in enumerate(zip(self.arm_times_s, self.cards, strict=False)):
+            flights.append({"index": k, "start_fc_s": t0, "end_fc_s": round(t0 + card.duration_s, 6),
+                            "heading_rad": card.heading_rad, "segments": card.to_json(t0)})
+        return {
+            "schema": "heli-sim-truth/1",
+            "aircraft": ac.name,
+            "parameters": {n: float(ac.parameters[n]) for n in PARAM_NAMES},
+            "constraints": {"N_fb": -float(ac.parameters["N_ped"]), "k_fb": -2.0 * float(ac.parameters["N_r"])},
+            "input_trim_pwm": {k: int(ac.trim_pwm[k]) for k in INPUTS},
+            "pwm_per_unit": float(ac.pwm_per_unit),
+            "servo": {k: int(ac.servo[k]) for k in INPUTS},
+            "effects": effects,
+            "flights": flights,
+            "seed": self.seed,
+            "sample_rate_hz": FRAME_RATE_HZ,
+            "integration_rate_hz": FRAME_RATE_HZ * SUBSTEPS,
+            "rotor_diameter_m": ac.rotor_diameter_m,
+            "rotor_rpm": ac.rotor_rpm,
+            "hub_height_m": ac.hub_height_m,
+            "noise": asdict(self.noise),
+            "field_origin": {"lat_deg": FIELD_ORIGIN[0], "lon_deg": FIELD_ORIGIN[1], "alt_m": FIELD_ORIGIN[2]},
+        }
+
+    # ------------------------------------------------------------------------------------------
+    def frames(self) -> Iterator[TelemetryFrame]:
+        """Fly the session; one frame per 50 Hz tick from FC time 0 to the end."""
+        ac = self.aircraft
+        dt = 1.0 / FRAME_RATE_HZ
+        h = dt / SUBSTEPS
+        eff = {e.name: e for e in self.effects}
+        drag_c = float(eff["quadratic_drag"].params["c_per_m"]) if "quadratic_drag" in eff else 0.0
+        ge_gain = float(eff["ground_effect"].params["gain"]) if "ground_effect" in eff else 0.0
+        f = make_derivative(ac, drag_c_per_m=drag_c, ground_effect_gain=ge_gain)
+        sf = make_specific_force(ac, drag_c_per_m=drag_c, ground_effect_gain=ge_gain)
+        pilot = Pilot(ac, np.random.default_rng(self._seeds[1]), dt_s=dt)
+        noise_rng = np.random.default_rng(self._seeds[2])
+        gust = None
+        if "wind_gust" in eff:
+            gp = eff["wind_gust"].params
+            gust = GustModel(np.random.default_rng(self._seeds[3]), dt, float(gp["sigma_m_s"]), float(gp["tau_s"]))
+        chains: list[InputChain | None] = [None, None, None, None]
+        for i, ch in enumerate(INPUTS):
+            kw: dict[str, float] = {}
+            for e in self.effects:
+                if e.input == ch:
+                    kw.update({k: float(v) for k, v in e.params.items()})
+            if kw:
+                chains[i] = InputChain(h, **kw)
+        bias = [0.0, 0.0, 0.0]
+        for e in self.effects:
+            if e.name == "gyro_bias":
+                bias["pqr".index(str(e.output))] += float(e.params["bias_rad_s"])
+        vib_amp, vib_w = 0.0, 0.0
+        vib_phase = np.random.default_rng(self._seeds[4]).uniform(0, 2 * math.pi, 6).tolist()
+        if "rotor_vibration" in eff:
+            vib_amp = float(eff["rotor_vibration"].params["amplitude_rad_s"])
+            vib_w = 2 * math.pi * float(eff["rotor_vibration"].params["rpm"]) / 60.0
+        vib_axis = (1.0, 0.8, 0.5)
+        latency = float(eff["velocity_latency"].params["latency_s"]) if "velocity_latency" in eff else 0.0
+        lat_ticks = latency / dt
+        hist: deque[tuple[float, ...]] = deque(maxlen=int(lat_ticks) + 3)
+        nz = self.noise
+
+        trim = [float(ac.trim_pwm[c]) for c in INPUTS]
+        ppu = float(ac.pwm_per_unit)
+        servo_idx = [int(ac.servo[c]) - 1 for c in INPUTS]
+        P = ac.parameters
+        Z_col, Z_ped = float(P["Z_col"]), float(P["Z_ped"])
+        col_low = max(-0.9, -0.25 * max(1.0, 6.0 / max(abs(Z_col), 1e-3)))  # well below hover pitch
+        lat0, lon0, alt0 = FIELD_ORIGIN
+        m_per_deg_lat = _EARTH_R_M * math.pi / 180.0
+        m_per_deg_lon = m_per_deg_lat * math.cos(math.radians(lat0))
+        cap_mah = float(ac.battery_capacity_mah)
+        cells = ac.battery_cells
+
+        avail_all = tuple(n for n in MESSAGE_NAMES if n not in ("HEARTBEAT", "GPS_RAW_INT", "SYS_STATUS"))
+        avail_gps = avail_all + ("GPS_RAW_INT",)
+        avail_1hz = ("HEARTBEAT",) + avail_gps + ("SYS_STATUS",)
+
+        x = [0.0] * 15
+        x[8] = self.cards[0].heading_rad
+        landed = True
+        used_mah = 0.0
+        flight_k = -1
+        n_ticks = int(round(self.end_s * FRAME_RATE_HZ)) + 1
+        arm = self.arm_times_s
+        ends = [a + c.duration_s for a, c in zip(arm, self.cards, strict=False)]
+        dcmd = [0.0, 0.0, col_low, 0.0]
+        g = G_M_S2
+        throttle = 1000
+        for k in range(n_ticks):
+            t = k * dt
+            fi = None
+            for i in range(self.n_flights):
+                if arm[i] - 1e-9 <= t < ends[i] - 1e-9:
+                    fi = i
+                    break
+            armed = fi is not None
+            seg_kind = "off"
+            if fi is not None:
+                if fi != flight_k:  # new flight: fresh battery, pilot takes over
+                    flight_k = fi
+                    used_mah = 0.0
+                card = self.cards[fi]
+                mode, seg, ref, exc = card.at(t - arm[fi])
+                seg_kind = seg.kind
+                if mode == "fly":
+                    cmd = pilot.command(x, ref)
+                    cmd = [c + e for c, e in zip(cmd, exc, strict=False)]
+                    throttle = 1850
+                else:
+                    rem = pilot.remnant()
+                    cmd = [0.3 * rem[0], 0.3 * rem[1], col_low, 0.3 * rem[3]]
+                    spool_t = t - arm[fi] - seg.start_s if seg.name == "spool_up" else seg.end_s - (t - arm[fi])
+                    throttle = int(1100 + 750 * min(1.0, max(0.0, spool_t / 3.0)))
+            else:
+                cmd = [0.0, 0.0, col_low, 0.0]
+                throttle = 1000
+            pwm = [min(2000, max(1000, int(round(tr + c * ppu)))) for tr, c in zip(trim, cmd, strict=False)]
+            dcmd = [(p_ - tr) / ppu for p_, tr in zip(pwm, trim, strict=False)]
+            wind = gust.wind if gust is not None else [0.0, 0.0, 0.0]
+
+            # ---------------- measurement at t ----------------
+            z = noise_rng.standard_normal(_N_NOISE).tolist()
+            u, v, w, p, q, r, ph, th, ps = x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7], x[8]
+            sph, cph, sth, cth, sps, cps = math.sin(ph), math.cos(ph), math.sin(th), math.cos(th), \
+                math.sin(ps), math.cos(ps)
+            vn = cth * cps * u + (sph * sth * cps - cph * sps) * v + (cph * sth * cps + sph * sps) * w
+            ve = cth * sps * u + (sph * sth * sps + cph * cps) * v + (cph * sth * sps - sph * cps) * w
+            vd = -sth * u + sph * cth * v + cph * cth * w
+            hist.append((vn, ve, vd, x[12], x[13], x[14]))
+            if latency > 0.0:
+                nv = _delayed(hist, lat_ticks)
+            else:
+                nv = (vn, ve, vd, x[12], x[13], x[14])
+            spinning = armed and (seg_kind != "ground" or throttle > 1500)
+            mp, mq, mr = p + bias[0], q + bias[1], r + bias[2]
+            mroll, mpitch = ph, th
+            if vib_amp and spinning:
+                s1 = [math.sin(vib_w * t + vib_phase[i]) for i in range(3)]
+                s2 = [math.sin(2 * vib_w * t + vib_phase[3 + i]) for i in range(3)]
+                vib = [vib_amp * a * (x1 + 0.5 * x2) for a, x1, x2 in zip(vib_axis, s1, s2, strict=False)]
+                mp, mq, mr = mp + vib[0], mq + vib[1], mr + vib[2]
+                mroll += 0.1 * vib[0]
+                mpitch += 0.1 * vib[1]
+            mp += nz.gyro_rad_s * z[0]
+            mq += nz.gyro_rad_s * z[1]
+            mr += nz.gyro_rad_s * z[2]
+            mroll += nz.attitude_rad * z[3]
+            mpitch += nz.attitude_rad * z[4]
+            myaw = _wrap(ps + nz.yaw_rad * z[5])
+            mvn = nv[0] + nz.vel_m_s * z[6]
+            mve = nv[1] + nz.vel_m_s * z[7]
+            mvd = nv[2] + nz.vel_down_m_s * z[8]
+            mn = nv[3] + nz.pos_m * z[9]
+            me = nv[4] + nz.pos_m * z[10]
+            md = nv[5] + nz.alt_m * z[11]
+            if landed:
+                fx, fy, fz = g * sth, -g * sph * cth, -g * cph * cth
+            else:
+                fx, fy, fz = sf(x, dcmd[0], dcmd[1], dcmd[2], dcmd[3], wind[0], wind[1], wind[2])
+            acc_sig = nz.accel_m_s2 if spinning else 0.02
+            acc = (fx + acc_sig * z[12], fy + acc_sig * z[13], fz + acc_sig * z[14])
+            gyro = (mp, mq, mr)
+            gps_n = x[12] + nz.gps_pos_m * z[15]
+            gps_e = x[13] + nz.gps_pos_m * z[16]
+            gps_d = x[14] + 2 * nz.gps_pos_m * z[17]
+            gvn, gve = vn + nz.gps_vel_m_s * z[18], ve + nz.gps_vel_m_s * z[19]
+            jms = (int(z[20] > 0.8) - int(z[20] < -0.8), int(z[21] > 0.8) - int(z[21] < -0.8),
+                   int(z[20] * z[21] > 0.6) - int(z[20] * z[21] < -0.6))
+            jus = (int(z[20] * 400.0), int(z[21] * 400.0), int((z[20] - z[21]) * 300.0))
+            if not armed:
+                landed_state = 1
+            elif seg_kind == "takeoff":
+                landed_state = 3
+            elif seg_kind == "land":
+                landed_state = 1 if landed else 4
+            else:
+                landed_state = 1 if landed else 2
+            # battery: current from collective and rotor state
+            if not armed:
+                current_a = 0.6
+            elif not spinning:
+                current_a = 2.0
+            elif landed:
+                current_a = 0.35 * float(ac.hover_current_a)
+            else:
+                current_a = float(ac.hover_current_a) * max(0.3, 1.0 + 2.0 * dcmd[2])
+            used_mah += current_a * dt / 3.6
+            frac = min(1.0, used_mah / cap_mah)
+            volt = cells * (4.15 - 0.55 * frac) - 0.0025 * cells * current_a
+            servo = [1500, 1500, 1500, 1500, 0, 0, 0, throttle]
+            for i_s, pw in zip(servo_idx, pwm, strict=False):
+                servo[i_s] = pw
+            meas = Measurement(
+                t, armed, jms, jus, mroll, mpitch, myaw, mp, mq, mr,
+                mn, me, md, mvn, mve, mvd,
+                int(round((lat0 + mn / m_per_deg_lat) * 1e7)), int(round((lon0 + me / m_per_deg_lon) * 1e7)),
+                int(round((alt0 - md) * 1000.0)), int(round(-md * 1000.0)),
+                int(round(math.degrees(myaw) % 360.0 * 100.0)) % 36000,
+                tuple(_clip_i16(a / 9.80665 * 1000.0) for a in acc),  # type: ignore[arg-type]
+                tuple(_clip_i16(gr * 1000.0) for gr in gyro),  # type: ignore[arg-type]
+                int(round((lat0 + gps_n / m_per_deg_lat) * 1e7)), int(round((lon0 + gps_e / m_per_deg_lon) * 1e7)),
+                int(round((alt0 - gps_d) * 1000.0)), int(round(math.hypot(gvn, gve) * 100.0)),
+                int(round(math.degrees(math.atan2(gve, gvn)) % 360.0 * 100.0)) % 36000,
+                tuple(servo), landed_state, int(round(volt * 1000.0)), int(round(current_a * 100.0)),
+                int(round(100.0 * (1.0 - frac))),
+            )
+            if k % 50 == 0:
+                avail = avail_1hz
+            elif k % 10 == 0:
+                avail = avail_gps
+            else:
+                avail = avail_all
+            yield TelemetryFrame(meas, fi, avail)
+
+            # ---------------- integrate to t + dt ----------------
+            if gust is not None:
+                wind = gust.step()
+            wn, we, wd = wind
+            for _ in range(SUBSTEPS):
+                da = [dcmd[i] if chains[i] is None else chains[i](dcmd[i]) for i in range(4)]  # type: ignore[misc]
+                if landed:
+                    if not armed or seg_kind == "ground":
+                        continue
+                    thrust = g - Z_col * da[2] - Z_ped * da[3]
+                    if ge_gain:
+                        thrust *= 1.0 + ge_gain * ground_effect_excess(0.0, ac.rotor_radius_m, ac.hub_height_m)
+                    if thrust <= g:
+                        continue
+                    landed = False
+                x = rk4_step(f, x, h, da[0], da[1], da[2], da[3], wn, we, wd)
+                if x[14] > 0.0:  # touchdown: skids on the ground, level, at rest
+                    landed = True
+                    x = [0.0] * 6 + [0.0, 0.0, x[8], 0.0, 0.0, 0.0, x[12], x[13], 0.0]
+
+
+def _delayed(hist: deque[tuple[float, ...]], lag_ticks: float) -> tuple[float, ...]:
+    """Linear interpolation ``lag_ticks`` ticks back in the per-tick history (newest last)."""
+    n = len(hist)
+    i = int(lag_ticks)
+    fr = lag_ticks - i
+    a = hist[max(0, n - 1 - i)]
+    b = hist[max(0, n - 2 - i)]
+    return tuple((1.0 - fr) * x + fr * y for x, y in zip(a, b, strict=False))
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def _clip_i16(v: float) -> int:
+    return max(-32768, min(32767, int(round(v))))
+
+
+# ----------------------------------------------------------------------------------------------
+# .tlog writer
+# ----------------------------------------------------------------------------------------------
+
+
+def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
+               effects: Sequence[Effect | str] = (), aircraft: Aircraft | str | os.PathLike[str] | None = None,
+               flight_duration_s: float | None = None, rates_hz: Mapping[str, float] | None = None,
+               pause_s: float = 10.0, packet_loss: float = 0.002) -> dict[str, Any]:
+    """Simulate a session and write ``path`` (.tlog) and ``path.with_suffix('.truth.json')``.
+
+    MAVLink 2 frames from sysid 1 compid 1 with a proper sequence number; host timestamps are
+    :data:`TLOG_EPOCH_S` + FC time + a few ms of link latency with jitter; ``packet_loss`` of the
+    packets are dropped after encoding (the seq gap shows). Returns the truth dict (also written).
+    Same arguments, same bytes.
+    """
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from firmware_interface.tlog import TlogWriter
+
+    rates = dict(DEFAULT_TLOG_RATES_HZ)
+    if rates_hz:
+        for name, r in rates_hz.items():
+            if name not in MESSAGE_NAMES:
+                raise ValueError(f"rates_hz: unknown message {name!r}; allowed: {list(MESSAGE_NAMES)}")
+            if not 0 <= r <= FRAME_RATE_HZ:
+                raise ValueError(f"rates_hz.{name}: {r} Hz not in [0, {FRAME_RATE_HZ:g}]")
+            rates[name] = float(r)
+    if not 0.0 <= packet_loss < 1.0:
+        raise ValueError(f"packet_loss: {packet_loss} not in [0, 1)")
+    period = {n: max(1, int(round(FRAME_RATE_HZ / r))) for n, r in rates.items() if r > 0}
+    sess = SimulatedSession(seed=seed, flights=flights, effects=effects, aircraft=aircraft, pause_s=pause_s,
+                            flight_duration_s=flight_duration_s)
+    truth = sess.truth()
+    truth["tlog_rates_hz"] = {n: rates[n] for n in MESSAGE_NAMES}
+    truth["packet_loss"] = packet_loss
+    path = Path(path)
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    link_rng = np.random.default_rng(sess._seeds[5])
+    order = [n for n in MESSAGE_NAMES if n in period]
+    t_last = 0.0
+    written = lost = 0
+    with TlogWriter(path, flush_interval_s=3600.0, clock=lambda: 0.0) as tw:
+        for k, frame in enumerate(sess.frames()):
+            avail = frame.available
+            due = [n for n in order if k % period[n] == 0 and (n in avail or n == "HEARTBEAT" and k % 50 == 0)]
+            if not due:
+                continue
+            rnd = link_rng.random(len(due) + 1).tolist()
+            t_host = TLOG_EPOCH_S + frame.t_boot_s + 0.004 + 0.004 * rnd[-1]
+            for n, rv in zip(due, rnd, strict=False):
+                if n == "HEARTBEAT":
+                    msg = heartbeat(mav, frame.armed)
+                else:
+                    msg = frame.build(n, mav)
+                buf = msg.pack(mav)
+                mav.seq = (mav.seq + 1) % 256
+                if rv < packet_loss:
+                    lost += 1
+                    continue
+                t_host = max(t_host, t_last + 2e-5)
+                tw.write(buf, t_host)
+                t_last = t_host
+                written += 1
+    truth["packets_written"] = written
+    truth["packets_lost"] = lost
+    truth_path = path.with_suffix(".truth.json")
+    truth_path.write_text(json.dumps(truth, indent=1) + "\n")
+    return truth

@@ -1,0 +1,142 @@
+"""Telemetry as ArduPilot sends it: one :class:`TelemetryFrame` per 50 Hz FC tick, encoded on demand.
+
+A frame carries what the autopilot knows at FC time ``t_boot_s`` (already noisy, biased, delayed as
+the effects say; see ``session.py``) in a :class:`Measurement`, and builds any of
+:data:`MESSAGE_NAMES` with a caller's ``pymavlink.dialects.v20.ardupilotmega.MAVLink`` encoder:
+
+* HEARTBEAT (MAV_TYPE_HELICOPTER, MAV_AUTOPILOT_ARDUPILOTMEGA, SAFETY_ARMED when armed,
+  custom_mode 0 = STABILIZE), SERVO_OUTPUT_RAW (servo1..4 = lat lon col ped per the aircraft's
+  servo map, servo8 = throttle/ESC, time_usec FC clock), ATTITUDE, LOCAL_POSITION_NED (NED relative
+  to the EKF origin at the first take-off point), GLOBAL_POSITION_INT (degE7, mm, cm/s), RAW_IMU
+  (milli-g, mrad/s), GPS_RAW_INT (5 Hz native), EXTENDED_SYS_STATE (landed_state), SYS_STATUS (1 Hz).
+* FC time fields carry up to +-1 ms of jitter (drawn per message per tick, so they stay the same
+  however often a frame is built).
+
+``available`` lists the messages with fresh data this tick at their native rate (50 Hz except
+GPS_RAW_INT 5 Hz, SYS_STATUS and HEARTBEAT 1 Hz). Leaves to others: which messages go out and at
+what rate (the simulated FC or :func:`hil_replay.sim.write_tlog`), packet framing and loss.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+MESSAGE_NAMES: tuple[str, ...] = ("HEARTBEAT", "SERVO_OUTPUT_RAW", "ATTITUDE", "LOCAL_POSITION_NED",
+                                  "GLOBAL_POSITION_INT", "RAW_IMU", "GPS_RAW_INT", "EXTENDED_SYS_STATE",
+                                  "SYS_STATUS")
+#: Native rate of each message in the simulated autopilot (Hz).
+NATIVE_RATE_HZ: dict[str, float] = {"HEARTBEAT": 1.0, "SERVO_OUTPUT_RAW": 50.0, "ATTITUDE": 50.0,
+                                    "LOCAL_POSITION_NED": 50.0, "GLOBAL_POSITION_INT": 50.0, "RAW_IMU": 50.0,
+                                    "GPS_RAW_INT": 5.0, "EXTENDED_SYS_STATE": 50.0, "SYS_STATUS": 1.0}
+
+_SENSORS = (mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+            | mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG | mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+            | mavlink.MAV_SYS_STATUS_SENSOR_GPS | mavlink.MAV_SYS_STATUS_SENSOR_RC_RECEIVER
+            | mavlink.MAV_SYS_STATUS_AHRS | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY)
+_UINT32 = 1 << 32
+
+
+@dataclass(slots=True)
+class Measurement:
+    """Everything the autopilot reports at one tick (already in message units where integer)."""
+
+    t_boot_s: float
+    armed: bool
+    jitter_ms: tuple[int, int, int]      # ATTITUDE, LOCAL_POSITION_NED, GLOBAL_POSITION_INT
+    jitter_us: tuple[int, int, int]      # SERVO_OUTPUT_RAW, RAW_IMU, GPS_RAW_INT
+    roll: float
+    pitch: float
+    yaw: float
+    p: float
+    q: float
+    r: float
+    x: float
+    y: float
+    z: float
+    vx: float
+    vy: float
+    vz: float
+    lat_e7: int
+    lon_e7: int
+    alt_mm: int
+    rel_alt_mm: int
+    hdg_cdeg: int
+    acc_mg: tuple[int, int, int]
+    gyro_mrad: tuple[int, int, int]
+    gps_lat_e7: int
+    gps_lon_e7: int
+    gps_alt_mm: int
+    gps_vel_cm_s: int
+    gps_cog_cdeg: int
+    servo_pwm: tuple[int, ...]           # servo1..servo8
+    landed_state: int
+    voltage_mv: int
+    current_ca: int
+    battery_pct: int
+
+
+class TelemetryFrame:
+    """One 50 Hz FC tick: ``t_boot_s``, ``armed``, ``flight_index``, ``available``, :meth:`build`."""
+
+    __slots__ = ("t_boot_s", "armed", "flight_index", "available", "m")
+
+    def __init__(self, m: Measurement, flight_index: int | None, available: tuple[str, ...]) -> None:
+        self.t_boot_s = m.t_boot_s
+        self.armed = m.armed
+        self.flight_index = flight_index
+        self.available = available
+        self.m = m
+
+    def __repr__(self) -> str:
+        return (f"TelemetryFrame(t_boot_s={self.t_boot_s:.3f}, armed={self.armed}, "
+                f"flight_index={self.flight_index}, available={self.available})")
+
+    def build(self, name: str, mav: mavlink.MAVLink) -> Any:
+        """Encode message ``name`` (one of :data:`MESSAGE_NAMES`) with ``mav``; KeyError otherwise."""
+        m = self.m
+        t = m.t_boot_s
+        if name == "ATTITUDE":
+            return mav.attitude_encode(int(round(t * 1000.0)) + m.jitter_ms[0], m.roll, m.pitch, m.yaw, m.p, m.q, m.r)
+        if name == "SERVO_OUTPUT_RAW":
+            s = m.servo_pwm
+            return mav.servo_output_raw_encode((int(round(t * 1e6)) + m.jitter_us[0]) % _UINT32, 0,
+                                               s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7])
+        if name == "LOCAL_POSITION_NED":
+            return mav.local_position_ned_encode(int(round(t * 1000.0)) + m.jitter_ms[1], m.x, m.y, m.z,
+                                                 m.vx, m.vy, m.vz)
+        if name == "GLOBAL_POSITION_INT":
+            return mav.global_position_int_encode(int(round(t * 1000.0)) + m.jitter_ms[2], m.lat_e7, m.lon_e7,
+                                                  m.alt_mm, m.rel_alt_mm, _i16(m.vx * 100.0), _i16(m.vy * 100.0),
+                                                  _i16(m.vz * 100.0), m.hdg_cdeg)
+        if name == "RAW_IMU":
+            a, g = m.acc_mg, m.gyro_mrad
+            return mav.raw_imu_encode(int(round(t * 1e6)) + m.jitter_us[1], a[0], a[1], a[2], g[0], g[1], g[2],
+                                      210, -35, 410)
+        if name == "GPS_RAW_INT":
+            return mav.gps_raw_int_encode(max(0, int(round(t * 1e6)) + m.jitter_us[2]), 3, m.gps_lat_e7,
+                                          m.gps_lon_e7, m.gps_alt_mm, 70, 110, m.gps_vel_cm_s, m.gps_cog_cdeg, 16)
+        if name == "EXTENDED_SYS_STATE":
+            return mav.extended_sys_state_encode(mavlink.MAV_VTOL_STATE_UNDEFINED, m.landed_state)
+        if name == "SYS_STATUS":
+            return mav.sys_status_encode(_SENSORS, _SENSORS, _SENSORS, 310, m.voltage_mv, m.current_ca,
+                                         m.battery_pct, 0, 0, 0, 0, 0, 0)
+        if name == "HEARTBEAT":
+            return heartbeat(mav, m.armed)
+        raise KeyError(f"{name}: not a simulated message; allowed: {MESSAGE_NAMES}")
+
+
+def heartbeat(mav: mavlink.MAVLink, armed: bool) -> Any:
+    """An ArduPilot helicopter heartbeat (STABILIZE)."""
+    base = (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_STABILIZE_ENABLED
+            | mavlink.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED)
+    if armed:
+        base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    status = mavlink.MAV_STATE_ACTIVE if armed else mavlink.MAV_STATE_STANDBY
+    return mav.heartbeat_encode(mavlink.MAV_TYPE_HELICOPTER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, base, 0, status)
+
+
+def _i16(v: float) -> int:
+    return max(-32768, min(32767, int(round(v))))
