@@ -77,7 +77,7 @@ def test_heartbeats_only_until_asked_then_requested_rates():
 
 
 def test_request_data_stream_fallback_when_interval_refused():
-    heli = FakeHelicopter(duration_s=40.0)
+    heli = FakeHelicopter(duration_s=120.0)
     cfg = FcConfig(packet_loss=0.0, refuse_message_interval=True)
     with SimulatedFCThread(speed=10.0, session=heli, config=cfg) as fc:
         gcs = GcsReader(fc.port_path)
@@ -93,18 +93,25 @@ def test_request_data_stream_fallback_when_interval_refused():
             gcs.wait_for(lambda m: m.get_type() == "ATTITUDE")
             time.sleep(2.0)
             gcs.send(gcs.out.request_data_stream_encode(1, 1, mavlink.MAV_DATA_STREAM_EXTRA1, 0, 0))
-            time.sleep(0.3)
-            n_stop = len(gcs.snapshot())
-            time.sleep(0.5)
+
+            def quiet_after_last_attitude() -> int:
+                kinds = [m.get_type() for m in gcs.snapshot()]
+                last = max(i for i, k in enumerate(kinds) if k == "ATTITUDE")
+                return kinds[last:].count("HEARTBEAT")
+
+            deadline = time.monotonic() + 10
+            while quiet_after_last_attitude() < 4 and time.monotonic() < deadline:
+                time.sleep(0.05)
             msgs = gcs.snapshot()
         finally:
             gcs.close()
+    # stream stopped: 4 heartbeats (4 s of FC time, 100 ATTITUDE at 25 Hz) with no ATTITUDE
+    assert quiet_after_last_attitude() >= 4
     t = _fc_times(msgs, "ATTITUDE")
     assert abs((len(t) - 1) / (t[-1] - t[0]) / 25.0 - 1) < 0.10
     kinds = {m.get_type() for m in msgs}
     assert {"SYS_STATUS", "GPS_RAW_INT", "EXTENDED_SYS_STATE"} <= kinds
     assert "RAW_IMU" not in kinds and "SERVO_OUTPUT_RAW" not in kinds
-    assert not any(m.get_type() == "ATTITUDE" for m in msgs[n_stop:])  # stream stopped
 
 
 def _feed(proto: FcProtocol, gcs_mav: mavlink.MAVLink, msg) -> None:
