@@ -84,3 +84,34 @@ def test_fc_reboot_is_detected_and_streams_requested_again(tmp_path):
     after = att_ms[k + 1:]
     assert len(after) > 50                            # streams requested again and flowing
     assert abs((len(after) - 1) / ((after[-1] - after[0]) / 1000) / 10 - 1) < 0.10
+
+
+def test_real_simulator_two_flights_into_record(tmp_path):
+    """hil_replay.sim's SimulatedSession behind the FC: default ground-station rates, two flights."""
+    with SimulatedFCThread(speed=20.0, seed=3, flights=2,
+                           sim_options={"flight_duration_s": 30.0, "pause_s": 5.0}) as fc:
+        end_s = fc.fc.session.end_s
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "groundstation.cli", "record", "--link", f"serial://{fc.port_path}:921600",
+             "--out", str(tmp_path / "rec")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 60
+            while fc.stats.last_t_boot_s < end_s - 0.1 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            time.sleep(0.3)
+            proc.send_signal(signal.SIGINT)
+            stdout, stderr = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert proc.returncode == 0, stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert set(summary["streams"].values()) == {"ok"}, summary["streams"]
+    assert len(summary["flights"]) == 2
+    parser = mavlink.MAVLink(None)
+    msgs = [parser.decode(bytearray(p.data)) for p in read_tlog_packets(summary["session_tlog"])]
+    att_t = np.array([m.time_boot_ms / 1000 for m in msgs if m.get_type() == "ATTITUDE"])
+    att_t = att_t[att_t > att_t[0] + 5.0]   # after stream setup
+    rate_hz = (len(att_t) - 1) / (att_t[-1] - att_t[0])
+    assert abs(rate_hz / 50 - 1) < 0.10
