@@ -71,7 +71,7 @@ def parse_url(url: str) -> LinkUrl:
             host, port = u.hostname, u.port
         except ValueError:
             raise TransportError(f"{url}: bad port number") from None
-        if not host or not port:
+        if not host or port is None or (port == 0 and scheme != "udpin"):
             raise TransportError(f"{url}: expected {scheme}://HOST:PORT")
         return LinkUrl(scheme, host=host, port=port, text=url)
     raise TransportError(f"{url}: unknown link scheme {u.scheme!r} (serial://, udpin://, udpout://, tcp://)")

@@ -37,3 +37,74 @@ def fc() -> FakeFc:
 @pytest.fixture
 def fc_v1() -> FakeFc:
     return FakeFc(v1=True)
+
+
+class BarePty:
+    """A bare pseudo-terminal at a symlink path, to stand in for a USB serial adapter.
+
+    ``unplug()`` closes the master and removes the symlink (the reader gets EIO, the path is gone);
+    ``replug()`` makes a new pty behind the same path.
+    """
+
+    def __init__(self, link_path) -> None:
+        self.path = str(link_path)
+        self.master = -1
+        self.replug()
+
+    def replug(self) -> None:
+        import os
+        import tty
+
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        name = os.ttyname(slave)
+        os.close(slave)
+        os.set_blocking(master, False)
+        self.master = master
+        tmp = self.path + ".new"
+        os.symlink(name, tmp)
+        os.replace(tmp, self.path)
+
+    def unplug(self) -> None:
+        import os
+
+        if os.path.lexists(self.path):
+            os.unlink(self.path)
+        if self.master >= 0:
+            os.close(self.master)
+            self.master = -1
+
+    def write(self, data: bytes) -> None:
+        import os
+        import select
+
+        view = memoryview(data)
+        while view:
+            select.select([], [self.master], [], 1.0)
+            try:
+                view = view[os.write(self.master, view):]
+            except BlockingIOError:
+                continue
+
+    def read_available(self) -> bytes:
+        import os
+
+        out = b""
+        while True:
+            try:
+                chunk = os.read(self.master, 65536)
+            except (BlockingIOError, OSError):
+                return out
+            if not chunk:
+                return out
+            out += chunk
+
+    def close(self) -> None:
+        self.unplug()
+
+
+@pytest.fixture
+def bare_pty(tmp_path):
+    port = BarePty(tmp_path / "ttyFC")
+    yield port
+    port.close()
