@@ -95,9 +95,12 @@ def _make_flight(tmp: Path, args: argparse.Namespace) -> tuple[Path, str]:
         try:
             from hil_replay.sim import write_tlog
 
-            write_tlog(path, seed=0, flights=1, effects=(), aircraft=None)
-            return path, "hil_replay.sim.write_tlog(seed=0, flights=1)"
-        except (ImportError, AttributeError) as exc:
+            rates = {"SERVO_OUTPUT_RAW": 50.0, "ATTITUDE": 50.0, "LOCAL_POSITION_NED": 50.0,
+                     "GLOBAL_POSITION_INT": 50.0, "RAW_IMU": 50.0, "GPS_RAW_INT": 5.0,
+                     "EXTENDED_SYS_STATE": 2.0, "SYS_STATUS": 2.0}
+            write_tlog(path, seed=0, flights=1, effects=(), aircraft=None, rates_hz=rates)
+            return path, "hil_replay.sim.write_tlog(seed=0, flights=1), 50 Hz full telemetry"
+        except (ImportError, AttributeError, TypeError) as exc:
             if args.source == "sim":
                 raise
             print(f"# sim unavailable ({exc}); using a synthetic flight", file=sys.stderr)
