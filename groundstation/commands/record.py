@@ -19,12 +19,12 @@ import signal
 import sys
 import time
 
+from firmware_interface.errors import TransportError
 from firmware_interface.link import LinkRunner
 from firmware_interface.recorder import Recorder
 from firmware_interface.samples import LinkLost
 from firmware_interface.session import DEFAULT_STREAM_RATES_HZ, MavlinkSession, SessionConfig
 from firmware_interface.transports import open_link
-from groundstation.cli import GroundstationError
 
 HELP = "record the flight-controller link to .tlog files (session + one per flight) until Ctrl-C"
 
@@ -49,9 +49,9 @@ def _rates(items: list[str]) -> tuple[tuple[str, float], ...]:
         try:
             out.append((name.strip().upper(), float(hz)))
         except ValueError:
-            raise GroundstationError(f"--rate {it!r}: expected MSG=HZ, e.g. ATTITUDE=50") from None
+            raise ValueError(f"--rate {it!r}: expected MSG=HZ, e.g. ATTITUDE=50") from None
         if not sep:
-            raise GroundstationError(f"--rate {it!r}: expected MSG=HZ, e.g. ATTITUDE=50")
+            raise ValueError(f"--rate {it!r}: expected MSG=HZ, e.g. ATTITUDE=50")
     return tuple(out)
 
 
@@ -122,5 +122,5 @@ def run(args: argparse.Namespace) -> int:
           f"{summary['packets_lost']} lost (seq), link lost {summary['link_lost']}x", file=sys.stderr)
     print(json.dumps(summary), flush=True)
     if "error" in summary:
-        raise GroundstationError(summary["error"])
+        raise TransportError(summary["error"])
     return 0
