@@ -100,8 +100,10 @@ class FcConfig:
     """Behaviour of the simulated flight controller.
 
     ``packet_loss`` is the probability that one outgoing packet is lost on the link (seeded by
-    ``seed``). ``refuse_message_interval`` answers SET_MESSAGE_INTERVAL with UNSUPPORTED.
-    ``idle_after_end`` keeps sending (disarmed) heartbeats after the frame source ends.
+    ``seed``). ``corrupt_rate`` is the probability per byte sent of one flipped bit (line noise;
+    the packet then fails its CRC at the ground station). ``refuse_message_interval`` answers
+    SET_MESSAGE_INTERVAL with UNSUPPORTED. ``idle_after_end`` keeps sending (disarmed) heartbeats
+    after the frame source ends.
     """
 
     sysid: int = 1
@@ -111,10 +113,13 @@ class FcConfig:
     refuse_message_interval: bool = False
     heartbeat_rate_hz: float = 1.0
     idle_after_end: bool = True
+    corrupt_rate: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.packet_loss < 1.0:
             raise ValueError(f"packet_loss: {self.packet_loss} not in [0, 1)")
+        if not 0.0 <= self.corrupt_rate < 1.0:
+            raise ValueError(f"corrupt_rate: {self.corrupt_rate} not in [0, 1)")
         if not self.heartbeat_rate_hz > 0:
             raise ValueError(f"heartbeat_rate_hz: {self.heartbeat_rate_hz} must be > 0")
 
@@ -127,6 +132,8 @@ class FcStats:
     packets_sent: int = 0
     packets_lost: int = 0          # dropped by the simulated link loss
     packets_unheard: int = 0       # written while no ground station had the port open
+    packets_corrupted: int = 0     # sent with at least one flipped bit (corrupt_rate)
+    corrupt_bytes: int = 0
     bytes_sent: int = 0
     gcs_messages: int = 0
     commands: int = 0
@@ -161,6 +168,7 @@ class FcProtocol:
         self._parser = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
         self._parser.robust_parsing = True
         self._rng = random.Random(self.config.seed)
+        self._rng_corrupt = random.Random(self.config.seed + 0x5EED)
         self.intervals_s: dict[str, float] = {}       # active streams: name -> interval (FC clock)
         self._next_due: dict[str, float] = {}
         self._once: set[str] = set()                  # REQUEST_MESSAGE one-shots
@@ -252,9 +260,23 @@ class FcProtocol:
         if self.config.packet_loss > 0 and self._rng.random() < self.config.packet_loss:
             self.stats.packets_lost += 1
             return
+        if self.config.corrupt_rate > 0:
+            buf = self._corrupt(buf)
         out.append(buf)
         kind = msg.get_type()
         self.stats.sent_by_type[kind] = self.stats.sent_by_type.get(kind, 0) + 1
+
+    def _corrupt(self, buf: bytes) -> bytes:
+        rate = self.config.corrupt_rate
+        hits = [i for i in range(len(buf)) if self._rng_corrupt.random() < rate]
+        if not hits:
+            return buf
+        b = bytearray(buf)
+        for i in hits:
+            b[i] ^= 1 << self._rng_corrupt.randrange(8)
+        self.stats.packets_corrupted += 1
+        self.stats.corrupt_bytes += len(hits)
+        return bytes(b)
 
     def heartbeat(self, armed: bool) -> Any:
         base_mode = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_STABILIZE_ENABLED

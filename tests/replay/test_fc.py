@@ -268,3 +268,27 @@ def test_reboot_restarts_clock_and_streams():
     assert att_before[0] >= 30_000 and len(att_again) >= 20
     assert 5_000 < att_again[0] < 6_000        # boot clock restarted: 0.5 s + 5 s after first contact
     assert proto.stats.reboots == 1
+
+
+def test_line_noise_corrupts_bytes_at_the_configured_rate():
+    heli = FakeHelicopter(duration_s=120.0)
+    proto = FcProtocol(FcConfig(packet_loss=0.0, corrupt_rate=0.01, seed=4))
+    gcs = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+    frames = iter(heli.frames())
+    _feed(proto, gcs, gcs.command_long_encode(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                              mavlink.MAVLINK_MSG_ID_ATTITUDE, 20000, 0, 0, 0, 0, 0))
+    out = [b for _ in range(6000) for b in proto.on_frame(next(frames))]
+    n_bytes = sum(len(b) for b in out)
+    st = proto.stats
+    assert abs(st.corrupt_bytes - 0.01 * n_bytes) < 4 * np.sqrt(n_bytes * 0.01)
+    # every corrupted packet fails its CRC (or turns into an unknown message id), every other decodes
+    parser = mavlink.MAVLink(None)
+    parser.robust_parsing = True
+    bad = 0
+    for pkt in out:
+        msgs = parser.parse_buffer(pkt) or []
+        bad += not any(m.get_type() != "BAD_DATA" and not m.get_type().startswith("UNKNOWN")
+                       for m in msgs)
+        parser.buf = bytearray()          # each packet on its own: no resync effects
+        parser.buf_index = 0
+    assert bad == st.packets_corrupted > 100
