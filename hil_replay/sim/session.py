@@ -348,14 +348,16 @@ class SimulatedSession:
                 avail = avail_gps
             else:
                 avail = avail_all
-            yield TelemetryFrame(meas, fi, avail)
+            da0 = [dcmd[i] if chains[i] is None else chains[i](dcmd[i]) for i in range(4)]  # type: ignore[misc]
+            yield TelemetryFrame(meas, fi, avail, tuple(x), tuple(dcmd), tuple(da0), tuple(wind))
 
             # ---------------- integrate to t + dt ----------------
-            if gust is not None:
-                wind = gust.step()
             wn, we, wd = wind
-            for _ in range(SUBSTEPS):
-                da = [dcmd[i] if chains[i] is None else chains[i](dcmd[i]) for i in range(4)]  # type: ignore[misc]
+            for sub in range(SUBSTEPS):
+                if sub == 0:
+                    da = da0
+                else:
+                    da = [dcmd[i] if chains[i] is None else chains[i](dcmd[i]) for i in range(4)]  # type: ignore[misc]
                 if landed:
                     if not armed or seg_kind == "ground":
                         continue
@@ -369,6 +371,8 @@ class SimulatedSession:
                 if x[14] > 0.0:  # touchdown: skids on the ground, level, at rest
                     landed = True
                     x = [0.0] * 6 + [0.0, 0.0, x[8], 0.0, 0.0, 0.0, x[12], x[13], 0.0]
+            if gust is not None:
+                gust.step()
 
 
 def _delayed(hist: deque[tuple[float, ...]], lag_ticks: float) -> tuple[float, ...]:

@@ -79,16 +79,29 @@ class Measurement:
 
 
 class TelemetryFrame:
-    """One 50 Hz FC tick: ``t_boot_s``, ``armed``, ``flight_index``, ``available``, :meth:`build`."""
+    """One 50 Hz FC tick: ``t_boot_s``, ``armed``, ``flight_index``, ``available``, :meth:`build`.
 
-    __slots__ = ("t_boot_s", "armed", "flight_index", "available", "m")
+    For tests and truth checks a frame also carries what no sensor sees: ``state`` (the true
+    15-element state, see ``dynamics.STATE_NAMES``), ``command`` (normalised inputs as sent to the
+    servos, i.e. what SERVO_OUTPUT_RAW shows), ``actuator`` (normalised inputs acting on the rotor
+    after the input effects, at the first 200 Hz sub-step after this tick) and ``wind_ned`` (m/s).
+    """
 
-    def __init__(self, m: Measurement, flight_index: int | None, available: tuple[str, ...]) -> None:
+    __slots__ = ("t_boot_s", "armed", "flight_index", "available", "m", "state", "command", "actuator",
+                 "wind_ned")
+
+    def __init__(self, m: Measurement, flight_index: int | None, available: tuple[str, ...],
+                 state: tuple[float, ...] = (), command: tuple[float, ...] = (), actuator: tuple[float, ...] = (),
+                 wind_ned: tuple[float, ...] = (0.0, 0.0, 0.0)) -> None:
         self.t_boot_s = m.t_boot_s
         self.armed = m.armed
         self.flight_index = flight_index
         self.available = available
         self.m = m
+        self.state = state
+        self.command = command
+        self.actuator = actuator
+        self.wind_ned = wind_ned
 
     def __repr__(self) -> str:
         return (f"TelemetryFrame(t_boot_s={self.t_boot_s:.3f}, armed={self.armed}, "

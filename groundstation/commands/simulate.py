@@ -1,0 +1,94 @@
+"""``groundstation simulate``: write a simulated flight .tlog (+ truth sidecar) or serve a simulated FC.
+
+``--out FILE.tlog`` flies :class:`hil_replay.sim.SimulatedSession` and writes ``FILE.tlog`` and
+``FILE.truth.json`` (via :func:`hil_replay.sim.write_tlog`), then prints what it wrote. ``--serve``
+starts the REPLAY engineer's simulated flight controller (``hil_replay.fc.serve_simulated_fc``) on a
+virtual serial port, prints the port path (one line, flushed) and serves until Ctrl-C.
+Bad input (unknown effect, key or value out of range, malformed aircraft file) raises ``ValueError``
+naming it; the CLI prints one line and exits 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+from pathlib import Path
+
+HELP = "write a simulated helicopter flight (.tlog + .truth.json), or serve a simulated FC on a pty"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", type=Path, default=None, help="output .tlog (truth goes to FILE.truth.json)")
+    parser.add_argument("--serve", action="store_true", help="serve a simulated FC on a virtual serial port")
+    parser.add_argument("--effect", action="append", default=[], metavar="NAME[:key=value,...]",
+                        help="unmodelled effect to inject (repeatable), e.g. input_delay:input=lon,delay_s=0.1")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (same seed, same bytes)")
+    parser.add_argument("--flights", type=int, default=None, help="number of flights (default 1; --serve: 2)")
+    parser.add_argument("--aircraft", default=None, help="aircraft TOML file or name (default: trex600)")
+    parser.add_argument("--duration-s", type=float, default=None, help="armed time per flight (default ~175 s)")
+    parser.add_argument("--pause-s", type=float, default=10.0, help="disarmed pause between flights (s)")
+    parser.add_argument("--speed", type=float, default=1.0, help="--serve: N times real time")
+    parser.add_argument("--link-path", default=None, help="--serve: symlink path for the port")
+
+
+def run(args: argparse.Namespace) -> int:
+    from hil_replay.sim import parse_effect, resolve_aircraft
+
+    effects = tuple(parse_effect(e) for e in args.effect)  # bad input fails before anything is written
+    aircraft = resolve_aircraft(args.aircraft)
+    if args.flights is None:
+        args.flights = 2 if args.serve else 1
+    if args.flights < 1:
+        raise ValueError(f"--flights: {args.flights} must be >= 1")
+    if args.duration_s is not None and args.duration_s < 30:
+        raise ValueError(f"--duration-s: {args.duration_s:g} too short; allowed >= 30 s")
+    if args.pause_s < 0:
+        raise ValueError(f"--pause-s: {args.pause_s:g} must be >= 0")
+    if args.serve == (args.out is not None):
+        raise ValueError("give exactly one of --out FILE.tlog or --serve")
+    if args.serve:
+        return _serve(args, effects, aircraft)
+    from hil_replay.sim import write_tlog
+
+    out: Path = args.out
+    if out.suffix != ".tlog":
+        raise ValueError(f"--out {out}: the file name must end in .tlog")
+    truth = write_tlog(out, seed=args.seed, flights=args.flights, effects=effects, aircraft=aircraft,
+                       flight_duration_s=args.duration_s, pause_s=args.pause_s)
+    fl = truth["flights"]
+    total = fl[-1]["end_fc_s"] + 2.0
+    print(f"wrote {out} ({out.stat().st_size} bytes, {truth['packets_written']} packets, "
+          f"{truth['packets_lost']} lost on the simulated link)")
+    print(f"wrote {out.with_suffix('.truth.json')}")
+    print(f"aircraft {truth['aircraft']}, seed {truth['seed']}, {len(fl)} flight(s), {total:.1f} s of FC time")
+    for f in fl:
+        print(f"  flight {f['index']}: armed {f['start_fc_s']:.1f}-{f['end_fc_s']:.1f} s, "
+              f"{len(f['segments'])} segments")
+    if truth["effects"]:
+        for e in truth["effects"]:
+            ch = e["input"] or e["output"] or "-"
+            params = ", ".join(f"{k}={v}" for k, v in e["params"].items())
+            print(f"  effect {e['effect']} on {ch}: {params}")
+    else:
+        print("  effects: none (sensor noise, packet loss and timestamp jitter only)")
+    return 0
+
+
+def _serve(args: argparse.Namespace, effects: tuple, aircraft: object) -> int:
+    from hil_replay.fc import serve_simulated_fc
+
+    if not args.speed > 0:
+        raise ValueError(f"--speed: {args.speed} must be > 0")
+    flights = args.flights
+    options = {"pause_s": args.pause_s}
+    if args.duration_s is not None:
+        options["flight_duration_s"] = args.duration_s
+
+    def ready(path: str) -> None:
+        print(path, flush=True)
+
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(serve_simulated_fc(args.link_path, speed=args.speed, seed=args.seed, flights=flights,
+                                       effects=effects, aircraft=aircraft, on_ready=ready, sim_options=options))
+    return 0
