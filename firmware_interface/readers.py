@@ -20,6 +20,8 @@ Leaves to others: resampling, trims and smoothing (``groundstation.dsp``).
 
 from __future__ import annotations
 
+import contextlib
+import io
 import math
 import os
 from collections.abc import Iterable
@@ -295,8 +297,10 @@ def load_dataflash(path: str | os.PathLike[str]) -> LogData:
     from pymavlink import DFReader
 
     p = Path(path)
+    noise = io.StringIO()  # DFReader prints damaged records to stdout; keep stdout clean (JSON)
     try:
-        log = DFReader.DFReader_binary(str(p), zero_time_base=False)
+        with contextlib.redirect_stdout(noise):
+            log = DFReader.DFReader_binary(str(p), zero_time_base=False)
     except Exception as exc:  # DFReader raises bare exceptions on malformed files
         raise LogError(f"{p}: not a readable dataflash log ({type(exc).__name__}: {exc})") from None
     cols: dict[str, list[tuple[float, ...]]] = {}
@@ -304,7 +308,6 @@ def load_dataflash(path: str | os.PathLike[str]) -> LogData:
     counts: dict[str, int] = {}
     gyro: list[tuple[float, float, float, float]] = []
     rate: list[tuple[float, float, float, float]] = []
-    px4 = False
 
     def add(name: str, t_fc: float, t_host: float, vals: tuple[float, ...]) -> None:
         if name not in cols:
@@ -312,7 +315,33 @@ def load_dataflash(path: str | os.PathLike[str]) -> LogData:
         cols[name].append(vals)
         tms[name].append((t_fc, t_host))
 
+    with contextlib.redirect_stdout(noise):
+        _read_df(log, add, counts, gyro, rate)
+    px4 = "_PX4" in counts
+    counts.pop("_PX4", None)
+    counts.pop("_DFREADER_ERROR", None)  # the import stopped at a damaged record: keep what came before
+    series: dict[str, Series] = {}
+    for name, rows in cols.items():
+        vals = np.asarray(rows, dtype=float)
+        tt = np.asarray(tms[name], dtype=float)
+        series[name] = Series(tt[:, 0], tt[:, 1], {f: vals[:, k] for k, f in enumerate(SERIES_FIELDS[name])})
+    if "ATTITUDE" in series and not px4:
+        src = rate or gyro
+        att = series["ATTITUDE"]
+        if src:
+            r = np.asarray(src, dtype=float)
+            for k, c in enumerate(("p_rad_s", "q_rad_s", "r_rad_s")):
+                att.columns[c][:] = np.interp(att.t_fc_s, r[:, 0], r[:, k + 1])
+    if not series:
+        raise LogError(f"{p}: dataflash log holds none of ATT, RCOU, IMU, GPS, XKF1/NKF1, POS, OUT0, LPOS")
+    stats = LinkStats(packets=sum(counts.values()))
+    return _finish(str(p), series, counts, stats)
+
+
+def _read_df(log: Any, add: Any, counts: dict[str, int], gyro: list, rate: list) -> None:
+    """Walk a DFReader log, mapping records onto MAVLink-named series through ``add``."""
     t0: float | None = None
+    px4_time_s: float | None = None
     d2r = math.pi / 180.0
     while True:
         try:
@@ -326,23 +355,29 @@ def load_dataflash(path: str | os.PathLike[str]) -> LogData:
         typ = m.get_type()
         counts[typ] = counts.get(typ, 0) + 1
         t_host = float(getattr(m, "_timestamp", 0.0) or 0.0)
+        if typ == "TIME" and getattr(m, "StartTime", None) is not None:
+            px4_time_s = m.StartTime * 1e-6  # PX4 sdlog2: FC time of the records that follow
         tus = getattr(m, "TimeUS", None)
         if tus is None:
             tms_ = getattr(m, "TimeMS", None)
             if tms_ is not None:
                 t_fc = tms_ * 1e-3
+            elif px4_time_s is not None:
+                t_fc = px4_time_s
             else:
                 if t0 is None:
                     t0 = t_host
                 t_fc = t_host - t0
         else:
             t_fc = tus * 1e-6
-        f = m.__dict__ if hasattr(m, "__dict__") else {}
-        g = f.get
+        def g(name: str, default: Any = None, _m: Any = m) -> Any:
+            v = getattr(_m, name, default)
+            return default if v is None else v
+
         inst = g("I", g("C", 0)) or 0
         if typ == "ATT":
             if g("RollRate") is not None:  # PX4 sdlog2: radians
-                px4 = True
+                counts["_PX4"] = 1
                 add("ATTITUDE", t_fc, t_host, (g("Roll"), g("Pitch"), g("Yaw"), g("RollRate"), g("PitchRate"),
                                                g("YawRate")))
             else:
@@ -383,19 +418,3 @@ def load_dataflash(path: str | os.PathLike[str]) -> LogData:
             add("HEARTBEAT", t_fc, t_host, (1.0 if g("Id") == 10 else 0.0, 0, 0, 0))
         elif typ == "STAT" and g("ArmS") is not None:  # PX4 sdlog2 arming_state: 2 armed, 3 armed error
             add("HEARTBEAT", t_fc, t_host, (1.0 if g("ArmS") in (2, 3) else 0.0, 0, 0, 0))
-    series: dict[str, Series] = {}
-    for name, rows in cols.items():
-        vals = np.asarray(rows, dtype=float)
-        tt = np.asarray(tms[name], dtype=float)
-        series[name] = Series(tt[:, 0], tt[:, 1], {f: vals[:, k] for k, f in enumerate(SERIES_FIELDS[name])})
-    if "ATTITUDE" in series and not px4:
-        src = rate or gyro
-        att = series["ATTITUDE"]
-        if src:
-            r = np.asarray(src, dtype=float)
-            for k, c in enumerate(("p_rad_s", "q_rad_s", "r_rad_s")):
-                att.columns[c][:] = np.interp(att.t_fc_s, r[:, 0], r[:, k + 1])
-    if not series:
-        raise LogError(f"{p}: dataflash log holds none of ATT, RCOU, IMU, GPS, XKF1/NKF1, POS, OUT0, LPOS")
-    stats = LinkStats(packets=sum(counts.values()))
-    return _finish(str(p), series, counts, stats)
