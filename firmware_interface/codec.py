@@ -19,6 +19,7 @@ CRC and their 13-byte signature kept in the raw bytes).
 from __future__ import annotations
 
 import re
+from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
@@ -29,7 +30,7 @@ MAGIC_V2 = 0xFD
 _MAGIC_RE = re.compile(b"[\xfd\xfe]")
 
 #: msg_id -> pymavlink message class (name in ``.msgname``, layout in ``.unpacker``)
-MESSAGE_CLASSES: dict[int, type] = dict(mavlink2.mavlink_map)
+MESSAGE_CLASSES: dict[int, Any] = dict(mavlink2.mavlink_map)
 _CRC_EXTRA_BYTE: dict[int, bytes] = {mid: bytes((cls.crc_extra,)) for mid, cls in MESSAGE_CLASSES.items()}
 
 

@@ -413,3 +413,18 @@ def test_config_rejects_unknown_message_name():
     with pytest.raises(ValueError, match="NOT_A_MESSAGE"):
         SessionConfig(stream_rates_hz=(("NOT_A_MESSAGE", 5.0),))
     assert math.isfinite(SessionConfig().link_timeout_s)
+
+
+def test_session_module_is_pure():
+    import ast
+    from pathlib import Path
+
+    import firmware_interface.codec as codec
+    import firmware_interface.session as session
+
+    for mod in (session, codec):
+        tree = ast.parse(Path(mod.__file__).read_text())
+        names = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+        names |= {n.module.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+        assert not names & {"asyncio", "serial", "zenoh", "rerun", "time", "socket", "os"}, mod.__name__
+        assert "open(" not in Path(mod.__file__).read_text()
