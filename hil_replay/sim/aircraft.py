@@ -149,7 +149,14 @@ def aircraft_from_dict(data: Mapping[str, Any], *, where: str = "aircraft") -> A
             raise ValueError(f"{where}: [battery] allowed keys {sorted(allowed)}")
         kw.update({"battery_cells": int(b.get("cells", 6)), "battery_capacity_mah": b.get("capacity_mah", 5000.0),
                    "hover_current_a": b.get("hover_current_a", 32.0)})
-    return Aircraft(**kw)
+    try:
+        return Aircraft(**kw)
+    except ValueError as exc:  # name the file, not the aircraft
+        msg = str(exc)
+        prefix = f"{kw['name']}: "
+        raise ValueError(f"{where}: {msg[len(prefix):] if msg.startswith(prefix) else msg}") from None
+    except TypeError as exc:
+        raise ValueError(f"{where}: {exc}") from None
 
 
 def resolve_aircraft(aircraft: Aircraft | str | Path | None) -> Aircraft:
