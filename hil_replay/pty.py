@@ -12,10 +12,12 @@ many bytes the kernel accepted, :meth:`write` blocks (select) and :meth:`awrite`
 writer callback) until everything is written. Reads return the bytes the ground station wrote.
 
 A Linux pty reports POLLHUP on the master while no process has the slave open; this module uses
-that to tell whether a reader is attached (:meth:`reader_attached`, :meth:`wait_for_reader`).
-pyserial flushes the input queue when it opens a port, so bytes written before a reader is attached
-(or in the few milliseconds while it opens) are lost, exactly as on a real serial line; callers
-that must deliver every byte wait for a reader first.
+that to tell whether a reader is attached (:meth:`reader_attached`). pyserial flushes the input
+queue when it opens a port, so bytes written before a reader is attached (or while it is still
+opening) are lost, exactly as on a real serial line. The master runs in packet mode (TIOCPKT),
+where the kernel reports the reader's input flush as a control byte; :meth:`wait_for_reader`
+waits for that flush (or ``flush_wait_s`` for readers that never flush), so callers that must
+deliver every byte know when writing is safe.
 
 Not thread-safe: use one port from one thread (or one event loop) at a time. Leaves MAVLink,
 timing and fault injection to :mod:`hil_replay.player` and :mod:`hil_replay.fc`.
@@ -44,6 +46,11 @@ def _wake(fut: asyncio.Future[None]) -> None:
         fut.set_result(None)
 
 
+_TIOCPKT = getattr(termios, "TIOCPKT", 0x5420)
+_TIOCPKT_DATA = 0
+_TIOCPKT_FLUSHREAD = 1
+
+
 class PortUnplugged(OSError):
     """IO was attempted on a virtual port while it is unplugged (or closed)."""
 
@@ -56,11 +63,12 @@ class VirtualSerialPort:
     link_path : where the symlink to the slave device is created. ``None`` makes a private
         temporary directory ``/tmp/gs-replay-XXXX/ttyFC`` (removed by :meth:`close`). An existing
         symlink at that path (a stale port) is replaced; any other existing file is an error.
-    settle_s : after a reader attaches, :meth:`wait_for_reader` waits this long more so the
-        reader's open-time input flush has happened before anything is written.
+    flush_wait_s : after a reader attaches, :meth:`wait_for_reader` waits at most this long for
+        the reader's open-time input flush (pyserial does one) before declaring it ready.
     """
 
-    def __init__(self, link_path: str | os.PathLike[str] | None = None, *, settle_s: float = 0.05) -> None:
+    def __init__(self, link_path: str | os.PathLike[str] | None = None, *,
+                 flush_wait_s: float = 0.5) -> None:
         self._own_dir: Path | None = None
         if link_path is None:
             self._own_dir = Path(tempfile.mkdtemp(prefix="gs-replay-"))
@@ -71,8 +79,10 @@ class VirtualSerialPort:
                 raise FileExistsError(f"{path}: exists and is not a symlink; refusing to replace it")
             path.parent.mkdir(parents=True, exist_ok=True)
         self._path = path
-        self._settle_s = settle_s
+        self._flush_wait_s = flush_wait_s
         self._master: int | None = None
+        self._inbox = bytearray()        # data the GCS wrote, read while looking for control bytes
+        self._flush_seen = False         # the current reader's open-time flush has happened
         self._device = ""
         self._poll: select.poll | None = None
         self._closed = False
@@ -116,6 +126,10 @@ class VirtualSerialPort:
             # reader is attached, and the termios settings persist while the master is open.
             os.close(slave)
         os.set_blocking(master, False)
+        # packet mode: every read starts with a status byte, 0 = data, else TIOCPKT_* flags
+        fcntl.ioctl(master, _TIOCPKT, struct.pack("i", 1))
+        self._inbox.clear()
+        self._flush_seen = False
         tmp = self._path.with_name(f".{self._path.name}.{os.getpid()}.tmp")
         if tmp.is_symlink() or tmp.exists():
             tmp.unlink()
@@ -172,31 +186,56 @@ class VirtualSerialPort:
             return False
         for _fd, ev in self._poll.poll(0):
             if ev & select.POLLHUP:
+                self._flush_seen = False   # the next reader will flush again when it opens
                 return False
         return True
 
-    def wait_for_reader(self, timeout_s: float | None = None, *, poll_s: float = 0.005) -> bool:
-        """Block until a reader has the port open (plus ``settle_s``); False on timeout."""
+    def reader_ready(self) -> bool:
+        """A reader is attached and its open-time input flush has happened."""
+        if not self.reader_attached():
+            return False
+        self._pump()
+        return self._flush_seen
+
+    def wait_for_reader(self, timeout_s: float | None = None, *, poll_s: float = 0.002) -> bool:
+        """Block until a reader has the port open and is ready (see ``flush_wait_s``).
+
+        Returns False on timeout (or if the reader went away again).
+        """
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        while not self.reader_attached():
-            if deadline is not None and time.monotonic() >= deadline:
+        attached_at: float | None = None
+        while True:
+            now = time.monotonic()
+            if self.reader_attached():
+                if self.reader_ready():
+                    return True
+                attached_at = now if attached_at is None else attached_at
+                if now - attached_at >= self._flush_wait_s:
+                    return True   # a reader that does not flush on open
+            else:
+                attached_at = None
+            if deadline is not None and now >= deadline:
                 return False
             time.sleep(poll_s)
-        if self._settle_s > 0:
-            time.sleep(self._settle_s)
-        return self.reader_attached()
 
-    async def await_reader(self, timeout_s: float | None = None, *, poll_s: float = 0.005) -> bool:
+    async def await_reader(self, timeout_s: float | None = None, *, poll_s: float = 0.002) -> bool:
         """:meth:`wait_for_reader` for coroutines."""
         loop = asyncio.get_running_loop()
         deadline = None if timeout_s is None else loop.time() + timeout_s
-        while not self.reader_attached():
-            if deadline is not None and loop.time() >= deadline:
+        attached_at: float | None = None
+        while True:
+            now = loop.time()
+            if self.reader_attached():
+                if self.reader_ready():
+                    return True
+                attached_at = now if attached_at is None else attached_at
+                if now - attached_at >= self._flush_wait_s:
+                    return True
+            else:
+                attached_at = None
+            if deadline is not None and now >= deadline:
                 return False
             await asyncio.sleep(poll_s)
-        if self._settle_s > 0:
-            await asyncio.sleep(self._settle_s)
-        return self.reader_attached()
 
     def unread_bytes(self) -> int:
         """Bytes written to the port that the reader has not read yet (0 if unplugged)."""
@@ -282,17 +321,33 @@ class VirtualSerialPort:
 
     # ---------------------------------------------------------------- reading
 
+    def _pump(self, max_bytes: int = 65536) -> None:
+        """Drain the master: data into the inbox, control bytes into the flush flag."""
+        fd = self.fileno()
+        while True:
+            try:
+                chunk = os.read(fd, max_bytes + 1)
+            except BlockingIOError:
+                return
+            except OSError as exc:
+                if exc.errno == errno.EIO:  # no slave open
+                    return
+                raise
+            if not chunk:
+                return
+            if chunk[0] == _TIOCPKT_DATA:
+                self._inbox += chunk[1:]
+                if len(self._inbox) >= max_bytes:
+                    return
+            elif chunk[0] & _TIOCPKT_FLUSHREAD:
+                self._flush_seen = True
+
     def read_nowait(self, max_bytes: int = 65536) -> bytes:
         """Bytes the ground station has written, or b"" if none (or no reader attached)."""
-        fd = self.fileno()
-        try:
-            return os.read(fd, max_bytes)
-        except BlockingIOError:
-            return b""
-        except OSError as exc:
-            if exc.errno == errno.EIO:  # no slave open
-                return b""
-            raise
+        self._pump(max_bytes)
+        out = bytes(self._inbox[:max_bytes])
+        del self._inbox[:max_bytes]
+        return out
 
     async def aread(self, max_bytes: int = 65536, *, poll_s: float = 0.02) -> bytes:
         """Bytes from the ground station; waits up to ``poll_s`` and returns b"" if none came."""

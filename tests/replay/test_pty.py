@@ -125,3 +125,27 @@ def test_refuses_to_replace_a_regular_file(tmp_path):
     with pytest.raises(FileExistsError, match="notalink"):
         VirtualSerialPort(f)
     assert f.read_text() == "keep me"
+
+
+def test_ready_only_after_the_readers_open_flush(tmp_path):
+    """pyserial flushes its input on open: the port reports ready only after that flush, so
+    bytes written from then on all arrive; a reader that never flushes is ready after flush_wait_s."""
+    with VirtualSerialPort(tmp_path / "tty", flush_wait_s=0.3) as port:
+        assert not port.reader_ready()
+        for _ in range(3):
+            ser = serial.Serial(port.path, 115200, timeout=0.2)
+            try:
+                assert port.wait_for_reader(2.0) and port.reader_ready()
+                port.write(b"first bytes after open")
+                assert _read_exactly(ser, 22) == b"first bytes after open"
+            finally:
+                ser.close()
+            assert not port.reader_attached() and not port.reader_ready()
+        fd = os.open(port.path, os.O_RDWR | os.O_NOCTTY)   # a raw reader: no flush on open
+        try:
+            t0 = time.monotonic()
+            assert port.wait_for_reader(2.0)
+            assert time.monotonic() - t0 >= 0.25
+            assert not port.reader_ready()
+        finally:
+            os.close(fd)
