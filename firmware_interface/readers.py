@@ -80,7 +80,8 @@ def load_log(path: str | os.PathLike[str]) -> LogData:
 def load_tlog_bytes(data: bytes, source: str = "<bytes>") -> LogData:
     """Decode .tlog content (tolerant) into LogData; raises LogError if no record is valid."""
     scan = TlogScan()
-    session = MavlinkSession(SessionConfig(request_streams=False, link_timeout_s=math.inf))
+    session = MavlinkSession(SessionConfig(request_streams=False, send_heartbeat=False,
+                                           emit_raw_packets=False, link_timeout_s=math.inf))
     events: list[Any] = []
     recv = session.receive_packet
     pull = session.events

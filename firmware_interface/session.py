@@ -137,12 +137,14 @@ class SessionConfig:
     stream_rates_hz : (message name, rate) pairs requested from the FC
     request_streams : False for passive listening (log reading, a link someone else configures)
     send_heartbeat : False to send nothing at all (with request_streams False)
+    emit_raw_packets : False to skip RawPacket events (offline decoding that records nothing)
     target_sysid : the FC's system id; None = the first autopilot heartbeat seen
     """
 
     stream_rates_hz: tuple[tuple[str, float], ...] = DEFAULT_STREAM_RATES_HZ
     request_streams: bool = True
     send_heartbeat: bool = True
+    emit_raw_packets: bool = True
     heartbeat_interval_s: float = 1.0
     ack_timeout_s: float = 1.0
     ack_retries: int = 2
@@ -312,6 +314,7 @@ class MavlinkSession:
         self._lost = False
         self._setup: _Setup | None = None
         self.message_counts: dict[str, int] = {}
+        self._emit_raw = self.config.emit_raw_packets
         self._decoders: dict[int, tuple[Any, int, Callable[..., Any] | None]] = {}
         for mid, cls in MESSAGE_CLASSES.items():
             conv = _CONVERTERS.get(cls.msgname)
@@ -350,7 +353,8 @@ class MavlinkSession:
         cls = MESSAGE_CLASSES[msg_id]
         name = cls.msgname
         self.message_counts[name] = self.message_counts.get(name, 0) + 1
-        self._events.append(RawPacket(now, pkt, msg_id, name, sysid, compid, seq))
+        if self._emit_raw:
+            self._events.append(RawPacket(now, pkt, msg_id, name, sysid, compid, seq))
         if conv is None:
             return
         if len(payload) < size:
