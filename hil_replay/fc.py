@@ -476,14 +476,8 @@ def _make_session(seed: int, flights: int, effects: Sequence[Any], aircraft: Any
                   sim_options: Mapping[str, Any] | None = None) -> FrameSource:
     from hil_replay.sim import SimulatedSession  # the SIM engineer's package
 
-    parsed = []
-    for eff in effects:
-        if isinstance(eff, str):
-            from hil_replay.sim.effects import parse_effect
-            parsed.append(parse_effect(eff))
-        else:
-            parsed.append(eff)
-    return SimulatedSession(seed=seed, flights=flights, effects=tuple(parsed), aircraft=aircraft,
+    # SimulatedSession takes Effect objects or "name:key=value" strings itself
+    return SimulatedSession(seed=seed, flights=flights, effects=tuple(effects), aircraft=aircraft,
                             **dict(sim_options or {}))
 
 

@@ -292,3 +292,14 @@ def test_line_noise_corrupts_bytes_at_the_configured_rate():
         parser.buf = bytearray()          # each packet on its own: no resync effects
         parser.buf_index = 0
     assert bad == st.packets_corrupted > 100
+
+
+def test_bad_effect_fails_before_any_port_exists(tmp_path):
+    import pytest
+
+    link = tmp_path / "ttyFC"
+    with pytest.raises(ValueError, match="bogus"):
+        SimulatedFCThread(link_path=str(link), effects=("bogus:x=1",))
+    assert not link.exists() and not link.is_symlink()
+    with pytest.raises(ValueError, match="packet_loss"):
+        FcConfig(packet_loss=1.5)
