@@ -41,14 +41,19 @@ def _detrend(x: np.ndarray) -> np.ndarray:
     return xm - slope[:, None, :] * t[None, :, None]
 
 
-def averaged_periodogram(x: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Hann-tapered periodograms of (W, L, C) windows averaged over W: (f (F,), P (F, C))."""
+def window_periodograms(x: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Hann-tapered periodograms of (W, L, C) windows: (f (F,), P (W, F, C)), one-sided PSD units."""
     L = x.shape[1]
     win = np.hanning(L)
     X = np.fft.rfft(_detrend(x) * win[None, :, None], axis=1)
-    P = (np.abs(X) ** 2).mean(axis=0) * 2 * dt_s / (win @ win)
-    f = np.fft.rfftfreq(L, dt_s)
-    return f, P
+    P = (np.abs(X) ** 2) * 2 * dt_s / (win @ win)
+    return np.fft.rfftfreq(L, dt_s), P
+
+
+def averaged_periodogram(x: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Hann-tapered periodograms of (W, L, C) windows averaged over W: (f (F,), P (F, C))."""
+    f, P = window_periodograms(x, dt_s)
+    return f, P.mean(axis=0)
 
 
 def _line_stats(P: np.ndarray, n_avg: int, half: int = 6, guard: int = 2,
@@ -57,11 +62,13 @@ def _line_stats(P: np.ndarray, n_avg: int, half: int = 6, guard: int = 2,
     F = P.shape[0]
     ratio = np.ones_like(P)
     for k in range(F):
-        lo, hi = max(0, k - half - guard), min(F, k + half + guard + 1)
-        idx = [j for j in range(lo, hi) if abs(j - k) > guard]
-        if len(idx) < 4:
+        # a line stands out of BOTH sides (a spectral edge, e.g. where a sweep ends, stands out of one)
+        left = list(range(max(0, k - half - guard), k - guard))
+        right = list(range(k + guard + 1, min(F, k + half + guard + 1)))
+        refs = [np.median(P[side], axis=0) for side in (left, right) if len(side) >= 3]
+        if not refs:
             continue
-        ref = np.median(P[idx], axis=0)
+        ref = np.max(refs, axis=0)
         ratio[k] = P[k] / np.where(ref > 0, ref, np.inf)
     dof = np.full(F, 2 * n_avg)
     dof[0] = n_avg  # DC and (even length) Nyquist bins are real: one degree of freedom per window
@@ -92,7 +99,12 @@ def spectral_lines(resid: np.ndarray, inputs: np.ndarray, dt_s: float, available
     spectra : dict with ``f_hz`` (F,), ``psd`` (F, 8), ``ratio`` (F, 8), ``log10_p`` (F, 8)
     """
     W, L, _ = resid.shape
-    f, P = averaged_periodogram(resid, dt_s)
+    f, Pw = window_periodograms(resid, dt_s)
+    P = Pw.mean(axis=0)
+    # persistence: the median over windows is blind to bursts (a sweep passing through a model-error
+    # resonance) but keeps a line present in every window; ~N(ln2, 1/W) relative to the PSD
+    ratio_med, _ = _line_stats(np.median(Pw, axis=0), W, nyquist_real=L % 2 == 0)
+    z_med = (ratio_med - 1.0) * np.log(2.0) * np.sqrt(W)
     _, Pu = averaged_periodogram(inputs, dt_s)
     ratio, logp = _line_stats(P, W, nyquist_real=L % 2 == 0)
     uratio, ulogp = _line_stats(Pu, W, nyquist_real=L % 2 == 0)
@@ -102,7 +114,8 @@ def spectral_lines(resid: np.ndarray, inputs: np.ndarray, dt_s: float, available
     test &= available[None, :]
     n_tests = max(int(test.sum()), 1)
     thr = np.log10(alpha / n_tests)
-    sig = test & (logp < thr)
+    z_thr = stats.norm.isf(alpha / n_tests)
+    sig = test & (logp < thr) & (z_med > z_thr)
     in_input = (ulogp < np.log10(alpha / max(Pu.size, 1))).any(axis=1)
     sig &= ~in_input[:, None]
     lines: list[Line] = []
@@ -118,7 +131,8 @@ def spectral_lines(resid: np.ndarray, inputs: np.ndarray, dt_s: float, available
         cmax = int(np.argmin(np.where(sig[k], logp[k], 0)))
         lines.append(Line(frequency_hz=float(fk), channels=chans, ratio=float(ratio[k, cmax]),
                           log10_p=float(logp[k, cmax] - thr + np.log10(alpha)), amplitude=amp))
-    spectra = {"f_hz": f, "psd": P, "ratio": ratio, "log10_p": logp, "threshold_log10_p": thr}
+    spectra = {"f_hz": f, "psd": P, "ratio": ratio, "log10_p": logp, "threshold_log10_p": thr,
+               "z_median": z_med, "threshold_z": z_thr}
     return lines, spectra
 
 
