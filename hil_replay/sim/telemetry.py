@@ -112,21 +112,21 @@ class TelemetryFrame:
         m = self.m
         t = m.t_boot_s
         if name == "ATTITUDE":
-            return mav.attitude_encode(int(round(t * 1000.0)) + m.jitter_ms[0], m.roll, m.pitch, m.yaw, m.p, m.q, m.r)
+            return mav.attitude_encode(max(0, int(round(t * 1000.0)) + m.jitter_ms[0]), m.roll, m.pitch, m.yaw, m.p, m.q, m.r)
         if name == "SERVO_OUTPUT_RAW":
             s = m.servo_pwm
-            return mav.servo_output_raw_encode((int(round(t * 1e6)) + m.jitter_us[0]) % _UINT32, 0,
+            return mav.servo_output_raw_encode(max(0, int(round(t * 1e6)) + m.jitter_us[0]) % _UINT32, 0,
                                                s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7])
         if name == "LOCAL_POSITION_NED":
-            return mav.local_position_ned_encode(int(round(t * 1000.0)) + m.jitter_ms[1], m.x, m.y, m.z,
+            return mav.local_position_ned_encode(max(0, int(round(t * 1000.0)) + m.jitter_ms[1]), m.x, m.y, m.z,
                                                  m.vx, m.vy, m.vz)
         if name == "GLOBAL_POSITION_INT":
-            return mav.global_position_int_encode(int(round(t * 1000.0)) + m.jitter_ms[2], m.lat_e7, m.lon_e7,
+            return mav.global_position_int_encode(max(0, int(round(t * 1000.0)) + m.jitter_ms[2]), m.lat_e7, m.lon_e7,
                                                   m.alt_mm, m.rel_alt_mm, _i16(m.vx * 100.0), _i16(m.vy * 100.0),
                                                   _i16(m.vz * 100.0), m.hdg_cdeg)
         if name == "RAW_IMU":
             a, g = m.acc_mg, m.gyro_mrad
-            return mav.raw_imu_encode(int(round(t * 1e6)) + m.jitter_us[1], a[0], a[1], a[2], g[0], g[1], g[2],
+            return mav.raw_imu_encode(max(0, int(round(t * 1e6)) + m.jitter_us[1]), a[0], a[1], a[2], g[0], g[1], g[2],
                                       210, -35, 410)
         if name == "GPS_RAW_INT":
             return mav.gps_raw_int_encode(max(0, int(round(t * 1e6)) + m.jitter_us[2]), 3, m.gps_lat_e7,
