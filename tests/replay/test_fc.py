@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import asyncio
+import os
 import time
 
 import numpy as np
+import pytest
+import serial
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from hil_replay.fc import FcConfig, FcProtocol, SimulatedFCThread
@@ -168,9 +172,6 @@ def test_protocol_request_message_disable_and_link_loss():
 
 
 def test_async_entry_point_runs_session_to_end_without_reader():
-    import asyncio
-    import os
-
     from hil_replay.fc import serve_simulated_fc
 
     paths: list[str] = []
@@ -221,8 +222,6 @@ def test_unplug_and_replug_while_serving():
 
 
 def test_stop_is_prompt_while_the_reader_does_not_read():
-    import serial
-
     heli = FakeHelicopter(duration_s=600.0)
     fc = SimulatedFCThread(speed=0, session=heli, config=FcConfig(packet_loss=0.0)).start()
     ser = serial.Serial(fc.port_path, 921600, timeout=0.1)  # opened, never read: the pty fills up
@@ -295,8 +294,6 @@ def test_line_noise_corrupts_bytes_at_the_configured_rate():
 
 
 def test_bad_effect_fails_before_any_port_exists(tmp_path):
-    import pytest
-
     link = tmp_path / "ttyFC"
     with pytest.raises(ValueError, match="bogus"):
         SimulatedFCThread(link_path=str(link), effects=("bogus:x=1",))
