@@ -11,11 +11,8 @@ import pytest
 import serial
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from hil_replay.fc import FcConfig, FcProtocol, SimulatedFCThread
-from tests.replay.conftest import FakeHelicopter, GcsReader
-
-TELEMETRY = {"ATTITUDE", "SERVO_OUTPUT_RAW", "RAW_IMU", "LOCAL_POSITION_NED", "GLOBAL_POSITION_INT",
-             "GPS_RAW_INT", "SYS_STATUS", "EXTENDED_SYS_STATE"}
+from hil_replay.fc import FcConfig, FcProtocol, SimulatedFCThread, serve_simulated_fc
+from tests.replay.conftest import FakeHelicopter, GcsReader, RawReconnectingReader
 
 
 def _set_interval(gcs: GcsReader, msg_id: int, interval_us: float) -> None:
@@ -172,8 +169,6 @@ def test_protocol_request_message_disable_and_link_loss():
 
 
 def test_async_entry_point_runs_session_to_end_without_reader():
-    from hil_replay.fc import serve_simulated_fc
-
     paths: list[str] = []
     heli = FakeHelicopter(duration_s=20.0)
     stats = asyncio.run(serve_simulated_fc(speed=0, session=heli, on_ready=paths.append,
@@ -199,8 +194,6 @@ def test_thread_keeps_heartbeating_after_the_session_ends():
 
 
 def test_unplug_and_replug_while_serving():
-    from tests.replay.conftest import RawReconnectingReader
-
     heli = FakeHelicopter(duration_s=600.0)
     with SimulatedFCThread(speed=5.0, session=heli, config=FcConfig(packet_loss=0.0)) as fc:
         reader = RawReconnectingReader(fc.port_path)
