@@ -166,13 +166,14 @@ class TlogPlayer:
     reader_timeout_s : give up waiting for a reader after this long (TimeoutError); None = forever
     drain_timeout_s : before an unplug and at the end, wait at most this long for the reader to
         read what was written (so packets reported as sent were not lost in the pty buffer)
+    max_gap_s : shorten longer pauses between packets to this (None = keep the original timing)
     """
 
     def __init__(self, source: str | os.PathLike[str] | list[TlogPacket], port: VirtualSerialPort, *,
                  speed: float = 1.0, corrupt_rate: float = 0.0, drop_rate: float = 0.0,
                  unplug_at_s: float | None = None, unplug_for_s: float = 0.0, seed: int = 0,
                  wait_for_reader: bool = True, reader_timeout_s: float | None = None,
-                 drain_timeout_s: float = 5.0) -> None:
+                 drain_timeout_s: float = 5.0, max_gap_s: float | None = None) -> None:
         for name, rate in (("corrupt_rate", corrupt_rate), ("drop_rate", drop_rate)):
             if not 0.0 <= rate < 1.0:
                 raise ValueError(f"{name}: {rate} not in [0, 1)")
@@ -199,10 +200,13 @@ class TlogPlayer:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.error: BaseException | None = None
-        t0 = self.packets[0].t_us
-        # replay clock of each packet (s since the first); clamp host-clock steps backwards
-        self.replay_s = np.maximum.accumulate(
-            (np.array([p.t_us for p in self.packets], dtype=np.int64) - t0) / 1e6)
+        if max_gap_s is not None and not max_gap_s > 0:
+            raise ValueError(f"max_gap_s: {max_gap_s} must be > 0")
+        # replay clock of each packet (s since the first): host-clock steps backwards count as 0,
+        # gaps longer than max_gap_s (e.g. between two sessions in one file) are shortened to it
+        t_us = np.array([p.t_us for p in self.packets], dtype=np.int64)
+        steps_s = np.clip(np.diff(t_us) / 1e6, 0.0, np.inf if max_gap_s is None else max_gap_s)
+        self.replay_s = np.concatenate(([0.0], np.cumsum(steps_s)))
         self._next_corrupt = self._draw_gap()
 
     # ------------------------------------------------------------------ faults

@@ -33,6 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the fault injection")
     parser.add_argument("--no-wait", action="store_true",
                         help="start at once instead of waiting for a reader to open the port")
+    parser.add_argument("--max-gap", type=float, default=None, metavar="S",
+                        help="shorten pauses longer than S seconds of log time (default: keep them)")
     parser.add_argument("--report", type=Path, default=None,
                         help="write the per-packet replay report (JSON) to this file")
 
@@ -48,6 +50,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"{flag}: {rate} not in [0, 1)")
     if args.unplug_at is not None and (args.unplug_at < 0 or args.unplug_for < 0):
         raise ValueError("--unplug-at/--unplug-for: must be >= 0")
+    if args.max_gap is not None and not args.max_gap > 0:
+        raise ValueError(f"--max-gap: {args.max_gap} must be > 0")
     if not args.tlog.is_file():
         raise FileNotFoundError(f"{args.tlog}: no such file")
     packets = read_tlog_packets(args.tlog)  # bad input fails here, before a port exists
@@ -56,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         player = TlogPlayer(packets, port, speed=args.speed, corrupt_rate=args.corrupt,
                             drop_rate=args.drop, unplug_at_s=args.unplug_at,
                             unplug_for_s=args.unplug_for, seed=args.seed,
-                            wait_for_reader=not args.no_wait)
+                            wait_for_reader=not args.no_wait, max_gap_s=args.max_gap)
         print(port.path, flush=True)
         interrupted = False
         try:

@@ -111,3 +111,15 @@ def test_tolerates_garbage_and_truncation(tmp_path):
     (tmp_path / "b.tlog").write_bytes(damaged)
     got = [p.data for p in read_tlog_packets(tmp_path / "b.tlog")]
     assert got == packets[:-1]
+
+
+def test_replay_clock_clamps_backward_steps_and_long_gaps(tmp_path):
+    from hil_replay.player import TlogPacket
+
+    base = 1_700_000_000_000_000
+    pk = [TlogPacket(base + dt, b"\xfd") for dt in (0, 100_000, 50_000, 3_600_000_000, 3_600_200_000)]
+    with VirtualSerialPort(tmp_path / "tty") as port:
+        assert TlogPlayer(pk, port).replay_s.tolist() == pytest.approx([0, 0.1, 0.1, 3600.05, 3600.25])
+        assert TlogPlayer(pk, port, max_gap_s=2.0).replay_s.tolist() == pytest.approx([0, 0.1, 0.1, 2.1, 2.3])
+        with pytest.raises(ValueError, match="max_gap_s"):
+            TlogPlayer(pk, port, max_gap_s=0)
