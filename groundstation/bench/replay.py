@@ -6,7 +6,8 @@ LOCAL_POSITION_NED, GLOBAL_POSITION_INT at 50 Hz, GPS_RAW_INT 5 Hz, SYS_STATUS a
 EXTENDED_SYS_STATE 2 Hz, HEARTBEAT 1 Hz), replays it with :class:`hil_replay.player.TlogPlayer`
 at maximum speed on a :class:`hil_replay.pty.VirtualSerialPort` into a recorder, and prints the
 real-time factor (log seconds per wall second, target >= 20) and the packets lost (target 0),
-median of ``--runs`` runs.
+median of ``--runs`` runs. ``--fc`` measures the simulated flight controller instead (simulator +
+MAVLink protocol at maximum speed into the recorder, FC seconds per wall second).
 
 The recorder is ``groundstation record --link serial://PORT --out DIR`` in a subprocess (the
 LINK engineer's command, the real path) when it exists; otherwise an in-process pyserial reader
@@ -44,6 +45,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tlog", type=Path, default=None, help="replay this .tlog instead")
     parser.add_argument("--source", choices=("auto", "sim", "synthetic"), default="auto",
                         help="where the flight comes from when --tlog is not given")
+    parser.add_argument("--fc", action="store_true",
+                        help="instead: the simulated FC (hil_replay.fc + hil_replay.sim) at max speed "
+                             "into groundstation record; prints its real-time factor")
 
 
 def synthesize_tlog(path: Path, duration_s: float, t0_unix_s: float = 1.7e9) -> int:
@@ -194,7 +198,44 @@ def _one_run(flight: Path, tmp: Path, recorder: str, speed: float) -> tuple[floa
     return report.real_time_factor, lost, len(packets), report.log_s
 
 
+def _fc_run(flight_s: float) -> tuple[float, int, int]:
+    """Simulated FC (one flight of ``flight_s``) at max speed into ``groundstation record``."""
+    from hil_replay.fc import FcConfig, SimulatedFCThread
+    from hil_replay.player import read_tlog_packets
+
+    with tempfile.TemporaryDirectory(prefix="gs-bench-fc-") as d:
+        fc = SimulatedFCThread(speed=0, seed=0, flights=1, config=FcConfig(packet_loss=0.0),
+                               sim_options={"flight_duration_s": flight_s, "pause_s": 1.0})
+        rec = _RecordSubprocess(fc.port_path, Path(d) / "out")
+        try:
+            if not fc.port.wait_for_reader(30.0):
+                raise OSError(f"{fc.port_path}: groundstation record did not open the port")
+            t0 = time.monotonic()
+            fc.start()
+            end_s = fc.fc.session.end_s
+            while fc.stats.last_t_boot_s < end_s - 0.05 and fc.is_alive():
+                time.sleep(0.01)
+            wall = time.monotonic() - t0
+            fc_s = fc.stats.last_t_boot_s
+        finally:
+            fc.stop()
+            rec.finish()
+        sent = sum(fc.stats.sent_by_type.values())
+        recorded = len(read_tlog_packets(rec.recorded()))
+    return fc_s / wall, sent, recorded
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.fc:
+        rtfs = []
+        for i in range(args.runs):
+            f, sent, recorded = _fc_run(60.0)
+            rtfs.append(f)
+            print(f"run {i + 1}: simulated FC real-time factor {f:.1f}x; {sent} packets sent, "
+                  f"{recorded} recorded", flush=True)
+        print(f"median simulated-FC real-time factor: {statistics.median(rtfs):.1f}x "
+              f"(one 60 s flight, all streams the ground station asks for, {os.cpu_count()} cpus)")
+        return 0
     recorder = args.recorder
     if recorder == "auto":
         recorder = "record" if importlib.util.find_spec("groundstation.commands.record") else "direct"
