@@ -15,6 +15,7 @@ Leaves to others: the pilot's feedback (``pilot.py``) and ground contact (``sess
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field
 
@@ -52,24 +53,27 @@ class Card:
     heading_rad: float
     start_n_m: float = 0.0
     start_e_m: float = 0.0
-    _legs: list[tuple[Segment, float, float]] = field(default_factory=list)  # (segment, n0, e0)
+    _ends: list[float] = field(default_factory=list, repr=False)
+    _legs: list[Segment] = field(default_factory=list, repr=False)
+
+    def __post_init__(self) -> None:
+        self._ends = [s.end_s for s in self.segments]
+        self._legs = [s for s in self.segments if s.kind == "leg"]
 
     @property
     def duration_s(self) -> float:
         return self.segments[-1].end_s
 
     def segment_at(self, t_s: float) -> Segment:
-        for s in self.segments:
-            if t_s < s.end_s:
-                return s
-        return self.segments[-1]
+        i = bisect.bisect_right(self._ends, t_s)
+        return self.segments[min(i, len(self.segments) - 1)]
 
     def _leg_offset(self, t_s: float) -> tuple[float, float, float, float]:
         """Accumulated leg displacement (n, e) and the leg velocity (vn, ve) at ``t_s``."""
         n = e = vn = ve = 0.0
-        for s in self.segments:
-            if s.kind != "leg" or t_s <= s.start_s:
-                continue
+        for s in self._legs:
+            if t_s <= s.start_s:
+                break
             dur = s.end_s - s.start_s
             ramp = min(2.5, dur / 3.0)
             tt = min(t_s, s.end_s) - s.start_s
