@@ -30,21 +30,13 @@ import numpy as np
 
 from hil_replay.sim.aircraft import INPUTS, PARAM_NAMES, Aircraft, resolve_aircraft
 from hil_replay.sim.card import Card, make_card
-from hil_replay.sim.dynamics import (
-    G_M_S2,
-    ground_effect_excess,
-    make_derivative,
-    make_specific_force,
-    rk4_step,
-)
+from hil_replay.sim.dynamics import G_M_S2, ground_effect_excess, make_specific_force, make_stepper
 from hil_replay.sim.effects import Effect, GustModel, InputChain, aliased_hz, resolve_effects
 from hil_replay.sim.pilot import Pilot
-from hil_replay.sim.telemetry import MESSAGE_NAMES, Measurement, TelemetryFrame, heartbeat
+from hil_replay.sim.telemetry import FIELD_ORIGIN, MESSAGE_NAMES, Measurement, TelemetryFrame, heartbeat
 
 FRAME_RATE_HZ = 50.0
 SUBSTEPS = 4
-#: Field origin (ArduPilot SITL's CMAC): lat, lon (deg), altitude AMSL (m).
-FIELD_ORIGIN = (-35.363261, 149.165230, 584.0)
 #: Unix time of FC boot in written .tlog files (fixed so that the same seed gives the same bytes).
 TLOG_EPOCH_S = 1_767_225_600.0
 #: Message rates of :func:`write_tlog` (Hz; decimated from the 50 Hz frames).
@@ -52,7 +44,6 @@ DEFAULT_TLOG_RATES_HZ: dict[str, float] = {
     "HEARTBEAT": 1.0, "SERVO_OUTPUT_RAW": 50.0, "ATTITUDE": 50.0, "LOCAL_POSITION_NED": 50.0,
     "GLOBAL_POSITION_INT": 10.0, "RAW_IMU": 10.0, "GPS_RAW_INT": 5.0, "EXTENDED_SYS_STATE": 5.0, "SYS_STATUS": 1.0,
 }
-_EARTH_R_M = 6378137.0
 
 
 @dataclass(frozen=True)
@@ -166,7 +157,7 @@ class SimulatedSession:
         eff = {e.name: e for e in self.effects}
         drag_c = float(eff["quadratic_drag"].params["c_per_m"]) if "quadratic_drag" in eff else 0.0
         ge_gain = float(eff["ground_effect"].params["gain"]) if "ground_effect" in eff else 0.0
-        f = make_derivative(ac, drag_c_per_m=drag_c, ground_effect_gain=ge_gain)
+        step = make_stepper(ac, drag_c_per_m=drag_c, ground_effect_gain=ge_gain, wind="wind_gust" in eff)
         sf = make_specific_force(ac, drag_c_per_m=drag_c, ground_effect_gain=ge_gain)
         pilot = Pilot(ac, np.random.default_rng(self._seeds[1]), dt_s=dt)
         noise_rng = np.random.default_rng(self._seeds[2])
@@ -203,9 +194,6 @@ class SimulatedSession:
         P = ac.parameters
         Z_col, Z_ped = float(P["Z_col"]), float(P["Z_ped"])
         col_low = max(-0.9, -0.25 * max(1.0, 6.0 / max(abs(Z_col), 1e-3)))  # well below hover pitch
-        lat0, lon0, alt0 = FIELD_ORIGIN
-        m_per_deg_lat = _EARTH_R_M * math.pi / 180.0
-        m_per_deg_lon = m_per_deg_lat * math.cos(math.radians(lat0))
         cap_mah = float(ac.battery_capacity_mah)
         cells = ac.battery_cells
 
@@ -297,7 +285,6 @@ class SimulatedSession:
                 fx, fy, fz = sf(x, dcmd[0], dcmd[1], dcmd[2], dcmd[3], wind[0], wind[1], wind[2])
             acc_sig = nz.accel_m_s2 if spinning else 0.02
             acc = (fx + acc_sig * z[12], fy + acc_sig * z[13], fz + acc_sig * z[14])
-            gyro = (mp, mq, mr)
             gps_n = x[12] + nz.gps_pos_m * z[15]
             gps_e = x[13] + nz.gps_pos_m * z[16]
             gps_d = x[14] + 2 * nz.gps_pos_m * z[17]
@@ -328,20 +315,8 @@ class SimulatedSession:
             servo = [1500, 1500, 1500, 1500, 0, 0, 0, throttle]
             for i_s, pw in zip(servo_idx, pwm, strict=False):
                 servo[i_s] = pw
-            meas = Measurement(
-                t, armed, jms, jus, mroll, mpitch, myaw, mp, mq, mr,
-                mn, me, md, mvn, mve, mvd,
-                int(round((lat0 + mn / m_per_deg_lat) * 1e7)), int(round((lon0 + me / m_per_deg_lon) * 1e7)),
-                int(round((alt0 - md) * 1000.0)), int(round(-md * 1000.0)),
-                int(round(math.degrees(myaw) % 360.0 * 100.0)) % 36000,
-                tuple(_clip_i16(a / 9.80665 * 1000.0) for a in acc),  # type: ignore[arg-type]
-                tuple(_clip_i16(gr * 1000.0) for gr in gyro),  # type: ignore[arg-type]
-                int(round((lat0 + gps_n / m_per_deg_lat) * 1e7)), int(round((lon0 + gps_e / m_per_deg_lon) * 1e7)),
-                int(round((alt0 - gps_d) * 1000.0)), int(round(math.hypot(gvn, gve) * 100.0)),
-                int(round(math.degrees(math.atan2(gve, gvn)) % 360.0 * 100.0)) % 36000,
-                tuple(servo), landed_state, int(round(volt * 1000.0)), int(round(current_a * 100.0)),
-                int(round(100.0 * (1.0 - frac))),
-            )
+            meas = Measurement(t, armed, jms, jus, mroll, mpitch, myaw, mp, mq, mr, mn, me, md, mvn, mve, mvd,
+                               acc, gps_n, gps_e, gps_d, gvn, gve, tuple(servo), landed_state, volt, current_a, frac)
             if k % 50 == 0:
                 avail = avail_1hz
             elif k % 10 == 0:
@@ -367,7 +342,7 @@ class SimulatedSession:
                     if thrust <= g:
                         continue
                     landed = False
-                x = rk4_step(f, x, h, da[0], da[1], da[2], da[3], wn, we, wd)
+                x = step(x, h, da[0], da[1], da[2], da[3], wn, we, wd)
                 if x[14] > 0.0:  # touchdown: skids on the ground, level, at rest
                     landed = True
                     x = [0.0] * 6 + [0.0, 0.0, x[8], 0.0, 0.0, 0.0, x[12], x[13], 0.0]
@@ -387,10 +362,6 @@ def _delayed(hist: deque[tuple[float, ...]], lag_ticks: float) -> tuple[float, .
 
 def _wrap(a: float) -> float:
     return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def _clip_i16(v: float) -> int:
-    return max(-32768, min(32767, int(round(v))))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -19,6 +19,7 @@ what rate (the simulated FC or :func:`hil_replay.sim.write_tlog`), packet framin
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -37,6 +38,11 @@ _SENSORS = (mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSO
             | mavlink.MAV_SYS_STATUS_SENSOR_GPS | mavlink.MAV_SYS_STATUS_SENSOR_RC_RECEIVER
             | mavlink.MAV_SYS_STATUS_AHRS | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY)
 _UINT32 = 1 << 32
+_MG = 1000.0 / 9.80665
+#: Field origin (ArduPilot SITL's CMAC): lat, lon (deg), altitude AMSL (m); EKF origin = first take-off point.
+FIELD_ORIGIN = (-35.363261, 149.165230, 584.0)
+_M_PER_DEG_LAT = 6378137.0 * math.pi / 180.0
+_M_PER_DEG_LON = _M_PER_DEG_LAT * math.cos(math.radians(FIELD_ORIGIN[0]))
 
 
 @dataclass(slots=True)
@@ -59,23 +65,17 @@ class Measurement:
     vx: float
     vy: float
     vz: float
-    lat_e7: int
-    lon_e7: int
-    alt_mm: int
-    rel_alt_mm: int
-    hdg_cdeg: int
-    acc_mg: tuple[int, int, int]
-    gyro_mrad: tuple[int, int, int]
-    gps_lat_e7: int
-    gps_lon_e7: int
-    gps_alt_mm: int
-    gps_vel_cm_s: int
-    gps_cog_cdeg: int
+    acc_m_s2: tuple[float, float, float]  # specific force, body axes
+    gps_n_m: float
+    gps_e_m: float
+    gps_d_m: float
+    gps_vn_m_s: float
+    gps_ve_m_s: float
     servo_pwm: tuple[int, ...]           # servo1..servo8
     landed_state: int
-    voltage_mv: int
-    current_ca: int
-    battery_pct: int
+    voltage_v: float
+    current_a: float
+    battery_frac: float
 
 
 class TelemetryFrame:
@@ -121,21 +121,28 @@ class TelemetryFrame:
             return mav.local_position_ned_encode(max(0, int(round(t * 1000.0)) + m.jitter_ms[1]), m.x, m.y, m.z,
                                                  m.vx, m.vy, m.vz)
         if name == "GLOBAL_POSITION_INT":
-            return mav.global_position_int_encode(max(0, int(round(t * 1000.0)) + m.jitter_ms[2]), m.lat_e7, m.lon_e7,
-                                                  m.alt_mm, m.rel_alt_mm, _i16(m.vx * 100.0), _i16(m.vy * 100.0),
-                                                  _i16(m.vz * 100.0), m.hdg_cdeg)
+            hdg = int(round(math.degrees(m.yaw) % 360.0 * 100.0)) % 36000
+            return mav.global_position_int_encode(max(0, int(round(t * 1000.0)) + m.jitter_ms[2]), _lat_e7(m.x),
+                                                  _lon_e7(m.y), int(round((FIELD_ORIGIN[2] - m.z) * 1000.0)),
+                                                  int(round(-m.z * 1000.0)), _i16(m.vx * 100.0), _i16(m.vy * 100.0),
+                                                  _i16(m.vz * 100.0), hdg)
         if name == "RAW_IMU":
-            a, g = m.acc_mg, m.gyro_mrad
-            return mav.raw_imu_encode(max(0, int(round(t * 1e6)) + m.jitter_us[1]), a[0], a[1], a[2], g[0], g[1], g[2],
+            a = m.acc_m_s2
+            return mav.raw_imu_encode(max(0, int(round(t * 1e6)) + m.jitter_us[1]), _i16(a[0] * _MG), _i16(a[1] * _MG),
+                                      _i16(a[2] * _MG), _i16(m.p * 1000.0), _i16(m.q * 1000.0), _i16(m.r * 1000.0),
                                       210, -35, 410)
         if name == "GPS_RAW_INT":
-            return mav.gps_raw_int_encode(max(0, int(round(t * 1e6)) + m.jitter_us[2]), 3, m.gps_lat_e7,
-                                          m.gps_lon_e7, m.gps_alt_mm, 70, 110, m.gps_vel_cm_s, m.gps_cog_cdeg, 16)
+            vel = int(round(math.hypot(m.gps_vn_m_s, m.gps_ve_m_s) * 100.0))
+            cog = int(round(math.degrees(math.atan2(m.gps_ve_m_s, m.gps_vn_m_s)) % 360.0 * 100.0)) % 36000
+            return mav.gps_raw_int_encode(max(0, int(round(t * 1e6)) + m.jitter_us[2]), 3, _lat_e7(m.gps_n_m),
+                                          _lon_e7(m.gps_e_m), int(round((FIELD_ORIGIN[2] - m.gps_d_m) * 1000.0)),
+                                          70, 110, vel, cog, 16)
         if name == "EXTENDED_SYS_STATE":
             return mav.extended_sys_state_encode(mavlink.MAV_VTOL_STATE_UNDEFINED, m.landed_state)
         if name == "SYS_STATUS":
-            return mav.sys_status_encode(_SENSORS, _SENSORS, _SENSORS, 310, m.voltage_mv, m.current_ca,
-                                         m.battery_pct, 0, 0, 0, 0, 0, 0)
+            return mav.sys_status_encode(_SENSORS, _SENSORS, _SENSORS, 310, int(round(m.voltage_v * 1000.0)),
+                                         int(round(m.current_a * 100.0)), int(round(100.0 * (1.0 - m.battery_frac))),
+                                         0, 0, 0, 0, 0, 0)
         if name == "HEARTBEAT":
             return heartbeat(mav, m.armed)
         raise KeyError(f"{name}: not a simulated message; allowed: {MESSAGE_NAMES}")
@@ -149,6 +156,14 @@ def heartbeat(mav: mavlink.MAVLink, armed: bool) -> Any:
         base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
     status = mavlink.MAV_STATE_ACTIVE if armed else mavlink.MAV_STATE_STANDBY
     return mav.heartbeat_encode(mavlink.MAV_TYPE_HELICOPTER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, base, 0, status)
+
+
+def _lat_e7(north_m: float) -> int:
+    return int(round((FIELD_ORIGIN[0] + north_m / _M_PER_DEG_LAT) * 1e7))
+
+
+def _lon_e7(east_m: float) -> int:
+    return int(round((FIELD_ORIGIN[1] + east_m / _M_PER_DEG_LON) * 1e7))
 
 
 def _i16(v: float) -> int:
