@@ -139,6 +139,9 @@ class ReplayReport:
     wall_s: float = 0.0
     log_s: float = 0.0
     finished: bool = False
+    # times the reader had not read everything when the port was unplugged or the replay ended
+    # (the packets reported as sent may then not all have reached it)
+    undrained: int = 0
 
     @property
     def real_time_factor(self) -> float:
@@ -284,7 +287,8 @@ class TlogPlayer:
                 if t >= unplug_at and not rep.unplugs_s:
                     self._flush(batch)
                     batch, batch_bytes = [], 0
-                    self.port.drain(self.drain_timeout_s)  # what was sent before the unplug arrives
+                    if not self.port.drain(self.drain_timeout_s):  # what was sent must arrive first
+                        rep.undrained += 1
                     self.port.unplug()
                     rep.unplugs_s.append((float(unplug_at), float(unplug_end)))
                     while i < n and replay_s[i] < unplug_end:
@@ -324,7 +328,8 @@ class TlogPlayer:
                         batch, batch_bytes = [], 0
                 i += 1
             self._flush(batch)
-            self.port.drain(self.drain_timeout_s)
+            if not self.port.drain(self.drain_timeout_s):
+                rep.undrained += 1
             rep.finished = i >= n
         finally:
             rep.wall_s = time.monotonic() - wall_start

@@ -249,18 +249,27 @@ class VirtualSerialPort:
         finally:
             os.close(fd)
 
-    def drain(self, timeout_s: float = 2.0, *, poll_s: float = 0.005) -> bool:
-        """Wait until the reader has read everything written (True) or ``timeout_s`` passes."""
+    def drain(self, timeout_s: float = 2.0, *, quiet_s: float = 0.03, poll_s: float = 0.005) -> bool:
+        """Wait until the reader has read everything written (True) or ``timeout_s`` passes.
+
+        The kernel moves written bytes to the reader's queue from a work queue, so an empty queue
+        must stay empty for ``quiet_s`` before the bytes count as read.
+        """
         deadline = time.monotonic() + timeout_s
-        zeros = 0
-        while zeros < 2:  # twice: bytes may still be in flight into the line discipline
+        empty_since: float | None = None
+        while True:
             if not self.reader_attached():
                 return False
-            zeros = zeros + 1 if self.unread_bytes() == 0 else 0
-            if time.monotonic() >= deadline:
+            now = time.monotonic()
+            if self.unread_bytes() == 0:
+                empty_since = now if empty_since is None else empty_since
+                if now - empty_since >= quiet_s:
+                    return True
+            else:
+                empty_since = None
+            if now >= deadline:
                 return False
             time.sleep(poll_s)
-        return True
 
     # ---------------------------------------------------------------- writing
 

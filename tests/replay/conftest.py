@@ -87,7 +87,7 @@ class GcsReader:
     def _run(self) -> None:
         while not self._stop.is_set():
             try:
-                data = self.ser.read(4096)
+                data = self.ser.read(max(1, self.ser.in_waiting))
             except (serial.SerialException, OSError):
                 return
             if data:
@@ -169,7 +169,9 @@ class RawReconnectingReader:
             self.connections += 1
             try:
                 while not self._stop.is_set():
-                    data = ser.read(65536)
+                    # read what is there (at least 1 byte): pyserial's read(n) keeps what it has
+                    # gathered while waiting for more and loses it if the port vanishes meanwhile
+                    data = ser.read(max(1, ser.in_waiting))
                     if data:
                         self.chunks.append((time.monotonic(), data))
             except (serial.SerialException, OSError):

@@ -42,6 +42,7 @@ def test_corrupted_unplugged_replay_into_record(tmp_path):
                 proc.communicate()
     assert proc.returncode == 0, stderr
     assert report.finished and len(report.unplugged) > 500 and len(report.corrupted) > 100
+    assert report.undrained == 0
 
     summary = json.loads(stdout.strip().splitlines()[-1])
     recorded = [p.data for p in read_tlog_packets(summary["session_tlog"])]
@@ -81,7 +82,7 @@ def test_replay_command_into_record_command(tmp_path):
                 p.communicate()
     assert record.returncode == 0, stderr
     report = json.loads((tmp_path / "report.json").read_text())
-    assert report["dropped"] and report["corrupted"] and report["unplugged"]
+    assert report["dropped"] and report["corrupted"] and report["unplugged"] and report["undrained"] == 0
     summary = json.loads(stdout.strip().splitlines()[-1])
     from_fc = [p.data for p in read_tlog_packets(summary["session_tlog"]) if _src(p.data) == (1, 1)]
     assert from_fc == [packets[i].data for i in report["intact"]]

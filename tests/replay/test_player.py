@@ -32,7 +32,7 @@ def test_speed_10x_keeps_order_and_spacing(tmp_path):
     packets = make_tlog(tmp_path / "a.tlog", duration_s=2.0)
     player, report, reader = _play(tmp_path / "a.tlog", tmp_path, speed=10.0)
     assert reader.data == b"".join(packets)                  # every byte, in order
-    assert report.intact == list(range(len(packets))) and report.finished
+    assert report.intact == list(range(len(packets))) and report.finished and report.undrained == 0
     # a 2 s log at 10x cannot finish in less than ~0.2 s, and arrives spread over that time
     assert report.wall_s >= 0.9 * player.replay_s[-1] / 10
     t = np.array([tc for tc, _ in reader.chunks])
@@ -87,7 +87,7 @@ def test_unplug_gap_and_replug_at_same_path(tmp_path):
     assert report.intact == [i for i in range(len(packets)) if i not in set(in_gap)]
     assert reader.connections == 2                      # the reader had to reopen the same path
     assert reader.data == b"".join(packets[i] for i in report.intact)
-    assert report.unplugs_s == [(1.0, 2.2)]
+    assert report.unplugs_s == [(1.0, 2.2)] and report.undrained == 0
 
 
 def test_bad_files(tmp_path):
