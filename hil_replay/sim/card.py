@@ -212,7 +212,7 @@ def make_card(ac: Aircraft, rng: np.random.Generator, *, duration_s: float | Non
                            ("hover", "hold", None, float(rng.uniform(2.0, 4.0)), {})])
         for name, direction in (("leg_forward", 0.0),
                                 ("leg_sideways", math.copysign(math.pi / 2, rng.uniform(-1, 1)))):
-            leg = [(name, "leg", None, float(rng.uniform(9.0, 13.0)),
+            leg: list[tuple[str, str, str | None, float, dict[str, float]]] = [(name, "leg", None, float(rng.uniform(9.0, 13.0)),
                     {"amplitude": float(rng.uniform(3.0, 6.0)), "direction_rad": direction}),
                    ("hover", "hold", None, float(rng.uniform(2.0, 4.0)), {})]
             blocks.insert(int(rng.integers(0, len(blocks) + 1)), leg)

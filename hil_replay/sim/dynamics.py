@@ -34,7 +34,7 @@ Leaves to others: inputs (pilot, input effects), ground contact (session), senso
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 from hil_replay.sim.aircraft import Aircraft
 
@@ -174,17 +174,17 @@ def rk4_step(f: Deriv, x: list[float], dt: float, dl: float, dn: float, dc: floa
     return [a + h6 * (b1 + 2.0 * (b2 + b3) + b4) for a, b1, b2, b3, b4 in zip(x, k1, k2, k3, k4, strict=False)]
 
 
-def eq8_matrices(params: dict[str, float] | object) -> tuple[list[list[float]], list[list[float]],
-                                                              list[list[float]], list[list[float]]]:
+def eq8_matrices(params: Mapping[str, float]) -> tuple[list[list[float]], list[list[float]],
+                                                       list[list[float]], list[list[float]]]:
     """The paper's eq.-8 matrices as nested lists (the pilot designs its loops on them).
 
     Returns ``A_hor (8x8), B_hor (8x2), A_ver (3x3), B_ver (3x2)``; states ``u v theta phi q p a_s b_s``
     and ``w r r_fb``.
     """
-    P = {k: float(v) for k, v in dict(params).items()}  # type: ignore[call-overload]
+    P = {k: float(v) for k, v in params.items()}
     g = G_M_S2
     it = P["inv_tau_s"]
-    Ah = [
+    Ah: list[list[float]] = [
         [P["X_u"], 0, -g, 0, 0, 0, -g, 0],
         [0, P["Y_v"], 0, g, 0, 0, 0, g],
         [0, 0, 0, 0, 1, 0, 0, 0],
@@ -194,10 +194,10 @@ def eq8_matrices(params: dict[str, float] | object) -> tuple[list[list[float]], 
         [0, 0, 0, 0, -1, P["k1"], -it, 0],
         [0, 0, 0, 0, -P["k1"], -1, 0, -it],
     ]
-    Bh = [[P["X_lat"], 0], [0, P["Y_lon"]], [0, 0], [0, 0], [P["M_lat"], P["M_lon"]], [P["L_lat"], P["L_lon"]],
+    Bh: list[list[float]] = [[P["X_lat"], 0], [0, P["Y_lon"]], [0, 0], [0, 0], [P["M_lat"], P["M_lon"]], [P["L_lat"], P["L_lon"]],
           [P["A_lat"], 0], [0, P["B_lon"]]]
-    Av = [[P["Z_w"], P["Z_r"], 0], [P["N_w"], P["N_r"], -P["N_ped"]], [0, P["k_r"], 2.0 * P["N_r"]]]
-    Bv = [[P["Z_col"], P["Z_ped"]], [P["N_col"], P["N_ped"]], [0, 0]]
+    Av: list[list[float]] = [[P["Z_w"], P["Z_r"], 0], [P["N_w"], P["N_r"], -P["N_ped"]], [0, P["k_r"], 2.0 * P["N_r"]]]
+    Bv: list[list[float]] = [[P["Z_col"], P["Z_ped"]], [P["N_col"], P["N_ped"]], [0, 0]]
     return ([[float(a) for a in row] for row in Ah], [[float(a) for a in row] for row in Bh],
             [[float(a) for a in row] for row in Av], [[float(a) for a in row] for row in Bv])
 

@@ -20,6 +20,7 @@ what rate (the simulated FC or :func:`hil_replay.sim.write_tlog`), packet framin
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -96,7 +97,7 @@ class TelemetryFrame:
         self.t_boot_s = m.t_boot_s
         self.armed = m.armed
         self.flight_index = flight_index
-        self.available = available
+        self.available: Sequence[str] = available
         self.m = m
         self.state = state
         self.command = command

@@ -171,3 +171,16 @@ def test_frames_interface_and_pause_between_flights() -> None:
     assert count["SYS_STATUS"] == pytest.approx(n / 50, abs=2)
     with pytest.raises(KeyError, match="RC_CHANNELS"):
         fr.build("RC_CHANNELS", mav)
+
+
+def test_simulator_is_independent_of_the_estimators(tmp_path) -> None:
+    """hil_replay.sim is the truth: flying and writing a log must not load groundstation.sysid/gap."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from hil_replay.sim import write_tlog; "
+            f"write_tlog({str(tmp_path / 'i.tlog')!r}, seed=0, flight_duration_s=30); "
+            "bad = [m for m in sys.modules if m.startswith(('groundstation.sysid', 'groundstation.gap'))]; "
+            "print(bad); sys.exit(1 if bad else 0)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stdout + res.stderr
