@@ -114,12 +114,14 @@ class Card:
             exc[INPUTS.index(s.axis or "lat")] = s.amplitude * _chirp(tt, dur, s.f0_hz, s.f1_hz)
         elif s.kind == "doublet":
             exc[INPUTS.index(s.axis or "lat")] = s.amplitude * _3211(tt, s.pulse_s)
+        elif s.kind == "takeoff" and dur > 0:  # a decisive lift-off: collective feed-forward, washed out
+            exc[2] = s.amplitude * max(0.0, 1.0 - tt / (0.6 * dur))
         mode = "ground" if s.kind == "ground" else "fly"
         return mode, s, ref, (exc[0], exc[1], exc[2], exc[3])
 
     def to_json(self, t0_fc_s: float) -> list[dict[str, object]]:
         return [{"name": s.name, "start_fc_s": round(t0_fc_s + s.start_s, 6), "end_fc_s": round(t0_fc_s + s.end_s, 6),
-                 "axis": s.axis} for s in self.segments]
+                 "axis": s.axis, "height_m": round(max(s.height_to_m, 0.0), 3)} for s in self.segments]
 
 
 def _chirp(t: float, dur: float, f0: float, f1: float) -> float:
@@ -234,7 +236,8 @@ def make_card(ac: Aircraft, rng: np.random.Generator, *, duration_s: float | Non
 
     for name, kind, dur in fixed:
         if kind == "takeoff":
-            add(name, kind, dur, height_from_m=0.0, height_to_m=h_ige)
+            ff = float(np.clip(0.8 / max(abs(float(ac.parameters["Z_col"])), 1e-3), 0.005, 0.2))  # ~0.8 m/s^2
+            add(name, kind, dur, height_from_m=0.0, height_to_m=h_ige, amplitude=-ff if ac.parameters["Z_col"] > 0 else ff)
         elif kind == "climb":
             add(name, kind, dur, height_from_m=h_ige, height_to_m=h_alt)
         else:

@@ -118,7 +118,9 @@ class Pilot:
         xe = cps * dn + sps * de
         ye = -sps * dn + cps * de
         eh = (x[0] - u_ref, x[1] - v_ref, x[7], x[6], x[4], x[3], x[9], x[10], xe, ye)
-        ev = (x[2] - vd, x[5], x[11], x[14] - d_ref, wrap_pi(psi - psi_ref))
+        # a pilot turns gently: heading error and height error felt at most 0.5 rad / 1.5 m
+        ev = (x[2] - vd, x[5], x[11], min(1.5, max(-1.5, x[14] - d_ref)),
+              min(0.5, max(-0.5, wrap_pi(psi - psi_ref))))
         Kh, Kv = self._Kh, self._Kv
         rem = self.remnant()
         return [

@@ -101,12 +101,17 @@ class SimulatedSession:
         self.cards: list[Card] = []
         self.arm_times_s: list[float] = []
         t = float(pre_arm_s)
+        heading = None
         for _ in range(self.n_flights):
-            card = make_card(self.aircraft, plan, duration_s=flight_duration_s)
+            # later flights take off facing about where the last one landed
+            card = make_card(self.aircraft, plan, duration_s=flight_duration_s,
+                             heading_rad=None if heading is None else heading + float(plan.uniform(-0.15, 0.15)))
+            heading = card.heading_rad
             self.cards.append(card)
             self.arm_times_s.append(round(t, 6))
             t += card.duration_s + self.pause_s
         self.end_s = self.arm_times_s[-1] + self.cards[-1].duration_s + float(post_s)
+        self.in_air_fc_s: list[list[float | None]] = []
 
     # ------------------------------------------------------------------------------------------
     @property
@@ -204,8 +209,11 @@ class SimulatedSession:
         x = [0.0] * 15
         x[8] = self.cards[0].heading_rad
         landed = True
+        air: list[list[float | None]] = []
+        self.in_air_fc_s = air  # filled while flying: [[liftoff, touchdown], ...] (FC s)
         used_mah = 0.0
         flight_k = -1
+        off_n = off_e = 0.0
         n_ticks = int(round(self.end_s * FRAME_RATE_HZ)) + 1
         arm = self.arm_times_s
         ends = [a + c.duration_s for a, c in zip(arm, self.cards, strict=False)]
@@ -222,11 +230,13 @@ class SimulatedSession:
             armed = fi is not None
             seg_kind = "off"
             if fi is not None:
-                if fi != flight_k:  # new flight: fresh battery, pilot takes over
+                if fi != flight_k:  # new flight: fresh battery, the card starts where the aircraft stands
                     flight_k = fi
                     used_mah = 0.0
+                    off_n, off_e = x[12], x[13]
                 card = self.cards[fi]
                 mode, seg, ref, exc = card.at(t - arm[fi])
+                ref = (ref[0] + off_n, ref[1] + off_e) + ref[2:]
                 seg_kind = seg.kind
                 if mode == "fly":
                     cmd = pilot.command(x, ref)
@@ -342,9 +352,11 @@ class SimulatedSession:
                     if thrust <= g:
                         continue
                     landed = False
+                    air.append([round(t + (sub + 1) * h, 4), None])
                 x = step(x, h, da[0], da[1], da[2], da[3], wn, we, wd)
                 if x[14] > 0.0:  # touchdown: skids on the ground, level, at rest
                     landed = True
+                    air[-1][1] = round(t + (sub + 1) * h, 4)
                     x = [0.0] * 6 + [0.0, 0.0, x[8], 0.0, 0.0, 0.0, x[12], x[13], 0.0]
             if gust is not None:
                 gust.step()
@@ -428,6 +440,8 @@ def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
                 tw.write(buf, t_host)
                 t_last = t_host
                 written += 1
+    for fl in truth["flights"]:
+        fl["in_air_fc_s"] = [iv for iv in sess.in_air_fc_s if fl["start_fc_s"] <= (iv[0] or 0) < fl["end_fc_s"]]
     truth["packets_written"] = written
     truth["packets_lost"] = lost
     truth_path = path.with_suffix(".truth.json")

@@ -72,6 +72,14 @@ def test_truth_sidecar(two_flights) -> None:
     assert any(n.startswith("sweep_") for n in names) and any(n.startswith("doublet_") for n in names)
     for s in f0["segments"]:
         assert f0["start_fc_s"] <= s["start_fc_s"] < s["end_fc_s"] <= f0["end_fc_s"] + 1e-6
+    # every flight (also the second, which starts where the first landed) is one clean lift-off..touchdown
+    for f in on_disk["flights"]:
+        assert len(f["in_air_fc_s"]) == 1
+        (up, down), = f["in_air_fc_s"]
+        takeoff = next(s for s in f["segments"] if s["name"] == "takeoff")
+        landing = next(s for s in f["segments"] if s["name"] == "landing")
+        assert takeoff["start_fc_s"] <= up < takeoff["end_fc_s"]
+        assert landing["start_fc_s"] <= down < landing["end_fc_s"]
 
 
 def test_pymavlink_parses_the_log(two_flights) -> None:
