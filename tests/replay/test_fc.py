@@ -20,6 +20,14 @@ def _set_interval(gcs: GcsReader, msg_id: int, interval_us: float) -> None:
                                          msg_id, interval_us, 0, 0, 0, 0, 0))
 
 
+def _wait_fc_time(fc: SimulatedFCThread, t_s: float, timeout_s: float = 30.0) -> None:
+    """Wait until the FC clock reaches ``t_s`` (tests wait on FC time, not wall time)."""
+    deadline = time.monotonic() + timeout_s
+    while fc.stats.last_t_boot_s < t_s:
+        assert time.monotonic() < deadline, "simulated FC stalled"
+        time.sleep(0.01)
+
+
 def _fc_times(msgs, kind: str) -> np.ndarray:
     return np.array([m.time_boot_ms / 1000 for m in msgs if m.get_type() == kind])
 
@@ -30,7 +38,7 @@ def test_heartbeats_only_until_asked_then_requested_rates():
         gcs = GcsReader(fc.port_path)
         try:
             gcs.wait_for(lambda m: m.get_type() == "HEARTBEAT")
-            time.sleep(0.3)  # 3 s of FC time with nobody asking
+            _wait_fc_time(fc, fc.stats.last_t_boot_s + 3.0)  # 3 s of FC time with nobody asking
             before = gcs.snapshot()
             assert {m.get_type() for m in before} == {"HEARTBEAT"}
             hb = before[0]
@@ -50,7 +58,7 @@ def test_heartbeats_only_until_asked_then_requested_rates():
                 (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_ACCEPTED),
                 (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_ACCEPTED),
                 (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_DENIED)]
-            time.sleep(2.5)  # 25 s of FC time
+            _wait_fc_time(fc, fc.stats.last_t_boot_s + 25.0)
             msgs = gcs.snapshot()[n_before:]
         finally:
             gcs.close()
@@ -92,7 +100,7 @@ def test_request_data_stream_fallback_when_interval_refused():
             gcs.send(gcs.out.request_data_stream_encode(1, 1, mavlink.MAV_DATA_STREAM_EXTRA1, 25, 1))
             gcs.send(gcs.out.request_data_stream_encode(1, 1, mavlink.MAV_DATA_STREAM_EXTENDED_STATUS, 2, 1))
             gcs.wait_for(lambda m: m.get_type() == "ATTITUDE")
-            time.sleep(2.0)
+            _wait_fc_time(fc, fc.stats.last_t_boot_s + 20.0)
             gcs.send(gcs.out.request_data_stream_encode(1, 1, mavlink.MAV_DATA_STREAM_EXTRA1, 0, 0))
 
             def quiet_after_last_attitude() -> int:
