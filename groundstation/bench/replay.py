@@ -212,7 +212,7 @@ def _fc_run(flight_s: float) -> tuple[float, int, int]:
                 raise OSError(f"{fc.port_path}: groundstation record did not open the port")
             t0 = time.monotonic()
             fc.start()
-            end_s = fc.fc.session.end_s
+            end_s = float(fc.fc.session.end_s)  # type: ignore[attr-defined]  # a SimulatedSession
             while fc.stats.last_t_boot_s < end_s - 0.05 and fc.is_alive():
                 time.sleep(0.01)
             wall = time.monotonic() - t0
