@@ -208,7 +208,7 @@ def make_card(ac: Aircraft, rng: np.random.Generator, *, duration_s: float | Non
                      {"amplitude": amp[a] * float(rng.uniform(0.75, 1.25)), "f0_hz": 0.3,
                       "f1_hz": float(rng.uniform(6.0, 8.0))})
             doublet = ("doublet_" + a, "doublet", a, 7 * pulse + 2.5,
-                       {"amplitude": 1.3 * amp[a] * float(rng.uniform(0.75, 1.25)), "pulse_s": pulse})
+                       {"amplitude": 1.0 * amp[a] * float(rng.uniform(0.75, 1.25)), "pulse_s": pulse})
             pair = [sweep, doublet] if rng.random() < 0.7 else [doublet, sweep]
             blocks.append([pair[0], ("hover", "hold", None, float(rng.uniform(2.0, 4.0)), {}), pair[1],
                            ("hover", "hold", None, float(rng.uniform(2.0, 4.0)), {})])

@@ -40,6 +40,7 @@ class PilotConfig:
     remnant_units: tuple[float, float] = (0.004, 0.009)
     remnant_tau_s: tuple[float, float] = (0.3, 0.8)
     gain_scale: tuple[float, float] = (0.8, 1.2)
+    excited_axis_gain: float = 0.3  # feedback left on the channel the card is exciting
 
 
 def _lqr(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -89,6 +90,7 @@ class Pilot:
         self._phi = np.exp(-dt_s / tau).tolist()
         self._drive = [s * math.sqrt(1 - a * a) for s, a in zip(self.remnant_sigma, self._phi, strict=False)]
         self._rem = [0.0, 0.0, 0.0, 0.0]
+        self._loose = float(c.excited_axis_gain)
         self._rng = rng
         self._buf = np.empty(0)
         self._k = 0
@@ -106,8 +108,12 @@ class Pilot:
         self._rem = [a * r + d * e for a, r, d, e in zip(self._phi, self._rem, self._drive, z, strict=False)]
         return self._rem
 
-    def command(self, x: list[float], ref: tuple[float, ...]) -> list[float]:
-        """Normalised ``[lat, lon, col, ped]`` from the state and ``ref = (n, e, d, psi, vn, ve, vd)``."""
+    def command(self, x: list[float], ref: tuple[float, ...], excited: int | None = None) -> list[float]:
+        """Normalised ``[lat, lon, col, ped]`` from the state and ``ref = (n, e, d, psi, vn, ve, vd)``.
+
+        ``excited`` is the input channel (0-3) the card is exciting: the pilot only loosely holds it
+        (feedback scaled by ``excited_axis_gain``) instead of fighting the sweep or doublet.
+        """
         n_ref, e_ref, d_ref, psi_ref, vn, ve, vd = ref
         psi = x[8]
         cps, sps = math.cos(psi), math.sin(psi)
@@ -123,9 +129,12 @@ class Pilot:
               min(0.5, max(-0.5, wrap_pi(psi - psi_ref))))
         Kh, Kv = self._Kh, self._Kv
         rem = self.remnant()
-        return [
-            -sum(k * e for k, e in zip(Kh[0], eh, strict=False)) + rem[0],
-            -sum(k * e for k, e in zip(Kh[1], eh, strict=False)) + rem[1],
-            -sum(k * e for k, e in zip(Kv[0], ev, strict=False)) + rem[2],
-            -sum(k * e for k, e in zip(Kv[1], ev, strict=False)) + rem[3],
+        fb = [
+            -sum(k * e for k, e in zip(Kh[0], eh, strict=False)),
+            -sum(k * e for k, e in zip(Kh[1], eh, strict=False)),
+            -sum(k * e for k, e in zip(Kv[0], ev, strict=False)),
+            -sum(k * e for k, e in zip(Kv[1], ev, strict=False)),
         ]
+        if excited is not None:
+            fb[excited] *= self._loose
+        return [f + r for f, r in zip(fb, rem, strict=False)]

@@ -239,7 +239,8 @@ class SimulatedSession:
                 ref = (ref[0] + off_n, ref[1] + off_e) + ref[2:]
                 seg_kind = seg.kind
                 if mode == "fly":
-                    cmd = pilot.command(x, ref)
+                    excited = INPUTS.index(seg.axis) if seg.axis is not None else None
+                    cmd = pilot.command(x, ref, excited)
                     cmd = [c + e for c, e in zip(cmd, exc, strict=False)]
                     throttle = 1850
                 else:
