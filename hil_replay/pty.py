@@ -36,6 +36,7 @@ import tempfile
 import termios
 import time
 import tty
+import weakref
 from pathlib import Path
 
 __all__ = ["PortUnplugged", "VirtualSerialPort"]
@@ -72,6 +73,8 @@ class VirtualSerialPort:
         self._own_dir: Path | None = None
         if link_path is None:
             self._own_dir = Path(tempfile.mkdtemp(prefix="gs-replay-"))
+            # removed at close(), or when the object is collected / the interpreter exits
+            self._cleanup = weakref.finalize(self, shutil.rmtree, str(self._own_dir), True)
             path = self._own_dir / "ttyFC"
         else:
             path = Path(link_path)
