@@ -116,8 +116,7 @@ def read_tlog_packets(path: str | os.PathLike[str]) -> list[TlogPacket]:
                 out.append(TlogPacket(t_us, pkt))
                 i += 8 + n
                 continue
-        elif n is not None and i + 8 + n > n_blob and out:
-            break  # truncated last record
+        # else: garbage, or a truncated last record (scanning on finds nothing more there)
         i += 1
     if not out:
         raise ValueError(f"{p}: no MAVLink packets found (not a .tlog file?)")

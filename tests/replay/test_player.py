@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from hil_replay.player import TlogPlayer, read_tlog_packets
 from hil_replay.pty import VirtualSerialPort
@@ -123,3 +125,41 @@ def test_replay_clock_clamps_backward_steps_and_long_gaps(tmp_path):
         assert TlogPlayer(pk, port, max_gap_s=2.0).replay_s.tolist() == pytest.approx([0, 0.1, 0.1, 2.1, 2.3])
         with pytest.raises(ValueError, match="max_gap_s"):
             TlogPlayer(pk, port, max_gap_s=0)
+
+
+@settings(derandomize=True, max_examples=40, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(garbage=st.lists(st.tuples(st.integers(0, 200), st.binary(min_size=1, max_size=40)), max_size=8),
+       cut=st.integers(0, 30))
+def test_splitter_recovers_every_record_around_garbage(tmp_path, garbage, cut):
+    """Garbage anywhere between records (including bytes that look like MAVLink) and a cut end:
+    every whole record is recovered, in order."""
+    path = tmp_path / "g.tlog"
+    if not path.exists():
+        make_tlog(path, duration_s=1.0)
+    blob = path.read_bytes()
+    records = []
+    i = 0
+    while i < len(blob):
+        n = 8 + (12 + blob[i + 9] if blob[i + 8] == 0xFD else 8 + blob[i + 9])
+        records.append(blob[i:i + n])
+        i += n
+    inserts = {k % len(records): g for k, g in garbage}
+    out = b"".join(inserts.get(k, b"") + r for k, r in enumerate(records))
+    last_whole = len(records)
+    if cut:
+        out = out[:-cut]
+        last_whole -= 1
+    (tmp_path / "damaged.tlog").write_bytes(out)
+    got = [p.data for p in read_tlog_packets(tmp_path / "damaged.tlog")]
+    assert got == [r[8:] for r in records[:last_whole]]
+
+
+def test_fake_header_near_the_end_does_not_hide_the_last_record(tmp_path):
+    packets = make_tlog(tmp_path / "a.tlog", duration_s=0.2)
+    blob = (tmp_path / "a.tlog").read_bytes()
+    last = 8 + len(packets[-1])
+    # junk whose 9th byte is a MAVLink 2 magic announcing a 255-byte payload that runs past EOF
+    junk = b"\x00" * 8 + b"\xfd\xff\x00"
+    (tmp_path / "b.tlog").write_bytes(blob[:-last] + junk + blob[-last:])
+    assert [p.data for p in read_tlog_packets(tmp_path / "b.tlog")] == packets
