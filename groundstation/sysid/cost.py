@@ -14,8 +14,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from groundstation.sysid.model import N_PARAMS
+from groundstation.sysid.model import N_PARAMS, PARAM_INDEX
 from groundstation.sysid.simulate import WindowSimulator, objective_from_sse
+
+#: B-matrix parameters: name -> (subsystem, state, input within the subsystem). N_ped is not here:
+#: it is also in A (N_fb = -N_ped), so the output is not linear in it.
+LINEAR_B: dict[str, tuple[int, int, int]] = {
+    "X_lat": (0, 0, 0), "Y_lon": (0, 1, 1), "M_lat": (0, 4, 0), "M_lon": (0, 4, 1),
+    "L_lat": (0, 5, 0), "L_lon": (0, 5, 1), "A_lat": (0, 6, 0), "B_lon": (0, 7, 1),
+    "Z_col": (1, 0, 0), "Z_ped": (1, 0, 1), "N_col": (1, 1, 0),
+}
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,6 +71,11 @@ def make_windows(segments: list, dt_s: float, window_s: float, *, raw: bool = Fa
     return Windows(np.stack(ins), np.stack(outs), np.stack(av), np.array(seg), np.array(t0), float(dt_s))
 
 
+def subset_windows(win: Windows, idx: np.ndarray) -> Windows:
+    """The windows ``idx`` of ``win``."""
+    return Windows(win.inputs[idx], win.outputs[idx], win.available[idx], win.segment[idx], win.t0_s[idx], win.dt_s)
+
+
 class WindowedCost:
     """Vectorised cost over free parameters.
 
@@ -72,17 +85,33 @@ class WindowedCost:
     free : (31,) bool, parameters searched
     theta_fixed : (31,) values of the parameters that are not free
     estimate_all_initial, subsystems : see WindowSimulator
+    varpro : the free B-matrix parameters (:data:`LINEAR_B`) are not searched but solved by least
+        squares inside every evaluation (variable projection); ``x`` then holds only the other free
+        parameters and :meth:`complete` returns full vectors with the solved B entries
     """
 
     def __init__(self, windows: Windows, free: np.ndarray, theta_fixed: np.ndarray, *,
-                 estimate_all_initial: bool = False, subsystems: tuple[int, ...] = (0, 1)) -> None:
+                 estimate_all_initial: bool = False, subsystems: tuple[int, ...] = (0, 1),
+                 varpro: bool = False) -> None:
         self.windows = windows
-        self.free = np.asarray(free, dtype=bool)
+        free = np.asarray(free, dtype=bool)
         self.theta_fixed = np.asarray(theta_fixed, dtype=float).copy()
-        if self.free.shape != (N_PARAMS,) or self.theta_fixed.shape != (N_PARAMS,):
+        if free.shape != (N_PARAMS,) or self.theta_fixed.shape != (N_PARAMS,):
             raise ValueError("free and theta_fixed must have 31 entries")
+        self.linear_idx: dict[int, list[int]] = {}
+        linear: dict[int, tuple[tuple[int, int], ...]] = {}
+        self.searched = free.copy()
+        if varpro:
+            for name, (sub, st, inp) in LINEAR_B.items():
+                i = PARAM_INDEX[name]
+                if free[i] and sub in subsystems:
+                    self.linear_idx.setdefault(sub, []).append(i)
+                    linear[sub] = linear.get(sub, ()) + ((st, inp),)
+                    self.searched[i] = False
+                    self.theta_fixed[i] = 0.0
+        self.free = self.searched
         self.sim = WindowSimulator(windows.inputs, windows.outputs, windows.dt_s, windows.available,
-                                   estimate_all_initial=estimate_all_initial, subsystems=subsystems)
+                                   estimate_all_initial=estimate_all_initial, subsystems=subsystems, linear=linear)
         self.nfev = 0
         self.used = self.sim.mask.any(axis=0)  # (8,) channels in the cost
 
@@ -95,6 +124,15 @@ class WindowedCost:
         xx = np.atleast_2d(np.asarray(x, dtype=float))
         th = np.broadcast_to(self.theta_fixed, (xx.shape[0], N_PARAMS)).copy()
         th[:, self.free] = xx
+        return th
+
+    def complete(self, x: np.ndarray) -> np.ndarray:
+        """Full parameter vectors (C, 31) including the least-squares B entries (varpro)."""
+        th = self.full(x)
+        if self.linear_idx:
+            beta = self.sim.solve_linear(th)
+            for sub, idx in self.linear_idx.items():
+                th[:, idx] = beta[sub]
         return th
 
     def __call__(self, x: np.ndarray) -> np.ndarray:

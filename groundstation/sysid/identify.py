@@ -8,7 +8,10 @@
    ``fit["fixed"]`` (std ``None``) - e.g. the real TREX 550 log has no lateral cyclic and no
    usable velocities after 215 s;
 3. search the free parameters inside ``bounds`` with the chosen optimiser on the paper's eq. 11
-   cost (vectorised over the colony), the two decoupled subsystems (horizontal 22 parameters,
+   cost (vectorised over the colony) on short windows (``search_window_s``, every
+   ``search_stride``-th), with the B-matrix parameters solved by least squares inside the cost
+   (variable projection: for a given A the output is linear in B and the initial states), which
+   removes the sign/scale local minima of the input gains from the search; the two decoupled subsystems (horizontal 22 parameters,
    vertical/yaw 9) one after the other as in the paper - eq. 11 is a sum over channels, so the
    cost separates exactly and each search is in fewer dimensions;
 4. refine with least squares from the best solution (:mod:`groundstation.sysid.refine`) and
@@ -27,7 +30,7 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from groundstation.sysid.cost import WindowedCost, make_windows
+from groundstation.sysid.cost import WindowedCost, make_windows, subset_windows
 from groundstation.sysid.model import (
     HOR_PARAMS,
     N_PARAMS,
@@ -61,14 +64,20 @@ class IdentifyConfig:
     """Identification settings (``[identify]`` TOML table). ``maxiter`` None = algorithm default."""
 
     window_s: float = 3.0
+    search_window_s: float = 1.0
+    search_stride: int = 3
+    refine_starts: int = 9
+    screen_max_nfev: int = 5
     maxiter: int | None = None
     maxfev: int | None = None
     refine_passes: int = 2
     refine_max_nfev: int = 60
     estimate_all_initial: bool = True
+    varpro: bool = True
+    vertical_iter_factor: float = 2.0
 
 
-DEFAULT_MAXITER = {"cabc": 150, "abc": 200, "ga": 200, "de": 130}
+DEFAULT_MAXITER = {"cabc": 50, "abc": 75, "ga": 75, "de": 50}
 
 
 def free_mask(prepared: Any) -> tuple[np.ndarray, list[str]]:
@@ -90,6 +99,27 @@ def free_mask(prepared: Any) -> tuple[np.ndarray, list[str]]:
     return free, reasons
 
 
+def _starts(opt: Any, k: int, span: np.ndarray, min_dist: float = 0.2) -> list[np.ndarray]:
+    """Up to k good and mutually distinct points of everything the search evaluated, best first.
+
+    Distinct: normalised distance ``||(x - y) / span|| / sqrt(D)`` of at least ``min_dist``.
+    """
+    X = getattr(opt, "archive_x", None)
+    if X is None:
+        return [np.asarray(opt.x, dtype=float)]
+    f = opt.archive_f
+    order = np.argsort(f)
+    D = X.shape[1]
+    out: list[np.ndarray] = []
+    for i in order:
+        if len(out) >= k or not np.isfinite(f[i]):
+            break
+        x = X[i]
+        if all(np.linalg.norm((x - o) / span) / np.sqrt(D) >= min_dist for o in out):
+            out.append(np.asarray(x, dtype=float))
+    return out or [np.asarray(opt.x, dtype=float)]
+
+
 def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: bool = True,
              maxiter: int | None = None, callback: Callable[[dict], Any] | None = None,
              bounds: dict[str, tuple[float, float]] | None = None,
@@ -105,13 +135,16 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
     rng = np.random.default_rng(seed)
     with threadpool_limits(1):
         win = make_windows(prepared.segments, prepared.dt_s, cfg.window_s)
+        win_s = make_windows(prepared.segments, prepared.dt_s, cfg.search_window_s)
+        if cfg.search_stride > 1 and win_s.count >= 2 * cfg.search_stride:
+            win_s = subset_windows(win_s, np.arange(0, win_s.count, cfg.search_stride))
         free, reasons = free_mask(prepared)
         theta = np.clip(np.zeros(N_PARAMS), b_all[:, 0], b_all[:, 1])
         std_all = np.full(N_PARAMS, np.nan)
         sigma_all = np.full(8, np.nan)
         F_total, F_search, nfev, nit = 0.0, 0.0, 0, 0
-        refined = True
         histories: dict[str, list[float]] = {}
+        search_by_sub: dict[str, float] = {}
         histories_nfev: dict[str, list[int]] = {}
         for sub, sub_name, sub_params in ((0, "horizontal", HOR_PARAMS), (1, "vertical", VER_PARAMS)):
             idx = np.array([PARAM_INDEX[p] for p in sub_params])
@@ -119,6 +152,10 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
             sub_free[idx] = free[idx]
             cost = WindowedCost(win, sub_free, theta, estimate_all_initial=cfg.estimate_all_initial,
                                 subsystems=(sub,))
+            cost_s = WindowedCost(win_s, sub_free, theta, estimate_all_initial=cfg.estimate_all_initial,
+                                  subsystems=(sub,))
+            cost_v = WindowedCost(win_s, sub_free, theta, estimate_all_initial=cfg.estimate_all_initial,
+                                  subsystems=(sub,), varpro=cfg.varpro)
             if not cost.used.any():
                 reasons.append(f"{sub_name} subsystem: no measured output, not identified")
                 continue
@@ -130,26 +167,54 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
                                           "fun": float(res.fun), "nfev": res.nfev}))
                 return False
 
-            opt = ALGORITHMS[algorithm](cost, bfree, rng=rng, maxiter=iters, maxfev=cfg.maxfev, callback=cb)
-            x = np.asarray(opt.x, dtype=float)
-            F = float(opt.fun)
-            F_search += F
+            # the vertical/yaw search has fewer dimensions and costs a fraction: give it more iterations
+            sub_iters = iters if sub == 0 else int(iters * cfg.vertical_iter_factor)
+            opt = ALGORITHMS[algorithm](cost_v, b_all[cost_v.free], rng=rng, maxiter=sub_iters, maxfev=cfg.maxfev,
+                                        callback=cb)
+
+            def to_free(xv: np.ndarray, cost_v=cost_v, sub_free=sub_free, bfree=bfree) -> np.ndarray:
+                th = cost_v.complete(np.asarray(xv, dtype=float)[None])[0]
+                return np.clip(th[sub_free], bfree[:, 0], bfree[:, 1])
+
+            x = to_free(opt.x)
+            F_search += float(opt.fun)
+            search_by_sub[sub_name] = float(opt.fun)
             nit += int(opt.nit)
             histories[sub_name] = [float(h) for h in opt.history]
             histories_nfev[sub_name] = [int(h) for h in opt.history_nfev]
             if refine:
+                # screen a few of the best distinct sources with a short refinement on the search
+                # windows (the least-squares basin is what matters), then refine the winner fully
+                vb = b_all[cost_v.free]
+                starts = [to_free(xv) for xv in _starts(opt, cfg.refine_starts, vb[:, 1] - vb[:, 0])]
+                # successive halving: short refinements of many starts, longer ones of the best few
+                nfev_round = cfg.screen_max_nfev
+                screen_f = float("nan")
+                while len(starts) > 1:
+                    if callback is not None:
+                        callback({"stage": f"screen {sub_name} ({len(starts)} starts)", "nit": 0, "maxiter": 1,
+                                  "fun": float(opt.fun), "nfev": cost_s.nfev + cost.nfev})
+                    scored = []
+                    for x0 in starts:
+                        r = refine_ls(cost_s, x0, bfree, passes=1, max_nfev=nfev_round, with_std=False)
+                        scored.append((float(r.fun), r.x))
+                    scored.sort(key=lambda t: t[0])
+                    starts = [sx for _, sx in scored[: max(1, len(scored) // 3)]]
+                    screen_f = scored[0][0]
+                    nfev_round *= 2
+                best_x = starts[0]
                 if callback is not None:
-                    callback({"stage": f"refine {sub_name}", "nit": 0, "maxiter": 1, "fun": F, "nfev": cost.nfev})
-                ref = refine_ls(cost, x, bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev)
-                if ref.fun <= F * (1 + 1e-9) or not np.isfinite(F):
-                    x, F = ref.x, ref.fun
-                else:
-                    refined = False
+                    callback({"stage": f"refine {sub_name}", "nit": 0, "maxiter": 1, "fun": screen_f,
+                              "nfev": cost_s.nfev + cost.nfev})
+                ref = refine_ls(cost, best_x, bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev)
+                x, F = ref.x, float(ref.fun)
                 std_all[np.flatnonzero(sub_free)] = ref.std
                 sigma_all[cost.used] = ref.sigma[cost.used]
+            else:
+                F = float(cost(x[None])[0])
             theta = cost.full(x)[0]
             F_total += F
-            nfev += cost.nfev
+            nfev += cost.nfev + cost_s.nfev + cost_v.nfev
         full_cost = WindowedCost(win, np.zeros(N_PARAMS, dtype=bool), theta,
                                  estimate_all_initial=cfg.estimate_all_initial)
         errs = full_cost.sim.errors(theta[None])[0]
@@ -170,7 +235,8 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
     segs = prepared.segments
     fit: dict[str, Any] = {
         "algorithm": algorithm, "seed": int(seed), "fitness": float(1.0 / (1.0 + F_total)), "cost": float(F_total),
-        "search_cost": float(F_search), "refined": bool(refine and refined), "match_degree": match,
+        "search_cost": float(F_search), "search_window_s": float(cfg.search_window_s),
+        "search_cost_by_subsystem": search_by_sub, "refined": bool(refine), "match_degree": match,
         "evaluations": int(nfev), "iterations": int(nit), "seconds": None,
         "window_s": float(cfg.window_s), "windows": int(win.count), "estimate_all_initial": cfg.estimate_all_initial,
         "channels": [OUTPUTS[j] for j in range(8) if used[j]],

@@ -9,7 +9,9 @@
 * ``callback(res)`` gets an OptimizeResult with ``x, fun, nit, nfev`` after each iteration; returning
   True stops the run;
 * the result has ``x, fun, nfev, nit, success, message`` and ``history`` (best cost after each
-  iteration) and ``history_nfev`` (evaluations spent at that point).
+  iteration), ``history_nfev`` (evaluations spent at that point), the final ``population`` /
+  ``population_fun`` and every evaluated point (``archive_x``, ``archive_f``) so that a local
+  refinement can start from several distinct good points.
 
 CABC follows the paper's steps 1-8: N_s = 20 = 2 N_e food sources ranked, employed bees (eq. 13,
 greedy eq. 14), onlookers by fitness ``p_i = fit_i / sum fit`` (eq. 15), scouts after ``limit``
@@ -71,6 +73,8 @@ class _Tracker:
         self.history_nfev: list[int] = []
         self.nit = 0
         self.stopped = False
+        self.archive_x: list[np.ndarray] = []
+        self.archive_f: list[np.ndarray] = []
 
     def budget_left(self) -> int:
         return np.iinfo(np.int64).max if self.maxfev is None else self.maxfev - self.nfev
@@ -80,6 +84,8 @@ class _Tracker:
         f = np.asarray(self.fun(X), dtype=float).reshape(-1)
         f = np.where(np.isfinite(f), f, np.inf)
         self.nfev += X.shape[0]
+        self.archive_x.append(X.copy())
+        self.archive_f.append(f.copy())
         i = int(np.argmin(f))
         if f[i] < self.best_f:
             self.best_f = float(f[i])
@@ -95,10 +101,14 @@ class _Tracker:
                 self.stopped = True
         return self.stopped or self.budget_left() <= 0
 
-    def result(self, message: str) -> OptimizeResult:
+    def result(self, message: str, population: np.ndarray | None = None,
+               population_fun: np.ndarray | None = None) -> OptimizeResult:
         return OptimizeResult(x=self.best_x, fun=self.best_f, nfev=self.nfev, nit=self.nit, success=True,
                               message=message, history=np.array(self.history),
-                              history_nfev=np.array(self.history_nfev))
+                              history_nfev=np.array(self.history_nfev), population=population,
+                              population_fun=population_fun,
+                              archive_x=np.concatenate(self.archive_x) if self.archive_x else None,
+                              archive_f=np.concatenate(self.archive_f) if self.archive_f else None)
 
 
 def _neighbour(X: np.ndarray, i: np.ndarray, rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -180,7 +190,7 @@ def _bee_colony(fun: Fun, bounds, *, rng, maxiter: int, maxfev: int | None, call
             X[r], f[r], trial[r] = cands[q], fc[q], 0
         if tr.end_iteration():
             break
-    return tr.result("stopped by callback" if tr.stopped else "iteration or evaluation budget reached")
+    return tr.result("stopped by callback" if tr.stopped else "iteration or evaluation budget reached", X, f)
 
 
 def minimize_cabc(fun: Fun, bounds, *, rng=None, maxiter: int = 100, maxfev: int | None = None, callback=None,
@@ -239,7 +249,7 @@ def minimize_ga(fun: Fun, bounds, *, rng=None, maxiter: int = 100, maxfev: int |
         f = np.concatenate([f_el, fk])
         if tr.end_iteration():
             break
-    return tr.result("stopped by callback" if tr.stopped else "iteration or evaluation budget reached")
+    return tr.result("stopped by callback" if tr.stopped else "iteration or evaluation budget reached", P, f)
 
 
 def minimize_de(fun: Fun, bounds, *, rng=None, maxiter: int = 100, maxfev: int | None = None, callback=None,

@@ -26,7 +26,7 @@ def _fd_step(x: np.ndarray, span: np.ndarray) -> np.ndarray:
 
 
 def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: int = 2, max_nfev: int = 60,
-           ) -> OptimizeResult:
+           with_std: bool = True) -> OptimizeResult:
     """Levenberg-Marquardt-like trust-region refinement from ``x0`` (free parameters, (D,)).
 
     Returns an OptimizeResult with ``x``, ``fun`` (eq. 11 cost), ``sigma`` (8,) channel noise
@@ -58,9 +58,12 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
         x = res.x
         sigma = _sigma(cost, x)
     assert res is not None
-    J = jac_final(cost, x, sigma, span, hi)
-    r = cost.residuals(x[None], sigma)[0]
-    std = coloured_std(J, r)
+    J = None
+    std = np.full(x.size, np.nan)
+    if with_std:
+        J = jac_final(cost, x, sigma, span, hi)
+        r = cost.residuals(x[None], sigma)[0]
+        std = coloured_std(J, r)
     F = float(cost(x[None])[0])
     return OptimizeResult(x=x, fun=F, sigma=sigma, std=std, nfev=cost.nfev - nfev0, jac=J, success=bool(res.success),
                           message=str(res.message), nit=int(res.nfev))

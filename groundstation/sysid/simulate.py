@@ -82,6 +82,10 @@ class WindowSimulator:
         systems and does the within-block response as one batched matrix product
     subsystems : which decoupled subsystems to simulate (0 horizontal, 1 vertical/yaw); the
         outputs of the others stay zero and their channels are not used
+    linear : per subsystem, B-matrix entries ``(state, input)`` (input index within the subsystem)
+        solved by least squares together with the initial states (variable projection: the output
+        is linear in B for a given A); the values of those entries in ``theta`` are ignored and the
+        estimates are returned by :meth:`solve_linear`
 
     Notes
     -----
@@ -93,7 +97,8 @@ class WindowSimulator:
 
     def __init__(self, inputs: np.ndarray, outputs: np.ndarray, dt_s: float, available: np.ndarray | None = None,
                  *, estimate_all_initial: bool = False, ridge: float = 1e-6, block: int = 10,
-                 subsystems: tuple[int, ...] = (0, 1)) -> None:
+                 subsystems: tuple[int, ...] = (0, 1),
+                 linear: dict[int, tuple[tuple[int, int], ...]] | None = None) -> None:
         u = np.asarray(inputs, dtype=float)
         y = np.asarray(outputs, dtype=float)
         if u.ndim != 3 or u.shape[2] != 4 or y.ndim != 3 or y.shape[2] != 8 or u.shape[:2] != y.shape[:2]:
@@ -115,6 +120,7 @@ class WindowSimulator:
         self.estimate_all_initial = estimate_all_initial
         self.ridge = ridge
         self.W, self.L = u.shape[0], u.shape[1]
+        self.linear = {k: tuple(v) for k, v in (linear or {}).items() if v}
         self.b = max(1, min(int(block), self.L))
         self.nb = -(-self.L // self.b)
         Lp = self.nb * self.b
@@ -139,7 +145,11 @@ class WindowSimulator:
             w_ch = self.weights[:, o_idx]
             wflat = np.repeat(w_ch[:, None, :], self.L, axis=1).reshape(self.W, self.L * nch)
             mflat = np.repeat(self.mask[:, None, o_idx], self.L, axis=1).reshape(self.W, self.L * nch)
-            self._prep.append(dict(s_idx=s_idx, o_idx=o_idx, nch=nch, U=U, known=known, xm=xm, yflat=yflat,
+            lin = self.linear.get(_SUBS.index(sub), ())
+            Ub = U[0].reshape(self.W * self.nb, self.b, len(sub.inputs))
+            Usel = [np.ascontiguousarray(Ub[:, :, j]) for _, j in lin]
+            self._prep.append(dict(s_idx=s_idx, o_idx=o_idx, nch=nch, U=U, known=known, xm=xm, yflat=yflat, lin=lin,
+                                   Usel=Usel,
                                    w_ch=w_ch, wflat=wflat, mflat=mflat, unk=(~known).astype(float),
                                    uniform=bool((w_ch == w_ch[:1]).all()), full_mask=bool(self.mask[:, o_idx].all())))
 
@@ -155,16 +165,22 @@ class WindowSimulator:
         with np.errstate(all="ignore"):
             for i in self.subsystems:
                 A, B = ((Ah, Bh), (Av, Bv))[i]
-                Ad, Bd = discretize(A, B, self.dt_s)
-                out.append((i, self._sub(_SUBS[i], self._prep[i], Ad, Bd)))
+                n = A.shape[-1]
+                # Ad and Gamma = int_0^dt e^(A s) ds in one exponential; Bd = Gamma B (exact ZOH)
+                Ad, Gam = discretize(A, np.broadcast_to(np.eye(n), A.shape), self.dt_s)
+                out.append((i, self._sub(_SUBS[i], self._prep[i], Ad, np.matmul(Gam, B), Gam)))
         return out
+
+    def solve_linear(self, theta: np.ndarray) -> dict[int, np.ndarray]:
+        """Least-squares values (C, P) of the ``linear`` B entries per subsystem for candidates ``theta``."""
+        return {i: r[2] for i, r in self._run(theta) if len(r) > 2}
 
     def simulate(self, theta: np.ndarray, *, return_x0: bool = False):
         """yhat (C, W, L, 8) (unavailable channels hold the simulation too; x0 per subsystem if asked)."""
         res = self._run(theta)
         C = res[0][1][0].shape[0]
         yhat = np.zeros((C, self.W, self.L, 8))
-        for i, (e, _x0) in res:
+        for i, (e, *_rest) in res:
             pre = self._prep[i]
             yhat[:, :, :, pre["o_idx"]] = (e + pre["yflat"][None]).reshape(C, self.W, self.L, pre["nch"])
         yhat = np.where(np.isfinite(yhat), yhat, 1e6)
@@ -177,7 +193,7 @@ class WindowSimulator:
         res = self._run(theta)
         C = res[0][1][0].shape[0]
         out = np.zeros((C, 8))
-        for i, (e, _x0) in res:
+        for i, (e, *_rest) in res:
             pre = self._prep[i]
             if not pre["full_mask"]:
                 e *= pre["mflat"][None]
@@ -190,12 +206,12 @@ class WindowSimulator:
         res = self._run(theta)
         C = res[0][1][0].shape[0]
         out = np.zeros((C, self.W, self.L, 8))
-        for i, (e, _x0) in res:
+        for i, (e, *_rest) in res:
             pre = self._prep[i]
             out[:, :, :, pre["o_idx"]] = (e * pre["mflat"][None]).reshape(C, self.W, self.L, pre["nch"])
         return np.where(np.isfinite(out), out, 1e6)
 
-    def _sub(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray):
+    def _sub(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, Gam: np.ndarray):
         C = Ad.shape[0]
         W, L, n, b, nb = self.W, self.L, sub.n, self.b, self.nb
         s_idx, nch = pre["s_idx"], pre["nch"]
@@ -251,11 +267,69 @@ class WindowSimulator:
         scale = np.maximum(diag.max(axis=-1, keepdims=True), 1e-300)
         reg = np.where(unk[None] > 0, self.ridge * scale, 1.0)
         G += reg[..., :, None] * np.eye(n)
-        z = np.linalg.solve(G, (rhs * unk[None])[..., None])[..., 0]  # (C, W, n), zero on known dims
+        rhs *= unk[None]
+        if pre["lin"]:
+            return self._varpro(pre, Apow, Ob, Gam, Phi, G, rhs, r, C, W, L, n, b, nb, nch)
+        z = np.linalg.solve(G, rhs[..., None])[..., 0]  # (C, W, n), zero on known dims
         e = np.matmul(z, np.swapaxes(Phi, 1, 2))
         e -= r  # yhat - y
         x0 = xm[None] + z
         return e, x0
+
+    def _varpro(self, pre, Apow, Ob, Gam, Phi, G, rhs, r, C, W, L, n, b, nb, nch):
+        """Joint least squares of the linear B entries (global) and the initial states (per window)."""
+        lin = pre["lin"]
+        P = len(lin)
+        s_idx = pre["s_idx"]
+        K = W * nb
+        cols = Gam[:, :, [i for i, _ in lin]]  # (C, n, P): Bd columns of unit B entries
+        AB = np.matmul(Apow[:, :b], cols[:, None])  # (C, b, n, P)
+        CAB = AB[:, :, s_idx, :]  # (C, b, nch, P)
+        Tp = np.zeros((C, P, b, nch, b))
+        CABp = np.moveaxis(CAB, 3, 1)  # (C, P, b, nch)
+        for j in range(1, b):
+            for l in range(j):
+                Tp[:, :, j, :, l] = CABp[:, :, j - 1 - l]
+        Tp = Tp.reshape(C, P, b * nch, b)
+        Cbp = np.stack([AB[:, b - 1 - l] for l in range(b)], axis=-1)  # (C, n, P, b)
+        CbU = np.empty((C, P, K, n))
+        TU = np.empty((C, P, K, b * nch))
+        for p in range(P):
+            Uj = pre["Usel"][p]  # (K, b)
+            CbU[:, p] = (Uj @ Cbp[:, :, p, :].transpose(2, 0, 1).reshape(b, C * n)).reshape(K, C, n).transpose(1, 0, 2)
+            TU[:, p] = (Uj @ Tp[:, p].transpose(2, 0, 1).reshape(b, C * b * nch)).reshape(K, C, b * nch).transpose(1, 0, 2)
+        CbU = CbU.reshape(C, P * W, nb, n)
+        Ab = Apow[:, b]
+        AbT = np.swapaxes(Ab, 1, 2)
+        xs = np.empty((C, P * W, nb, n))
+        x = np.zeros((C, P * W, n))
+        for i in range(nb):
+            xs[:, :, i] = x
+            x = np.matmul(x, AbT) + CbU[:, :, i]
+        F = np.matmul(xs.reshape(C, P * K, n), np.ascontiguousarray(np.swapaxes(Ob, 1, 2)))
+        F += TU.reshape(C, P * K, b * nch)
+        F = np.ascontiguousarray(F.reshape(C, P, W, nb * b * nch)[..., : L * nch])  # (C, P, W, LN)
+        LN = L * nch
+        Fw = F * pre["wflat"][None, None]
+        unk = pre["unk"]
+        E = np.empty((C, W, n, P))
+        for p in range(P):
+            E[..., p] = np.matmul(Fw[:, p], Phi)  # Phi^T W F_p per window
+        E *= unk[None, :, :, None]
+        FF = np.matmul(F.reshape(C, P, W * LN), np.swapaxes(Fw.reshape(C, P, W * LN), 1, 2))  # (C, P, P)
+        rb = np.matmul(Fw.reshape(C, P, W * LN), r.reshape(C, W * LN, 1))[..., 0]  # (C, P)
+        GiE = np.linalg.solve(G, E)  # (C, W, n, P)
+        Gia = np.linalg.solve(G, rhs[..., None])[..., 0]  # (C, W, n)
+        S = FF - np.einsum("cwnp,cwnq->cpq", E, GiE)
+        rr = rb - np.einsum("cwnp,cwn->cp", E, Gia)
+        dS = np.einsum("cpp->cp", S)
+        S = S + (1e-10 * np.maximum(dS.max(axis=-1), 1e-300))[:, None, None] * np.eye(P)
+        beta = np.linalg.solve(S, rr[..., None])[..., 0]  # (C, P)
+        z = Gia - np.einsum("cwnp,cp->cwn", GiE, beta)
+        e = np.matmul(z, np.swapaxes(Phi, 1, 2))
+        e += np.matmul(beta[:, None, :], F.reshape(C, P, W * LN)).reshape(C, W, LN)
+        e -= r
+        return e, pre["xm"][None] + z, beta
 
 
 def simulate_windows(theta: np.ndarray, inputs: np.ndarray, outputs: np.ndarray, dt_s: float,

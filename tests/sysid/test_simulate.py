@@ -97,3 +97,19 @@ def test_objective_is_eq11():
     yy = y.reshape(-1, 8)
     expect = sum(np.linalg.norm(np.full(100, 0.1)) / np.linalg.norm(yy[:, j] - yy[:, j].mean()) for j in range(8))
     assert F[0] == pytest.approx(expect)
+
+
+def test_variable_projection_recovers_the_input_matrix(windows):
+    from groundstation.sysid.cost import LINEAR_B, WindowedCost, Windows
+    from groundstation.sysid.model import PARAM_INDEX
+
+    th, u, y, _, _, dt = windows
+    win = Windows(u, y, np.ones((6, 8), bool), np.zeros(6, int), np.zeros(6), dt)
+    free = np.ones(31, dtype=bool)
+    cost = WindowedCost(win, free, th, estimate_all_initial=True, varpro=True)
+    assert cost.dim == 31 - len(LINEAR_B)
+    x_true = th[cost.free]
+    full = cost.complete(x_true[None])[0]
+    for name in LINEAR_B:
+        assert full[PARAM_INDEX[name]] == pytest.approx(th[PARAM_INDEX[name]], rel=2e-3, abs=1e-6)
+    assert cost(x_true[None])[0] < 1e-3

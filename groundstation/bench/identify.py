@@ -1,0 +1,210 @@
+"""``groundstation bench identify [--seeds 20] [--budget N] [--duration-s 150] [--source auto|sim|linear]``.
+
+The paper's comparison and the identification targets on simulated flights with known truth:
+
+1. colony cost-evaluation speed (state updates per second, median of repeats);
+2. default identification (CABC + refinement) of one flight: wall time, parameter errors relative
+   to truth, z-scores against the reported standard errors, and the match of the identified vs the
+   TRUE model on a DIFFERENT flight of the same aircraft (scored the same way);
+3. GA, ABC, CABC and DE with equal evaluation budgets over ``--seeds`` seeds (search only, no
+   refinement, so the optimisers are compared and not the local polish): a Table-6-style match
+   table, final costs, wall time, evaluations, and a Figure-11-style convergence PNG.
+
+Flights come from the SIM engineer's nonlinear simulator (``hil_replay.sim.write_tlog``, read back
+through the ordinary .tlog reader) when available, else from the linear model itself
+(``groundstation.sysid.synthetic``; that only checks the estimator against its own model).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+HELP = "identification benchmark: speed, accuracy vs truth, and GA/ABC/CABC/DE at equal budgets"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--seeds", type=int, default=20, help="runs per algorithm in the comparison")
+    parser.add_argument("--budget", type=int, default=3000, help="cost evaluations per subsystem per run")
+    parser.add_argument("--duration-s", type=float, default=150.0, help="simulated flight length")
+    parser.add_argument("--source", choices=("auto", "sim", "linear"), default="auto")
+    parser.add_argument("--sim-seed", type=int, default=1, help="seed of the training flight (validation: +1)")
+    parser.add_argument("--passes", type=int, default=None, help="eq. 18 smoothing passes (default PrepConfig)")
+    parser.add_argument("--algorithms", default="ga,abc,cabc,de")
+    parser.add_argument("--out-dir", type=Path, default=Path("bench_identify"), help="PNG and JSON output")
+    parser.add_argument("--skip-compare", action="store_true", help="only speed and accuracy")
+
+
+def _flights(args, tmp: Path) -> tuple[Any, Any, dict[str, float], str]:
+    """(train PreparedData, validation PreparedData, truth parameters, description)."""
+    from groundstation.dsp.prepare import PrepConfig, prepare, prepared_from_arrays
+
+    cfg = PrepConfig() if args.passes is None else PrepConfig(smooth_passes=args.passes)
+    if args.source in ("auto", "sim"):
+        try:
+            from hil_replay.sim import write_tlog
+        except ImportError:
+            if args.source == "sim":
+                raise
+            write_tlog = None
+        if write_tlog is not None:
+            from firmware_interface.readers import load_log
+
+            preps, truth = [], None
+            for k in range(2):
+                path = tmp / f"flight{k}.tlog"
+                truth = write_tlog(path, seed=args.sim_seed + k, flights=1, effects=(), aircraft=None)
+                if truth is None:
+                    truth = json.loads(path.with_suffix(".truth.json").read_text())
+                preps.append(prepare([load_log(path)], cfg))
+            assert truth is not None
+            return preps[0], preps[1], dict(truth["parameters"]), f"hil_replay.sim nonlinear flights (seeds {args.sim_seed}, {args.sim_seed + 1})"
+    from groundstation.sysid.model import theta_from_dict
+    from groundstation.sysid.synthetic import EXAMPLE_TRUTH, simulate_flight
+
+    th = theta_from_dict(EXAMPLE_TRUTH)
+    preps = []
+    for k in range(2):
+        u, _, ym = simulate_flight(th, args.duration_s, 0.02, seed=args.sim_seed + k)
+        preps.append(prepared_from_arrays(u, ym, 0.02, smooth_passes=cfg.smooth_passes, source=f"linear{k}"))
+    return preps[0], preps[1], dict(EXAMPLE_TRUTH), "linear eq.-8 model flights (groundstation.sysid.synthetic)"
+
+
+def _speed(prepared) -> dict[str, float]:
+    from threadpoolctl import threadpool_limits
+
+    from groundstation.sysid.cost import WindowedCost, make_windows
+    from groundstation.sysid.model import N_PARAMS, bounds_array
+
+    win = make_windows(prepared.segments, prepared.dt_s, 3.0)
+    b = bounds_array()
+    rng = np.random.default_rng(0)
+    out = {}
+    with threadpool_limits(1):
+        for C in (20, 64):
+            cost = WindowedCost(win, np.ones(N_PARAMS, bool), np.zeros(N_PARAMS), estimate_all_initial=True)
+            X = b[:, 0] + rng.random((C, N_PARAMS)) * (b[:, 1] - b[:, 0])
+            cost(X)
+            ts = []
+            for _ in range(7):
+                t0 = time.perf_counter()
+                cost(X)
+                ts.append(time.perf_counter() - t0)
+            out[f"colony_{C}"] = C * win.count * win.length / float(np.median(ts))
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from groundstation.sysid.identify import IdentifyConfig, identify
+    from groundstation.sysid.model import PARAM_NAMES, HoverModel
+    from groundstation.sysid.plots import plot_convergence
+    from groundstation.sysid.validate import validate
+
+    con = Console()
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as td:
+        train, val, truth, desc = _flights(args, Path(td))
+    con.print(f"[bold]flights[/]: {desc}; training {train.duration_s:.0f} s, validation {val.duration_s:.0f} s")
+
+    sp = _speed(train)
+    con.print(f"colony cost evaluation: {sp['colony_20']:.3g} state updates/s (20 candidates), "
+              f"{sp['colony_64']:.3g} (64 candidates)")
+
+    t0 = time.perf_counter()
+    model = identify(train, seed=0)
+    wall = time.perf_counter() - t0
+    con.print(f"default identification (CABC + refinement): {wall:.2f} s wall, {model.fit['evaluations']} evaluations, "
+              f"cost {model.fit['cost']:.4f}")
+    t = Table(title="identified vs truth")
+    for c in ("param", "truth", "estimate", "err %", "std", "z"):
+        t.add_column(c, justify="right")
+    z_all = []
+    for n in PARAM_NAMES:
+        tv, ev, s = truth[n], model.params[n], model.parameter_std.get(n)
+        err = 100 * (ev - tv) / abs(tv) if tv != 0 else float("nan")
+        z = (ev - tv) / s if s else float("nan")
+        z_all.append(z)
+        t.add_row(n, f"{tv:.4g}", f"{ev:.4g}", f"{err:.1f}", "-" if s is None else f"{s:.3g}", f"{z:.2f}")
+    con.print(t)
+    key = ("M_a", "L_b", "inv_tau_s", "A_lat", "B_lon", "Z_col", "N_ped", "N_r")
+    key_err = {k: abs(model.params[k] - truth[k]) / abs(truth[k]) * 100 for k in key}
+    za = np.abs(np.array(z_all, dtype=float))
+    con.print(f"key parameters within 10%: {sum(v <= 10 for v in key_err.values())}/{len(key)} "
+              f"(worst {max(key_err, key=key_err.get)} {max(key_err.values()):.1f}%); "
+              f"|z| <= 3: {int(np.sum(za <= 3))}/{int(np.isfinite(za).sum())} (max {np.nanmax(za):.2f})")
+    true_model = HoverModel(params=dict(truth))
+    v_id, v_true = validate(model, val), validate(true_model, val)
+    ratio = v_id["mean_match"] / v_true["mean_match"] * 100
+    tv = Table(title="match degree on a DIFFERENT flight (%), identified vs true model")
+    tv.add_column("model")
+    for ch in v_true["channels"]:
+        tv.add_column(ch, justify="right")
+    tv.add_column("mean", justify="right")
+    for name, v in (("identified", v_id), ("true", v_true)):
+        tv.add_row(name, *[f"{v['channels'][c]['match']:.2f}" for c in v_true["channels"]], f"{v['mean_match']:.2f}")
+    con.print(tv)
+    con.print(f"identified / true mean match on the other flight: {ratio:.2f}% (target >= 99%)")
+    summary: dict[str, Any] = {"flights": desc, "speed_updates_per_s": sp, "default_wall_s": wall,
+                               "key_err_pct": key_err, "z": dict(zip(PARAM_NAMES, [float(z) for z in z_all], strict=True)),
+                               "match_ratio_pct": ratio, "match_identified": v_id["channels"], "match_true": v_true["channels"]}
+    if not args.skip_compare:
+        summary["comparison"] = _compare(args, train, con, identify, IdentifyConfig, plot_convergence)
+    (args.out_dir / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
+    con.print(f"wrote {args.out_dir / 'summary.json'}")
+    return 0
+
+
+def _compare(args, train, con, identify, IdentifyConfig, plot_convergence) -> dict[str, Any]:
+    from rich.table import Table
+
+    algs = [a.strip() for a in args.algorithms.split(",") if a.strip()]
+    cfg = IdentifyConfig(maxfev=args.budget)
+    res: dict[str, dict[str, Any]] = {a: {"cost": [], "match": [], "wall": [], "nfev": [], "curves": []} for a in algs}
+    for a in algs:
+        for s in range(args.seeds):
+            t0 = time.perf_counter()
+            m = identify(train, algorithm=a, seed=s, refine=False, maxiter=10**6, config=cfg)
+            res[a]["wall"].append(time.perf_counter() - t0)
+            res[a]["cost"].append(m.fit["cost"])
+            res[a]["match"].append(m.fit["match_degree"])
+            res[a]["nfev"].append(m.fit["evaluations"])
+            h, hn = m.fit["history"], m.fit["history_nfev"]
+            grid = np.linspace(0, args.budget, 101)[1:]
+            tot = np.zeros_like(grid)
+            for sub in h:
+                tot += np.interp(grid, hn[sub], h[sub], left=np.nan)
+            res[a]["curves"].append((grid, tot))
+        con.print(f"  {a}: {args.seeds} runs done, median cost {np.median(res[a]['cost']):.4f}")
+    chans = list(res[algs[0]]["match"][0])
+    t = Table(title=f"Table-6 style: mean match degree % over {args.seeds} seeds, {args.budget} evaluations per subsystem (search only)")
+    t.add_column("channel")
+    for a in algs:
+        t.add_column(a.upper(), justify="right")
+    for ch in chans:
+        t.add_row(ch, *[f"{np.mean([mm[ch] for mm in res[a]['match']]):.2f}" for a in algs])
+    t.add_row("final cost F (median)", *[f"{np.median(res[a]['cost']):.4f}" for a in algs])
+    t.add_row("final cost F (best/worst)", *[f"{np.min(res[a]['cost']):.3f}/{np.max(res[a]['cost']):.3f}" for a in algs])
+    t.add_row("wall s (median)", *[f"{np.median(res[a]['wall']):.2f}" for a in algs])
+    t.add_row("evaluations (median)", *[f"{int(np.median(res[a]['nfev']))}" for a in algs])
+    con.print(t)
+    pairs = [("cabc", "abc"), ("abc", "ga"), ("cabc", "ga"), ("cabc", "de")]
+    wins = {}
+    for x, y in pairs:
+        if x in res and y in res:
+            w = float(np.mean(np.array(res[x]["cost"]) < np.array(res[y]["cost"])) * 100)
+            wins[f"{x}<{y}"] = w
+            con.print(f"{x.upper()} lower final cost than {y.upper()} (same seed): {w:.0f}% of seeds")
+    png = plot_convergence({a: res[a]["curves"] for a in algs}, args.out_dir / "convergence.png",
+                           title=f"Fitness 1/(1+F) vs evaluations per subsystem ({args.seeds} seeds; median, range)")
+    con.print(f"wrote {png}")
+    return {a: {"cost": res[a]["cost"], "wall": res[a]["wall"], "nfev": res[a]["nfev"],
+                "match_mean": {ch: float(np.mean([mm[ch] for mm in res[a]["match"]])) for ch in chans}} for a in algs} | {"wins_pct": wins}
