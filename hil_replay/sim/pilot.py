@@ -43,9 +43,17 @@ class PilotConfig:
     excited_axis_gain: float = 0.3  # feedback left on the channel the card is exciting
 
 
-def _lqr(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> np.ndarray:
-    X = solve_continuous_are(A, B, Q, R)
-    return np.linalg.solve(R, B.T @ X)
+def _lqr(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, what: str) -> np.ndarray:
+    try:
+        X = solve_continuous_are(A, B, Q, R)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        raise ValueError(f"{what}: the synthetic pilot cannot stabilise this aircraft ({exc}); "
+                         "check the input derivatives in [parameters]") from None
+    K = np.linalg.solve(R, B.T @ X)
+    if not np.all(np.linalg.eigvals(A - B @ K).real < 0):
+        raise ValueError(f"{what}: the synthetic pilot cannot stabilise this aircraft; "
+                         "check the input derivatives in [parameters]")
+    return K
 
 
 def design_gains(ac: Aircraft, config: PilotConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -59,7 +67,7 @@ def design_gains(ac: Aircraft, config: PilotConfig | None = None) -> tuple[np.nd
     Bh = np.zeros((10, 2))
     Bh[:8] = Bh8
     qh = [1 / c.vel_m_s**2] * 2 + [1 / c.att_rad**2] * 2 + [1 / c.rate_rad_s**2] * 2 + [1e-4] * 2 + [1 / c.pos_m**2] * 2
-    Kh = _lqr(Ah, Bh, np.diag(qh), np.eye(2) / c.input_units**2)
+    Kh = _lqr(Ah, Bh, np.diag(qh), np.eye(2) / c.input_units**2, f"aircraft {ac.name} (lat/lon)")
     Av = np.zeros((5, 5))
     Av[:3, :3] = Av3
     Av[3, 0] = 1.0
@@ -67,7 +75,7 @@ def design_gains(ac: Aircraft, config: PilotConfig | None = None) -> tuple[np.nd
     Bv = np.zeros((5, 2))
     Bv[:3] = Bv3
     qv = [1 / c.w_m_s**2, 1 / c.r_rad_s**2, 1e-4, 1 / c.height_m**2, 1 / c.heading_rad**2]
-    Kv = _lqr(Av, Bv, np.diag(qv), np.eye(2) / c.input_units**2)
+    Kv = _lqr(Av, Bv, np.diag(qv), np.eye(2) / c.input_units**2, f"aircraft {ac.name} (col/ped)")
     return Kh, Kv
 
 

@@ -32,7 +32,7 @@ from hil_replay.sim.aircraft import INPUTS, PARAM_NAMES, Aircraft, resolve_aircr
 from hil_replay.sim.card import Card, make_card
 from hil_replay.sim.dynamics import G_M_S2, ground_effect_excess, make_specific_force, make_stepper
 from hil_replay.sim.effects import Effect, GustModel, InputChain, aliased_hz, resolve_effects
-from hil_replay.sim.pilot import Pilot
+from hil_replay.sim.pilot import Pilot, design_gains
 from hil_replay.sim.telemetry import FIELD_ORIGIN, MESSAGE_NAMES, Measurement, TelemetryFrame, heartbeat
 
 FRAME_RATE_HZ = 50.0
@@ -98,6 +98,7 @@ class SimulatedSession:
         plan = np.random.default_rng(self._seeds[0])
         trims = {k: int(v + plan.integers(-15, 16)) for k, v in base.trim_pwm.items()}
         self.aircraft = base.with_trim(trims)
+        design_gains(self.aircraft)  # an aircraft the pilot cannot fly fails here, before any output
         self.cards: list[Card] = []
         self.arm_times_s: list[float] = []
         t = float(pre_arm_s)
@@ -198,7 +199,8 @@ class SimulatedSession:
         servo_idx = [int(ac.servo[c]) - 1 for c in INPUTS]
         P = ac.parameters
         Z_col, Z_ped = float(P["Z_col"]), float(P["Z_ped"])
-        col_low = max(-0.9, -0.25 * max(1.0, 6.0 / max(abs(Z_col), 1e-3)))  # well below hover pitch
+        # ground idle: collective well below hover pitch (thrust-reducing direction for this aircraft)
+        col_low = min(0.9, 0.25 * max(1.0, 6.0 / max(abs(Z_col), 1e-3))) * (1.0 if Z_col > 0 else -1.0)
         cap_mah = float(ac.battery_capacity_mah)
         cells = ac.battery_cells
 

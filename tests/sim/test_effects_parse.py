@@ -127,3 +127,13 @@ def test_malformed_aircraft_file(tmp_path, edit, must_contain) -> None:
 def test_unknown_aircraft_name_lists_the_shipped_ones() -> None:
     with pytest.raises(ValueError, match="trex600"):
         resolve_aircraft("trex9000")
+
+
+def test_aircraft_the_pilot_cannot_fly_is_rejected_at_construction() -> None:
+    from hil_replay.sim.aircraft import Aircraft
+
+    p = dict(resolve_aircraft(None).parameters)
+    for k in ("X_lat", "Y_lon", "M_lat", "M_lon", "L_lat", "L_lon", "A_lat", "B_lon"):
+        p[k] = 0.0  # cyclic does nothing: the unstable hover cannot be flown
+    with pytest.raises(ValueError, match="cannot stabilise.*lat/lon"):
+        SimulatedSession(aircraft=Aircraft(name="no_cyclic", parameters=p))
