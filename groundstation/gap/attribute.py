@@ -65,6 +65,21 @@ def paired_bootstrap(base: np.ndarray, alt: np.ndarray, rng: np.random.Generator
     return float((np.sum(m <= 0) + 1) / (n_boot + 1))
 
 
+def active_windows(change: np.ndarray | None, base: np.ndarray, share: float = 0.01) -> np.ndarray:
+    """Windows where a variant changes the prediction by more than ``share`` of the base cost.
+
+    ``change`` (W,) energy of the prediction change, ``base`` (W,) base held-out cost. An effect
+    acting in a few windows (a slew limit on the sharpest inputs, ground effect near the ground)
+    leaves the others untouched; resampling those only dilutes the test. All windows when fewer
+    than two are active or ``change`` is None.
+    """
+    W = base.shape[0]
+    if change is None:
+        return np.ones(W, bool)
+    act = change > share * np.maximum(base, 1e-300)
+    return act if act.sum() >= 2 else np.ones(W, bool)
+
+
 def nrmse(sse: np.ndarray, energy: np.ndarray, channels: tuple[int, ...] | list[int]) -> float:
     """Mean over channels of sqrt(sum sse / sum energy) (held-out normalised RMS residual)."""
     vals = []

@@ -44,6 +44,7 @@ class DiagnoseConfig:
     min_windows: int = 6
     excitation_snr: float = 3.0  # channel std / noise std below which a channel is "not excited"
     ridge: float = 1e-2  # damping of the per-fold re-fit
+    window_alpha: float = 0.1  # coarse whole-window check accompanying the block-level test
 
 
 @dataclass
@@ -165,7 +166,7 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
 
     # ---------------------------------------------------------------- attribute
     ctx = hypotheses.Context(ev, segs)
-    ctx.pwm_per_unit = float(getattr(prepared, "pwm_per_unit", 500.0))  # type: ignore[attr-defined]
+    ctx.pwm_per_unit = float(getattr(prepared, "pwm_per_unit", 500.0))
     in_ch = [c for c in range(4) if in_excited[c]]
     hyps: list[hypotheses.Hypothesis] = []
     if in_ch:
@@ -195,7 +196,21 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
             continue
         base = h.extra.get("base_sse", ctx.base_sse)
         s = attribute.score(base, h.sse, ev.energy, h.channels, rng, n_boot=min(cfg.n_boot, 1000))
-        s.p_value = attribute.paired_bootstrap(base.sum(1), h.sse.sum(1), rng, cfg.n_boot)
+        # two resampling units: ~0.5 s blocks (an effect at the sharpest inputs or near the ground
+        # lives in a handful of windows but in many blocks) and whole windows (a coarse check
+        # that the gain is not the within-window dependence of the blocks)
+        p_win = attribute.paired_bootstrap(base.sum(1), h.sse.sum(1), rng, cfg.n_boot)
+        if h.effect in ctx.blocks:
+            p_blk = attribute.paired_bootstrap(ctx.base_blocks.ravel(), ctx.blocks[h.effect].ravel(), rng, cfg.n_boot)
+            s.p_value = p_blk if p_win < cfg.window_alpha else max(p_blk, p_win)
+        else:
+            s.p_value = p_win
+        if h.effect == "wind_gust":
+            # an air-mass motion moves the attitude too (speed-stability moments): demand that
+            att = [3, 4, 6, 7]
+            p_att = attribute.paired_bootstrap(base[:, att].sum(1), h.sse[:, att].sum(1), rng, cfg.n_boot)
+            h.extra["p_attitude"] = p_att
+            s.p_value = max(s.p_value, p_att)
         results.append((h, s))
     # rotor vibration: score on the raw residual of the line channels
     vib = None
@@ -207,7 +222,7 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
 
     candidates: list[attribute.Candidate] = []
     for h, s in results:
-        is_sig = s.p_value < crit and s.score_pct > 0
+        is_sig = s.p_value < crit and s.score_pct > 0 and _physical(h)
         if h.effect == "gyro_bias" and h.output in ("p", "q"):
             is_sig = h.output in kin_sig and is_sig
         candidates.append(attribute.Candidate(h, s, bool(is_sig), _evidence(h, s, kin, lines)))
@@ -222,11 +237,13 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
             gb.evidence = _evidence(gb.hyp, gb.score, kin, lines)
 
     ranked = sorted((c for c in candidates if c.significant), key=lambda c: -c.score.score_pct)
+    excess = np.maximum(energy_w - nominal, 0.0)
+    flagged_share = float(excess[flag].sum() / excess.sum()) if excess.sum() > 0 else 0.0
     gap_significant = bool(np.nanmax(np.where(out_excited, gap_ratio, np.nan)) > 3.0) if out_excited.any() else False
     if ranked:
         verdict = ranked[0].hyp.effect
-    elif gap_significant and flag.sum() >= max(2, int(0.1 * ev.W)):
-        verdict = "unexplained"
+    elif gap_significant and flagged_share > 0.5:
+        verdict = "unexplained"  # a localised departure (most of the excess in flagged windows)
     else:
         verdict = "none"
 
@@ -248,6 +265,18 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
     arrays = {"t_s": ev.T, "Y": ev.Y, "Yraw": ev.Yraw, "yhat": yhat_ho, "mask": ev.mask, "flag": flag,
               "spectra": spectra, "band": band, "candidates": candidates, "evaluator": ev, "ctx": ctx}
     return Diagnosis(report=report, arrays=arrays)
+
+
+def _physical(h: hypotheses.Hypothesis) -> bool:
+    """Sign constraints of the physics: drag opposes motion, ground effect adds lift."""
+    if h.effect == "quadratic_drag":
+        return float(np.mean(list(h.estimate.values()) or [0.0])) > 0
+    if h.effect == "ground_effect":
+        return float(h.estimate.get("accel_m_s2", 0.0)) > 0
+    if h.effect == "deadband":
+        # wider than a few steps of the recorded input's resolution, else it is quantisation
+        return float(h.estimate.get("deadband", 0.0)) > 3.0 * float(h.extra.get("quantum", 0.0))
+    return True
 
 
 def _window_features(ev: Evaluator) -> dict[str, np.ndarray]:

@@ -95,6 +95,10 @@ class Evaluator:
         sc = np.where(self.available & (sc > 0), sc, 1.0)
         self.scale = sc
         self.w8 = np.where(self.available, 1.0 / sc, 0.0)
+        # blocks of ~0.5 s inside windows: the resampling unit of the significance tests
+        self.block = max(int(round(0.5 / dt_s)), 5)
+        self.n_blocks = self.L // self.block
+        self.last_blocks = np.zeros((self.W, self.n_blocks))
         self.mask = np.zeros(self.L, bool)
         self.mask[self.start:] = True
         # per-window, per-channel energy of the (weighted) target about the overall mean
@@ -181,6 +185,7 @@ class Evaluator:
         Mtr = np.einsum("wni,wn->wi", M, rf)
         rr = (rf ** 2).sum(axis=1)
         sse = np.empty((W, 8))
+        blocks = np.empty((W, self.n_blocks))
         train = np.empty(self.folds)
         coef = np.zeros((self.folds, K))
         for f in range(self.folds):
@@ -192,10 +197,18 @@ class Evaluator:
             d = np.linalg.solve(G + lam * np.eye(P), b)
             train[f] = rr[tr].sum() - 2 * d @ b + d @ G @ d
             e = rf[te] - np.einsum("wni,i->wn", M[te], d)
-            sse[te] = (e.reshape(int(te.sum()), self.L, 8) ** 2).sum(axis=1)
+            e2 = e.reshape(int(te.sum()), self.L, 8) ** 2
+            sse[te] = e2.sum(axis=1)
+            blocks[te] = self.to_blocks(e2.sum(axis=2))
             if K:
                 coef[f] = d[N_PARAMS:] / xs
+        self.last_blocks = blocks
         return sse, train, coef
+
+    def to_blocks(self, e2: np.ndarray) -> np.ndarray:
+        """Sum (W, L) squared residuals over blocks of ``block`` samples: (W, n_blocks)."""
+        Wn = e2.shape[0]
+        return e2[:, : self.n_blocks * self.block].reshape(Wn, self.n_blocks, self.block).sum(axis=2)
 
     def heldout_residual(self, r: np.ndarray, ridge: float | None = None) -> np.ndarray:
         """Weighted held-out residual (W, L, 8) of the base-model k-fold re-fit (for locating the gap)."""

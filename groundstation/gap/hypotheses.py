@@ -28,7 +28,7 @@ from groundstation.sysid.model import INPUTS
 #: Candidate delays / latencies (s); the grid is physical time, not samples.
 DELAY_GRID_S = (0.02, 0.04, 0.06, 0.08, 0.10, 0.13, 0.16, 0.20, 0.25)
 #: Slew limits as quantiles of the channel's own |input rate|.
-RATE_QUANTILES = (0.5, 0.7, 0.8, 0.88, 0.93, 0.96, 0.98, 0.99)
+RATE_QUANTILES = (0.6, 0.75, 0.85, 0.92, 0.96, 0.98, 0.99, 0.995, 0.998)
 #: Deadband half-widths as quantiles of the channel's own |input|.
 DEADBAND_QUANTILES = (0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5)
 #: Ground-effect decay heights relative to the smallest height flown (m, added to it).
@@ -105,6 +105,10 @@ class Context:
         self.segments = segments
         self.base_sse, self.base_train, _ = ev.heldout(ev.r0)
         self.dt_s = ev.dt_s
+        self.change: dict[str, np.ndarray] = {}  # effect -> (W,) prediction change of its variant
+        self.blocks: dict[str, np.ndarray] = {}  # effect -> (W, n_blocks) nested held-out cost
+        self.base_blocks = ev.last_blocks.copy()
+        self.pwm_per_unit = 500.0
 
     def variants_residual(self, U_list: list[np.ndarray] | None = None,
                           Y_list: list[np.ndarray] | None = None) -> np.ndarray:
@@ -125,19 +129,35 @@ class Context:
         training cost, and the per-variant linear-parameter estimates (folds, K).
         """
         ev = self.ev
-        sses, trains, coefs = [], [], []
+        sses, trains, coefs, blks = [], [], [], []
         for _, r, X in variants:
             s, t, c = ev.heldout(r, X)
             sses.append(s)
             trains.append(t)
             coefs.append(c)
+            blks.append(ev.last_blocks.copy())
         T = np.array(trains)  # (V, folds)
         out = np.empty((ev.W, 8))
+        out_b = np.empty((ev.W, ev.n_blocks))
         for f in range(ev.folds):
             v = int(np.argmin(T[:, f]))
             te = ev.fold == f
             out[te] = sses[v][te]
+            out_b[te] = blks[v][te]
+        self.blocks[effect] = out_b
         best = int(np.argmin(T.sum(axis=1)))
+        # how much the selected variant changes each window's prediction (at theta0): windows it
+        # leaves untouched carry no evidence either way (see attribute.active_windows)
+        change = np.zeros(ev.W)
+        for f in range(ev.folds):
+            v = int(np.argmin(T[:, f]))
+            te = ev.fold == f
+            _, r_b, X_b = variants[v]
+            d = r_b[te] - ev.r0[te]
+            if X_b is not None:
+                d = d - np.einsum("wlck,k->wlc", X_b[te], coefs[v][f])
+            change[te] = (d ** 2).sum(axis=(1, 2))
+        self.change[effect] = change
         return out, best, coefs
 
 
@@ -200,7 +220,7 @@ def scan_rate_limit(ctx: Context, channels: list[int]) -> Hypothesis:
 
 
 def ctx_pwm(ctx: Context) -> float:
-    return float(getattr(ctx, "pwm_per_unit", 500.0))
+    return float(ctx.pwm_per_unit)
 
 
 def scan_deadband(ctx: Context, channels: list[int]) -> Hypothesis:
@@ -221,9 +241,13 @@ def scan_deadband(ctx: Context, channels: list[int]) -> Hypothesis:
     variants = [(lab, ev.residual(y), None) for lab, y in zip(labels, yh, strict=True)]
     sse, best, _ = ctx.nested("deadband", variants)
     lab = labels[best]
+    # resolution of the recorded input (PWM quantum): a "deadband" of a few quanta is quantisation
+    du = np.concatenate([np.abs(np.diff(s.inputs[:, lab["channel"]])) for s in segs])
+    du = du[du > 1e-9]
+    quantum = float(du.min()) if du.size else 0.0
     return Hypothesis("deadband", input=INPUTS[lab["channel"]],
                       estimate={"deadband": lab["width"], "deadband_pwm_us": lab["width"] * ctx_pwm(ctx)},
-                      sse=sse, channels=(3, 4, 5, 6, 7), extra={"kind": lab["kind"]})
+                      sse=sse, channels=(3, 4, 5, 6, 7), extra={"kind": lab["kind"], "quantum": quantum})
 
 
 def scan_velocity_latency(ctx: Context) -> Hypothesis:
@@ -292,7 +316,7 @@ def scan_quadratic_drag(ctx: Context) -> Hypothesis:
     if not ev.available[list(VEL)].any():
         return Hypothesis("quadratic_drag", testable=False, reason="no velocity measurements")
     F_list = []
-    rows = (0, 1, 8)
+    rows = (0, 1)  # horizontal: a vertical column would also soak up any heave-model error
     used = []
     # the drag acts on the model's own velocity (output error): using the measured velocity here
     # would feed measurements into the simulation and reward any term that does so
@@ -353,18 +377,19 @@ def scan_wind_gust(ctx: Context, chunk_s: float = 0.5) -> Hypothesis:
     if not ev.available[list(VEL)].any():
         return Hypothesis("wind_gust", testable=False, reason="no velocity measurements")
     A, _ = full_matrices(ev.theta0)
-    Fdir = np.stack([-A[0, :, s_idx] for s_idx in (0, 1, 8)])  # (3, 11) per unit air velocity
+    # horizontal air velocity only: a vertical one would also soak up any heave-model error
+    Fdir = np.stack([-A[0, :, s_idx] for s_idx in (0, 1)])  # (2, 11) per unit air velocity
     L = ev.L
     tt = np.linspace(0.0, 1.0, L)
     hats = [np.maximum(0.0, 1.0 - np.abs(tt - c) * 2.0) for c in (0.0, 0.5, 1.0)]
     Z = np.zeros_like(ev.U)
     Y0 = np.zeros_like(ev.Y)
     cols = []
-    for comp in range(3):
+    for comp in range(Fdir.shape[0]):
         for hat in hats:
             F = np.broadcast_to(hat[:, None] * Fdir[comp][None, :], (ev.W, L, 11)).copy()
             cols.append(np.asarray(lsim(ev.theta0, Z, Y0, ev.dt_s, forcing=F, fit_initial=False))[0])
-    nuis = np.stack(cols, axis=-1) * ev.available[None, None, :, None]  # (W, L, 8, 9)
+    nuis = np.stack(cols, axis=-1) * ev.available[None, None, :, None]  # (W, L, 8, 6)
     chunk = max(int(round(chunk_s / ev.dt_s)), 2)
     even = ((np.arange(L) // chunk) % 2 == 0) & ev.mask
     odd = ((np.arange(L) // chunk) % 2 == 1) & ev.mask
@@ -376,7 +401,7 @@ def scan_wind_gust(ctx: Context, chunk_s: float = 0.5) -> Hypothesis:
                         nuisance=nuis, fit_mask=fit_m, return_coef=True)
         sse_b += (((ev.Y - yb) * ev.w8)[:, score_m] ** 2).sum(axis=1)
         sse_g += (((ev.Y - yg[0]) * ev.w8)[:, score_m] ** 2).sum(axis=1)
-    air = coef[0, :, -9:].reshape(ev.W, 3, 3)
+    air = coef[0, :, -nuis.shape[-1]:].reshape(ev.W, Fdir.shape[0], 3)
     rms = float(np.sqrt((air ** 2).sum(axis=1).mean()))
     return Hypothesis("wind_gust", estimate={"air_velocity_rms_m_s": rms}, sse=sse_g,
                       channels=(0, 1, 3, 4, 6, 7), extra={"base_sse": sse_b})
