@@ -184,3 +184,19 @@ def test_quadratic_drag_needs_more_tilt_at_speed(fly) -> None:
     dpitch = run["state"][leg, 7].mean() - base["state"][leg, 7].mean()
     expected = -c * np.mean(speed**2) / 9.81
     assert dpitch < 0 and 0.4 * expected > dpitch > 2.5 * expected, (dpitch, expected)
+
+
+def test_effects_combine(fly) -> None:
+    """Several effects at once: each keeps its own signature (input chain: delay, then play)."""
+    base = fly(SEED)
+    run = fly(SEED, ("input_delay:input=ped,delay_s=0.06", "deadband:input=ped,half_width=0.02",
+                     "gyro_bias:output=q,bias_rad_s=0.008"))
+    cmd, act = run["cmd"][:, 3], run["act"][:, 3]
+    late = cmd[:-3]  # 0.06 s = 3 ticks
+    expected = np.where(np.abs(late) <= 0.02, 0.0, late - np.sign(late) * 0.02)
+    assert np.allclose(act[3:], expected, atol=1e-12)
+    # the bias is there, on q only, on top of a (different) flight
+    v_true_q = run["state"][:, 4]
+    assert abs(np.mean(run["rates"][:, 1] - v_true_q) - 0.008) < 0.0005
+    assert abs(np.mean(run["rates"][:, 0] - run["state"][:, 3])) < 0.0005
+    assert not np.array_equal(run["state"], base["state"])
