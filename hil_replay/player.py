@@ -47,6 +47,8 @@ _MAGIC_V1 = 0xFE
 # timestamps between 2000 and 2100 (µs since epoch): used to re-synchronise after garbage
 _TS_MIN_US = 946_684_800 * 10**6
 _TS_MAX_US = 4_102_444_800 * 10**6
+# a file with no valid record in its first MiB is not a .tlog (do not scan gigabytes to say so)
+_MAX_LEADING_GARBAGE = 1 << 20
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,8 +78,9 @@ def _packet_length(blob: bytes | memoryview, j: int) -> int | None:
     return None
 
 
-def _crc_ok(pkt: bytes) -> bool:
-    """CRC check with the dialect's CRC_EXTRA; packets of unknown messages pass (cannot tell)."""
+def _check(pkt: bytes) -> bool | None:
+    """CRC check with the dialect's CRC_EXTRA: True/False, or None for a message id the dialect
+    does not know (its CRC cannot be checked)."""
     if pkt[0] == _MAGIC_V2:
         msg_id = pkt[7] | (pkt[8] << 8) | (pkt[9] << 16)
         end = 10 + pkt[1]
@@ -86,18 +89,21 @@ def _crc_ok(pkt: bytes) -> bool:
         end = 6 + pkt[1]
     cls = mavlink.mavlink_map.get(msg_id)
     if cls is None:
-        return True
+        return None
     crc = mavlink.x25crc(pkt[1:end])
     crc.accumulate(struct.pack("B", cls.crc_extra))
-    return crc.crc == (pkt[end] | (pkt[end + 1] << 8))
+    return bool(crc.crc == (pkt[end] | (pkt[end + 1] << 8)))
 
 
 def read_tlog_packets(path: str | os.PathLike[str]) -> list[TlogPacket]:
     """Split a .tlog into its records.
 
-    Tolerates a truncated last record and garbage between records (skipped byte by byte until a
-    plausible timestamp + CRC-valid packet). Raises ValueError naming the file when it holds no
-    MAVLink packet at all (empty, or not a .tlog), OSError when it cannot be read.
+    A record is accepted where the previous one ended (or at the start of the file) when its
+    timestamp is plausible and its packet CRC-valid; packets of message ids the dialect does not
+    know are kept only there (in step with the record structure). Garbage between records is
+    skipped byte by byte until a plausible timestamp + CRC-valid packet of a known message; a
+    truncated last record is dropped. Raises ValueError naming the file when it holds no MAVLink
+    packet at all (empty, or not a .tlog), OSError when it cannot be read.
     """
     p = Path(path)
     blob = p.read_bytes()
@@ -105,19 +111,24 @@ def read_tlog_packets(path: str | os.PathLike[str]) -> list[TlogPacket]:
         raise ValueError(f"{p}: empty file")
     out: list[TlogPacket] = []
     i = 0
+    expected = 0          # where the next record starts if the file is in step
     n_blob = len(blob)
     while i + 8 < n_blob:
         n = _packet_length(blob, i + 8)
         if n is not None and i + 8 + n <= n_blob:
             t_us = _TS.unpack_from(blob, i)[0]
-            pkt = blob[i + 8:i + 8 + n]
-            plausible = _TS_MIN_US <= t_us <= _TS_MAX_US
-            if plausible and _crc_ok(pkt):
-                out.append(TlogPacket(t_us, pkt))
-                i += 8 + n
-                continue
+            if _TS_MIN_US <= t_us <= _TS_MAX_US:
+                pkt = blob[i + 8:i + 8 + n]
+                ok = _check(pkt)
+                if ok or (ok is None and i == expected):
+                    out.append(TlogPacket(t_us, pkt))
+                    i += 8 + n
+                    expected = i
+                    continue
         # else: garbage, or a truncated last record (scanning on finds nothing more there)
         i += 1
+        if not out and i > _MAX_LEADING_GARBAGE:
+            break
     if not out:
         raise ValueError(f"{p}: no MAVLink packets found (not a .tlog file?)")
     return out

@@ -163,3 +163,20 @@ def test_fake_header_near_the_end_does_not_hide_the_last_record(tmp_path):
     junk = b"\x00" * 8 + b"\xfd\xff\x00"
     (tmp_path / "b.tlog").write_bytes(blob[:-last] + junk + blob[-last:])
     assert [p.data for p in read_tlog_packets(tmp_path / "b.tlog")] == packets
+
+
+def test_unknown_message_ids_only_accepted_in_step(tmp_path):
+    """Out of step (after garbage) a well-formed record of an unknown message id is not trusted
+    (its CRC cannot be checked) and must not swallow the real record behind it."""
+    packets = make_tlog(tmp_path / "a.tlog", duration_s=0.2)
+    blob = (tmp_path / "a.tlog").read_bytes()
+    first = 8 + len(packets[0])
+    ts = blob[:8]
+    unknown = bytes([0xFD, 40, 0, 0, 7, 1, 1, 0xEF, 0xCD, 0xAB]) + bytes(40) + b"\x12\x34"
+    # in step (right after a record): kept; out of step (after one junk byte): skipped
+    in_step = blob[:first] + ts + unknown + blob[first:]
+    (tmp_path / "b.tlog").write_bytes(in_step)
+    assert [p.data for p in read_tlog_packets(tmp_path / "b.tlog")] == packets[:1] + [unknown] + packets[1:]
+    out_of_step = blob[:first] + b"\x07" + ts + unknown[:20] + blob[first:]
+    (tmp_path / "c.tlog").write_bytes(out_of_step)
+    assert [p.data for p in read_tlog_packets(tmp_path / "c.tlog")] == packets
