@@ -13,7 +13,8 @@ with their original timing, ``speed``× faster, or as fast as the reader drains 
 
 The player only writes while a reader has the port open (``wait_for_reader``, default): it waits
 for the ground station to open (or reopen, after an unplug) the port and resumes from there, so
-every packet it reports as sent was offered to an open port. :attr:`TlogPlayer.report` lists, by
+every packet it reports as sent was offered to an open port (without it, bytes written while
+nobody has the port open go nowhere and are counted in ``report.unheard_bytes``). :attr:`TlogPlayer.report` lists, by
 index into :attr:`TlogPlayer.packets`, exactly which source packets went out intact, corrupted,
 dropped or into the unplug gap.
 
@@ -152,6 +153,8 @@ class ReplayReport:
     # times the reader had not read everything when the port was unplugged or the replay ended
     # (the packets reported as sent may then not all have reached it)
     undrained: int = 0
+    # bytes written while no reader had the port open (only with wait_for_reader=False)
+    unheard_bytes: int = 0
 
     @property
     def real_time_factor(self) -> float:
@@ -349,9 +352,15 @@ class TlogPlayer:
     def _flush(self, batch: list[bytes]) -> None:
         if not batch:
             return
-        if self.wait_for_reader and not self.port.reader_attached():
-            self._await_reader()
         data = b"".join(batch)
+        if not self.port.reader_attached():
+            if self.wait_for_reader:
+                self._await_reader()
+            else:
+                # nobody has the port open: the bytes go nowhere, as on a real serial line
+                self.report.unheard_bytes += len(data)
+                self.report.bytes_sent += len(data)
+                return
         self._write(data)
         self.report.bytes_sent += len(data)
 

@@ -86,3 +86,13 @@ def test_ctrl_c_stops_cleanly(tmp_path):
     rep = json.loads((tmp_path / "rep.json").read_text())
     assert not rep["finished"] and 0 < len(rep["intact"]) < rep["n_packets"]
     assert not os.path.lexists(path)
+
+
+def test_no_wait_serves_into_the_void_and_says_so(tmp_path):
+    make_tlog(tmp_path / "a.tlog", duration_s=20.0)   # more than a pty buffer holds
+    res = subprocess.run([*CLI, str(tmp_path / "a.tlog"), "--speed", "0", "--no-wait",
+                          "--report", str(tmp_path / "rep.json")], capture_output=True, text=True, timeout=30)
+    assert res.returncode == 0, res.stderr
+    rep = json.loads((tmp_path / "rep.json").read_text())
+    # nobody read it, and the report says so
+    assert rep["finished"] and rep["undrained"] == 1 and rep["unheard_bytes"] == rep["bytes_sent"] > 30_000
