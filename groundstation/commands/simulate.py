@@ -28,6 +28,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--aircraft", default=None, help="aircraft TOML file or name (default: trex600)")
     parser.add_argument("--duration-s", type=float, default=None, help="armed time per flight (default ~175 s)")
     parser.add_argument("--pause-s", type=float, default=10.0, help="disarmed pause between flights (s)")
+    parser.add_argument("--rate", action="append", default=[], metavar="MESSAGE=HZ",
+                        help="--out: message rate in the .tlog, e.g. LOCAL_POSITION_NED=10 (0 = not written; "
+                             "default: 50 Hz SERVO_OUTPUT_RAW/ATTITUDE/LOCAL_POSITION_NED, 10 Hz GLOBAL_POSITION_INT/"
+                             "RAW_IMU, 5 Hz GPS/EXTENDED_SYS_STATE, 1 Hz HEARTBEAT/SYS_STATUS)")
     parser.add_argument("--speed", type=float, default=1.0, help="--serve: N times real time")
     parser.add_argument("--link-path", default=None, help="--serve: symlink path for the port")
 
@@ -54,8 +58,24 @@ def run(args: argparse.Namespace) -> int:
     out: Path = args.out
     if out.suffix != ".tlog":
         raise ValueError(f"--out {out}: the file name must end in .tlog")
+    rates: dict[str, float] = {}
+    for item in args.rate:
+        name, eq, hz = item.partition("=")
+        try:
+            rates[name.strip().upper()] = float(hz)
+        except ValueError:
+            raise ValueError(f"--rate {item!r}: expected MESSAGE=HZ, e.g. LOCAL_POSITION_NED=10") from None
+        if not eq:
+            raise ValueError(f"--rate {item!r}: expected MESSAGE=HZ, e.g. LOCAL_POSITION_NED=10")
+    from hil_replay.sim import MESSAGE_NAMES
+
+    for name, hz in rates.items():
+        if name not in MESSAGE_NAMES:
+            raise ValueError(f"--rate: unknown message {name!r}; allowed: {list(MESSAGE_NAMES)}")
+        if not 0.0 <= hz <= 50.0:
+            raise ValueError(f"--rate {name}={hz:g}: allowed 0..50 Hz (the simulator's 50 Hz frames)")
     truth = write_tlog(out, seed=args.seed, flights=args.flights, effects=effects, aircraft=aircraft,
-                       flight_duration_s=args.duration_s, pause_s=args.pause_s)
+                       flight_duration_s=args.duration_s, pause_s=args.pause_s, rates_hz=rates or None)
     fl = truth["flights"]
     total = fl[-1]["end_fc_s"] + 2.0
     print(f"wrote {out} ({out.stat().st_size} bytes, {truth['packets_written']} packets, "

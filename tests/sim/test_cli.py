@@ -89,3 +89,26 @@ def test_simulate_serve_prints_a_port_with_a_heartbeating_fc(tmp_path) -> None:
             proc.kill()
             proc.wait()
     assert proc.returncode in (0, 130)
+
+
+def test_simulate_rates_and_bad_rates(tmp_path, capsys) -> None:
+    out = tmp_path / "r.tlog"
+    assert main(["simulate", "--out", str(out), "--duration-s", "30", "--rate", "local_position_ned=10",
+                 "--rate", "RAW_IMU=0"]) == 0
+    truth = json.loads(out.with_suffix(".truth.json").read_text())
+    assert truth["tlog_rates_hz"]["LOCAL_POSITION_NED"] == 10.0 and truth["tlog_rates_hz"]["RAW_IMU"] == 0.0
+    from pymavlink import mavutil
+
+    m = mavutil.mavlink_connection(str(out))
+    n = {"LOCAL_POSITION_NED": 0, "ATTITUDE": 0, "RAW_IMU": 0}
+    while (msg := m.recv_match()) is not None:
+        if msg.get_type() in n:
+            n[msg.get_type()] += 1
+    assert n["RAW_IMU"] == 0 and 4.5 < n["ATTITUDE"] / n["LOCAL_POSITION_NED"] < 5.5
+    capsys.readouterr()
+    for bad, words in ((["--rate", "FOO=3"], ["FOO", "ATTITUDE"]), (["--rate", "ATTITUDE=100"], ["100", "50"]),
+                       (["--rate", "ATTITUDE"], ["MESSAGE=HZ"])):
+        assert main(["simulate", "--out", str(tmp_path / "bad.tlog"), *bad]) == 2
+        err = capsys.readouterr().err
+        assert all(w in err for w in words) and "--rate" in err
+    assert not (tmp_path / "bad.tlog").exists()
