@@ -270,14 +270,15 @@ class TlogPlayer:
                 return
             self._stop.wait(min(left, 0.1))
 
-    def _write(self, data: bytes) -> None:
-        """Write everything (back-pressure: waits while the pty is full), unless stopped."""
+    def _write(self, data: bytes) -> bool:
+        """Write everything (back-pressure: waits while the pty is full); False if stopped first."""
         view = memoryview(data)
         while view and not self._stop.is_set():
             n = self.port.write_nowait(view)
             view = view[n:]
             if view:
                 select.select([], [self.port.fileno()], [], 0.1)
+        return not view
 
     def run(self, stop: threading.Event | None = None) -> ReplayReport:
         """Play the whole log (or until :meth:`stop` / ``stop`` is set); returns the report."""
@@ -291,7 +292,7 @@ class TlogPlayer:
         n = len(self.packets)
         unplug_at = self.unplug_at_s if self.unplug_at_s is not None else math.inf
         unplug_end = unplug_at + self.unplug_for_s
-        batch: list[bytes] = []
+        batch: list[tuple[int, bytes, int]] = []   # (index, bytes on the wire, corrupted bytes)
         batch_bytes = 0
         i = 0
         try:
@@ -329,12 +330,7 @@ class TlogPlayer:
                     rep.dropped.append(i)
                 else:
                     data, hits = self._corrupt(pkt)
-                    if hits:
-                        rep.corrupted.append(i)
-                        rep.corrupt_bytes += hits
-                    else:
-                        rep.intact.append(i)
-                    batch.append(data)
+                    batch.append((i, data, hits))
                     batch_bytes += len(data)
                     if batch_bytes >= 4096:
                         self._flush(batch)
@@ -349,20 +345,31 @@ class TlogPlayer:
             rep.log_s = float(replay_s[min(i, n) - 1]) if i else 0.0
         return rep
 
-    def _flush(self, batch: list[bytes]) -> None:
+    def _flush(self, batch: list[tuple[int, bytes, int]]) -> None:
+        """Write a batch; its packets enter the report only once they are all written."""
         if not batch:
             return
-        data = b"".join(batch)
+        data = b"".join(b for _, b, _ in batch)
         if not self.port.reader_attached():
-            if self.wait_for_reader:
-                self._await_reader()
-            else:
+            if not self.wait_for_reader:
                 # nobody has the port open: the bytes go nowhere, as on a real serial line
                 self.report.unheard_bytes += len(data)
-                self.report.bytes_sent += len(data)
+                self._commit(batch, len(data))
                 return
-        self._write(data)
-        self.report.bytes_sent += len(data)
+            self._await_reader()
+        if self._write(data):
+            self._commit(batch, len(data))
+        # else: stopped before it was all written; these packets are not reported as sent
+
+    def _commit(self, batch: list[tuple[int, bytes, int]], n_bytes: int) -> None:
+        rep = self.report
+        rep.bytes_sent += n_bytes
+        for i, _, hits in batch:
+            if hits:
+                rep.corrupted.append(i)
+                rep.corrupt_bytes += hits
+            else:
+                rep.intact.append(i)
 
     # ------------------------------------------------------------------ thread helpers
 
