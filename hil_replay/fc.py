@@ -15,9 +15,10 @@ clock with ``t_boot_s``, ``armed``, ``available`` (message names with fresh data
 * REQUEST_DATA_STREAM with ArduPilot's stream groups (no ACK, as ArduPilot);
 * each requested message decimated from the 50 Hz frames to the requested rate on the FC clock
   (never faster than the source provides it);
-* link packet loss (seeded), applied after encoding so the MAVLink ``seq`` shows the gap;
+* link packet loss (seeded), applied after encoding so the MAVLink ``seq`` shows the gap, and
+  optional line noise (``corrupt_rate``: bit flips per byte, seeded);
 * an FC reboot on demand (:meth:`FcProtocol.reboot`): silence, boot clock and ``seq`` restart,
-  streams off until requested again.
+  streams off until requested again; a cable pull on demand (:meth:`SimulatedFCThread.unplug`).
 
 :class:`FcProtocol` is the IO-free part (bytes in, frames in, packets out).
 :class:`SimulatedFlightController` drives it on a :class:`hil_replay.pty.VirtualSerialPort` in
