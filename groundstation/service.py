@@ -39,7 +39,6 @@ import numpy as np
 
 from firmware_interface.samples import (
     FcRebooted,
-    Heartbeat,
     LinkLost,
     LinkRestored,
     RawPacket,
@@ -107,10 +106,13 @@ class Service:
     log : one-line messages for the operator (default ``print``)
     sim_options : extra keyword arguments for the built-in simulator's ``SimulatedSession``
     fc_config : :class:`hil_replay.fc.FcConfig` for the built-in simulator (faults in tests)
+    frame_source : replaces the built-in simulator's helicopter (anything with ``frames()``)
     """
 
     def __init__(self, config: ServiceConfig, *, log: Callable[[str], None] = print,
-                 sim_options: dict[str, Any] | None = None, fc_config: Any = None) -> None:
+                 sim_options: dict[str, Any] | None = None, fc_config: Any = None,
+                 frame_source: Any = None) -> None:
+        self.frame_source = frame_source
         self.config = config
         self.log = log
         self.sim_options = sim_options
@@ -196,7 +198,8 @@ class Service:
 
         sc = self.config.sim
         self.sim = SimulatedFCThread(speed=sc.speed, seed=sc.seed, flights=sc.flights, effects=sc.effects,
-                                     config=self.fc_config, sim_options=self.sim_options)
+                                     config=self.fc_config, sim_options=self.sim_options,
+                                     session=self.frame_source)
         self.sim.start()
         return f"serial://{self.sim.port_path}:{self.config.link.baud}"
 
@@ -266,7 +269,9 @@ class Service:
 
     async def _reader(self) -> None:
         reconnect_s = 0.25
-        while True:
+        # Loops also check the stop flag: on Python 3.11 a cancellation can be swallowed by a
+        # transport's asyncio.wait_for racing its own timeout; the flag still ends the task.
+        while not self._stop.is_set():
             if self.link is None:
                 try:
                     self.link = await self._open_link()
@@ -283,8 +288,6 @@ class Service:
             else:
                 reason = "end of stream"
             if not data:
-                if data is not None and data == b"" and not getattr(self.link, "at_eof", True):
-                    continue
                 await self._drop_link(reason)
                 continue
             await self._bytes_q.put((data, time.time()))
@@ -305,7 +308,7 @@ class Service:
         period = 0.02
         status_every = 1.0 / self.config.service.status_rate_hz
         next_status = time.monotonic()
-        while True:
+        while not self._stop.is_set():
             now = time.time()
             self.session.handle_timer(now)
             out = self.session.data_to_send(now)
@@ -328,7 +331,7 @@ class Service:
     # ------------------------------------------------------------------ processing
 
     async def _processor(self) -> None:
-        while True:
+        while not self._stop.is_set():
             data, t_host = await self._bytes_q.get()
             self.session.receive_data(data, t_host)
             self._drain_session(t_host)
@@ -339,14 +342,11 @@ class Service:
         events = self.session.events()
         if not events:
             return
-        rec = self.recorder
+        self.recorder.handle(events)          # recording first, before anything that could fail
         for ev in events:
             if isinstance(ev, RawPacket):
                 self.packets += 1
                 self.rates.add(ev.msg_type, now)
-                rec.handle(ev)
-            elif isinstance(ev, Heartbeat):
-                rec.handle(ev)
             elif isinstance(ev, LinkLost):
                 self.link_up = False
                 self._rerun_event(f"link lost: {ev.reason}", "WARN")
@@ -370,6 +370,11 @@ class Service:
             doc = w.to_json(self.vehicle)
             if self.zenoh.publish_window(doc, seq=w.seq, t_host_last_s=w.t_host_last_s):
                 self.window_seq_published += 1
+        self._flush_rows_to_rerun()
+        if self.on_window is not None:
+            self.on_window(w)
+
+    def _flush_rows_to_rerun(self) -> None:
         if self.rerun is not None and self._rerun_calls is not None:
             if self._rows_buf:
                 cols = [np.concatenate([r[i] for r in self._rows_buf]) for i in range(4)]
@@ -381,8 +386,6 @@ class Service:
                                          "smoothed")
         self._rows_buf.clear()
         self._sm_buf.clear()
-        if self.on_window is not None:
-            self.on_window(w)
 
     def _rerun_event(self, text: str, level: str) -> None:
         if self.rerun is not None and self._rerun_calls is not None:
@@ -530,6 +533,7 @@ class Service:
                 if p.is_alive():
                     p.kill()
         # 3. sinks (bounded waits)
+        self._flush_rows_to_rerun()
         if self._rerun_calls is not None:
             self._rerun_calls.close(0.5)
         if self.rerun is not None:

@@ -548,7 +548,10 @@ class LivePipeline:
                 if not al._streams["lpn"].t:
                     self.flights.on_altitude(ev.relative_alt_m)
             elif isinstance(ev, Heartbeat):
-                tr = self.flights.on_heartbeat(ev.armed, ev.t_fc_s)
+                # HEARTBEAT has no FC time field: the newest FC time seen on the time-stamped streams
+                # is a better estimate than the session's clock model early in a fast replay
+                t_hb = al._newest if math.isfinite(al._newest) else ev.t_fc_s
+                tr = self.flights.on_heartbeat(ev.armed, t_hb)
                 if tr is not None:
                     out.flight_events.append(tr)
             elif isinstance(ev, ExtendedSysState):
