@@ -59,7 +59,8 @@ def _flights(args, tmp: Path) -> tuple[Any, Any, dict[str, float], str]:
             preps, truth = [], None
             for k in range(2):
                 path = tmp / f"flight{k}.tlog"
-                truth = write_tlog(path, seed=args.sim_seed + k, flights=1, effects=(), aircraft=None)
+                truth = write_tlog(path, seed=args.sim_seed + k, flights=1, effects=(), aircraft=None,
+                                   flight_duration_s=args.duration_s)
                 if truth is None:
                     truth = json.loads(path.with_suffix(".truth.json").read_text())
                 preps.append(prepare([load_log(path)], cfg))
@@ -178,7 +179,7 @@ def _compare(args, train, con, identify, IdentifyConfig, plot_convergence) -> di
             res[a]["match"].append(m.fit["match_degree"])
             res[a]["nfev"].append(m.fit["evaluations"])
             h, hn = m.fit["history"], m.fit["history_nfev"]
-            grid = np.linspace(0, args.budget, 101)[1:]
+            grid = np.linspace(min(100, args.budget), args.budget, 100)
             tot = np.zeros_like(grid)
             for sub in h:
                 tot += np.interp(grid, hn[sub], h[sub], left=np.nan)

@@ -64,8 +64,8 @@ def plot_convergence(curves: dict[str, list[tuple[np.ndarray, np.ndarray]]], pat
     for k, (name, runs) in enumerate(curves.items()):
         if not runs:
             continue
-        grid = np.linspace(0, min(float(r[0][-1]) for r in runs), 200)
-        fit = np.array([1.0 / (1.0 + np.interp(grid, r[0], r[1], left=np.nan)) for r in runs])
+        grid = np.linspace(max(float(r[0][0]) for r in runs), min(float(r[0][-1]) for r in runs), 200)
+        fit = np.array([1.0 / (1.0 + np.interp(grid, r[0], r[1])) for r in runs])
         med = np.nanmedian(fit, axis=0)
         ax.plot(grid, med, color=f"C{k}", label=name.upper())
         ax.fill_between(grid, np.nanmin(fit, axis=0), np.nanmax(fit, axis=0), color=f"C{k}", alpha=0.15)
