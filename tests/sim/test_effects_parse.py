@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from hil_replay.sim import SimulatedSession
 from hil_replay.sim.aircraft import PARAM_NAMES, load_aircraft, resolve_aircraft
@@ -137,3 +139,13 @@ def test_aircraft_the_pilot_cannot_fly_is_rejected_at_construction() -> None:
         p[k] = 0.0  # cyclic does nothing: the unstable hover cannot be flown
     with pytest.raises(ValueError, match=r"no_cyclic \(lat/lon\).*cannot stabilise"):
         SimulatedSession(aircraft=Aircraft(name="no_cyclic", parameters=p))
+
+
+@given(name=st.sampled_from(DESIGN_CATALOGUE), seed=st.integers(0, 2**31 - 1))
+@settings(max_examples=60, deadline=None)
+def test_random_effects_round_trip_through_the_cli_syntax(name: str, seed: int) -> None:
+    e = random_effect(name, seed)
+    back = parse_effect(e.spec())
+    assert (back.name, back.input, back.output) == (e.name, e.input, e.output)
+    for k, v in e.params.items():
+        assert back.params[k] == pytest.approx(v, rel=1e-5)
