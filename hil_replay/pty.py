@@ -128,16 +128,20 @@ class VirtualSerialPort:
             # The slave is not held open here: POLLHUP on the master then tells us whether a
             # reader is attached, and the termios settings persist while the master is open.
             os.close(slave)
-        os.set_blocking(master, False)
-        # packet mode: every read starts with a status byte, 0 = data, else TIOCPKT_* flags
-        fcntl.ioctl(master, _TIOCPKT, struct.pack("i", 1))
+        try:
+            os.set_blocking(master, False)
+            # packet mode: every read starts with a status byte, 0 = data, else TIOCPKT_* flags
+            fcntl.ioctl(master, _TIOCPKT, struct.pack("i", 1))
+            tmp = self._path.with_name(f".{self._path.name}.{os.getpid()}.tmp")
+            if tmp.is_symlink() or tmp.exists():
+                tmp.unlink()
+            os.symlink(device, tmp)
+            os.replace(tmp, self._path)  # atomic: the path never points at a dead device
+        except BaseException:
+            os.close(master)
+            raise
         self._inbox.clear()
         self._flush_seen = False
-        tmp = self._path.with_name(f".{self._path.name}.{os.getpid()}.tmp")
-        if tmp.is_symlink() or tmp.exists():
-            tmp.unlink()
-        os.symlink(device, tmp)
-        os.replace(tmp, self._path)  # atomic: the path never points at a dead device
         self._master = master
         self._device = device
         self._poll = select.poll()

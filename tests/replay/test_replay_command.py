@@ -96,3 +96,16 @@ def test_no_wait_serves_into_the_void_and_says_so(tmp_path):
     rep = json.loads((tmp_path / "rep.json").read_text())
     # nobody read it, and the report says so
     assert rep["finished"] and rep["undrained"] == 1 and rep["unheard_bytes"] == rep["bytes_sent"] > 30_000
+
+
+def test_unusable_link_path_one_line_exit_2(tmp_path):
+    make_tlog(tmp_path / "a.tlog", duration_s=0.5)
+    taken = tmp_path / "regular-file"
+    taken.write_text("not a port")
+    for bad in (taken, "/proc/no-such-dir/ttyFC"):
+        res = subprocess.run([*CLI, str(tmp_path / "a.tlog"), "--link-path", str(bad)], capture_output=True,
+                             text=True, timeout=30)
+        assert res.returncode == 2 and res.stdout == ""
+        lines = res.stderr.strip().splitlines()
+        assert len(lines) == 1 and str(bad).rsplit("/", 1)[0] in lines[0]
+    assert taken.read_text() == "not a port"
