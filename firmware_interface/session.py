@@ -26,6 +26,9 @@ What it does:
   per configured message, one at a time, checking COMMAND_ACK with retries; messages denied,
   unsupported or never acknowledged fall back to REQUEST_DATA_STREAM of their stream group; all of
   it again after an FC reboot or a restored link;
+* optional MAVLink 2 signing (``verifier``/``signer`` from :mod:`firmware_interface.signing`):
+  frames that fail verification are still emitted as RawPacket (``signature_ok=False``, so they
+  are recorded) but not decoded and not trusted for link health; outgoing bytes are signed;
 * a read-only allowlist on everything sent (:func:`check_outgoing`): HEARTBEAT (as a GCS),
   REQUEST_DATA_STREAM, and COMMAND_LONG with MAV_CMD_SET_MESSAGE_INTERVAL or MAV_CMD_REQUEST_MESSAGE
   only; anything else raises :class:`~firmware_interface.errors.LocalProtocolError`.
@@ -298,8 +301,12 @@ class StreamStatus:
 class MavlinkSession:
     """See the module docstring. ``now`` is the host time in Unix seconds, always passed in."""
 
-    def __init__(self, config: SessionConfig | None = None) -> None:
+    def __init__(self, config: SessionConfig | None = None, *, verifier: Any = None, signer: Any = None) -> None:
         self.config = config or SessionConfig()
+        # MAVLink 2 signing (firmware_interface.signing): verifier.check(frame) -> SignatureCheck,
+        # signer.sign_stream(bytes, now) -> bytes. None = unsigned link.
+        self._verifier = verifier
+        self._signer = signer
         self.stats = LinkStats()
         self.clock = ClockModel(self.config.clock_bin_s, self.config.clock_bins)
         self._framer = Framer()
@@ -344,17 +351,26 @@ class MavlinkSession:
                 k = f"{sysid}:{compid}"
                 stats.loss_by_source[k] = stats.loss_by_source.get(k, 0) + lost
         self._seq[key] = seq
+        unpacker, size, conv = self._decoders[msg_id]
+        cls = MESSAGE_CLASSES[msg_id]
+        name = cls.msgname
+        self.message_counts[name] = self.message_counts.get(name, 0) + 1
+        sig_ok: bool | None = None
+        if self._verifier is not None:
+            sig_ok = bool(self._verifier.check(pkt).ok)
+            if not sig_ok:
+                # recorded (flagged) but neither decoded nor trusted for link health or stream setup
+                stats.unsigned_dropped += 1
+                if self._emit_raw:
+                    self._events.append(RawPacket(now, pkt, msg_id, name, sysid, compid, seq, False))
+                return
         if self._lost:
             self._lost = False
             self._events.append(LinkRestored(now))
             self._restart_setup()
         self._last_rx = now
-        unpacker, size, conv = self._decoders[msg_id]
-        cls = MESSAGE_CLASSES[msg_id]
-        name = cls.msgname
-        self.message_counts[name] = self.message_counts.get(name, 0) + 1
         if self._emit_raw:
-            self._events.append(RawPacket(now, pkt, msg_id, name, sysid, compid, seq))
+            self._events.append(RawPacket(now, pkt, msg_id, name, sysid, compid, seq, sig_ok))
         if conv is None:
             return
         if len(payload) < size:
@@ -426,6 +442,8 @@ class MavlinkSession:
         self.handle_timer(now)
         out = bytes(self._out)
         self._out.clear()
+        if out and self._signer is not None:
+            out = self._signer.sign_stream(out, now)
         return out
 
     @property

@@ -428,3 +428,30 @@ def test_session_module_is_pure():
         names |= {n.module.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
         assert not names & {"asyncio", "serial", "zenoh", "rerun", "time", "socket", "os"}, mod.__name__
         assert "open(" not in Path(mod.__file__).read_text()
+
+
+def test_signed_link_records_but_does_not_decode_unverified_frames():
+    from firmware_interface.signing import SignatureVerifier, SigningKey, make_signer
+
+    key = SigningKey(bytes(range(32)))
+    now = 1_790_000_000.0
+    fc_mav = mavlink2.MAVLink(None, 1, 1)
+    fc_mav.signing.secret_key = key.secret()
+    fc_mav.signing.sign_outgoing = True
+    fc_mav.signing.timestamp = int((now - 1420070400) * 1e5)
+    good = bytes(fc_mav.heartbeat_encode(4, 3, 0x81, 0, 4).pack(fc_mav))
+    fc_mav.seq += 1
+    unsigned = FakeFc().attitude(1000)
+    s = MavlinkSession(SessionConfig(stream_rates_hz=(("ATTITUDE", 50.0),)),
+                       verifier=SignatureVerifier(key), signer=make_signer(key, now_unix_s=now))
+    ev = feed_bytewise(s, good + unsigned, now)
+    raws = [e for e in ev if isinstance(e, RawPacket)]
+    assert [(r.msg_type, r.signature_ok) for r in raws] == [("HEARTBEAT", True), ("ATTITUDE", False)]
+    assert [type(e).__name__ for e in ev if not isinstance(e, RawPacket)] == ["Heartbeat"]
+    assert s.stats.unsigned_dropped == 1
+    out = s.data_to_send(now + 0.1)
+    rx = mavlink2.MAVLink(None, 1, 1)
+    rx.signing.secret_key = key.secret()
+    rx.signing.allow_unsigned_callback = lambda mav, msg_id: False
+    msgs = rx.parse_buffer(out)
+    assert [m.get_type() for m in msgs] == ["HEARTBEAT", "COMMAND_LONG"] and all(m.get_signed() for m in msgs)
