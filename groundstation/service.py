@@ -142,6 +142,7 @@ class Service:
         self._rows_buf: list[tuple[np.ndarray, ...]] = []
         self._sm_buf: list[tuple[np.ndarray, np.ndarray]] = []
         self.flights_completed = 0
+        self.link_drops = 0
         self.packets = 0
         self.window_seq_published = 0
         self.on_window: Callable[[Window], None] | None = None     # test/bench hook (loop thread)
@@ -294,6 +295,7 @@ class Service:
 
     async def _drop_link(self, reason: str) -> None:
         link, self.link = self.link, None
+        self.link_drops += 1
         if self.link_up:
             self.log(f"link lost ({reason}); reconnecting")
         self.link_up = False
@@ -489,7 +491,8 @@ class Service:
         z = self.zenoh
         return {
             "vehicle": self.vehicle, "t_host_s": now,
-            "link": {"up": self.link_up, "url": self.link_url, "packets": pk, "packets_lost": lost,
+            "link": {"up": self.link_up, "url": self.link_url, "drops": self.link_drops,
+                     "packets": pk, "packets_lost": lost,
                      "loss_pct": round(100.0 * lost / max(1, pk + lost), 3),
                      "bad_crc": int(getattr(stats, "bad_crc", 0) or 0),
                      "corrupt_bytes": int(getattr(stats, "corrupt_bytes", 0) or 0)},
