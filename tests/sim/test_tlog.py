@@ -192,3 +192,21 @@ def test_simulator_is_independent_of_the_estimators(tmp_path) -> None:
             "print(bad); sys.exit(1 if bad else 0)")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_same_bytes_across_processes(tmp_path) -> None:
+    """Reproducible across interpreters (no dependence on hash randomisation or wall time)."""
+    import os
+    import subprocess
+    import sys
+
+    outs = []
+    for h in ("1", "2"):
+        p = tmp_path / f"h{h}.tlog"
+        code = ("from hil_replay.sim import write_tlog; "
+                f"write_tlog({str(p)!r}, seed=9, flight_duration_s=30, "
+                "effects=['wind_gust', 'rate_limit:input=lat', 'gyro_bias:output=r'])")
+        subprocess.run([sys.executable, "-c", code], check=True, timeout=120,
+                       env={**os.environ, "PYTHONHASHSEED": h})
+        outs.append((p.read_bytes(), p.with_suffix(".truth.json").read_bytes()))
+    assert outs[0] == outs[1]
