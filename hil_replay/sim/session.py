@@ -128,7 +128,8 @@ class SimulatedSession:
             if e.name == "rotor_vibration":
                 f = float(e.params["rpm"]) / 60.0
                 d["params"]["frequency_hz"] = f
-                d["params"]["aliased_hz"] = [aliased_hz(k * f, FRAME_RATE_HZ) for k in (1, 2)]
+                d["params"]["aliased_hz"] = aliased_hz(f, FRAME_RATE_HZ)  # 1/rev line in 50 Hz samples
+                d["params"]["aliased_2rev_hz"] = aliased_hz(2 * f, FRAME_RATE_HZ)
             effects.append(d)
         flights = []
         for k, (t0, card) in enumerate(zip(self.arm_times_s, self.cards, strict=False)):

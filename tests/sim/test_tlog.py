@@ -210,3 +210,11 @@ def test_same_bytes_across_processes(tmp_path) -> None:
                        env={**os.environ, "PYTHONHASHSEED": h})
         outs.append((p.read_bytes(), p.with_suffix(".truth.json").read_bytes()))
     assert outs[0] == outs[1]
+
+
+def test_truth_effect_params_are_plain_numbers() -> None:
+    sess = SimulatedSession(seed=1, effects=("rotor_vibration:rpm=1400", "wind_gust", "input_delay:input=col"))
+    for e in sess.truth()["effects"]:
+        assert all(isinstance(v, float) for v in e["params"].values()), e
+    vib = sess.truth()["effects"][0]["params"]
+    assert vib["frequency_hz"] == pytest.approx(1400 / 60) and vib["aliased_2rev_hz"] == pytest.approx(50 - 2800 / 60)
