@@ -166,9 +166,14 @@ class WindowSimulator:
             for i in self.subsystems:
                 A, B = ((Ah, Bh), (Av, Bv))[i]
                 n = A.shape[-1]
-                # Ad and Gamma = int_0^dt e^(A s) ds in one exponential; Bd = Gamma B (exact ZOH)
-                Ad, Gam = discretize(A, np.broadcast_to(np.eye(n), A.shape), self.dt_s)
-                out.append((i, self._sub(_SUBS[i], self._prep[i], Ad, np.matmul(Gam, B), Gam)))
+                if self._prep[i]["lin"]:
+                    # Ad and Gamma = int_0^dt e^(A s) ds in one exponential; Bd = Gamma B (exact ZOH)
+                    Ad, Gam = discretize(A, np.broadcast_to(np.eye(n), A.shape), self.dt_s)
+                    Bd = np.matmul(Gam, B)
+                else:
+                    Ad, Bd = discretize(A, B, self.dt_s)
+                    Gam = None
+                out.append((i, self._sub(_SUBS[i], self._prep[i], Ad, Bd, Gam)))
         return out
 
     def solve_linear(self, theta: np.ndarray) -> dict[int, np.ndarray]:
@@ -211,7 +216,7 @@ class WindowSimulator:
             out[:, :, :, pre["o_idx"]] = (e * pre["mflat"][None]).reshape(C, self.W, self.L, pre["nch"])
         return np.where(np.isfinite(out), out, 1e6)
 
-    def _sub(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, Gam: np.ndarray):
+    def _sub(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, Gam: np.ndarray | None):
         C = Ad.shape[0]
         W, L, n, b, nb = self.W, self.L, sub.n, self.b, self.nb
         s_idx, nch = pre["s_idx"], pre["nch"]
@@ -257,16 +262,16 @@ class WindowSimulator:
         Phi4 = Phi.reshape(C, L, nch, n).transpose(0, 2, 3, 1)  # (C, nch, n, L)
         H = np.matmul(Phi4, np.swapaxes(Phi4, -1, -2))  # (C, nch, n, n)
         G = np.matmul(pre["w_ch"][None], H.reshape(C, nch, n * n)).reshape(C, W, n, n)
-        if pre["uniform"]:
-            PhiW = Phi * pre["wflat"][0][None, :, None]
-            rhs = np.matmul(r, PhiW)  # (C, W, n)
-        else:
-            rhs = np.matmul(r * pre["wflat"][None], Phi)
         G *= (unk[:, :, None] * unk[:, None, :])[None]
         diag = np.einsum("cwii->cwi", G)
         scale = np.maximum(diag.max(axis=-1, keepdims=True), 1e-300)
         reg = np.where(unk[None] > 0, self.ridge * scale, 1.0)
         G += reg[..., :, None] * np.eye(n)
+        if pre["uniform"]:
+            PhiW = Phi * pre["wflat"][0][None, :, None]
+            rhs = np.matmul(r, PhiW)  # (C, W, n)
+        else:
+            rhs = np.matmul(r * pre["wflat"][None], Phi)
         rhs *= unk[None]
         if pre["lin"]:
             return self._varpro(pre, Apow, Ob, Gam, Phi, G, rhs, r, C, W, L, n, b, nb, nch)
