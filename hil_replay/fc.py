@@ -580,9 +580,11 @@ class SimulatedFCThread:
         return self._thread.is_alive()
 
     def stop(self, timeout_s: float = 10.0) -> FcStats:
+        """Stop serving and close the port (safe to call twice, or without :meth:`start`)."""
         if self._loop is not None and self._stop is not None and self._thread.is_alive():
             self._loop.call_soon_threadsafe(self._stop.set)
-        self._thread.join(timeout_s)
+        if self._thread.ident is not None:
+            self._thread.join(timeout_s)
         self.port.close()
         if self.error is not None:
             raise self.error

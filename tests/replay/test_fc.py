@@ -301,3 +301,15 @@ def test_bad_effect_fails_before_any_port_exists(tmp_path):
     assert not link.exists() and not link.is_symlink()
     with pytest.raises(ValueError, match="packet_loss"):
         FcConfig(packet_loss=1.5)
+
+
+def test_stop_without_start_and_twice_closes_the_port():
+    fc = SimulatedFCThread(session=FakeHelicopter(duration_s=1.0))
+    path = fc.port_path
+    assert os.path.islink(path)
+    fc.stop()
+    assert not os.path.lexists(path)
+    fc2 = SimulatedFCThread(speed=0, session=FakeHelicopter(duration_s=1.0)).start()
+    fc2.stop()
+    fc2.stop()
+    assert not os.path.lexists(fc2.port_path)
