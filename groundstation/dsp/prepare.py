@@ -256,14 +256,14 @@ def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str]) -> list[_Raw]:
             t = uniform_grid(a2, b2, cfg.rate_hz)
             pwm, pwm_ok = interpolate_onto(servo.t_fc_s, pwm_src, t, _series_gap(cfg, servo.t_fc_s))
             at, at_ok = interpolate_onto(att.t_fc_s, att_src, t, _series_gap(cfg, att.t_fc_s))
-            req = pwm_ok.all(axis=1) & at_ok.all(axis=1)
+            req = np.asarray(pwm_ok.all(axis=1) & at_ok.all(axis=1), dtype=bool)
             vel = np.full((t.size, 3), np.nan)
             vel_ok = np.zeros(t.size, dtype=bool)
             if vel_series is not None:
                 vs = vel_series[1]
                 vsrc = np.stack([np.asarray(vs[c], dtype=float) for c in ("vx_m_s", "vy_m_s", "vz_m_s")], axis=1)
                 vel, vok = interpolate_onto(vs.t_fc_s, vsrc, t, _series_gap(cfg, vs.t_fc_s))
-                vel_ok = vok.all(axis=1)
+                vel_ok = np.asarray(vok.all(axis=1), dtype=bool)
             alt_t, alt = _altitude(log, float(fl.start_fc_s), float(fl.end_fc_s))
             if alt_t is not None:
                 alt_g, _ = interpolate_onto(alt_t, alt, t, _series_gap(cfg, alt_t))

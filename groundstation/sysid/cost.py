@@ -113,7 +113,7 @@ class WindowedCost:
         self.sim = WindowSimulator(windows.inputs, windows.outputs, windows.dt_s, windows.available,
                                    estimate_all_initial=estimate_all_initial, subsystems=subsystems, linear=linear)
         self.nfev = 0
-        self.used = self.sim.mask.any(axis=0)  # (8,) channels in the cost
+        self.used: np.ndarray = np.asarray(self.sim.mask.any(axis=0), dtype=bool)  # (8,) channels in the cost
 
     @property
     def dim(self) -> int:

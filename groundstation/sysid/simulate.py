@@ -124,7 +124,7 @@ class WindowSimulator:
         self.b = max(1, min(int(block), self.L))
         self.nb = -(-self.L // self.b)
         Lp = self.nb * self.b
-        self._prep = []
+        self._prep: list[dict] = []
         for sub in _SUBS:
             if _SUBS.index(sub) not in self.subsystems:
                 self._prep.append({})

@@ -88,7 +88,7 @@ def validate(model: HoverModel, prepared: Any, *, window_s: float | None = None,
     for j, c in enumerate(OUTPUTS):
         if c in ch:
             a, b = _flat(yhat, y, mask, j)
-            cost += float(np.linalg.norm(a - b) / max(np.linalg.norm(b - b.mean()), 1e-300))
+            cost += float(np.linalg.norm(a - b)) / max(float(np.linalg.norm(b - b.mean())), 1e-300)
     res: dict[str, Any] = {
         "channels": ch,
         "mean_match": float(np.mean([ch[c]["match"] for c in used])) if used else float("nan"),
