@@ -180,3 +180,25 @@ def test_unknown_message_ids_only_accepted_in_step(tmp_path):
     out_of_step = blob[:first] + b"\x07" + ts + unknown[:20] + blob[first:]
     (tmp_path / "c.tlog").write_bytes(out_of_step)
     assert [p.data for p in read_tlog_packets(tmp_path / "c.tlog")] == packets
+
+
+def test_mavlink1_and_signed_mavlink2_records(tmp_path):
+    from pymavlink.dialects.v10 import ardupilotmega as mav1
+    from pymavlink.dialects.v20 import ardupilotmega as mav2
+
+    from firmware_interface.tlog import TlogWriter
+
+    m1 = mav1.MAVLink(None, srcSystem=1, srcComponent=1)
+    m2 = mav2.MAVLink(None, srcSystem=1, srcComponent=1)
+    m2.signing.secret_key = bytes(range(32))
+    m2.signing.sign_outgoing = True
+    m2.signing.link_id = 3
+    m2.signing.timestamp = 1
+    pkts = [m1.attitude_encode(10, 0.1, 0.2, 0.3, 0, 0, 0).pack(m1),
+            m2.attitude_encode(20, 0.1, 0.2, 0.3, 0, 0, 0).pack(m2),
+            m1.heartbeat_encode(2, 3, 0, 0, 4).pack(m1)]
+    assert pkts[0][0] == 0xFE and pkts[1][0] == 0xFD and pkts[1][2] & 1   # v1, signed v2
+    with TlogWriter(tmp_path / "m.tlog") as w:
+        for k, p in enumerate(pkts):
+            w.write(p, 1.7e9 + k)
+    assert [p.data for p in read_tlog_packets(tmp_path / "m.tlog")] == pkts
