@@ -41,19 +41,25 @@ class TlogScan:
     corrupt_bytes: int = 0
     truncated_tail_bytes: int = 0
     resyncs: int = 0
+    bad_timestamps: int = 0  # valid frame, damaged timestamp: kept with the previous record's time
 
 
-def scan_tlog(data: bytes, scan: TlogScan | None = None, *, max_step_s: float = 86400.0
-              ) -> Iterator[tuple[float, bytes]]:
+def scan_tlog(data: bytes, scan: TlogScan | None = None, *, max_step_s: float = 86400.0,
+              max_back_s: float = 60.0, chain_s: float = 60.0) -> Iterator[tuple[float, bytes]]:
     """Yield ``(t_host_s, frame_bytes)`` for every intact record of ``data``.
 
-    Counters go to ``scan`` (pass a :class:`TlogScan` to read them after iteration).
+    A record's timestamp is plausible within ``max_back_s`` before and ``max_step_s`` after the
+    previous one; an implausible one is a host clock jump when the next record follows it within
+    ``chain_s``, and a damaged timestamp (the packet is kept at the previous time) when the next
+    record follows the previous one instead. Counters go to ``scan``.
     """
     st = scan if scan is not None else TlogScan()
     n = len(data)
     p = 0
     prev_us: int | None = None
     max_step_us = int(max_step_s * 1e6)
+    max_back_us = int(max_back_s * 1e6)
+    chain_us = int(chain_s * 1e6)
     unpack_ts = _TS.unpack_from
     while p + 8 < n:
         j = p + 8
@@ -62,15 +68,32 @@ def scan_tlog(data: bytes, scan: TlogScan | None = None, *, max_step_s: float = 
             status, total, _ = check_frame(data, j, n)
             if status == OK:
                 ts = unpack_ts(data, p)[0]
-                if (prev_us is None or abs(ts - prev_us) <= max_step_us
-                        or _chains(data, j + total, n, ts, max_step_us)):
+                end = j + total
+                step = 0 if prev_us is None else ts - prev_us
+                if -chain_us <= step <= chain_us:
                     st.records += 1
                     prev_us = ts
-                    yield ts * 1e-6, data[j : j + total]
-                    p = j + total
+                    yield ts * 1e-6, data[j:end]
+                    p = end
+                    continue
+                assert prev_us is not None
+                nxt = _ts_at(data, end, n)
+                if (nxt is None and end >= n) or (
+                        nxt is not None and abs(nxt - prev_us) <= chain_us < abs(nxt - ts)):
+                    # the next record continues from the previous one: only this timestamp is damaged
+                    st.records += 1
+                    st.bad_timestamps += 1
+                    yield prev_us * 1e-6, data[j:end]
+                    p = end
+                    continue
+                if -max_back_us <= step <= max_step_us or (nxt is not None and abs(nxt - ts) <= chain_us):
+                    st.records += 1  # a gap in the recording or a host clock jump
+                    prev_us = ts
+                    yield ts * 1e-6, data[j:end]
+                    p = end
                     continue
         # the record structure broke at p: find the next plausible record
-        q = _resync(data, p + 1, n, prev_us, max_step_us)
+        q = _resync(data, p + 1, n, prev_us, max_back_us, max_step_us)
         if q is None:
             status = NEED_MORE
             if b == 0xFD or b == 0xFE:
@@ -87,16 +110,17 @@ def scan_tlog(data: bytes, scan: TlogScan | None = None, *, max_step_s: float = 
         st.truncated_tail_bytes += n - p
 
 
-def _chains(data: bytes, q: int, n: int, ts: int, max_step_us: int) -> bool:
-    """True when a valid record with a timestamp near ``ts`` starts at ``q`` (a host clock jump)."""
+def _ts_at(data: bytes, q: int, n: int) -> int | None:
+    """Timestamp of the record at ``q`` if a valid frame follows it, else None."""
     if q + 8 >= n or data[q + 8] not in (0xFD, 0xFE):
-        return False
+        return None
     if check_frame(data, q + 8, n)[0] != OK:
-        return False
-    return abs(_TS.unpack_from(data, q)[0] - ts) <= max_step_us
+        return None
+    return _TS.unpack_from(data, q)[0]
 
 
-def _resync(data: bytes, start: int, n: int, prev_us: int | None, max_step_us: int) -> int | None:
+def _resync(data: bytes, start: int, n: int, prev_us: int | None, max_back_us: int, max_step_us: int
+            ) -> int | None:
     """Start of the next record at or after ``start`` whose frame is valid and timestamp plausible."""
     pos = start + 8
     while True:
@@ -114,5 +138,5 @@ def _resync(data: bytes, start: int, n: int, prev_us: int | None, max_step_us: i
         if prev_us is None:
             if _TS_MIN_US <= ts <= _TS_MAX_US:
                 return j - 8
-        elif abs(ts - prev_us) <= max_step_us:
+        elif -max_back_us <= ts - prev_us <= max_step_us:
             return j - 8

@@ -178,3 +178,18 @@ def test_truncated_file_in_the_middle_of_the_first_record():
     data = _blob(_records(3))[:12]
     with pytest.raises(LogError, match="no valid"):
         load_tlog_bytes(data, "cut.tlog")
+
+
+def test_damaged_timestamp_keeps_the_packet_at_the_previous_time():
+    recs = _records(30)
+    data = bytearray(_blob(recs))
+    off = sum(8 + len(p) for _, p in recs[:10])
+    data[off + 1] ^= 0x40  # a high timestamp byte of record 10: years off
+    data2 = bytearray(_blob(recs))
+    data2[off + 4] ^= 0x80  # record 10 about 36 min off
+    for blob in (data, data2):
+        st = TlogScan()
+        got = list(scan_tlog(bytes(blob), st))
+        assert [p for _, p in got] == [p for _, p in recs]
+        assert st.bad_timestamps == 1 and st.corrupt_bytes == 0
+        assert round(got[10][0] * 1e6) == recs[9][0]
