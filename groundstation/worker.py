@@ -46,33 +46,14 @@ def _warm() -> bool:
     return True
 
 
-def _overlay(model: Any, prepared: Any) -> dict[str, Any]:
-    """Model-predicted outputs on every segment (windowed simulation, measured initial states)."""
-    from groundstation.sysid.simulate import simulate_windows
-
-    theta = np.array([[model.parameters[n] for n in _param_names()]])
-    trim = np.array([prepared.output_trim.get(c, 0.0) for c in OUTPUTS])
-    t_all, y_all, m_all = [], [], []
-    win = max(10, int(round(5.0 / prepared.dt_s)))
-    for seg in prepared.segments:
-        n = (seg.n // win) * win
-        if n == 0:
-            continue
-        inp = seg.inputs[:n].reshape(-1, win, 4)
-        out = seg.outputs[:n].reshape(-1, win, 8)
-        yhat = simulate_windows(theta, inp, out, prepared.dt_s, seg.available)[0].reshape(n, 8)
-        t_all.append(seg.t_s[:n])
-        y_all.append(seg.outputs[:n] + trim)
-        m_all.append(yhat + trim)
-    if not t_all:
-        return {"t_fc_s": [], "measured": [], "model": []}
-    return {"t_fc_s": np.concatenate(t_all), "measured": np.vstack(y_all), "model": np.vstack(m_all)}
-
-
-def _param_names() -> tuple[str, ...]:
-    from groundstation.sysid.model import PARAM_NAMES
-
-    return PARAM_NAMES
+def _overlay(series: dict[str, Any], output_trim: dict[str, float]) -> dict[str, Any]:
+    """Flatten validate()'s windowed series (W, L[, 8]) into time order, trims added back."""
+    trim = np.array([output_trim.get(c, 0.0) for c in OUTPUTS])
+    t = np.asarray(series["t_s"], dtype=float).reshape(-1)
+    y = np.asarray(series["y"], dtype=float).reshape(-1, 8) + trim
+    yhat = np.asarray(series["yhat"], dtype=float).reshape(-1, 8) + trim
+    order = np.argsort(t, kind="stable")
+    return {"t_fc_s": t[order], "measured": y[order], "model": yhat[order]}
 
 
 def _plot(overlay: dict[str, Any], path: Path, title: str) -> None:
@@ -103,7 +84,6 @@ def run_job(job: IdentifyJob) -> dict[str, Any]:
     res: dict[str, Any] = {"flight": job.flight, "tlogs": list(job.tlogs)}
     try:
         from firmware_interface.readers import load_log
-
         from groundstation.dsp.prepare import prepare
         from groundstation.sysid.identify import identify
 
@@ -117,25 +97,18 @@ def run_job(job: IdentifyJob) -> dict[str, Any]:
             kwargs["maxiter"] = job.maxiter
         model = identify(prepared, **kwargs)
         doc = model.to_json()
-        match: dict[str, Any] = {}
-        try:
-            from groundstation.sysid.validate import validate
+        from groundstation.sysid.validate import validate
 
-            val = validate(model, prepared)
-            res["validation"] = val
-            md = val.get("match_degree") if isinstance(val, dict) else None
-            if isinstance(md, dict):
-                match = md
-        except ImportError:
-            pass
-        if not match:
-            match = dict(doc.get("fit", {}).get("match_degree", {}) or {})
+        val = validate(model, prepared, return_series=True)
+        series = val.pop("series")
+        match = {c: float(v["match"]) for c, v in val["channels"].items()}
+        res["validation"] = val
         res["match_degree"] = match
         model_path = out_dir / f"model-flight{job.flight:02d}.json"
         model_path.write_text(json.dumps(doc, indent=1, default=float))
         res["model"] = doc
         res["model_path"] = str(model_path)
-        overlay = _overlay(model, prepared)
+        overlay = _overlay(series, prepared.output_trim)
         if job.plots and len(overlay["t_fc_s"]):
             png = out_dir / f"model-flight{job.flight:02d}.png"
             _plot(overlay, png, f"{job.vehicle} flight {job.flight}: model vs measured")
