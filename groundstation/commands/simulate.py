@@ -83,8 +83,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {out.with_suffix('.truth.json')}")
     print(f"aircraft {truth['aircraft']}, seed {truth['seed']}, {len(fl)} flight(s), {total:.1f} s of FC time")
     for f in fl:
-        print(f"  flight {f['index']}: armed {f['start_fc_s']:.1f}-{f['end_fc_s']:.1f} s, "
-              f"{len(f['segments'])} segments")
+        air = ", ".join(f"{a:.1f}-{b:.1f}" for a, b in f.get("in_air_fc_s", []) if b is not None)
+        print(f"  flight {f['index']}: armed {f['start_fc_s']:.1f}-{f['end_fc_s']:.1f} s, in air {air or '-'} s, "
+              f"{len(f['segments'])} card segments")
     if truth["effects"]:
         for e in truth["effects"]:
             ch = e["input"] or e["output"] or "-"
