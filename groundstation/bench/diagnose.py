@@ -47,7 +47,7 @@ def _effect_channel(e: dict[str, Any]) -> str | None:
 
 def _main_param(name: str, params: dict[str, float]) -> tuple[str, float] | None:
     """The truth effect parameter comparable with our estimate: (label, value in our units)."""
-    p = {k: float(v) for k, v in params.items()}
+    p = {k: float(v) for k, v in params.items() if isinstance(v, (int, float))}
     if name == "rotor_vibration" and "rpm" in p:
         from hil_replay.sim.effects import aliased_hz
 
@@ -135,9 +135,9 @@ def run(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t0
     singles = [r for r, j in zip(results, jobs, strict=True) if not j.get("combined")]
     combos = [r for r, j in zip(results, jobs, strict=True) if j.get("combined")]
-    print_summary(singles, combos, classes, wall)
     if args.json:
-        args.json.write_text(json.dumps(results, indent=1, default=float))
+        args.json.write_text(json.dumps(results, indent=1, default=str))
+    print_summary(singles, combos, classes, wall)
     return 0
 
 
@@ -163,6 +163,10 @@ def print_summary(singles: list[dict], combos: list[dict], classes: list[str], w
             if tp is not None and ev is not None:
                 param_err.append(f"{truth}: est {ev:.4g} vs true {tp[1]:.4g} ({tp[0]})")
             shrinks.append(f"{truth}: predicted {r['effects'][0]['shrink_pct']}% fresh {r.get('fresh_shrink_pct')}%")
+    for r in singles + combos:
+        got = [(e["effect"], e["input"] or e["output"]) for e in r["effects"][:3]]
+        tr = [(t["effect"], t.get("input") or t.get("output")) for t in r.get("truth", [])]
+        print(f"  case {r['case']:3d} truth {tr} -> {r['verdict']} {got} ({r['seconds']:.0f} s)")
     n = len(singles)
     correct = int(sum(cm[i, idx[c]] for i, c in enumerate(classes)))
     print("confusion matrix (rows truth, columns verdict):")
