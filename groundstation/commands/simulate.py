@@ -26,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed (same seed, same bytes)")
     parser.add_argument("--flights", type=int, default=None, help="number of flights (default 1; --serve: 2)")
     parser.add_argument("--aircraft", default=None, help="aircraft TOML file or name (default: trex600)")
-    parser.add_argument("--duration-s", type=float, default=None, help="armed time per flight (default ~175 s)")
+    parser.add_argument("--duration-s", type=float, default=None, help="armed time per flight, approximate (default ~175 s; short cards keep whole manoeuvres, so 40 s gives ~45-50 s)")
     parser.add_argument("--pause-s", type=float, default=10.0, help="disarmed pause between flights (s)")
     parser.add_argument("--rate", action="append", default=[], metavar="MESSAGE=HZ",
                         help="--out: message rate in the .tlog, e.g. LOCAL_POSITION_NED=10 (0 = not written; "
