@@ -48,10 +48,11 @@ def scan_tlog(data: bytes, scan: TlogScan | None = None, *, max_step_s: float = 
               max_back_s: float = 60.0, chain_s: float = 60.0) -> Iterator[tuple[float, bytes]]:
     """Yield ``(t_host_s, frame_bytes)`` for every intact record of ``data``.
 
-    A record's timestamp is plausible within ``max_back_s`` before and ``max_step_s`` after the
-    previous one; an implausible one is a host clock jump when the next record follows it within
-    ``chain_s``, and a damaged timestamp (the packet is kept at the previous time) when the next
-    record follows the previous one instead. Counters go to ``scan``.
+    A timestamp more than ``chain_s`` away from the previous record's is accepted only when the
+    next record confirms it (a gap or a host clock jump); otherwise it is damaged and the packet is
+    kept at the previous time. When resynchronising after garbage, a candidate record is plausible
+    within ``max_back_s`` before / ``max_step_s`` after the previous time, or when the record after
+    it agrees with it. Counters go to ``scan``.
     """
     st = scan if scan is not None else TlogScan()
     n = len(data)
@@ -76,22 +77,19 @@ def scan_tlog(data: bytes, scan: TlogScan | None = None, *, max_step_s: float = 
                     yield ts * 1e-6, data[j:end]
                     p = end
                     continue
-                assert prev_us is not None
                 nxt = _ts_at(data, end, n)
-                if (nxt is None and end >= n) or (
-                        nxt is not None and abs(nxt - prev_us) <= chain_us < abs(nxt - ts)):
-                    # the next record continues from the previous one: only this timestamp is damaged
-                    st.records += 1
-                    st.bad_timestamps += 1
-                    yield prev_us * 1e-6, data[j:end]
-                    p = end
-                    continue
-                if -max_back_us <= step <= max_step_us or (nxt is not None and abs(nxt - ts) <= chain_us):
-                    st.records += 1  # a gap in the recording or a host clock jump
+                if nxt is not None and abs(nxt - ts) <= chain_us:
+                    st.records += 1  # a gap in the recording or a host clock jump, confirmed
                     prev_us = ts
                     yield ts * 1e-6, data[j:end]
                     p = end
                     continue
+                # unconfirmed jump: the timestamp is damaged; keep the packet at the previous time
+                st.records += 1
+                st.bad_timestamps += 1
+                yield (prev_us if prev_us is not None else ts) * 1e-6, data[j:end]
+                p = end
+                continue
         # the record structure broke at p: find the next plausible record
         q = _resync(data, p + 1, n, prev_us, max_back_us, max_step_us)
         if q is None:
@@ -131,7 +129,7 @@ def _resync(data: bytes, start: int, n: int, prev_us: int | None, max_back_us: i
         pos = j + 1
         if j - 8 < start:
             continue
-        status, _, _ = check_frame(data, j, n)
+        status, total, _ = check_frame(data, j, n)
         if status != OK:
             continue
         ts = _TS.unpack_from(data, j - 8)[0]
@@ -140,3 +138,7 @@ def _resync(data: bytes, start: int, n: int, prev_us: int | None, max_back_us: i
                 return j - 8
         elif -max_back_us <= ts - prev_us <= max_step_us:
             return j - 8
+        else:
+            nxt = _ts_at(data, j + total, n)
+            if nxt is not None and abs(nxt - ts) <= max_back_us:
+                return j - 8  # two consecutive records agree: trust them over the previous time
