@@ -1,0 +1,80 @@
+"""The whole mission with the real simulator: two short simulated flights through the built-in FC on a
+pty at high speed; identification (and diagnosis) in the worker process between and after flights;
+a zenoh subscriber gets status, windows, models and gap reports; a late subscriber gets the model from
+the queryable; the .rrd has the live, model and gap entities."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+
+import zenoh
+from rerun.chunk import RrdReader
+
+from groundstation.service import Service
+from groundstation.sinks.zenoh_sink import loopback_peer_config
+from tests.service.conftest import service_config
+
+
+def test_two_simulated_flights_identified_published_and_logged(tmp_path, subscriber_factory):
+    rrd = tmp_path / "mission.rrd"
+    cfg = service_config(tmp_path, service={"exit_after_flights": 2}, sim={"speed": 20.0, "flights": 2, "seed": 4},
+                         identification={"maxiter": 8, "refine": False, "scope": "last"},
+                         rerun={"mode": "save", "target": str(rrd)})
+    lines: list[str] = []
+    service = Service(cfg, sim_options={"flight_duration_s": 40.0, "pause_s": 3.0},
+                      log=lambda m: lines.append(f"{time.monotonic():.1f} {m}"))
+    late_replies: list[dict] = []
+
+    async def main():
+        task = asyncio.create_task(service.run())
+        await asyncio.wait_for(service.ready.wait(), 20)
+        port = cfg.zenoh.listen_port
+        sub = subscriber_factory(port)
+        # a late subscriber: joins after the first model exists, asks the queryable
+        while service.zenoh.latest["model"] is None and not task.done():
+            await asyncio.sleep(0.1)
+        if not task.done():
+            def ask():
+                s = zenoh.open(zenoh.Config.from_json5(loopback_peer_config(connect_ports=(port,))))
+                try:
+                    time.sleep(0.3)
+                    for r in s.get(f"heli/{service.vehicle}/model/latest", timeout=5):
+                        if r.ok is not None:
+                            late_replies.append(json.loads(r.ok.payload.to_string()))
+                finally:
+                    s.close()
+            await asyncio.to_thread(ask)
+        report = await asyncio.wait_for(task, 240)
+        return report, sub
+
+    report, sub = asyncio.run(main())
+    assert report.flights == 2, lines
+    errors = [r["error"] for r in report.results if "error" in r]
+    assert not errors, errors
+    assert sorted(r["flight"] for r in report.results) == [1, 2]
+    for r in report.results:
+        model = json.loads(open(r["model_path"]).read())
+        assert model["schema"] == "heli-hover-model/1" and len(model["parameters"]) == 31
+        assert set(r["match_degree"]) <= {"u", "v", "w", "p", "q", "r", "theta", "phi"}
+
+    # zenoh: status, windows, a model (and gap report) per flight
+    assert sub.of("/status") and len(sub.of("/telemetry/window")) > 20
+    models = {k: d for k, d, _ in sub.samples if k.endswith("/model")}
+    assert set(models) == {f"heli/{service.vehicle}/flight/1/model", f"heli/{service.vehicle}/flight/2/model"}
+    gaps = {k for k, _, _ in sub.samples if k.endswith("/gap")}
+    if any(r.get("gap") is not None for r in report.results):
+        assert gaps == {f"heli/{service.vehicle}/flight/1/gap", f"heli/{service.vehicle}/flight/2/gap"}
+        for k, d, _ in sub.samples:
+            if k.endswith("/gap"):
+                assert d["schema"] == "heli-gap-report/1"
+    assert late_replies and late_replies[0]["schema"] == "heli-hover-model/1"
+
+    # Rerun: live entities, model overlay, gap plots
+    chunks = RrdReader(rrd).stream().to_chunks()
+    ents = {c.entity_path for c in chunks if not c.is_static}
+    v = f"/{service.vehicle}"
+    for c in ("u", "q", "theta"):
+        assert {f"{v}/outputs/{c}/raw", f"{v}/outputs/{c}/smoothed", f"{v}/outputs/{c}/model"} <= ents
+    assert f"{v}/gap/verdict" in ents and any(e.startswith(f"{v}/gap/match/") for e in ents)
