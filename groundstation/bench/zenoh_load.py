@@ -1,0 +1,325 @@
+"""``groundstation bench zenoh-load``: the live service on the secured field router under subscriber load.
+
+Everything is real: certificates from ``scripts/make-field-certs`` in a temporary directory, a
+Python zenoh session in router mode with the shipped router config (TLS, mTLS, usrpwd, ACL) on
+loopback, the live service (:class:`groundstation.service.Service`, built-in simulated FC on a pty,
+recorder, live DSP, :class:`~groundstation.sinks.zenoh_sink.ZenohSink` with the rendered
+``groundstation.json5``) and viewer clients with the rendered ``viewer.json5``. Identification is
+off; instead a thread hands the sink a model and a gap report every ``--model-period-s`` so the
+reliable (BLOCK) path carries traffic too.
+
+Phases (each ``--duration`` s of wall time, FC at real time):
+
+1. ``baseline`` -- no subscribers;
+2. ``loaded``   -- ``--subscribers`` viewers: most read promptly, ``--slow`` take ``--slow-s`` per
+   sample in their callback, one never reads (a bounded FIFO it never drains);
+3. ``restart``  -- as ``loaded``, and the router is closed and reopened on the same port halfway;
+   measured: time from the router being back to the first window reaching a viewer again, and
+   whether a model published during the outage is served by ``model/latest`` afterwards.
+
+Printed per phase: live latency (window's last host-receive time -> ``put`` returned, from the
+sink) p50/p99; end-to-end latency at the prompt viewers p50/p99; windows published/dropped;
+packets decoded by the session vs records in the session .tlog (must be equal) and link losses;
+models received by each prompt viewer (reliable: all of them).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+HELP = "zenoh load: live latency p99 and recording with 20 subscribers on the secured router; router restart"
+
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "make-field-certs"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--duration", type=float, default=20.0, help="wall seconds per phase (default 20)")
+    p.add_argument("--subscribers", type=int, default=20, help="viewer sessions in the loaded phases")
+    p.add_argument("--slow", type=int, default=5, help="how many of them are slow readers")
+    p.add_argument("--slow-s", type=float, default=0.2, help="seconds a slow reader spends per sample")
+    p.add_argument("--hop-s", type=float, default=0.1, help="live window hop (window rate = 1/hop)")
+    p.add_argument("--model-period-s", type=float, default=1.0, help="model + gap report every ... s")
+    p.add_argument("--phases", default="baseline,loaded,restart", help="comma-separated subset")
+
+
+def _pct(xs: list[float], q: float) -> float:
+    if not xs:
+        return float("nan")
+    s = sorted(xs)
+    return s[min(len(s) - 1, int(round(q / 100.0 * (len(s) - 1))))]
+
+
+def _make_field(out: Path) -> Path:
+    proc = subprocess.run([sys.executable, str(SCRIPT), "--out", str(out)], capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise OSError(f"{SCRIPT}: {proc.stderr.strip()}")
+    return out
+
+
+def _retarget(src: Path, dst: Path, port: int) -> Path:
+    text = re.sub(r"tls/[^\"]+:\d+", f"tls/localhost:{port}", src.read_text())
+    fd = os.open(dst, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    return dst
+
+
+class Router:
+    """The field router as a Python zenoh session (restartable on the same port)."""
+
+    def __init__(self, config_path: Path, port: int) -> None:
+        self.config_path, self.port = config_path, port
+        self.session: Any = None
+
+    def open(self) -> None:
+        import zenoh
+
+        cfg = zenoh.Config.from_file(str(self.config_path))
+        cfg.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.1:{self.port}"]))
+        self.session = zenoh.open(cfg)
+
+    def close(self) -> None:
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+
+
+class Viewer:
+    """One viewer session: ``prompt`` records arrival times, ``slow`` sleeps per sample, ``stuck``
+    never reads its bounded FIFO (until :meth:`close`)."""
+
+    def __init__(self, config_path: Path, vehicle: str, kind: str, slow_s: float) -> None:
+        import zenoh
+
+        self.kind = kind
+        self.windows: list[tuple[float, float]] = []    # (t_received, t_host_last_s)
+        self.models = 0
+        self.session = zenoh.open(zenoh.Config.from_file(str(config_path)))
+        key = f"heli/{vehicle}/**"
+        if kind == "stuck":
+            self.sub = self.session.declare_subscriber(key, zenoh.handlers.FifoChannel(4))
+        else:
+            def cb(sample: Any) -> None:
+                t = time.time()
+                k = str(sample.key_expr)
+                if k.endswith("/telemetry/window"):
+                    if kind == "prompt":
+                        doc = json.loads(sample.payload.to_bytes())
+                        self.windows.append((t, float(doc.get("t_host_last_s") or "nan")))
+                    else:
+                        self.windows.append((t, float("nan")))
+                elif k.endswith("/model"):
+                    self.models += 1
+                if kind == "slow":
+                    time.sleep(slow_s)
+
+            self.sub = self.session.declare_subscriber(key, cb)
+
+    def close(self) -> None:
+        if self.kind == "stuck":
+            deadline = time.monotonic() + 2.0
+            while time.monotonic() < deadline:    # drain so zenoh's rx thread can finish
+                if self.sub.try_recv() is None:
+                    time.sleep(0.01)
+                    if self.sub.try_recv() is None:
+                        break
+        try:
+            self.sub.undeclare()
+        finally:
+            self.session.close()
+
+
+def _service_config(record_dir: Path, gs_config: Path, hop_s: float):
+    from groundstation.config import ServiceConfig
+
+    cfg = ServiceConfig()
+    cfg = cfg.replace("service", record_dir=str(record_dir), vehicle="bench", status_rate_hz=1.0)
+    cfg = cfg.replace("zenoh", config_file=str(gs_config), window_queue=8)
+    cfg = cfg.replace("live", window_s=4.0, hop_s=hop_s)
+    cfg = cfg.replace("identification", enabled=False)
+    cfg = cfg.replace("sim", speed=1.0, flights=50)
+    return cfg
+
+
+def _count_records(path: str | None) -> int:
+    from firmware_interface.tlogread import scan_tlog
+
+    if not path:
+        return 0
+    return sum(1 for _ in scan_tlog(Path(path).read_bytes()))
+
+
+def run_phase(name: str, args: argparse.Namespace, work: Path, field: Path, router: Router,
+              n_subs: int, restart: bool) -> dict[str, Any]:
+    from groundstation.service import Service
+
+    gs_cfg = _retarget(field / "groundstation.json5", work / f"{name}-gs.json5", router.port)
+    viewer_cfg = _retarget(field / "viewer.json5", work / f"{name}-viewer.json5", router.port)
+    viewers: list[Viewer] = []
+    out: dict[str, Any] = {"phase": name, "subscribers": n_subs}
+    try:
+        for i in range(n_subs):
+            kind = "stuck" if i == n_subs - 1 else ("slow" if i < args.slow else "prompt")
+            viewers.append(Viewer(viewer_cfg, "bench", kind, args.slow_s))
+        service = Service(_service_config(work / name, gs_cfg, args.hop_s), log=lambda m: None)
+        stop_models = threading.Event()
+        models_sent = [0]
+        model_doc = {"schema": "heli-hover-model/1", "parameters": {f"p{i}": 0.001 * i for i in range(31)},
+                     "horizontal": {"A": [[0.0] * 8] * 8, "B": [[0.0] * 2] * 8}}
+        gap_doc = {"schema": "heli-gap-report/1", "verdict": "none", "effects": []}
+
+        def models() -> None:
+            k = 0
+            while not stop_models.wait(args.model_period_s):
+                if service.zenoh is None:
+                    continue
+                k += 1
+                service.zenoh.publish_model(k, {**model_doc, "seq": k})
+                service.zenoh.publish_gap(k, gap_doc)
+                models_sent[0] = k
+
+        restart_info: dict[str, Any] = {}
+
+        def restarter(loop: asyncio.AbstractEventLoop) -> None:
+            time.sleep(args.duration / 2)
+            prompt = [v for v in viewers if v.kind == "prompt"]
+            t0 = time.time()
+            router.close()
+            t_closed = time.time()
+            time.sleep(1.0)
+            n_before = models_sent[0]
+            # a model published while the router is down: lost for live subscribers, but the
+            # queryable must serve it once the router is back
+            while models_sent[0] == n_before and time.time() - t_closed < 5:
+                time.sleep(0.05)
+            outage_model = models_sent[0]
+            router.open()
+            t_back = time.time()
+            first = None
+            while time.time() - t_back < 15.0:
+                arrivals = [t for v in prompt for t, _ in v.windows if t > t_back]
+                if arrivals:
+                    first = min(arrivals)
+                    break
+                time.sleep(0.01)
+            restart_info.update(close_s=t_closed - t0, router_open_s=t_back - t_closed - 1.0,
+                                resume_after_back_s=(first - t_back) if first else float("nan"),
+                                resume_after_close_s=(first - t_closed) if first else float("nan"),
+                                outage_model=outage_model)
+
+        async def main() -> Any:
+            loop = asyncio.get_running_loop()
+            task = asyncio.create_task(service.run())
+            await asyncio.wait_for(service.ready.wait(), 30)
+            th = threading.Thread(target=models, daemon=True)
+            th.start()
+            rth = None
+            if restart:
+                rth = threading.Thread(target=restarter, args=(loop,), daemon=True)
+                rth.start()
+            t_end = time.monotonic() + args.duration
+            while time.monotonic() < t_end and not task.done():
+                await asyncio.sleep(0.1)
+            if rth is not None:
+                await asyncio.to_thread(rth.join, 30)
+            if restart and viewers:
+                late = Viewer(viewer_cfg, "bench", "prompt", 0.0)
+                try:
+                    got = [json.loads(r.ok.payload.to_bytes()).get("seq")
+                           for r in late.session.get("heli/bench/model/latest", timeout=3.0) if r.ok]
+                finally:
+                    late.close()
+                restart_info["latest_model_served"] = got
+            stop_models.set()
+            service.request_stop("bench")
+            report = await task
+            th.join(2)
+            return report
+
+        report = asyncio.run(main())
+        sink = service.zenoh
+        lat = [(tp - th) * 1e3 for _seq, th, tp in list(sink.window_latency) if th == th]
+        e2e = [(t - th) * 1e3 for v in viewers if v.kind == "prompt" for t, th in v.windows if th == th]
+        prompt = [v for v in viewers if v.kind == "prompt"]
+        recorded = _count_records(report.session_tlog)
+        out.update(
+            live_p50_ms=_pct(lat, 50), live_p99_ms=_pct(lat, 99), windows_published=report.windows_published,
+            windows_dropped=report.windows_dropped, e2e_p50_ms=_pct(e2e, 50), e2e_p99_ms=_pct(e2e, 99),
+            session_packets=report.packets, recorded_packets=recorded, link_packets_lost=report.packets_lost,
+            models_sent=models_sent[0],
+            models_received_min=min((v.models for v in prompt), default=0),
+            models_received_max=max((v.models for v in prompt), default=0),
+            slow_windows=[len(v.windows) for v in viewers if v.kind == "slow"],
+            prompt_windows_median=statistics.median([len(v.windows) for v in prompt]) if prompt else 0,
+            sink_error=sink.error, **restart_info,
+        )
+    finally:
+        for v in viewers:
+            v.close()
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    phases = [p.strip() for p in args.phases.split(",") if p.strip()]
+    bad = set(phases) - {"baseline", "loaded", "restart"}
+    if bad:
+        raise ValueError(f"--phases: unknown phase(s) {sorted(bad)}")
+    if not 0 <= args.slow < args.subscribers:
+        raise ValueError("--slow must be in [0, --subscribers)")
+    from groundstation.sinks.zenoh_sink import free_tcp_port
+
+    results = []
+    with tempfile.TemporaryDirectory(prefix="zenoh-load-") as tmp:
+        work = Path(tmp)
+        field = _make_field(work / "field")
+        router = Router(field / "router.json5", free_tcp_port())
+        router.open()
+        try:
+            for ph in phases:
+                n = 0 if ph == "baseline" else args.subscribers
+                res = run_phase(ph, args, work, field, router, n, restart=(ph == "restart"))
+                results.append(res)
+                _print(res)
+        finally:
+            router.close()
+    if len(results) > 1 and results[0]["phase"] == "baseline":
+        base = results[0]
+        for r in results[1:]:
+            print(f"{r['phase']}: live p99 {r['live_p99_ms'] - base['live_p99_ms']:+.2f} ms vs baseline "
+                  f"(budget +10 ms); recorded packets lost: {r['session_packets'] - r['recorded_packets']}")
+    return 0
+
+
+def _print(r: dict[str, Any]) -> None:
+    print(f"[{r['phase']}] subscribers={r['subscribers']}")
+    print(f"  live latency (window last sample -> put returned): p50 {r['live_p50_ms']:.2f} ms, "
+          f"p99 {r['live_p99_ms']:.2f} ms; windows published {r['windows_published']}, "
+          f"dropped at the sink {r['windows_dropped']}")
+    if r["subscribers"]:
+        print(f"  end-to-end at prompt viewers: p50 {r['e2e_p50_ms']:.2f} ms, p99 {r['e2e_p99_ms']:.2f} ms; "
+              f"windows per prompt viewer (median) {r['prompt_windows_median']}, per slow viewer "
+              f"{r['slow_windows']}")
+        print(f"  models: sent {r['models_sent']}, received per prompt viewer "
+              f"{r['models_received_min']}..{r['models_received_max']}")
+    print(f"  recording: session decoded {r['session_packets']} packets, session .tlog holds "
+          f"{r['recorded_packets']} (lost {r['session_packets'] - r['recorded_packets']}); "
+          f"link seq losses {r['link_packets_lost']}")
+    if "resume_after_back_s" in r:
+        print(f"  router restart: down 1.0 s; reopen took {r['router_open_s']:.2f} s; first window at a "
+              f"viewer {r['resume_after_back_s']:.2f} s after the router was back "
+              f"({r['resume_after_close_s']:.2f} s after it closed); model #{r['outage_model']} published "
+              f"during the outage, model/latest afterwards serves {r.get('latest_model_served')}")
+    if r.get("sink_error"):
+        print(f"  sink error: {r['sink_error']}")
