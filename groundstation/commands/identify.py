@@ -13,6 +13,8 @@ import time
 import tomllib
 from pathlib import Path
 
+import numpy as np
+
 HELP = "identify the hover model (paper eq. 8) from flight logs with CABC and write the model JSON"
 
 
@@ -25,6 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--maxiter", type=int, default=None, help="search iterations per subsystem")
     parser.add_argument("--config", type=Path, default=None, help="TOML with [prepare], [identify], [bounds]")
     parser.add_argument("--no-plot", action="store_true", help="do not write the PNG")
+    parser.add_argument("--rrd", type=Path, default=None, help="also write measured vs model to a Rerun .rrd file")
     parser.add_argument("--quiet", action="store_true")
 
 
@@ -85,13 +88,25 @@ def run(args: argparse.Namespace) -> int:
     model.fit["seconds"] = round(time.perf_counter() - t0, 3)
     model.source["logs"] = [str(p) for p in args.logs]
     write_json(args.out, model.to_json())
-    if not args.no_plot:
-        from groundstation.sysid.plots import plot_fit
+    if not args.no_plot or args.rrd is not None:
         from groundstation.sysid.validate import validate
 
         v = validate(model, prepared, return_series=True)
-        plot_fit(v["series"], v["channels"], args.out.with_suffix(".png"),
-                 title=f"{args.algorithm.upper()} model on its training data ({', '.join(p.name for p in args.logs)})")
+        if not args.no_plot:
+            from groundstation.sysid.plots import plot_convergence, plot_fit
+
+            plot_fit(v["series"], v["channels"], args.out.with_suffix(".png"),
+                     title=f"{args.algorithm.upper()} model on its training data ({', '.join(p.name for p in args.logs)})")
+            curves = {f"{args.algorithm} {sub}": [(np.asarray(model.fit["history_nfev"][sub], dtype=float),
+                                                   np.asarray(h, dtype=float))]
+                      for sub, h in model.fit["history"].items() if len(h) > 1}
+            if curves:
+                plot_convergence(curves, args.out.with_name(args.out.stem + "_convergence.png"),
+                                 title="search convergence per subsystem: fitness 1/(1+F) vs evaluations")
+        if args.rrd is not None:
+            from groundstation.commands.validate import write_rrd
+
+            write_rrd(v["series"], v["channels"], args.rrd, "groundstation-identify")
     if not args.quiet:
         print_model(model, con)
     return 0

@@ -20,6 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plot", type=Path, default=None, help="write measured vs model PNG here")
     parser.add_argument("--window-s", type=float, default=None, help="window length (default: the model's)")
     parser.add_argument("--config", type=Path, default=None, help="TOML with a [prepare] table")
+    parser.add_argument("--rrd", type=Path, default=None, help="write measured vs model to a Rerun .rrd file")
 
 
 def load_model(path: Path):
@@ -45,7 +46,8 @@ def run(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     prep_cfg, _, _ = load_configs(args.config)
     prepared = prepare(load_logs(args.logs), prep_cfg)
-    res = validate(model, prepared, window_s=args.window_s, return_series=args.plot is not None)
+    want_series = args.plot is not None or args.rrd is not None
+    res = validate(model, prepared, window_s=args.window_s, return_series=want_series)
     series = res.pop("series", None)
     res["model"] = str(args.model)
     res["logs"] = [str(p) for p in args.logs]
@@ -54,6 +56,8 @@ def run(args: argparse.Namespace) -> int:
         from groundstation.sysid.plots import plot_fit
 
         plot_fit(series, res["channels"], args.plot, title=f"{args.model.name} on {', '.join(p.name for p in args.logs)}")
+    if args.rrd is not None and series is not None:
+        write_rrd(series, res["channels"], args.rrd, "groundstation-validate")
     if args.json:
         print(json.dumps(res, indent=1, allow_nan=False))
         return 0
@@ -72,3 +76,26 @@ def run(args: argparse.Namespace) -> int:
     for n in prepared.notes:
         con.print(f"note: {n}")
     return 0
+
+
+def write_rrd(series: dict, channels: dict, path: Path, app: str) -> None:
+    """Measured and model outputs per channel on the ``fc_time`` timeline, saved as a Rerun recording."""
+    import numpy as np
+    import rerun as rr
+
+    from groundstation.sysid.model import OUTPUTS
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rec = rr.RecordingStream(app)
+    rec.save(str(path))
+    t = series["t_s"].ravel()
+    order = np.argsort(t)
+    for c, name in enumerate(OUTPUTS):
+        if name not in channels:
+            continue
+        for kind, data in (("measured", series["y"][..., c]), ("model", series["yhat"][..., c])):
+            rec.send_columns(f"/sysid/outputs/{name}/{kind}", indexes=[rr.TimeColumn("fc_time", duration=t[order])],
+                             columns=rr.Scalars.columns(scalars=data.ravel()[order]))
+    rec.log("/sysid/match", rr.TextDocument(json.dumps({k: v["match"] for k, v in channels.items()}, indent=1)),
+            static=True)
+    rec.flush()

@@ -31,9 +31,20 @@ def test_identify_then_validate_cli(sim_tlog, tmp_path, capsys):
     assert len(doc["parameters"]) == 31 and doc["fit"]["algorithm"] == "cabc"
     assert doc["fit"]["seconds"] > 0 and doc["source"]["logs"] == [str(sim_tlog)]
     assert out.with_suffix(".png").stat().st_size > 10_000
+    assert (tmp_path / "model_convergence.png").stat().st_size > 5_000
     capsys.readouterr()
-    assert main(["validate", str(out), str(sim_tlog), "--json"]) == 0
+    rrd = tmp_path / "val.rrd"
+    assert main(["validate", str(out), str(sim_tlog), "--json", "--rrd", str(rrd)]) == 0
     res = json.loads(capsys.readouterr().out)
+    from rerun.chunk import RrdReader
+
+    rows: dict[str, int] = {}
+    for c in RrdReader(rrd).stream().to_chunks():
+        if not c.is_static:
+            rows[c.entity_path] = rows.get(c.entity_path, 0) + c.num_rows
+            assert "fc_time" in c.timeline_names
+    n = rows["/sysid/outputs/q/measured"]
+    assert n > 1000 and rows["/sysid/outputs/q/model"] == n
     assert set(res["channels"]) == {"u", "v", "w", "p", "q", "r", "theta", "phi"}
     for m in res["channels"].values():
         assert np.isfinite(m["match"]) and 0 <= m["tic"] <= 1
