@@ -9,8 +9,9 @@ here without raising:
   skipped and counted in ``corrupt_bytes``;
 * timestamp bytes that happen to contain 0xFD/0xFE (every timestamp may): the scanner walks the
   *record* structure (timestamp, then a CRC-valid frame), and only when that breaks does it
-  resynchronise, on a position where a CRC-valid frame follows a timestamp plausibly near the
-  previous record's (within ``max_step_s``).
+  resynchronise, on the next CRC-valid frame (a magic byte inside a timestamp does not start one);
+* a damaged timestamp: a step of more than ``chain_s`` from the previous record that the next
+  record does not confirm; the packet is kept at the previous record's time (``bad_timestamps``).
 
 Leaves decoding to :mod:`firmware_interface.session` and file IO to :mod:`firmware_interface.readers`.
 """
@@ -44,22 +45,19 @@ class TlogScan:
     bad_timestamps: int = 0  # valid frame, damaged timestamp: kept with the previous record's time
 
 
-def scan_tlog(data: bytes, scan: TlogScan | None = None, *, max_step_s: float = 86400.0,
-              max_back_s: float = 60.0, chain_s: float = 60.0) -> Iterator[tuple[float, bytes]]:
+def scan_tlog(data: bytes, scan: TlogScan | None = None, *, chain_s: float = 60.0
+              ) -> Iterator[tuple[float, bytes]]:
     """Yield ``(t_host_s, frame_bytes)`` for every intact record of ``data``.
 
     A timestamp more than ``chain_s`` away from the previous record's is accepted only when the
     next record confirms it (a gap or a host clock jump); otherwise it is damaged and the packet is
-    kept at the previous time. When resynchronising after garbage, a candidate record is plausible
-    within ``max_back_s`` before / ``max_step_s`` after the previous time, or when the record after
-    it agrees with it. Counters go to ``scan``.
+    kept at the previous time. When resynchronising after garbage, the next CRC-valid frame starts
+    the next record (its timestamp then judged the same way). Counters go to ``scan``.
     """
     st = scan if scan is not None else TlogScan()
     n = len(data)
     p = 0
     prev_us: int | None = None
-    max_step_us = int(max_step_s * 1e6)
-    max_back_us = int(max_back_s * 1e6)
     chain_us = int(chain_s * 1e6)
     unpack_ts = _TS.unpack_from
     while p + 8 < n:
@@ -91,7 +89,7 @@ def scan_tlog(data: bytes, scan: TlogScan | None = None, *, max_step_s: float = 
                 p = end
                 continue
         # the record structure broke at p: find the next plausible record
-        q = _resync(data, p + 1, n, prev_us, max_back_us, max_step_us)
+        q = _resync(data, p + 1, n, prev_us)
         if q is None:
             status = NEED_MORE
             if b == 0xFD or b == 0xFE:
@@ -117,9 +115,8 @@ def _ts_at(data: bytes, q: int, n: int) -> int | None:
     return _TS.unpack_from(data, q)[0]
 
 
-def _resync(data: bytes, start: int, n: int, prev_us: int | None, max_back_us: int, max_step_us: int
-            ) -> int | None:
-    """Start of the next record at or after ``start`` whose frame is valid and timestamp plausible."""
+def _resync(data: bytes, start: int, n: int, prev_us: int | None) -> int | None:
+    """Start of the next record at or after ``start`` whose frame is CRC-valid (see the comment)."""
     pos = start + 8
     while True:
         mo = _MAGIC_RE.search(data, pos)
@@ -132,13 +129,10 @@ def _resync(data: bytes, start: int, n: int, prev_us: int | None, max_back_us: i
         status, total, _ = check_frame(data, j, n)
         if status != OK:
             continue
-        ts = _TS.unpack_from(data, j - 8)[0]
         if prev_us is None:
-            if _TS_MIN_US <= ts <= _TS_MAX_US:
+            if _TS_MIN_US <= _TS.unpack_from(data, j - 8)[0] <= _TS_MAX_US:
                 return j - 8
-        elif -max_back_us <= ts - prev_us <= max_step_us:
-            return j - 8
-        else:
-            nxt = _ts_at(data, j + total, n)
-            if nxt is not None and abs(nxt - ts) <= max_back_us:
-                return j - 8  # two consecutive records agree: trust them over the previous time
+            continue
+        # a CRC-valid frame is a record (a false match is a 1-in-65536 event per candidate); whether
+        # its timestamp is believed is decided by the caller against its neighbours
+        return j - 8
