@@ -314,7 +314,8 @@ class MavlinkSession:
         self._out = bytearray()
         self._mav = mavlink2.MAVLink(None, self.config.src_sysid, self.config.src_compid)
         self._seq: dict[tuple[int, int], int] = {}
-        self._clocks: dict[int, _FcClock] = {}
+        self._clocks: dict[tuple[int, int], _FcClock] = {}
+        self._clock_src: tuple[int, int] | None = None  # whose clock the ClockModel follows
         self.target: tuple[int, int] | None = None
         self._next_hb = 0.0
         self._last_rx: float | None = None
@@ -535,11 +536,12 @@ class MavlinkSession:
 
     # ------------------------------------------------------------------ FC clock
 
-    def _fc_time(self, sysid: int, t_s: float, wrap_s: float, now: float) -> float:
+    def _fc_time(self, sysid: int, compid: int, t_s: float, wrap_s: float, now: float) -> float:
         """Unwrap a boot-relative time, detect reboots; returns monotone t_fc_s."""
-        c = self._clocks.get(sysid)
+        key = (sysid, compid)  # a companion computer on the same sysid has its own boot clock
+        c = self._clocks.get(key)
         if c is None:
-            c = self._clocks[sysid] = _FcClock()
+            c = self._clocks[key] = _FcClock()
         ref = c.last_s
         if ref is not None:
             if wrap_s:
@@ -561,25 +563,29 @@ class MavlinkSession:
             c.last_s = t_s
         c.last_host_s = now
         t_fc = t_s + c.epoch_s
-        self.clock.add(now, t_fc)
+        src = self.target or self._clock_src
+        if src is None:
+            src = self._clock_src = key
+        if key == src:
+            self.clock.add(now, t_fc)
         return t_fc
 
-    def _t_ms(self, sysid: int, ms: int, now: float) -> float:
-        return self._fc_time(sysid, ms * 1e-3, _MS_WRAP_S, now)
+    def _t_ms(self, sysid: int, compid: int, ms: int, now: float) -> float:
+        return self._fc_time(sysid, compid, ms * 1e-3, _MS_WRAP_S, now)
 
-    def _t_us32(self, sysid: int, us: int, now: float) -> float:
-        return self._fc_time(sysid, us * 1e-6, _US32_WRAP_S, now)
+    def _t_us32(self, sysid: int, compid: int, us: int, now: float) -> float:
+        return self._fc_time(sysid, compid, us * 1e-6, _US32_WRAP_S, now)
 
-    def _t_us64(self, sysid: int, us: int, now: float) -> float:
+    def _t_us64(self, sysid: int, compid: int, us: int, now: float) -> float:
         t = us * 1e-6
         if t > 1e8:  # Unix epoch time (GPS-synchronised), not time since boot
-            return self._t_est(sysid, now)
-        return self._fc_time(sysid, t, 0.0, now)
+            return self._t_est(sysid, compid, now)
+        return self._fc_time(sysid, compid, t, 0.0, now)
 
-    def _t_est(self, sysid: int, now: float) -> float:
+    def _t_est(self, sysid: int, compid: int, now: float) -> float:
         if self.clock.known:
             return self.clock.host_to_fc(now)
-        c = self._clocks.get(sysid)
+        c = self._clocks.get((sysid, compid)) or self._clocks.get(self.target or self._clock_src or (-1, -1))
         return math.nan if c is None or c.last_s is None else c.last_s + c.epoch_s
 
 
@@ -602,18 +608,18 @@ def _make_converters() -> dict[str, Callable[..., Any]]:
 
     def heartbeat(s, t, now, sy, co):
         bm = t[i_bm]
-        return Heartbeat(now, s._t_est(sy, now), sy, co, t[i_ty], t[i_ap], bm, t[i_cm], t[i_ss],
+        return Heartbeat(now, s._t_est(sy, co, now), sy, co, t[i_ty], t[i_ap], bm, t[i_cm], t[i_ss],
                          bool(bm & 128))
 
     convs["HEARTBEAT"] = heartbeat
 
     def attitude(s, t, now, sy, co):
-        return Attitude(now, s._t_ms(sy, t[0], now), sy, co, t[1], t[2], t[3], t[4], t[5], t[6])
+        return Attitude(now, s._t_ms(sy, co, t[0], now), sy, co, t[1], t[2], t[3], t[4], t[5], t[6])
 
     convs["ATTITUDE"] = attitude
 
     def local_pos(s, t, now, sy, co):
-        return LocalPositionNed(now, s._t_ms(sy, t[0], now), sy, co, t[1], t[2], t[3], t[4], t[5], t[6])
+        return LocalPositionNed(now, s._t_ms(sy, co, t[0], now), sy, co, t[1], t[2], t[3], t[4], t[5], t[6])
 
     convs["LOCAL_POSITION_NED"] = local_pos
 
@@ -622,7 +628,7 @@ def _make_converters() -> dict[str, Callable[..., Any]]:
 
     def global_pos(s, t, now, sy, co):
         hdg = t[g[8]]
-        return GlobalPositionInt(now, s._t_ms(sy, t[g[0]], now), sy, co, t[g[1]] * 1e-7, t[g[2]] * 1e-7,
+        return GlobalPositionInt(now, s._t_ms(sy, co, t[g[0]], now), sy, co, t[g[1]] * 1e-7, t[g[2]] * 1e-7,
                                  t[g[3]] * 1e-3, t[g[4]] * 1e-3, t[g[5]] * 1e-2, t[g[6]] * 1e-2,
                                  t[g[7]] * 1e-2, math.nan if hdg == 65535 else hdg * 1e-2)
 
@@ -632,7 +638,7 @@ def _make_converters() -> dict[str, Callable[..., Any]]:
     sv = [i("time_usec"), i("port")] + [i(f"servo{k}_raw") for k in range(1, 17)]
 
     def servo(s, t, now, sy, co):
-        return ServoOutputRaw(now, s._t_us32(sy, t[sv[0]], now), sy, co, t[sv[1]],
+        return ServoOutputRaw(now, s._t_us32(sy, co, t[sv[0]], now), sy, co, t[sv[1]],
                               tuple([t[k] for k in sv[2:]]))
 
     convs["SERVO_OUTPUT_RAW"] = servo
@@ -641,7 +647,7 @@ def _make_converters() -> dict[str, Callable[..., Any]]:
     rc = [i("time_boot_ms"), i("rssi")] + [i(f"chan{k}_raw") for k in range(1, 19)]
 
     def rc_channels(s, t, now, sy, co):
-        return RcChannels(now, s._t_ms(sy, t[rc[0]], now), sy, co, tuple([t[k] for k in rc[2:]]), t[rc[1]])
+        return RcChannels(now, s._t_ms(sy, co, t[rc[0]], now), sy, co, tuple([t[k] for k in rc[2:]]), t[rc[1]])
 
     convs["RC_CHANNELS"] = rc_channels
 
@@ -652,7 +658,7 @@ def _make_converters() -> dict[str, Callable[..., Any]]:
         tfun = MavlinkSession._t_us64 if time_field == "time_usec" else MavlinkSession._t_ms
 
         def imu(s, t, now, sy, co):
-            return Imu(now, tfun(s, sy, t[ix[0]], now), sy, co, name,
+            return Imu(now, tfun(s, sy, co, t[ix[0]], now), sy, co, name,
                        (t[ix[1]] * acc, t[ix[2]] * acc, t[ix[3]] * acc),
                        (t[ix[4]] * 1e-3, t[ix[5]] * 1e-3, t[ix[6]] * 1e-3))
 
@@ -667,7 +673,7 @@ def _make_converters() -> dict[str, Callable[..., Any]]:
 
     def gps(s, t, now, sy, co):
         vel, cog = t[gp[5]], t[gp[6]]
-        return GpsRawInt(now, s._t_us64(sy, t[gp[0]], now), sy, co, t[gp[1]], t[gp[2]] * 1e-7,
+        return GpsRawInt(now, s._t_us64(sy, co, t[gp[0]], now), sy, co, t[gp[1]], t[gp[2]] * 1e-7,
                          t[gp[3]] * 1e-7, t[gp[4]] * 1e-3, math.nan if vel == 65535 else vel * 1e-2,
                          math.nan if cog == 65535 else cog * 1e-2, t[gp[7]])
 
@@ -677,7 +683,7 @@ def _make_converters() -> dict[str, Callable[..., Any]]:
     ev, el = i("vtol_state"), i("landed_state")
 
     def ext_state(s, t, now, sy, co):
-        return ExtendedSysState(now, s._t_est(sy, now), sy, co, t[ev], t[el])
+        return ExtendedSysState(now, s._t_est(sy, co, now), sy, co, t[ev], t[el])
 
     convs["EXTENDED_SYS_STATE"] = ext_state
 
@@ -687,7 +693,7 @@ def _make_converters() -> dict[str, Callable[..., Any]]:
 
     def sys_status(s, t, now, sy, co):
         v, c = t[ss[0]], t[ss[1]]
-        return SysStatus(now, s._t_est(sy, now), sy, co, math.nan if v == 65535 else v * 1e-3,
+        return SysStatus(now, s._t_est(sy, co, now), sy, co, math.nan if v == 65535 else v * 1e-3,
                          math.nan if c == -1 else c * 1e-2, t[ss[2]], t[ss[3]] * 1e-2, t[ss[4]],
                          t[ss[5]] * 0.1)
 
@@ -697,7 +703,7 @@ def _make_converters() -> dict[str, Callable[..., Any]]:
     st_sev, st_txt = i("severity"), i("text")
 
     def statustext(s, t, now, sy, co):
-        return StatusText(now, s._t_est(sy, now), sy, co, t[st_sev],
+        return StatusText(now, s._t_est(sy, co, now), sy, co, t[st_sev],
                           t[st_txt].split(b"\0", 1)[0].decode("utf-8", "replace"))
 
     convs["STATUSTEXT"] = statustext
@@ -706,7 +712,7 @@ def _make_converters() -> dict[str, Callable[..., Any]]:
     ca_c, ca_r = i("command"), i("result")
 
     def command_ack(s, t, now, sy, co):
-        return CommandAck(now, s._t_est(sy, now), sy, co, t[ca_c], t[ca_r])
+        return CommandAck(now, s._t_est(sy, co, now), sy, co, t[ca_c], t[ca_r])
 
     convs["COMMAND_ACK"] = command_ack
     return convs

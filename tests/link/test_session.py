@@ -455,3 +455,18 @@ def test_signed_link_records_but_does_not_decode_unverified_frames():
     rx.signing.allow_unsigned_callback = lambda mav, msg_id: False
     msgs = rx.parse_buffer(out)
     assert [m.get_type() for m in msgs] == ["HEARTBEAT", "COMMAND_LONG"] and all(m.get_signed() for m in msgs)
+
+
+def test_companion_computer_clock_on_the_same_sysid_is_not_a_reboot():
+    fc, companion = FakeFc(1, 1), FakeFc(1, 191)
+    s = passive()
+    data = b""
+    for k in range(50):
+        data += fc.attitude(900_000 + 20 * k) + companion.attitude(5_000 + 20 * k)
+    events = feed_bytewise(s, fc.heartbeat() + data)
+    assert not any(isinstance(e, FcRebooted) for e in events) and s.stats.fc_reboots == 0
+    by_src = {}
+    for e in events:
+        if isinstance(e, Attitude):
+            by_src.setdefault(e.compid, []).append(e.t_fc_s)
+    assert by_src[1][0] == pytest.approx(900.0) and by_src[191][0] == pytest.approx(5.0)
