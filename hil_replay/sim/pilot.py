@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from operator import mul
 
 import numpy as np
 from scipy.linalg import solve_continuous_are
@@ -137,12 +138,8 @@ class Pilot:
               min(0.5, max(-0.5, wrap_pi(psi - psi_ref))))
         Kh, Kv = self._Kh, self._Kv
         rem = self.remnant()
-        fb = [
-            -sum(k * e for k, e in zip(Kh[0], eh, strict=False)),
-            -sum(k * e for k, e in zip(Kh[1], eh, strict=False)),
-            -sum(k * e for k, e in zip(Kv[0], ev, strict=False)),
-            -sum(k * e for k, e in zip(Kv[1], ev, strict=False)),
-        ]
+        fb = [-sum(map(mul, Kh[0], eh)), -sum(map(mul, Kh[1], eh)),
+              -sum(map(mul, Kv[0], ev)), -sum(map(mul, Kv[1], ev))]
         if excited is not None:
             fb[excited] *= self._loose
         return [f + r for f, r in zip(fb, rem, strict=False)]

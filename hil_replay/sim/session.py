@@ -293,12 +293,9 @@ class SimulatedSession:
             mn = nv[3] + nz.pos_m * z[9]
             me = nv[4] + nz.pos_m * z[10]
             md = nv[5] + nz.alt_m * z[11]
-            if landed:
-                fx, fy, fz = g * sth, -g * sph * cth, -g * cph * cth
-            else:
-                fx, fy, fz = sf(x, dcmd[0], dcmd[1], dcmd[2], dcmd[3], wind[0], wind[1], wind[2])
             acc_sig = nz.accel_m_s2 if spinning else 0.02
-            acc = (fx + acc_sig * z[12], fy + acc_sig * z[13], fz + acc_sig * z[14])
+            # the accelerometer costs a model evaluation: computed only if RAW_IMU is built
+            acc = _Accel(sf, x, dcmd, wind, landed, (acc_sig * z[12], acc_sig * z[13], acc_sig * z[14]))
             gps_n = x[12] + nz.gps_pos_m * z[15]
             gps_e = x[13] + nz.gps_pos_m * z[16]
             gps_d = x[14] + 2 * nz.gps_pos_m * z[17]
@@ -364,6 +361,26 @@ class SimulatedSession:
                     x = [0.0] * 6 + [0.0, 0.0, x[8], 0.0, 0.0, 0.0, x[12], x[13], 0.0]
             if gust is not None:
                 gust.step()
+
+
+class _Accel:
+    """Deferred specific force (body axes, m/s^2) plus its noise, evaluated on demand."""
+
+    __slots__ = ("sf", "x", "d", "wind", "landed", "noise")
+
+    def __init__(self, sf: Any, x: list[float], d: list[float], wind: list[float], landed: bool,
+                 noise: tuple[float, float, float]) -> None:
+        self.sf, self.x, self.d, self.wind, self.landed, self.noise = sf, x, d, wind, landed, noise
+
+    def __call__(self) -> tuple[float, float, float]:
+        x, n = self.x, self.noise
+        if self.landed:  # resting level on the skids: gravity only
+            ph, th = x[6], x[7]
+            f = (G_M_S2 * math.sin(th), -G_M_S2 * math.sin(ph) * math.cos(th), -G_M_S2 * math.cos(ph) * math.cos(th))
+        else:
+            d, w = self.d, self.wind
+            f = self.sf(x, d[0], d[1], d[2], d[3], w[0], w[1], w[2])
+        return (f[0] + n[0], f[1] + n[1], f[2] + n[2])
 
 
 def _delayed(hist: deque[tuple[float, ...]], lag_ticks: float) -> tuple[float, ...]:

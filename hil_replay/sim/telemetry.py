@@ -20,7 +20,7 @@ what rate (the simulated FC or :func:`hil_replay.sim.write_tlog`), packet framin
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -66,7 +66,7 @@ class Measurement:
     vx: float
     vy: float
     vz: float
-    acc_m_s2: tuple[float, float, float]  # specific force, body axes
+    acc_fn: Callable[[], tuple[float, float, float]]  # specific force, body axes (m/s^2), on demand
     gps_n_m: float
     gps_e_m: float
     gps_d_m: float
@@ -128,7 +128,7 @@ class TelemetryFrame:
                                                   int(round(-m.z * 1000.0)), _i16(m.vx * 100.0), _i16(m.vy * 100.0),
                                                   _i16(m.vz * 100.0), hdg)
         if name == "RAW_IMU":
-            a = m.acc_m_s2
+            a = m.acc_fn()
             return mav.raw_imu_encode(max(0, int(round(t * 1e6)) + m.jitter_us[1]), _i16(a[0] * _MG), _i16(a[1] * _MG),
                                       _i16(a[2] * _MG), _i16(m.p * 1000.0), _i16(m.q * 1000.0), _i16(m.r * 1000.0),
                                       210, -35, 410)
