@@ -51,8 +51,9 @@ def test_simulated_fc_into_record(tmp_path):
 
 
 def test_fc_reboot_is_detected_and_streams_requested_again(tmp_path):
-    # the reboot is silent for 40 s of FC time (4 s wall at 10x): longer than the ground station's
-    # 3 s link timeout, as a real reboot (bootloader + init) is on a radio link
+    # the reboot is silent for 50 s of FC time (5 s wall at 10x, at least 4 s even if the FC had
+    # fallen behind and catches up): longer than the ground station's 3 s link timeout, as a real
+    # reboot (bootloader + init) is on a radio link
     heli = FakeHelicopter(duration_s=80.0, t0_s=20.0)
     with SimulatedFCThread(speed=10.0, session=heli, config=FcConfig(packet_loss=0.0)) as fc:
         proc = subprocess.Popen(
@@ -63,7 +64,7 @@ def test_fc_reboot_is_detected_and_streams_requested_again(tmp_path):
             deadline = time.monotonic() + 30
             while fc.stats.last_t_boot_s < 20.0 + 15.0 and time.monotonic() < deadline:
                 time.sleep(0.02)
-            fc.reboot(boot_s=40.0)
+            fc.reboot(boot_s=50.0)
             while fc.stats.last_t_boot_s < 20.0 + 80.0 - 0.1 and time.monotonic() < deadline:
                 time.sleep(0.05)
             time.sleep(0.3)
