@@ -211,8 +211,8 @@ def test_unplug_and_replug_while_serving():
                 time.sleep(0.01)
             n_before = len(reader.data)
             assert n_before > 0
-            fc.unplug(0.5)
-            time.sleep(1.5)
+            fc.unplug(1.0)   # 5 s of FC time at 5x
+            time.sleep(2.0)
             after = reader.data[n_before:]
         finally:
             reader.close()
