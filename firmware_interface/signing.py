@@ -15,6 +15,8 @@ for messages it packs; this module works on bytes so it can sit under any encode
   spec requires on a link: per-stream (link id, sysid, compid) timestamps that must increase
   (replay protection), a new stream no more than a minute older than the newest time seen, and
   counters for the status (good, unsigned, bad signature, replayed).
+* :func:`session_hooks` turns a :class:`SigningConfig` into the ``verifier``/``signer`` pair that
+  :class:`firmware_interface.session.MavlinkSession` takes; ``verifier.status()`` is the status block.
 * :class:`Signer` (:func:`make_signer`) signs outgoing frames with a timestamp that never goes
   backwards; :meth:`Signer.sign_stream` signs every frame in a chunk such as
   ``MavlinkSession.data_to_send()``.
@@ -43,7 +45,7 @@ from firmware_interface.errors import LinkError
 __all__ = [
     "SIGNATURE_LEN", "SigningError", "SigningKey", "SigningConfig", "SignatureCheck",
     "SignatureVerifier", "Signer", "make_signer", "verify", "sign_frame", "is_signed",
-    "timestamp_from_unix", "frame_timestamp",
+    "timestamp_from_unix", "frame_timestamp", "session_hooks",
 ]
 
 SIGNATURE_LEN = 13
@@ -323,5 +325,22 @@ class SignatureVerifier:
         self.newest_timestamp = max(self.newest_timestamp, ts)
         return SignatureCheck.OK
 
+    def status(self) -> dict[str, object]:
+        """For the service status: key fingerprint (never the key) and the counters."""
+        return {"enabled": True, "key_fingerprint": self._key.fingerprint, **self.counts}
+
     def __repr__(self) -> str:
         return f"SignatureVerifier(key={self._key!r}, counts={self.counts})"
+
+
+def session_hooks(config: SigningConfig, now_unix_s: float) -> tuple[SignatureVerifier | None, Signer | None]:
+    """``(verifier, signer)`` for ``MavlinkSession(config, verifier=..., signer=...)``.
+
+    ``(None, None)`` for an unsigned link; loads the key file (:class:`SigningError`, one line
+    naming the file, if it is missing or readable by others). Pass the wall clock as ``now_unix_s``.
+    """
+    if not config.enabled:
+        return None, None
+    key = config.load_key()
+    return (SignatureVerifier(key, config.accept_unsigned),
+            make_signer(key, link_id=config.link_id, now_unix_s=now_unix_s))

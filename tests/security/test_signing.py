@@ -219,3 +219,34 @@ def test_key_never_appears_in_repr_logs_errors_or_pickles(tmp_path, caplog):
 def test_timestamp_epoch():
     assert timestamp_from_unix(EPOCH_UNIX_S) == 0
     assert timestamp_from_unix(EPOCH_UNIX_S + 1.5) == 150_000
+
+
+def test_session_with_hooks_from_a_key_file_drops_and_counts_what_fails(tmp_path):
+    from firmware_interface.samples import Heartbeat, RawPacket
+    from firmware_interface.session import MavlinkSession, SessionConfig
+    from firmware_interface.signing import session_hooks
+
+    key_file = _write_key(tmp_path / "fc.key", bytes(range(32)).hex().encode(), 0o600)
+    assert session_hooks(SigningConfig(), NOW) == (None, None)
+    verifier, signer = session_hooks(SigningConfig(key_file=str(key_file)), NOW)
+    session = MavlinkSession(SessionConfig(), verifier=verifier, signer=signer)
+    fc = _mav(src=1, key=KEY, sign=True)
+    hb = fc.heartbeat_encode(mavlink2.MAV_TYPE_HELICOPTER, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4)
+    good = hb.pack(fc)
+    forged = make_signer(OTHER, now_unix_s=NOW).sign(_attitude(_mav(src=1)))
+    session.receive_data(good + _attitude(_mav(src=1)) + forged + good, NOW)
+    events = session.events()
+    raw = [(e.msg_type, e.signature_ok) for e in events if isinstance(e, RawPacket)]
+    assert raw == [("HEARTBEAT", True), ("ATTITUDE", False), ("ATTITUDE", False), ("HEARTBEAT", False)]
+    assert [type(e) for e in events if not isinstance(e, RawPacket)] == [Heartbeat]   # only the good one
+    assert session.stats.unsigned_dropped == 3
+    status = verifier.status()
+    assert status == {"enabled": True, "key_fingerprint": KEY.fingerprint, "ok": 1, "unsigned": 1,
+                      "accepted_unsigned": 0, "bad_signature": 1, "replayed": 1}
+    out = session.data_to_send(NOW + 0.5)
+    fc_rx = _mav(src=1, key=KEY)
+    fc_rx.signing.allow_unsigned_callback = lambda mav, msg_id: False
+    assert fc_rx.parse_buffer(out) and fc_rx.signing.goodsig_count >= 1
+    os.chmod(key_file, 0o640)
+    with pytest.raises(SigningError, match="chmod 600"):
+        session_hooks(SigningConfig(key_file=str(key_file)), NOW)
