@@ -187,3 +187,47 @@ def test_service_survives_router_restart_and_a_late_router(field, client, tmp_pa
         sink.close()
         if router is not None:
             router.close()
+
+
+def test_live_service_records_without_router_then_publishes_through_it(field, client, tmp_path):
+    """The whole service with the rendered ground-station config: router down at start-up -> one
+    warning line, recording goes on; router up -> windows and status reach an authorised viewer."""
+    import asyncio
+    import threading
+
+    from groundstation.service import Service
+    from tests.service.conftest import ScriptedHelicopter, service_config
+
+    port = free_tcp_port()
+    gs = retarget(field / "groundstation.json5", tmp_path / "gs.json5", port)
+    cfg = service_config(tmp_path, service={"exit_after_flights": 1, "vehicle": "v6"}, sim={"speed": 1.0},
+                         identification={"enabled": False}, zenoh={"config_file": str(gs)})
+    lines: list[str] = []
+    service = Service(cfg, frame_source=ScriptedHelicopter(flights=1, flight_s=3.0, pause_s=1.5), log=lines.append)
+    holder: dict = {}
+    got: list[tuple[str, bytes]] = []
+
+    def bring_up_router() -> None:
+        holder["router"] = open_router(field / "router.json5", port)
+        viewer = client("viewer", port)
+        holder["sub"] = viewer.declare_subscriber(
+            "heli/v6/**", lambda s: got.append((str(s.key_expr), s.payload.to_bytes())))
+
+    async def main():
+        task = asyncio.create_task(service.run())
+        await asyncio.wait_for(service.ready.wait(), 20)
+        th = threading.Thread(target=bring_up_router)
+        th.start()
+        await asyncio.to_thread(th.join, 20)
+        return await asyncio.wait_for(task, 60)
+
+    try:
+        report = asyncio.run(main())
+    finally:
+        if "router" in holder:
+            holder["router"].close()
+    warnings = [w for w in report.warnings if "zenoh" in w]
+    assert len(warnings) == 1 and "\n" not in warnings[0] and str(gs) in warnings[0]
+    assert report.flights == 1 and report.packets > 100 and report.session_tlog
+    keys = {k for k, _ in got}
+    assert "heli/v6/telemetry/window" in keys and "heli/v6/status" in keys
