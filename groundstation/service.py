@@ -25,9 +25,11 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import functools
 import inspect
 import math
 import multiprocessing
+import os
 import signal
 import time
 from collections.abc import Callable
@@ -226,7 +228,7 @@ class Service:
             self._open_sinks(loop)
             if self.config.identification.enabled:
                 self._executor = concurrent.futures.ProcessPoolExecutor(
-                    max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+                    max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init)
             if not self.link_url:
                 self.link_url = self._start_builtin_sim()
                 self.log(f"built-in simulated flight controller on {self.sim.port_path} "
@@ -369,7 +371,8 @@ class Service:
 
     def _on_window(self, w: Window) -> None:
         if self.zenoh is not None:
-            doc = w.to_json(self.vehicle)
+            # the JSON is built on the publisher thread, not here on the loop
+            doc = functools.partial(w.to_json, self.vehicle)
             if self.zenoh.publish_window(doc, seq=w.seq, t_host_last_s=w.t_host_last_s):
                 self.window_seq_published += 1
         self._flush_rows_to_rerun()
@@ -413,16 +416,23 @@ class Service:
             ic = self.config.identification
             tlogs = (tuple(self._flight_tlogs[k] for k in sorted(self._flight_tlogs)) if ic.scope == "all"
                      else (path,))
-            job = IdentifyJob(flight=fe.flight, tlogs=tlogs, out_dir=str(Path(path).parent),
-                              vehicle=self.vehicle, algorithm=ic.algorithm, seed=ic.seed, maxiter=ic.maxiter,
-                              refine=ic.refine, diagnose=ic.diagnose, plots=ic.plots)
-            fut = asyncio.wrap_future(self._executor.submit(run_job, job))
-            self._pending.add(fut)
-            self.ident.queued += 1
-            self.ident.state = "running"
-            self.ident.flight = fe.flight
-            fut.add_done_callback(self._on_result)
+            self.submit_identification(IdentifyJob(
+                flight=fe.flight, tlogs=tlogs, out_dir=str(Path(path).parent), vehicle=self.vehicle,
+                algorithm=ic.algorithm, seed=ic.seed, maxiter=ic.maxiter, refine=ic.refine,
+                diagnose=ic.diagnose, plots=ic.plots))
         self._check_exit()
+
+    def submit_identification(self, job: IdentifyJob) -> asyncio.Future[Any]:
+        """Queue ``job`` on the worker process (call on the loop); the result is published when done."""
+        if self._executor is None:
+            raise RuntimeError("identification is disabled in this service")
+        fut = asyncio.wrap_future(self._executor.submit(run_job, job))
+        self._pending.add(fut)
+        self.ident.queued += 1
+        self.ident.state = "running"
+        self.ident.flight = job.flight
+        fut.add_done_callback(self._on_result)
+        return fut
 
     def _last_flight_tlog(self) -> str | None:
         rec = self.recorder
@@ -565,6 +575,14 @@ class Service:
                 await asyncio.to_thread(self.sim.stop, 1.0)
             except (OSError, TimeoutError, RuntimeError) as exc:
                 self._warn(f"stopping the simulator: {exc}")
+
+
+def _worker_init() -> None:
+    """Worker process: lowest CPU priority, so the live path keeps its core while identifying."""
+    try:
+        os.nice(19)
+    except OSError:
+        pass
 
 
 def _gap_text(gap: dict[str, Any]) -> str:

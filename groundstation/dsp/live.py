@@ -376,13 +376,14 @@ class Window:
     armed: bool
 
     def to_json(self, vehicle: str) -> dict:
-        def col(a: np.ndarray) -> list[float | None]:
-            return [None if not math.isfinite(x) else round(float(x), 6) for x in a]
+        """JSON-able dict; values rounded to 6 decimals, NaN kept (the publisher writes them as null)."""
+        def col(a: np.ndarray) -> list[float]:
+            return np.round(a, 6).tolist()
 
         return {
             "vehicle": vehicle, "seq": self.seq, "flight": self.flight,
             "armed": self.armed, "in_air": self.in_air,
-            "t_fc_s": [round(float(t), 4) for t in self.t_fc_s],
+            "t_fc_s": np.round(self.t_fc_s, 4).tolist(),
             "t_host_last_s": self.t_host_last_s,
             "inputs": {n: col(self.inputs[:, i]) for i, n in enumerate(INPUTS)},
             "outputs": {n: {"raw": col(self.outputs_raw[:, i]), "smoothed": col(self.outputs_smoothed[:, i])}

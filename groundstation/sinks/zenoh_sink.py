@@ -78,6 +78,12 @@ def _json_default(o: Any) -> Any:
     return str(o)
 
 
+def dumps_numeric(doc: Any) -> str:
+    """Fast strict JSON for documents whose only strings are fixed keys (windows): NaN/inf -> null."""
+    return (json.dumps(doc, default=_json_default)
+            .replace("-Infinity", "null").replace("Infinity", "null").replace("NaN", "null"))
+
+
 def dumps(doc: Any) -> str:
     """JSON with NaN/inf as null (strict JSON for non-Python subscribers)."""
     def clean(x: Any) -> Any:
@@ -201,8 +207,10 @@ class ZenohSink:
     def publish_status(self, doc: dict) -> None:
         self._q.put_nowait(("status", None, doc))
 
-    def publish_window(self, doc: dict, *, seq: int = -1, t_host_last_s: float = math.nan) -> bool:
-        """Enqueue a window; False (and counted) if ``window_queue`` windows are already waiting."""
+    def publish_window(self, doc: dict | Callable[[], dict], *, seq: int = -1,
+                       t_host_last_s: float = math.nan) -> bool:
+        """Enqueue a window (a dict of numbers, or a callable making it, run on the publisher thread);
+        False (and counted) if ``window_queue`` windows are already waiting."""
         with self._lock:
             if self._windows_waiting >= self._window_queue:
                 self.windows_dropped += 1
@@ -253,7 +261,10 @@ class ZenohSink:
 
     def _send(self, kind: str, extra: Any, doc: Any) -> None:
         try:
-            payload = dumps(doc)
+            if kind == "window":
+                payload = dumps_numeric(doc() if callable(doc) else doc)
+            else:
+                payload = dumps(doc)
             if kind in ("status", "window"):
                 self._pub[kind].put(payload)
                 if kind == "window":

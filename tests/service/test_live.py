@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -19,6 +20,7 @@ from groundstation.dsp.live import (
     ned_to_body,
 )
 from groundstation.dsp.smoothing import smooth5
+from groundstation.sinks.zenoh_sink import dumps_numeric
 
 
 @pytest.mark.parametrize("passes", [1, 2, 3])
@@ -153,8 +155,9 @@ def test_pipeline_rows_windows_and_smoothing_against_batch():
     assert w.t_fc_s.shape == (50,) and w.t_fc_s[-1] == pytest.approx(199 * 0.02)
     assert np.isnan(w.outputs_smoothed[-2:]).all() and np.isfinite(w.outputs_smoothed[:-2]).all()
     assert w.flight == 1 and w.in_air
-    js = w.to_json("heli")
+    js = json.loads(dumps_numeric(w.to_json("heli")))          # strict JSON: NaN -> null
     assert js["outputs"]["p"]["smoothed"][-1] is None and len(js["inputs"]["lon"]) == 50
+    assert js["outputs"]["p"]["raw"][-1] == pytest.approx(w.outputs_raw[-1, 3], abs=1e-6)
 
 
 def test_pipeline_fed_one_event_at_a_time_matches_batch_feed():
