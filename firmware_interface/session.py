@@ -323,10 +323,10 @@ class MavlinkSession:
         self._setup: _Setup | None = None
         self.message_counts: dict[str, int] = {}
         self._emit_raw = self.config.emit_raw_packets
-        self._decoders: dict[int, tuple[Any, int, Callable[..., Any] | None]] = {}
+        self._decoders: dict[int, tuple[Any, int, Callable[..., Any] | None, str]] = {}
         for mid, cls in MESSAGE_CLASSES.items():
             conv = _CONVERTERS.get(cls.msgname)
-            self._decoders[mid] = (cls.unpacker, cls.unpacker.size, conv)
+            self._decoders[mid] = (cls.unpacker, cls.unpacker.size, conv, cls.msgname)
 
     # ------------------------------------------------------------------ input
 
@@ -352,9 +352,7 @@ class MavlinkSession:
                 k = f"{sysid}:{compid}"
                 stats.loss_by_source[k] = stats.loss_by_source.get(k, 0) + lost
         self._seq[key] = seq
-        unpacker, size, conv = self._decoders[msg_id]
-        cls = MESSAGE_CLASSES[msg_id]
-        name = cls.msgname
+        unpacker, size, conv, name = self._decoders[msg_id]
         self.message_counts[name] = self.message_counts.get(name, 0) + 1
         sig_ok: bool | None = None
         if self._verifier is not None:
@@ -553,8 +551,8 @@ class MavlinkSession:
                 self._events.append(FcRebooted(now, sysid, prev))
                 c.last_s = t_s
                 # sequence numbers restart with the FC; do not count that as loss
-                for key in [k for k in self._seq if k[0] == sysid]:
-                    del self._seq[key]
+                for seq_key in [k for k in self._seq if k[0] == sysid]:
+                    del self._seq[seq_key]
                 if self.target is not None and sysid == self.target[0]:
                     self._restart_setup()
             elif t_s > ref:
