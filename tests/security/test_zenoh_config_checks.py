@@ -177,3 +177,35 @@ def test_script_output_has_private_modes_and_no_passwords_on_stdout(tmp_path):
         assert (out / name).stat().st_mode & 0o077 == 0, name
     for line in (out / "credentials.txt").read_text().splitlines():
         assert line.split(":", 1)[1] not in proc.stdout
+
+
+def test_field_router_script_refuses_bad_files_and_serves_good_ones(kit):
+    import signal
+
+    router_script = SCRIPT.parent / "field-router"
+    os.chmod(kit / "router.key", 0o644)
+    bad = subprocess.run([sys.executable, str(router_script), str(kit / "router.json5")],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "chmod 600" in bad.stderr
+    os.chmod(kit / "router.key", 0o600)
+    port = free_tcp_port()
+    cfg = kit / "router.json5"
+    cfg.write_text(cfg.read_text().replace("tls/0.0.0.0:7447", f"tls/127.0.0.1:{port}"))
+    proc = subprocess.Popen([sys.executable, str(router_script), str(cfg)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        first = proc.stdout.readline()
+        assert f"listening on tls/127.0.0.1:{port}" in first and "access control on" in first
+        viewer = retarget(kit / "viewer.json5", kit / "v-local.json5", port)
+        assert probe_endpoint(viewer) is None       # TLS with our client certificate works
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            rc = proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+            raise
+        proc.stdout.close()
+        proc.stderr.close()
+    assert rc == 0
