@@ -203,7 +203,9 @@ class WindowSimulator:
             if not pre["full_mask"]:
                 e *= pre["mflat"][None]
             e *= e
-            out[:, pre["o_idx"]] = e.reshape(C, self.W * self.L, pre["nch"]).sum(axis=1)
+            # sum windows first (contiguous rows), then samples: far faster than one strided reduction
+            nch = pre["nch"]
+            out[:, pre["o_idx"]] = e.reshape(C, self.W, self.L * nch).sum(axis=1).reshape(C, self.L, nch).sum(axis=1)
         return np.where(np.isfinite(out), out, 1e300)
 
     def errors(self, theta: np.ndarray) -> np.ndarray:
@@ -242,15 +244,15 @@ class WindowSimulator:
         CbU = (U @ Cb.transpose(2, 0, 1).reshape(b * m, C * n)).reshape(W, nb, C, n).transpose(2, 0, 1, 3)
         # block states (zero initial state)
         xm, unk = pre["xm"], pre["unk"]
-        xs = np.empty((C, W, nb, n + b * m))
-        xs[..., n:] = U.reshape(W, nb, b * m)[None]
+        xs = np.empty((C, W, nb, n))
         x = np.broadcast_to(xm, (C, W, n))  # known initial states; the unknown part is added below
         AbT = np.swapaxes(Ab, 1, 2)
         for i in range(nb):
-            xs[:, :, i, :n] = x
+            xs[:, :, i] = x
             x = np.matmul(x, AbT) + CbU[:, :, i]
-        ObT = np.concatenate([Ob, T], axis=2)  # Y_i = Ob x_i + T U_i
-        yf = np.matmul(xs.reshape(C, W * nb, n + b * m), np.ascontiguousarray(np.swapaxes(ObT, 1, 2)))
+        # Y_i = Ob x_i + T U_i: a batched product for the states, one BLAS product for the inputs
+        yf = np.matmul(xs.reshape(C, W * nb, n), np.ascontiguousarray(np.swapaxes(Ob, 1, 2)))
+        yf += np.matmul(U[None], np.ascontiguousarray(np.swapaxes(T, 1, 2)))
         r = yf.reshape(C, W, nb * b * nch)[:, :, : L * nch]
         np.subtract(pre["yflat"][None], r, out=r)  # r = y - forced - known free response, (C, W, L*nch)
         # free response basis Phi (C, L*nch, n): rows (k, ch) = C A^k
@@ -276,7 +278,7 @@ class WindowSimulator:
         if pre["lin"]:
             return self._varpro(pre, Apow, Ob, Gam, Phi, G, rhs, r, C, W, L, n, b, nb, nch)
         z = np.linalg.solve(G, rhs[..., None])[..., 0]  # (C, W, n), zero on known dims
-        e = np.matmul(z, np.swapaxes(Phi, 1, 2))
+        e = np.matmul(z, np.ascontiguousarray(np.swapaxes(Phi, 1, 2)))
         e -= r  # yhat - y
         x0 = xm[None] + z
         return e, x0
@@ -331,7 +333,7 @@ class WindowSimulator:
         S = S + (1e-10 * np.maximum(dS.max(axis=-1), 1e-300))[:, None, None] * np.eye(P)
         beta = np.linalg.solve(S, rr[..., None])[..., 0]  # (C, P)
         z = Gia - np.einsum("cwnp,cp->cwn", GiE, beta)
-        e = np.matmul(z, np.swapaxes(Phi, 1, 2))
+        e = np.matmul(z, np.ascontiguousarray(np.swapaxes(Phi, 1, 2)))
         e += np.matmul(beta[:, None, :], F.reshape(C, P, W * LN)).reshape(C, W, LN)
         e -= r
         return e, pre["xm"][None] + z, beta
