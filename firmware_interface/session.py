@@ -342,6 +342,10 @@ class MavlinkSession:
         """Handle one whole frame already known to be CRC-valid (e.g. from a .tlog record)."""
         msg_id, seq, sysid, compid, payload = frame_header(pkt)
         stats = self.stats
+        dec = self._decoders.get(msg_id)
+        if dec is None:  # not in the dialect: its CRC could not have been checked
+            stats.corrupt_bytes += len(pkt)
+            return
         stats.packets += 1
         key = (sysid, compid)
         last = self._seq.get(key)
@@ -352,7 +356,7 @@ class MavlinkSession:
                 k = f"{sysid}:{compid}"
                 stats.loss_by_source[k] = stats.loss_by_source.get(k, 0) + lost
         self._seq[key] = seq
-        unpacker, size, conv, name = self._decoders[msg_id]
+        unpacker, size, conv, name = dec
         self.message_counts[name] = self.message_counts.get(name, 0) + 1
         sig_ok: bool | None = None
         if self._verifier is not None:
