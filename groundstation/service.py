@@ -476,11 +476,11 @@ class Service:
             if res.get("gap") is not None:
                 self.log(f"flight {flight}: gap report {res.get('gap_path')} verdict {res['gap'].get('verdict')}")
             if self.rerun is not None and self._rerun_calls is not None:
-                if overlay and overlay.get("t_fc_s"):
-                    self._rerun_calls.submit(self.rerun.log_model_overlay, np.asarray(overlay["t_fc_s"]),
-                                             np.asarray(overlay["model"]))
+                has_overlay = overlay is not None and len(overlay["t_fc_s"]) > 0
+                if has_overlay:
+                    self._rerun_calls.submit(self.rerun.log_model_overlay, overlay["t_fc_s"], overlay["model"])
                 gap = res.get("gap") or {}
-                t_end = float(overlay["t_fc_s"][-1]) if overlay and overlay.get("t_fc_s") else 0.0
+                t_end = float(overlay["t_fc_s"][-1]) if has_overlay else 0.0
                 self._rerun_calls.submit(self.rerun.log_gap, int(flight), match, str(gap.get("verdict", "")),
                                          _gap_text(gap), t_end)
         self._check_exit()

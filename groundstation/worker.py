@@ -113,9 +113,9 @@ def run_job(job: IdentifyJob) -> dict[str, Any]:
             png = out_dir / f"model-flight{job.flight:02d}.png"
             _plot(overlay, png, f"{job.vehicle} flight {job.flight}: model vs measured")
             res["png"] = [str(png)]
-        # decimate the overlay for Rerun (every sample is fine up to a few minutes of flight)
-        res["overlay"] = {"t_fc_s": np.asarray(overlay["t_fc_s"]).tolist(),
-                          "model": np.asarray(overlay["model"]).tolist()}
+        # numpy arrays pickle fast back to the service (lists would cost the live loop a spike)
+        res["overlay"] = {"t_fc_s": np.asarray(overlay["t_fc_s"], dtype=float),
+                          "model": np.asarray(overlay["model"], dtype=float)}
         res["identify_s"] = time.perf_counter() - t0
         if job.diagnose:
             try:

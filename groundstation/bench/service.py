@@ -118,6 +118,12 @@ class _WindowLatency:
             with self._lock:
                 self.samples.append((now, now - t_host))
 
+    def worst(self, t0: float, t1: float, k: int = 5) -> list[tuple[float, float]]:
+        """The k largest latencies in [t0, t1) as (seconds after t0, ms)."""
+        with self._lock:
+            sel = sorted(((lat, t) for t, lat in self.samples if t0 <= t < t1), reverse=True)[:k]
+        return [(round(t - t0, 2), round(1000 * lat, 1)) for lat, t in sel]
+
     def between(self, t0: float, t1: float) -> np.ndarray:
         with self._lock:
             return np.array([lat for t, lat in self.samples if t0 <= t < t1])
@@ -183,6 +189,7 @@ async def _realtime_and_load(tmp: Path, seconds: float, seed: int, load: bool, r
             t3 = time.time()
             during = _stats_ms(sub.between(t2 + 1.0, t3))   # skip the worker's spawn second
             out["load"] = {**during, "job_s": t3 - t2, "job_error": res.get("error"),
+                           "worst_s_ms": sub.worst(t2, t3 + 1.0),
                            "p99_growth_ms": during["p99_ms"] - base["p99_ms"]}
     finally:
         service.request_stop("bench done")
