@@ -119,3 +119,16 @@ def test_bin_without_known_messages_is_a_log_error(tmp_path):
     path.write_bytes(_fmt(128, "FMT", "BBnNZ", "Type,Length,Name,Format,Columns"))
     with pytest.raises(LogError, match="empty.bin"):
         load_log(path)
+
+
+def test_log_info_json_on_a_bin_keeps_stdout_clean(tmp_path, capsys):
+    import json
+
+    from groundstation.cli import main as cli_main
+
+    data = ardupilot_bin()
+    path = tmp_path / "flight.bin"
+    path.write_bytes(data[:-5] + b"\xa3\x95\x86garbage")  # damaged tail: DFReader complains on stdout
+    assert cli_main(["log-info", str(path), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["messages"]["ATT"]["count"] == 500 and len(info["flights"]) == 1

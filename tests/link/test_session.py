@@ -470,3 +470,25 @@ def test_companion_computer_clock_on_the_same_sysid_is_not_a_reboot():
         if isinstance(e, Attitude):
             by_src.setdefault(e.compid, []).append(e.t_fc_s)
     assert by_src[1][0] == pytest.approx(900.0) and by_src[191][0] == pytest.approx(5.0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.integers(1, 80), min_size=1, max_size=40), st.binary(max_size=30))
+def test_chunking_does_not_change_what_is_decoded(cuts, junk):
+    fc = FakeFc()
+    stream = b"".join(fc.attitude(1000 + 20 * k) for k in range(12)) + junk + fc.heartbeat() + fc.attitude(2000)
+    ref = passive()
+    ref.receive_data(stream, 5.0)
+    expect = [e.data for e in ref.events() if isinstance(e, RawPacket)]
+    s = passive()
+    pos, k = 0, 0
+    while pos < len(stream):
+        n = cuts[k % len(cuts)]
+        s.receive_data(stream[pos:pos + n], 5.0)
+        pos += n
+        k += 1
+    got = [e.data for e in s.events() if isinstance(e, RawPacket)]
+    assert got == expect
+    # frames before the junk always; after it unless the junk opened a long frame still waiting for bytes
+    assert len(expect) >= 12
+    assert s.stats.corrupt_bytes == ref.stats.corrupt_bytes
