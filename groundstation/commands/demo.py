@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from groundstation.commands.run import add_common, config_from_args, print_report
+from groundstation.commands.run import add_common, config_from_args, print_report, sim_options
 from groundstation.config import load_config
 
 HELP = "two simulated flights end to end: record, stream, identify, diagnose, zenoh, Rerun (demo_out/)"
@@ -97,10 +97,11 @@ class DemoSubscriber:
         self.session.close()
 
 
-async def _main(cfg: Any, out_dir: Path) -> tuple[Any, dict[str, int], dict[str, Any]]:
+async def _main(cfg: Any, out_dir: Path, options: dict[str, Any] | None
+                ) -> tuple[Any, dict[str, int], dict[str, Any]]:
     from groundstation.service import Service
 
-    service = Service(cfg)
+    service = Service(cfg, sim_options=options)
     task = asyncio.create_task(service.run())
     ready = asyncio.create_task(service.ready.wait())
     await asyncio.wait({task, ready}, return_when=asyncio.FIRST_COMPLETED)
@@ -133,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
     base = base.replace("rerun", mode="save", target=str(out_dir / "demo.rrd"))
     cfg = config_from_args(args, base)
     print(f"demo: {cfg.sim.flights} simulated flight(s) at {cfg.sim.speed:g}x; output in {out_dir}/")
-    report, counts, _ = asyncio.run(_main(cfg, out_dir))
+    report, counts, _ = asyncio.run(_main(cfg, out_dir, sim_options(args)))
     print_report(report)
     if counts:
         print("zenoh demo subscriber received: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))

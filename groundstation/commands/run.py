@@ -28,6 +28,8 @@ def add_common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--speed", type=float, help="built-in simulator speed-up (default 1)")
     parser.add_argument("--flights", type=int, help="built-in simulator: number of flights")
     parser.add_argument("--seed", type=int, help="built-in simulator seed")
+    parser.add_argument("--flight-s", type=float, metavar="S",
+                        help="built-in simulator: armed time per flight (default: the test card's length)")
     parser.add_argument("--effect", action="append", default=None, metavar="NAME:K=V,...",
                         help="built-in simulator: unmodelled effect (repeatable)")
     parser.add_argument("--exit-after-flights", type=int, metavar="K",
@@ -117,11 +119,19 @@ def print_report(report: Any, out=print) -> None:
         out(f"warning: {w}")
 
 
+def sim_options(args: argparse.Namespace) -> dict[str, Any] | None:
+    if getattr(args, "flight_s", None) is None:
+        return None
+    if not args.flight_s > 0:
+        raise ValueError(f"--flight-s {args.flight_s}: must be > 0")
+    return {"flight_duration_s": args.flight_s}
+
+
 def run(args: argparse.Namespace) -> int:
     from groundstation.service import Service
 
     cfg = config_from_args(args)
-    service = Service(cfg)
+    service = Service(cfg, sim_options=sim_options(args))
     report = asyncio.run(service.run())
     print_report(report)
     sys.stdout.flush()

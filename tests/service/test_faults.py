@@ -167,3 +167,57 @@ def test_signal_mid_flight_closes_recordings_and_exits_0_within_2s(tmp_path, sig
     assert t[-1] - t[0] > 0.5
     assert log.stats.truncated_tail_bytes == 0
     assert not os.path.exists(str(tmp_path / "rec" / ".write-test"))
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(d.name))
+    return out
+
+
+def test_ctrl_c_during_identification_stops_the_worker_and_exits_0(tmp_path):
+    """The real CLI with the built-in simulator: SIGINT while the worker identifies flight 1."""
+    proc = subprocess.Popen([sys.executable, "-m", "groundstation.cli", "run", "--record-dir", str(tmp_path / "rec"),
+                             "--speed", "20", "--flights", "2", "--flight-s", "30", "--no-zenoh"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        t_end = time.monotonic() + 60
+        disarmed = False
+        while time.monotonic() < t_end and not disarmed:
+            line = proc.stdout.readline()
+            disarmed = "flight 1: disarmed" in line
+        assert disarmed
+        worker = []
+        while time.monotonic() < t_end and not worker:      # the spawned identification process
+            worker = [c for c in _children(proc.pid)
+                      if b"multiprocessing" in Path(f"/proc/{c}/cmdline").read_bytes()]
+            time.sleep(0.05)
+        assert worker
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=10)
+        elapsed = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert elapsed < 2.0
+    time.sleep(0.5)
+
+    def running(pid: int) -> bool:       # exited processes may linger as zombies until init reaps them
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        except OSError:
+            return False
+
+    assert not [w for w in worker if running(w)]                    # the worker is gone too
+    flights = sorted((tmp_path / "rec").glob("flight-*.tlog"))
+    assert flights and load_log(flights[0]).has("ATTITUDE")
+    assert "stopped: SIGINT" in out
