@@ -133,6 +133,17 @@ class Framer:
         """Bytes held waiting for the rest of a frame."""
         return len(self._buf)
 
+    def flush(self) -> list[bytes]:
+        """Give up waiting on the partial frame at the front (its declared length may be corrupt):
+        skip its magic byte and rescan, returning any whole frames that were held back behind it."""
+        out: list[bytes] = []
+        while self._buf:
+            del self._buf[:1]
+            self._pos0 += 1
+            self.corrupt_bytes += 1
+            out += self.feed(b"")
+        return out
+
     def reset(self) -> int:
         """Drop any partial frame (the link went down); returns how many bytes were dropped."""
         dropped = len(self._buf)

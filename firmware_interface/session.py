@@ -141,6 +141,8 @@ class SessionConfig:
     request_streams : False for passive listening (log reading, a link someone else configures)
     send_heartbeat : False to send nothing at all (with request_streams False)
     emit_raw_packets : False to skip RawPacket events (offline decoding that records nothing)
+    stale_frame_s : a partial frame waited on this long with no new bytes is given up (its length
+        byte may be corrupt) and the bytes behind it rescanned
     target_sysid : the FC's system id; None = the first autopilot heartbeat seen
     """
 
@@ -152,6 +154,7 @@ class SessionConfig:
     ack_timeout_s: float = 1.0
     ack_retries: int = 2
     link_timeout_s: float = 3.0
+    stale_frame_s: float = 0.25
     reboot_backstep_s: float = 1.0
     target_sysid: int | None = None
     src_sysid: int = 255
@@ -319,6 +322,7 @@ class MavlinkSession:
         self.target: tuple[int, int] | None = None
         self._next_hb = 0.0
         self._last_rx: float | None = None
+        self._last_data = 0.0
         self._lost = False
         self._setup: _Setup | None = None
         self.message_counts: dict[str, int] = {}
@@ -334,6 +338,14 @@ class MavlinkSession:
         """Feed bytes received at host time ``now``."""
         fr = self._framer
         for pkt in fr.feed(data):
+            self.receive_packet(pkt, now)
+        self.stats.corrupt_bytes = fr.corrupt_bytes
+        self.stats.bad_crc = fr.bad_crc
+        self._last_data = now
+
+    def _flush_framer(self, now: float) -> None:
+        fr = self._framer
+        for pkt in fr.flush():
             self.receive_packet(pkt, now)
         self.stats.corrupt_bytes = fr.corrupt_bytes
         self.stats.bad_crc = fr.bad_crc
@@ -398,8 +410,7 @@ class MavlinkSession:
 
     def link_down(self, now: float, reason: str) -> None:
         """The driver lost the transport (port vanished, socket closed)."""
-        self._framer.reset()
-        self.stats.corrupt_bytes = self._framer.corrupt_bytes
+        self._flush_framer(now)  # frames held behind a corrupt length byte are still whole
         if not self._lost:
             self._lost = True
             self._events.append(LinkLost(now, reason))
@@ -425,7 +436,9 @@ class MavlinkSession:
             float(MESSAGE_NAMES[name]), 0, 0, 0, 0, 0, 0))
 
     def handle_timer(self, now: float) -> None:
-        """Run timeouts due at ``now``: heartbeat, ack retries, link timeout."""
+        """Run timeouts due at ``now``: heartbeat, ack retries, link timeout, stale partial frame."""
+        if self._framer.buffered and now - self._last_data >= self.config.stale_frame_s:
+            self._flush_framer(now)
         if (self._last_rx is not None and not self._lost
                 and now - self._last_rx > self.config.link_timeout_s):
             self._lost = True

@@ -492,3 +492,23 @@ def test_chunking_does_not_change_what_is_decoded(cuts, junk):
     # frames before the junk always; after it unless the junk opened a long frame still waiting for bytes
     assert len(expect) >= 12
     assert s.stats.corrupt_bytes == ref.stats.corrupt_bytes
+
+
+def test_frames_held_behind_a_corrupt_length_byte_are_released_when_the_line_goes_quiet(fc):
+    s = passive()
+    bad = bytearray(fc.attitude(1000))
+    bad[1] = 250  # claims 262 bytes: the parser waits for them
+    tail = fc.attitude(1020) + fc.attitude(1040)
+    s.receive_data(bytes(bad) + tail, 10.0)
+    assert not [e for e in s.events() if isinstance(e, Attitude)]
+    s.handle_timer(10.1)  # not stale yet
+    assert not [e for e in s.events() if isinstance(e, Attitude)]
+    s.handle_timer(10.3)
+    assert [e.t_fc_s for e in s.events() if isinstance(e, Attitude)] == pytest.approx([1.02, 1.04])
+    assert s.stats.corrupt_bytes == len(bad)
+    # the same when the driver reports the link down
+    s2 = passive()
+    s2.receive_data(bytes(bad) + tail, 10.0)
+    s2.link_down(10.05, "port vanished")
+    ev = s2.events()
+    assert [type(e).__name__ for e in ev if not isinstance(e, RawPacket)] == ["Attitude", "Attitude", "LinkLost"]
