@@ -258,6 +258,16 @@ def run_phase(name: str, args: argparse.Namespace, work: Path, field: Path, rout
             return report
 
         report = asyncio.run(main())
+        # let the slow viewers drain their backlog (no more sleeping) so reliable samples still in
+        # flight are counted rather than cut off by closing the session
+        for v in viewers:
+            v.closing.set()
+        last, stable_since, t_end = None, time.monotonic(), time.monotonic() + 10.0
+        while time.monotonic() < t_end and time.monotonic() - stable_since < 1.0:
+            now_counts = [(v.models, len(v.windows)) for v in viewers]
+            if now_counts != last:
+                last, stable_since = now_counts, time.monotonic()
+            time.sleep(0.05)
         sink = service.zenoh
         t_steady = t_ready[0] + args.warmup_s
         lat_seq = [(seq, (tp - th) * 1e3) for seq, th, tp in list(sink.window_latency) if th >= t_steady]
@@ -337,7 +347,7 @@ def _print(r: dict[str, Any]) -> None:
         print(f"  end-to-end at prompt viewers: p50 {r['e2e_p50_ms']:.2f} ms, p99 {r['e2e_p99_ms']:.2f} ms; "
               f"windows per prompt viewer (median) {r['prompt_windows_median']}, per slow viewer "
               f"{r['slow_windows']}")
-        print(f"  models: sent {r['models_sent']}, received per prompt viewer "
+        print(f"  models (after the run, backlogs drained): sent {r['models_sent']}, received per prompt viewer "
               f"{r['models_received_min']}..{r['models_received_max']}, per slow viewer {r['slow_models']}")
     print(f"  recording: session decoded {r['session_packets']} packets, session .tlog holds "
           f"{r['recorded_packets']} (lost {r['session_packets'] - r['recorded_packets']}); "
