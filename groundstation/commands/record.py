@@ -60,7 +60,11 @@ async def record(args: argparse.Namespace) -> dict:
                            send_heartbeat=not args.passive)
     session = MavlinkSession(config)
     link = await open_link(args.link)
-    recorder = Recorder(args.out)
+    try:
+        recorder = Recorder(args.out)
+    except OSError:
+        await link.close()
+        raise
     lost = 0
     error: str | None = None
 

@@ -192,3 +192,14 @@ def test_record_bad_rate_option(tmp_path, rate, bare_pty):
                         f"serial://{bare_pty.path}", "--out", str(tmp_path / "o"), "--rate", rate],
                        capture_output=True, text=True, cwd=REPO, timeout=60)
     assert r.returncode == 2 and "--rate" in r.stderr
+
+
+def test_record_unwritable_output_is_one_line_exit_2(bare_pty, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    r = subprocess.run([sys.executable, "-m", "groundstation.cli", "record", "--link",
+                        f"serial://{bare_pty.path}", "--out", str(blocker / "sub")],
+                       capture_output=True, text=True, cwd=REPO, timeout=60)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(blocker / "sub") in lines[0]
