@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from firmware_interface.errors import LogError
@@ -220,3 +222,22 @@ def test_randomly_damaged_tlog_yields_an_ordered_subset_of_the_original_packets(
     assert len(got) >= len(intact) - 1 and len(intact) > 0.6 * len(original)
     log = load_tlog_bytes(bytes(data[:cut]), "damaged.tlog")
     assert np.all(np.diff(log.series["ATTITUDE"].t_fc_s) >= 0)
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.binary(max_size=600), st.lists(st.integers(0, 39), max_size=8), st.integers(0, 2000))
+def test_arbitrary_bytes_give_logdata_or_log_error_nothing_else(noise, picks, where):
+    recs = _records(40)
+    blob = bytearray(noise)
+    for k in picks:  # splice whole records into the noise
+        t, p = recs[k]
+        pos = where % (len(blob) + 1)
+        blob[pos:pos] = struct.pack(">Q", t) + p
+    try:
+        log = load_tlog_bytes(bytes(blob), "fuzz.tlog")
+    except LogError as exc:
+        assert "fuzz.tlog" in str(exc)
+        return
+    assert sum(log.message_counts.values()) >= 1
+    for s in log.series.values():
+        assert np.all(np.diff(s.t_fc_s) >= 0)

@@ -512,3 +512,19 @@ def test_frames_held_behind_a_corrupt_length_byte_are_released_when_the_line_goe
     s2.link_down(10.05, "port vanished")
     ev = s2.events()
     assert [type(e).__name__ for e in ev if not isinstance(e, RawPacket)] == ["Attitude", "Attitude", "LinkLost"]
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.binary(max_size=400), st.integers(1, 64))
+def test_arbitrary_bytes_never_raise_and_are_all_accounted(noise, chunk):
+    fc = FakeFc()
+    hb, att = fc.heartbeat(), fc.attitude(1000)
+    good = hb + att
+    data = noise + good + bytes(300)  # trailing zeros force any pending candidate to resolve
+    s = MavlinkSession()
+    for i in range(0, len(data), chunk):
+        s.receive_data(data[i:i + chunk], 1.0)
+        s.data_to_send(1.0)
+    raws = [e for e in s.events() if isinstance(e, RawPacket)]
+    assert sum(len(r.data) for r in raws) + s.stats.corrupt_bytes + s._framer.buffered == len(data)
+    assert [r.data for r in raws[-2:]] == [hb, att]  # noise never swallows the good frames after it
