@@ -100,70 +100,61 @@ def load_tlog_bytes(data: bytes, source: str = "<bytes>") -> LogData:
 # ---------------------------------------------------------------------- events -> columns
 
 
-def _rows(ev: Any) -> tuple[str, tuple[float, ...]] | None:
-    t = type(ev)
-    if t is Attitude:
-        return "ATTITUDE", (ev.roll_rad, ev.pitch_rad, ev.yaw_rad, ev.p_rad_s, ev.q_rad_s, ev.r_rad_s)
-    if t is ServoOutputRaw:
-        if ev.port != 0:
-            return None
-        return "SERVO_OUTPUT_RAW", ev.pwm_us
-    if t is LocalPositionNed:
-        return "LOCAL_POSITION_NED", (ev.x_m, ev.y_m, ev.z_m, ev.vx_m_s, ev.vy_m_s, ev.vz_m_s)
-    if t is Heartbeat:
-        if ev.autopilot == _MAV_AUTOPILOT_INVALID or ev.mav_type == _MAV_TYPE_GCS:
-            return None
-        return "HEARTBEAT", (float(ev.armed), ev.base_mode, ev.custom_mode, ev.mav_type)
-    if t is GlobalPositionInt:
-        return "GLOBAL_POSITION_INT", (ev.lat_deg, ev.lon_deg, ev.alt_m, ev.relative_alt_m, ev.vx_m_s,
-                                       ev.vy_m_s, ev.vz_m_s)
-    if t is Imu:
-        return "IMU:" + ev.source, ev.acc_m_s2 + ev.gyro_rad_s
-    if t is GpsRawInt:
-        return "GPS_RAW_INT", (ev.fix_type, ev.lat_deg, ev.lon_deg, ev.alt_m, ev.ground_speed_m_s,
-                               ev.satellites)
-    if t is ExtendedSysState:
-        return "EXTENDED_SYS_STATE", (ev.landed_state,)
-    if t is SysStatus:
-        return "SYS_STATUS", (ev.voltage_v, ev.current_a, ev.drop_rate_comm_pct)
-    if t is RcChannels:
-        return "RC_CHANNELS", ev.pwm_us
-    return None
+_EXTRACT: dict[type, tuple[str, Any]] = {
+    Attitude: ("ATTITUDE", lambda e: (e.t_fc_s, e.t_host_s, e.roll_rad, e.pitch_rad, e.yaw_rad, e.p_rad_s,
+                                      e.q_rad_s, e.r_rad_s)),
+    ServoOutputRaw: ("SERVO_OUTPUT_RAW", lambda e: (e.t_fc_s, e.t_host_s, *e.pwm_us)),
+    LocalPositionNed: ("LOCAL_POSITION_NED", lambda e: (e.t_fc_s, e.t_host_s, e.x_m, e.y_m, e.z_m, e.vx_m_s,
+                                                        e.vy_m_s, e.vz_m_s)),
+    Heartbeat: ("HEARTBEAT", lambda e: (e.t_fc_s, e.t_host_s, float(e.armed), e.base_mode, e.custom_mode,
+                                        e.mav_type)),
+    GlobalPositionInt: ("GLOBAL_POSITION_INT", lambda e: (e.t_fc_s, e.t_host_s, e.lat_deg, e.lon_deg, e.alt_m,
+                                                          e.relative_alt_m, e.vx_m_s, e.vy_m_s, e.vz_m_s)),
+    Imu: ("IMU", lambda e: (e.t_fc_s, e.t_host_s, *e.acc_m_s2, *e.gyro_rad_s)),
+    GpsRawInt: ("GPS_RAW_INT", lambda e: (e.t_fc_s, e.t_host_s, e.fix_type, e.lat_deg, e.lon_deg, e.alt_m,
+                                          e.ground_speed_m_s, e.satellites)),
+    ExtendedSysState: ("EXTENDED_SYS_STATE", lambda e: (e.t_fc_s, e.t_host_s, e.landed_state)),
+    SysStatus: ("SYS_STATUS", lambda e: (e.t_fc_s, e.t_host_s, e.voltage_v, e.current_a, e.drop_rate_comm_pct)),
+    RcChannels: ("RC_CHANNELS", lambda e: (e.t_fc_s, e.t_host_s, *e.pwm_us)),
+}
+_IMU_PRIORITY = ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")
 
 
 def build_logdata(events: Iterable[Any], source: str, stats: LinkStats | None = None,
                   message_counts: dict[str, int] | None = None) -> LogData:
-    """Stack typed sample events (from a session) into a :class:`LogData`."""
-    rows: dict[str, list[tuple[float, ...]]] = {}
-    times: dict[str, list[tuple[float, float]]] = {}
-    fc_sysid: int | None = None
+    """Stack typed sample events (from a session) into a :class:`LogData`.
+
+    Only the flight controller's samples are kept: the sysid of the first autopilot HEARTBEAT (all
+    sysids when there is none). SERVO_OUTPUT_RAW port 0 only; IMU from the first present of
+    RAW_IMU, SCALED_IMU, SCALED_IMU2, SCALED_IMU3.
+    """
+    by_type: dict[type, list[Any]] = {t: [] for t in _EXTRACT}
     for ev in events:
-        r = _rows(ev)
-        if r is None:
-            continue
-        if type(ev) is Heartbeat and fc_sysid is None:
-            fc_sysid = ev.sysid
-        if fc_sysid is not None and ev.sysid != fc_sysid:
-            continue
-        name, vals = r
-        lst = rows.get(name)
-        if lst is None:
-            lst = rows[name] = []
-            times[name] = []
-        lst.append(vals)
-        times[name].append((ev.t_fc_s, ev.t_host_s))
-    # IMU: the first source in priority order
-    for src in ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3"):
-        if "IMU:" + src in rows:
-            rows["IMU"], times["IMU"] = rows["IMU:" + src], times["IMU:" + src]
-            break
+        lst = by_type.get(type(ev))
+        if lst is not None:
+            lst.append(ev)
+    hbs = [e for e in by_type[Heartbeat] if e.autopilot != _MAV_AUTOPILOT_INVALID and e.mav_type != _MAV_TYPE_GCS]
+    by_type[Heartbeat] = hbs
+    fc_sysid = hbs[0].sysid if hbs else None
+    if fc_sysid is not None:
+        for t, lst in by_type.items():
+            if any(e.sysid != fc_sysid for e in lst):
+                by_type[t] = [e for e in lst if e.sysid == fc_sysid]
+    by_type[ServoOutputRaw] = [e for e in by_type[ServoOutputRaw] if e.port == 0]
+    imu = by_type[Imu]
+    if imu:
+        present = {e.source for e in imu}
+        first = next((s for s in _IMU_PRIORITY if s in present), sorted(present)[0])
+        by_type[Imu] = [e for e in imu if e.source == first]
     series: dict[str, Series] = {}
-    for name, fields in SERIES_FIELDS.items():
-        if name not in rows:
+    for t, (name, fn) in _EXTRACT.items():
+        lst = by_type[t]
+        if not lst:
             continue
-        vals = np.asarray(rows[name], dtype=float).reshape(-1, len(fields))
-        tt = np.asarray(times[name], dtype=float).reshape(-1, 2)
-        series[name] = Series(tt[:, 0], tt[:, 1], {f: vals[:, k] for k, f in enumerate(fields)})
+        fields = SERIES_FIELDS[name]
+        arr = np.asarray([fn(e) for e in lst], dtype=float).reshape(-1, 2 + len(fields))
+        series[name] = Series(arr[:, 0].copy(), arr[:, 1].copy(),
+                              {f: arr[:, 2 + k].copy() for k, f in enumerate(fields)})
     series = _fix_untimed(series)
     return _finish(source, series, dict(message_counts or {}), stats or LinkStats())
 
