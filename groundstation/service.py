@@ -220,37 +220,38 @@ class Service:
     async def run(self) -> RunReport:
         """Run until stopped; returns the report. Raises OSError/ValueError for bad input (one line)."""
         loop = asyncio.get_running_loop()
-        self._open_recorder()
+        installed = self._install_signals(loop)      # first: Ctrl-C during start-up is a clean stop too
         try:
-            from firmware_interface.session import MavlinkSession
-
-            self.session = MavlinkSession()
-            self._open_sinks(loop)
-            if self.config.identification.enabled:
-                self._executor = concurrent.futures.ProcessPoolExecutor(
-                    max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init)
-            if not self.link_url:
-                self.link_url = self._start_builtin_sim()
-                self.log(f"built-in simulated flight controller on {self.sim.port_path} "
-                         f"(speed {self.config.sim.speed:g}x, {self.config.sim.flights} flight(s))")
-            self.link = await self._open_link()
-            self.link_up = True
-            self.log(f"link {self.link_url} open; recording to {self.record_dir}")
-            installed = self._install_signals(loop)
-            self.ready.set()
+            self._open_recorder()
             try:
-                async with asyncio.TaskGroup() as tg:
-                    tg.create_task(self._reader(), name="reader")
-                    tg.create_task(self._processor(), name="processor")
-                    tg.create_task(self._timer(), name="timer")
-                    tg.create_task(self._stopper(), name="stopper")
-            except* _Stop:
-                pass
+                from firmware_interface.session import MavlinkSession
+
+                self.session = MavlinkSession()
+                self._open_sinks(loop)
+                if self.config.identification.enabled:
+                    self._executor = concurrent.futures.ProcessPoolExecutor(
+                        max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init)
+                if not self.link_url:
+                    self.link_url = self._start_builtin_sim()
+                    self.log(f"built-in simulated flight controller on {self.sim.port_path} "
+                             f"(speed {self.config.sim.speed:g}x, {self.config.sim.flights} flight(s))")
+                self.link = await self._open_link()
+                self.link_up = True
+                self.log(f"link {self.link_url} open; recording to {self.record_dir}")
+                self.ready.set()
+                try:
+                    async with asyncio.TaskGroup() as tg:
+                        tg.create_task(self._reader(), name="reader")
+                        tg.create_task(self._processor(), name="processor")
+                        tg.create_task(self._timer(), name="timer")
+                        tg.create_task(self._stopper(), name="stopper")
+                except* _Stop:
+                    pass
             finally:
-                for sig in installed:
-                    loop.remove_signal_handler(sig)
+                await self._shutdown()
         finally:
-            await self._shutdown()
+            for sig in installed:
+                loop.remove_signal_handler(sig)
         self.report.stopped_by = self._stop_reason
         return self.report
 
