@@ -75,6 +75,10 @@ class Evaluator:
         self.dt_s = float(dt_s)
         self.theta0 = np.asarray(theta0, float).copy()
         self.ridge = float(ridge)
+        # optional per-window nuisance columns (W, L, 8, K) fitted with the initial states, with a
+        # prior precision (K,): used to re-identify the base model under a disturbance hypothesis
+        self.nuisance: np.ndarray | None = None
+        self.nuisance_prec: np.ndarray | None = None
         self.available = np.asarray(available, bool)
         self.L = max(int(round(window_s / dt_s)), 20)
         self.starts = window_starts(segments, self.L)
@@ -117,9 +121,11 @@ class Evaluator:
 
         ``stop``: initial states (and nuisance) are fitted on samples ``start:stop`` only.
         """
+        if nuisance is None and self.nuisance is not None:
+            nuisance = self.nuisance
         out = simulate(theta, self.U if U is None else U, self.Y if Y is None else Y, self.dt_s,
                        forcing=F, weights=self.w8, available=self.available, nuisance=nuisance,
-                       start=self.start, stop=stop)
+                       start=self.start, stop=stop, nuisance_prec=self.nuisance_prec)
         assert isinstance(out, np.ndarray)
         return out
 

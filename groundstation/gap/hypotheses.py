@@ -361,22 +361,9 @@ def scan_ground_effect(ctx: Context) -> Hypothesis:
                       sse=sse, channels=(2,), extra={"height_span_m": span, "min_height_m": hmin})
 
 
-def scan_wind_gust(ctx: Context, chunk_s: float = 0.5) -> Hypothesis:
-    """Air-mass motion: a smooth air velocity (u, v, w) entering wherever the body velocity does.
-
-    In each window the air velocity is piecewise linear in time (three knots per component) and
-    enters the model through the columns of A for u, v, w (drag and the speed-stability moments act
-    on airspeed; GPS measures ground speed). It is a per-window nuisance, so it is scored by
-    *within-window* cross-validation: initial states (and, for the hypothesis, the air velocity)
-    are fitted on alternate chunks of ``chunk_s`` and the residual is scored on the other chunks,
-    both ways round; the base model goes through the same protocol. A smooth air-mass motion
-    fitted on some chunks predicts the chunks between them; nine parameters fitted to noise
-    (correlated over a few samples only) do not.
-    """
-    ev = ctx.ev
-    if not ev.available[list(VEL)].any():
-        return Hypothesis("wind_gust", testable=False, reason="no velocity measurements")
-    A, _ = full_matrices(ev.theta0)
+def _air_columns(ev: Evaluator, theta: np.ndarray) -> np.ndarray:
+    """Per-window responses (W, L, 8, 6) to a piecewise-linear horizontal air velocity (3 knots)."""
+    A, _ = full_matrices(theta)
     # horizontal air velocity only: a vertical one would also soak up any heave-model error
     Fdir = np.stack([-A[0, :, s_idx] for s_idx in (0, 1)])  # (2, 11) per unit air velocity
     L = ev.L
@@ -388,20 +375,54 @@ def scan_wind_gust(ctx: Context, chunk_s: float = 0.5) -> Hypothesis:
     for comp in range(Fdir.shape[0]):
         for hat in hats:
             F = np.broadcast_to(hat[:, None] * Fdir[comp][None, :], (ev.W, L, 11)).copy()
-            cols.append(np.asarray(lsim(ev.theta0, Z, Y0, ev.dt_s, forcing=F, fit_initial=False))[0])
-    nuis = np.stack(cols, axis=-1) * ev.available[None, None, :, None]  # (W, L, 8, 6)
+            cols.append(np.asarray(lsim(theta, Z, Y0, ev.dt_s, forcing=F, fit_initial=False))[0])
+    return np.stack(cols, axis=-1) * ev.available[None, None, :, None]
+
+
+def scan_wind_gust(ctx: Context, chunk_s: float = 0.5, refine_iterations: int = 6) -> Hypothesis:
+    """Air-mass motion: a smooth horizontal air velocity entering wherever the body velocity does.
+
+    In each window the air velocity is piecewise linear in time (three knots per component) and
+    enters the model through the columns of A for u and v (drag and the speed-stability moments
+    act on airspeed; GPS measures ground speed), with a zero-mean prior whose spread is the measured
+    horizontal speed. Because an unmodelled air mass distorts the identified parameters, the base
+    parameters are first re-identified with that per-window air velocity (Levenberg-Marquardt).
+    Scoring is *within-window* cross-validation: initial states (and the air velocity) are fitted on
+    alternate chunks of ``chunk_s`` and the residual is scored on the other chunks, both ways
+    round; the base model goes through the same protocol. A smooth air-mass motion fitted on some
+    chunks predicts the chunks between them; parameters fitted to noise (correlated over a few
+    samples only) do not.
+    """
+    ev = ctx.ev
+    if not ev.available[[0, 1]].all():
+        return Hypothesis("wind_gust", testable=False, reason="no horizontal velocity measurements")
+    L = ev.L
+    # prior: air velocity of the order of the measured horizontal speed (weighted-residual units)
+    s_air = float(np.sqrt((ev.Y[:, :, :2] ** 2).mean())) + 1e-6
+    sig2 = float((ev.r0 ** 2).sum() / max(ev.mask.sum() * ev.W * ev.available.sum(), 1))
+    prec = np.full(6, sig2 / s_air ** 2)
+    evg = Evaluator(ctx.segments, ev.dt_s, ev.theta0, ev.available, window_s=L * ev.dt_s,
+                    folds=ev.folds, ridge=ev.ridge)
+    evg.nuisance = _air_columns(evg, ev.theta0)
+    evg.nuisance_prec = prec
+    evg.set_theta(ev.theta0)
+    evg.refine(refine_iterations)
+    th_g = evg.theta0
+    nuis = _air_columns(ev, th_g)
     chunk = max(int(round(chunk_s / ev.dt_s)), 2)
     even = ((np.arange(L) // chunk) % 2 == 0) & ev.mask
     odd = ((np.arange(L) // chunk) % 2 == 1) & ev.mask
     sse_b = np.zeros((ev.W, 8))
     sse_g = np.zeros((ev.W, 8))
+    coef = None
     for fit_m, score_m in ((even, odd), (odd, even)):
         yb = lsim(ev.theta0, ev.U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available, fit_mask=fit_m)[0]
-        yg, coef = lsim(ev.theta0, ev.U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available,
-                        nuisance=nuis, fit_mask=fit_m, return_coef=True)
+        yg, coef = lsim(th_g, ev.U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available,
+                        nuisance=nuis, fit_mask=fit_m, return_coef=True, nuisance_prec=prec)
         sse_b += (((ev.Y - yb) * ev.w8)[:, score_m] ** 2).sum(axis=1)
         sse_g += (((ev.Y - yg[0]) * ev.w8)[:, score_m] ** 2).sum(axis=1)
-    air = coef[0, :, -nuis.shape[-1]:].reshape(ev.W, Fdir.shape[0], 3)
+    assert coef is not None
+    air = coef[0, :, -6:].reshape(ev.W, 2, 3)
     rms = float(np.sqrt((air ** 2).sum(axis=1).mean()))
     return Hypothesis("wind_gust", estimate={"air_velocity_rms_m_s": rms}, sse=sse_g,
                       channels=(0, 1, 3, 4, 6, 7), extra={"base_sse": sse_b})

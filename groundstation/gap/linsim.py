@@ -63,6 +63,7 @@ def simulate(
     all_initial: bool = True,
     return_coef: bool = False,
     fit_mask: np.ndarray | None = None,
+    nuisance_prec: np.ndarray | None = None,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Simulate windows for a batch of parameter vectors.
 
@@ -132,7 +133,12 @@ def simulate(
     G = np.einsum("cwil,cwjl->cwij", Sw, Sw)
     h = np.einsum("cwil,cwl->cwi", Sw, rw)
     ridge = 1e-9 * np.trace(G, axis1=2, axis2=3)[..., None, None] / G.shape[-1] + 1e-12
-    a = np.linalg.solve(G + ridge * np.eye(G.shape[-1]), h[..., None])[..., 0]
+    Gr = G + ridge * np.eye(G.shape[-1])
+    if nuisance is not None and nuisance_prec is not None:
+        K = nuisance.shape[-1]
+        idx = np.arange(G.shape[-1] - K, G.shape[-1])
+        Gr[..., idx, idx] += np.asarray(nuisance_prec, float)
+    a = np.linalg.solve(Gr, h[..., None])[..., 0]
     yhat = yhat + np.einsum("cwi,cwilk->cwlk", a, S)
     if return_coef:
         return yhat, a
