@@ -4,16 +4,14 @@ A hypothesis is scored by its held-out cost against the base model's on the same
 (``Hypothesis.sse`` vs the base ``sse``, both (W, 8)):
 
 * ``score`` = held-out cost reduction in percent of the base cost (all channels, eq.-11 weights);
-* significance by a paired bootstrap over windows (resampling whole windows keeps their internal
-  correlation): the one-sided p-value of "no improvement", Bonferroni-corrected over the tested
-  hypotheses;
+* significance by a paired bootstrap: over ~0.5 s blocks of the held-out residual (an effect at
+  the sharpest inputs or near the ground lives in a handful of windows but many blocks),
+  accompanied by a coarse whole-window bootstrap; Bonferroni over the tested hypotheses
+  (see ``diagnose.py``);
 * gap before/after = normalised RMS residual (held-out) over the channels the effect acts on;
   shrink = relative reduction, with a bootstrap percentile interval over windows.
 
-Verdict: the significant candidate with the largest score; ``none`` if no candidate is significant
-and the gap is not significantly above its noise floor or is explained by nothing localised;
-``unexplained`` if no candidate is significant while the residual is far above the noise floor
-in a localised way (flagged windows) — see :func:`verdict`.
+The verdict rules (physical sign constraints, ``none``/``unexplained``) live in ``diagnose.py``.
 Pure numpy.
 """
 
