@@ -10,7 +10,14 @@ Steps (all on the prepared in-air segments, cut into windows rotating through k 
    (nested selection, paired bootstrap, Bonferroni), plus the model-free fingerprints of
    :mod:`groundstation.gap.fingerprints` (spectral lines for rotor vibration, Euler kinematics
    for gyro bias);
-4. report: the DESIGN.md ``heli-gap-report/1`` dict (:mod:`groundstation.gap.report`).
+4. verdict: the significant candidate (block-level paired bootstrap, Bonferroni over the tested
+   hypotheses, plus a coarse whole-window check) with the largest held-out cost reduction, after
+   physical plausibility checks that need no tuning (drag opposes motion, ground effect adds lift,
+   a deadband is wider than a few steps of the recorded input's resolution, gyro bias on p/q
+   must also show in the Euler kinematics, an air-mass motion must also improve the attitude
+   channels); ``unexplained`` when none is significant while the held-out residual is well above
+   its noise floor and most of the excess sits in flagged windows; else ``none``;
+5. report: the DESIGN.md ``heli-gap-report/1`` dict (:mod:`groundstation.gap.report`).
 
 What it leaves to others: reading logs and preparing data (``dsp.prepare``), identification
 (``sysid.identify``), files, plots and printing (the ``diagnose`` command). Pure: no IO.
