@@ -116,6 +116,7 @@ ALLOWED_COMMANDS: frozenset[int] = frozenset(
 
 _MS_WRAP_S = 4294967.296  # uint32 milliseconds
 _US32_WRAP_S = 4294.967296  # uint32 microseconds
+_WRAP_WINDOW_S = 60.0  # a wrap is recognised when the counter was within this of the top
 _G = 9.80665
 
 
@@ -560,7 +561,15 @@ class MavlinkSession:
         ref = c.last_s
         if ref is not None:
             if wrap_s:
-                t_s += round((ref - t_s) / wrap_s) * wrap_s
+                # put the raw counter into the wrap period of the reference; step into the next
+                # period only when the reference sits just before the wrap and the counter just after
+                ref_mod = ref % wrap_s
+                t_s += ref - ref_mod
+                if t_s < ref - self.config.reboot_backstep_s:
+                    if ref_mod > wrap_s - _WRAP_WINDOW_S and t_s - (ref - ref_mod) < _WRAP_WINDOW_S:
+                        t_s += wrap_s
+                elif t_s > ref + 0.5 * wrap_s:
+                    t_s -= wrap_s  # a late sample from just before a wrap
             if t_s < ref - self.config.reboot_backstep_s:
                 prev = ref + c.epoch_s
                 c.epoch_s = prev + max(0.0, now - c.last_host_s) - t_s

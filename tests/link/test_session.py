@@ -528,3 +528,30 @@ def test_arbitrary_bytes_never_raise_and_are_all_accounted(noise, chunk):
     raws = [e for e in s.events() if isinstance(e, RawPacket)]
     assert sum(len(r.data) for r in raws) + s.stats.corrupt_bytes + s._framer.buffered == len(data)
     assert [r.data for r in raws[-2:]] == [hb, att]  # noise never swallows the good frames after it
+
+
+def test_reboot_seen_in_servo_time_usec_after_long_uptime_is_not_taken_for_a_wrap():
+    fc = FakeFc()
+    s = passive()
+    up_us = 3_000_000_000  # 3000 s of uptime: past half of the uint32 µs period
+    s.receive_data(fc.attitude(up_us // 1000), 500.0)
+    s.receive_data(fc.pack(fc.mav.servo_output_raw_encode(up_us + 10_000, 0, 1500, 1500, 1500, 1500,
+                                                          0, 0, 0, 0)), 500.01)
+    s.receive_data(fc.pack(fc.mav.servo_output_raw_encode(2_000_000, 0, 1500, 1500, 1500, 1500,
+                                                          0, 0, 0, 0)), 505.0)  # rebooted 2 s ago
+    ev = s.events()
+    servo = [e.t_fc_s for e in ev if isinstance(e, ServoOutputRaw)]
+    assert servo[0] == pytest.approx(3000.01)
+    assert [type(e).__name__ for e in ev].count("FcRebooted") == 1
+    assert servo[1] == pytest.approx(3005.01, abs=0.02)  # continues by the host-measured gap
+
+
+def test_late_sample_from_before_a_wrap_keeps_its_time():
+    fc = FakeFc()
+    s = passive()
+    top = 2**32
+    frames = b"".join(fc.pack(fc.mav.servo_output_raw_encode(us % top, 0, 1500, 1500, 1500, 1500, 0, 0, 0, 0))
+                      for us in (top - 5000, top + 5000, top - 2000, top + 8000))
+    ts = [e.t_fc_s for e in feed_bytewise(s, frames) if isinstance(e, ServoOutputRaw)]
+    assert ts == pytest.approx([(top + d) * 1e-6 for d in (-5000, 5000, -2000, 8000)])
+    assert s.stats.fc_reboots == 0
