@@ -58,7 +58,9 @@ class InputsSection:
     lon_servo: int = 2
     col_servo: int = 3
     ped_servo: int = 4
-    trim_pwm: tuple[float, float, float, float] = (1500.0, 1500.0, 1500.0, 1500.0)
+    # empty = automatic: 1500 until a model is identified, then the latest model's input_trim_pwm
+    # (the median in-air PWM); four values (lat lon col ped) fix it
+    trim_pwm: tuple[float, ...] = ()
     pwm_per_unit: float = 500.0
 
 
@@ -151,8 +153,8 @@ def validate(cfg: ServiceConfig, where: str = "config") -> None:
     servos = (cfg.inputs.lat_servo, cfg.inputs.lon_servo, cfg.inputs.col_servo, cfg.inputs.ped_servo)
     if any(not 1 <= s <= 16 for s in servos):
         raise bad("inputs.*_servo", servos, "servo numbers must be 1..16")
-    if len(cfg.inputs.trim_pwm) != 4:
-        raise bad("inputs.trim_pwm", cfg.inputs.trim_pwm, "needs 4 values (lat lon col ped)")
+    if len(cfg.inputs.trim_pwm) not in (0, 4):
+        raise bad("inputs.trim_pwm", cfg.inputs.trim_pwm, "needs 4 values (lat lon col ped) or [] for automatic")
     if not cfg.inputs.pwm_per_unit > 0:
         raise bad("inputs.pwm_per_unit", cfg.inputs.pwm_per_unit, "must be > 0")
     if not 0 <= cfg.zenoh.listen_port <= 65535:
@@ -185,7 +187,7 @@ def _coerce(where: str, key: str, value: Any, default: Any) -> Any:
     if isinstance(default, tuple):
         if not isinstance(value, list):
             raise ConfigError(f"{where}: {key} = {value!r}: expected an array")
-        if default and isinstance(default[0], float):
+        if key.endswith("trim_pwm") or (default and isinstance(default[0], float)):
             if any(isinstance(v, bool) or not isinstance(v, int | float) for v in value):
                 raise ConfigError(f"{where}: {key} = {value!r}: expected numbers")
             return tuple(float(v) for v in value)

@@ -92,7 +92,8 @@ def live_config(cfg: ServiceConfig) -> LiveConfig:
         grid_rate_hz=lv.grid_rate_hz, smoothing_passes=lv.smoothing_passes, window_s=lv.window_s,
         hop_s=lv.hop_s, stale_s=lv.stale_s, in_air_alt_m=lv.in_air_alt_m,
         servo_numbers=(inp.lat_servo, inp.lon_servo, inp.col_servo, inp.ped_servo),
-        trim_pwm=inp.trim_pwm, pwm_per_unit=inp.pwm_per_unit)
+        trim_pwm=tuple(inp.trim_pwm) if inp.trim_pwm else (1500.0, 1500.0, 1500.0, 1500.0),  # type: ignore[arg-type]
+        pwm_per_unit=inp.pwm_per_unit)
 
 
 async def _maybe_await(x: Any) -> Any:
@@ -470,6 +471,9 @@ class Service:
             match = res.get("match_degree", {})
             table = " ".join(f"{k}={v:.1f}" for k, v in match.items() if isinstance(v, int | float))
             self.log(f"flight {flight}: model {res.get('model_path')} ({res.get('seconds', 0):.1f} s); match % {table}")
+            trim = res["model"].get("input_trim_pwm") or {}
+            if not self.config.inputs.trim_pwm and all(k in trim for k in ("lat", "lon", "col", "ped")):
+                self.live.set_trim((float(trim["lat"]), float(trim["lon"]), float(trim["col"]), float(trim["ped"])))
             if self.zenoh is not None:
                 self.zenoh.publish_model(flight, res["model"])
                 if res.get("gap") is not None:
@@ -509,6 +513,7 @@ class Service:
                      "corrupt_bytes": int(getattr(stats, "corrupt_bytes", 0) or 0)},
             "rates_hz": self.rates.rates(now),
             "armed": ft.armed, "in_air": ft.in_air, "flight": ft.flight if ft.armed else None,
+            "input_trim_pwm": dict(zip(("lat", "lon", "col", "ped"), self.live.trim_pwm, strict=True)),
             "flights_completed": self.flights_completed,
             "height_m": ft.height_m if math.isfinite(ft.height_m) else None,
             "recording": {"dir": str(self.record_dir), "session": self.report.session_tlog,

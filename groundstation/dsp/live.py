@@ -514,6 +514,14 @@ class LivePipeline:
         self._last_host_s = math.nan
         self.rows = 0
 
+    def set_trim(self, trim_pwm: tuple[float, float, float, float]) -> None:
+        """Change the input trim (PWM, lat lon col ped) used for rows from now on."""
+        self._trim = np.asarray(trim_pwm, dtype=float).reshape(4)
+
+    @property
+    def trim_pwm(self) -> tuple[float, ...]:
+        return tuple(float(x) for x in self._trim)
+
     def _flush_smoother(self, out: LiveOutput) -> None:
         rows = self.smoother.flush()
         self._emit_smoothed(rows, out)

@@ -9,6 +9,7 @@ import asyncio
 import json
 import time
 
+import pytest
 import zenoh
 from rerun.chunk import RrdReader
 
@@ -61,6 +62,13 @@ def test_two_simulated_flights_identified_published_and_logged(tmp_path, subscri
 
     # zenoh: status, windows, a model (and gap report) per flight
     assert sub.of("/status") and len(sub.of("/telemetry/window")) > 20
+    # live input trim follows the latest model (automatic trim)
+    last_model = max(report.results, key=lambda r: r["flight"])["model"]
+    deadline = time.monotonic() + 3.0          # the final status is published during shutdown
+    while (time.monotonic() < deadline
+           and sub.of("/status")[-1]["input_trim_pwm"] != pytest.approx(last_model["input_trim_pwm"])):
+        time.sleep(0.05)
+    assert sub.of("/status")[-1]["input_trim_pwm"] == pytest.approx(last_model["input_trim_pwm"])
     models = {k: d for k, d, _ in sub.samples if k.endswith("/model")}
     assert set(models) == {f"heli/{service.vehicle}/flight/1/model", f"heli/{service.vehicle}/flight/2/model"}
     gaps = {k for k, _, _ in sub.samples if k.endswith("/gap")}
