@@ -298,7 +298,7 @@ def probe_endpoint(path: str | os.PathLike[str], endpoint: str | None = None, *,
             sock.close()
             return None
         ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-        ctx.check_hostname = bool(tls.get("verify_name_on_connect", True))
+        ctx.check_hostname = tls.get("verify_name_on_connect") is not False   # zenoh default: verify
         try:
             if tls.get("root_ca_certificate"):
                 ctx.load_verify_locations(cafile=str(tls["root_ca_certificate"]))
