@@ -337,11 +337,11 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
         trim_pwm = np.nanmedian(pwm_all, axis=0)
     out_all = np.concatenate([r.outputs for r in raws], axis=0)
     out_trim = np.zeros(8)
-    with np.errstate(all="ignore"):
-        med = np.nanmedian(np.where(np.isfinite(out_all), out_all, np.nan), axis=0) if np.isfinite(out_all).any() else np.zeros(8)
     for j in (0, 1, 2, 6, 7):
-        if np.isfinite(med[j]):
-            out_trim[j] = med[j]
+        col = out_all[:, j]
+        col = col[np.isfinite(col)]
+        if col.size:
+            out_trim[j] = float(np.median(col))
     for k, name in enumerate(INPUTS):
         if np.nanstd(pwm_all[:, k]) < 1e-6 * max(abs(cfg.pwm_per_unit), 1.0):
             notes.append(f"input {name} never moves (held at {trim_pwm[k]:g} us): its parameters are not identifiable")
