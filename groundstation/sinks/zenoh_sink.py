@@ -84,6 +84,26 @@ def dumps_numeric(doc: Any) -> str:
             .replace("-Infinity", "null").replace("Infinity", "null").replace("NaN", "null"))
 
 
+def _security_check(path: str) -> tuple[str | None, bool]:
+    """(one-line problem or None, whether it is a client config) from :mod:`zenoh_security`."""
+    from groundstation.sinks.zenoh_security import ZenohSecurityError, check_zenoh_config
+
+    try:
+        return None, check_zenoh_config(path).mode == "client"
+    except ZenohSecurityError as exc:
+        return str(exc), False
+
+
+def _explain_failure(path: str) -> str | None:
+    """Why a client could not open its session (unreachable, certificate, password), one line."""
+    from groundstation.sinks.zenoh_security import ZenohSecurityError, explain_open_failure
+
+    try:
+        return f"{path}: zenoh not connected yet: {explain_open_failure(path)}"
+    except (ZenohSecurityError, OSError):
+        return None
+
+
 def dumps(doc: Any) -> str:
     """JSON with NaN/inf as null (strict JSON for non-Python subscribers)."""
     def clean(x: Any) -> Any:
@@ -149,6 +169,11 @@ class ZenohSink:
         #: (seq, t_host_last_s, t_published_s) of recent windows, for latency measurement
         self.window_latency: deque[tuple[int, float, float]] = deque(maxlen=100000)
         self.error: str | None = None
+        # secured configs (groundstation.sinks.zenoh_security): expired/missing certificates, keys
+        # readable by others, ... become the one-line error now; a failed open is explained later
+        self._client_file = False
+        if config_path:
+            self.error, self._client_file = _security_check(where)
         self.connected = threading.Event()
         self._session: Any = None
         self._entities: list[Any] = []
@@ -164,7 +189,8 @@ class ZenohSink:
             session = zenoh.open(zenoh.Config.from_json5(self._config_text))
         except zenoh.ZError as exc:
             if self.error is None:
-                self.error = f"{self._where}: zenoh not connected yet ({' '.join(str(exc).split())[:120]})"
+                self.error = (_explain_failure(self._where) if self._client_file else None) or \
+                    f"{self._where}: zenoh not connected yet ({' '.join(str(exc).split())[:120]})"
             return False
         p = self.prefix
         json_enc = zenoh.Encoding.APPLICATION_JSON

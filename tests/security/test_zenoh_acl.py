@@ -231,3 +231,30 @@ def test_live_service_records_without_router_then_publishes_through_it(field, cl
     assert report.flights == 1 and report.packets > 100 and report.session_tlog
     keys = {k for k, _ in got}
     assert "heli/v6/telemetry/window" in keys and "heli/v6/status" in keys
+
+
+@pytest.mark.parametrize("case", ["expired", "wrong_password", "unreachable", "key_mode"])
+def test_service_sink_start_up_line_names_the_cause(case, field, router, tmp_path):
+    """What the operator sees (the service prints ``sink.error`` as its one warning line)."""
+    import os
+
+    from .conftest import make_field
+
+    port = free_tcp_port() if case == "unreachable" else router
+    base = make_field(tmp_path / "old", "--valid-days", "1", "--backdate-days", "3") if case == "expired" else field
+    edits = {"password": '"nope"'} if case == "wrong_password" else {}
+    path = retarget(base / "groundstation.json5", tmp_path / "gs.json5", port, **edits)
+    if case == "key_mode":
+        os.chmod(path, 0o644)
+    sink = ZenohSink("v7", config_path=str(path), retry_s=60.0)
+    try:
+        line = sink.error or ""
+        # zenoh itself refuses all but the readable password file, which is reported, not enforced
+        assert sink.connected.is_set() == (case == "key_mode")
+    finally:
+        sink.close()
+    assert "\n" not in line and line.startswith(str(path))
+    expected = {"expired": "expired on", "wrong_password": "refused the session",
+                "unreachable": f"tls/localhost:{port} unreachable", "key_mode": "chmod 600"}[case]
+    assert expected in line, line
+    assert _password(field, "groundstation") not in line
