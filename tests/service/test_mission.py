@@ -21,7 +21,7 @@ from tests.service.conftest import service_config
 def test_two_simulated_flights_identified_published_and_logged(tmp_path, subscriber_factory):
     rrd = tmp_path / "mission.rrd"
     cfg = service_config(tmp_path, service={"exit_after_flights": 2}, sim={"speed": 20.0, "flights": 2, "seed": 4},
-                         identification={"maxiter": 8, "refine": False, "scope": "last"},
+                         identification={"maxiter": 8, "refine": False, "scope": "all"},
                          rerun={"mode": "save", "target": str(rrd)})
     lines: list[str] = []
     service = Service(cfg, sim_options={"flight_duration_s": 40.0, "pause_s": 3.0},
@@ -55,6 +55,9 @@ def test_two_simulated_flights_identified_published_and_logged(tmp_path, subscri
     errors = [r["error"] for r in report.results if "error" in r]
     assert not errors, errors
     assert sorted(r["flight"] for r in report.results) == [1, 2]
+    by_flight = {r["flight"]: r for r in report.results}
+    assert by_flight[1]["tlogs"] == report.flight_tlogs[:1]
+    assert by_flight[2]["tlogs"] == report.flight_tlogs            # scope "all": every flight so far
     for r in report.results:
         model = json.loads(open(r["model_path"]).read())
         assert model["schema"] == "heli-hover-model/1" and len(model["parameters"]) == 31
