@@ -130,6 +130,7 @@ class Service:
         self.link: Any = None
         self.link_up = False
         self.session: Any = None
+        self.signing: Any = None             # firmware_interface.signing.SignatureVerifier when signed
         self.recorder: Any = None
         self.zenoh: Any = None
         self.rerun: Any = None
@@ -143,7 +144,7 @@ class Service:
         self._pending: set[asyncio.Future[Any]] = set()
         self._flight_tlogs: dict[int, str] = {}
         self._rows_buf: list[tuple[np.ndarray, ...]] = []
-        self._sm_buf: list[tuple[np.ndarray, np.ndarray]] = []
+        self._sm_buf: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.flights_completed = 0
         self.link_drops = 0
         self.packets = 0
@@ -226,8 +227,12 @@ class Service:
             self._open_recorder()
             try:
                 from firmware_interface.session import MavlinkSession
+                from firmware_interface.signing import SigningConfig, session_hooks
 
-                self.session = MavlinkSession()
+                lk = self.config.link
+                self.signing, signer = session_hooks(
+                    SigningConfig(lk.signing_key_file, lk.signing_link_id, lk.signing_accept_unsigned), time.time())
+                self.session = MavlinkSession(verifier=self.signing, signer=signer)
                 self._open_sinks(loop)
                 if self.config.identification.enabled:
                     self._executor = concurrent.futures.ProcessPoolExecutor(
@@ -365,7 +370,7 @@ class Service:
         if len(out.t_fc_s):
             self._rows_buf.append((out.t_fc_s, out.t_host_s, out.inputs, out.outputs_raw))
         if len(out.t_smoothed_s):
-            self._sm_buf.append((out.t_smoothed_s, out.outputs_smoothed))
+            self._sm_buf.append((out.t_smoothed_s, out.t_host_smoothed_s, out.outputs_smoothed))
         for w in out.windows:
             self._on_window(w)
         for fe in out.flight_events:
@@ -387,16 +392,15 @@ class Service:
                 cols = [np.concatenate([r[i] for r in self._rows_buf]) for i in range(4)]
                 self._rerun_calls.submit(self.rerun.log_rows, cols[0], cols[1], cols[2], cols[3], "raw")
             if self._sm_buf:
-                ts = np.concatenate([r[0] for r in self._sm_buf])
-                ys = np.concatenate([r[1] for r in self._sm_buf])
-                self._rerun_calls.submit(self.rerun.log_rows, ts, np.full(len(ts), math.nan), None, ys,
-                                         "smoothed")
+                ts, th, ys = (np.concatenate([r[i] for r in self._sm_buf]) for i in range(3))
+                self._rerun_calls.submit(self.rerun.log_rows, ts, th, None, ys, "smoothed")
         self._rows_buf.clear()
         self._sm_buf.clear()
 
     def _rerun_event(self, text: str, level: str) -> None:
         if self.rerun is not None and self._rerun_calls is not None:
-            t = float(self.live.aligner._newest) if math.isfinite(self.live.aligner._newest) else 0.0
+            newest = self.live.aligner.newest_t_fc_s
+            t = float(newest) if math.isfinite(newest) else 0.0
             self._rerun_calls.submit(self.rerun.log_event, text, t, level)
 
     # ------------------------------------------------------------------ flights
@@ -523,6 +527,8 @@ class Service:
                                "last_error": self.ident.last_error, "last_seconds": self.ident.last_seconds},
             "windows": {"published": self.window_seq_published,
                         "dropped": z.windows_dropped if z is not None else 0},
+            "signing": ({**self.signing.status(), "dropped": int(getattr(stats, "unsigned_dropped", 0) or 0)}
+                        if self.signing is not None else {"enabled": False}),
         }
 
     def _publish_status(self) -> None:

@@ -212,6 +212,11 @@ class GridAligner:
     def columns(self, name: str) -> slice:
         return self._offsets[name]
 
+    @property
+    def newest_t_fc_s(self) -> float:
+        """Newest FC time seen on any stream (-inf before the first sample)."""
+        return self._newest
+
     def reset(self) -> None:
         for s in self._streams.values():
             s.t.clear()
@@ -487,6 +492,7 @@ class LiveOutput:
     outputs_raw: np.ndarray = field(default_factory=lambda: np.empty((0, 8)))
     # smoothed rows that became final, with their own times (they lag t_fc_s by the filter latency)
     t_smoothed_s: np.ndarray = field(default_factory=lambda: np.empty(0))
+    t_host_smoothed_s: np.ndarray = field(default_factory=lambda: np.empty(0))
     outputs_smoothed: np.ndarray = field(default_factory=lambda: np.empty((0, 8)))
     windows: list[Window] = field(default_factory=list)
     flight_events: list[FlightStarted | FlightEnded] = field(default_factory=list)
@@ -510,7 +516,7 @@ class LivePipeline:
         self.flights = FlightTracker(cfg.in_air_alt_m)
         self._servo_idx = tuple(s - 1 for s in cfg.servo_numbers)
         self._trim = np.asarray(cfg.trim_pwm, dtype=float)
-        self._smooth_pending: deque[float] = deque()   # grid times not yet smoothed
+        self._smooth_pending: deque[tuple[float, float]] = deque()   # (t_fc, t_host) not yet smoothed
         self._last_host_s = math.nan
         self.rows = 0
 
@@ -529,12 +535,14 @@ class LivePipeline:
     def _emit_smoothed(self, rows: np.ndarray, out: LiveOutput) -> None:
         if len(rows) == 0:
             return
-        ts = [self._smooth_pending.popleft() for _ in range(len(rows))]
+        pairs = [self._smooth_pending.popleft() for _ in range(len(rows))]
+        ts = [p[0] for p in pairs]
         # row j of `rows` belongs to grid time ts[j]; find its position back from the newest row
         pending = len(self._smooth_pending)
         for j in range(len(rows)):
             self.windows.set_smoothed(pending + len(rows) - 1 - j, rows[j])
         out.t_smoothed_s = np.concatenate([out.t_smoothed_s, ts])
+        out.t_host_smoothed_s = np.concatenate([out.t_host_smoothed_s, [p[1] for p in pairs]])
         out.outputs_smoothed = np.vstack([out.outputs_smoothed, rows])
 
     def feed(self, events: list) -> LiveOutput:
@@ -589,7 +597,7 @@ class LivePipeline:
         alt = np.where(np.isnan(lpn[:, 0]), gpi[:, 0], -lpn[:, 0])
         for k in range(len(t)):
             self.windows.append(t[k], inputs[k], outputs[k], alt[k])
-            self._smooth_pending.append(t[k])
+            self._smooth_pending.append((t[k], host[k]))
             # NaN rows (a channel not measured) pass through the filter as NaN
             self._emit_smoothed(self.smoother.push(outputs[k]), out)
             if np.isfinite(host[k]):

@@ -124,7 +124,7 @@ class RerunSink:
         Parameters
         ----------
         t_fc_s : (n,) FC clock, s
-        t_host_s : (n,) host time, Unix s (NaN allowed; replaced by the nearest finite value)
+        t_host_s : (n,) host time, Unix s (NaN entries interpolated; all NaN = no host_time index)
         inputs : (n, 4) lat lon col ped, or None
         outputs : (n, 8) u v w p q r theta phi, or None
         kind : ``raw`` | ``smoothed`` | ``model`` (which output sub-entity)
@@ -133,11 +133,12 @@ class RerunSink:
         if n == 0:
             return
         th = np.asarray(t_host_s, dtype=float)
-        if not np.isfinite(th).all():
-            finite = np.isfinite(th)
-            th = np.interp(np.arange(n), np.flatnonzero(finite), th[finite]) if finite.any() else np.zeros(n)
-        idx = [rr.TimeColumn("fc_time", duration=np.asarray(t_fc_s, dtype=float)),
-               rr.TimeColumn("host_time", timestamp=th)]
+        finite = np.isfinite(th)
+        idx = [rr.TimeColumn("fc_time", duration=np.asarray(t_fc_s, dtype=float))]
+        if finite.any():     # rows without any host time (model overlays) live on fc_time only
+            if not finite.all():
+                th = np.interp(np.arange(n), np.flatnonzero(finite), th[finite])
+            idx.append(rr.TimeColumn("host_time", timestamp=th))
         s = self.stream
         if inputs is not None:
             for i, c in enumerate(INPUTS):

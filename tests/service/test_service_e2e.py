@@ -67,4 +67,6 @@ def test_two_scripted_flights_recorded_streamed_and_logged(tmp_path, subscriber_
         assert f"/testheli/outputs/{c}/raw" in ents and f"/testheli/outputs/{c}/smoothed" in ents
     lat = [c for c in chunks if c.entity_path == "/testheli/inputs/lat" and not c.is_static]
     assert {"fc_time", "host_time"} <= set(lat[0].timeline_names)
+    sm = [c for c in chunks if c.entity_path == "/testheli/outputs/q/smoothed" and not c.is_static]
+    assert {"fc_time", "host_time"} <= set(sm[0].timeline_names)
     assert sum(c.num_rows for c in lat) == service.live.rows > 400   # every grid row reached the .rrd
