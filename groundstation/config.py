@@ -38,6 +38,11 @@ class ServiceSection:
 class LinkSection:
     url: str = ""                    # empty = built-in simulated flight controller on a pty
     baud: int = 115200               # used for the built-in simulator's serial URL
+    # MAVLink 2 signing (firmware_interface.signing): key file (chmod 600) or "" = unsigned link;
+    # messages accepted unsigned (e.g. RADIO_STATUS from a radio); our link id in signatures
+    signing_key_file: str = ""
+    signing_accept_unsigned: tuple[str, ...] = ()
+    signing_link_id: int = 0
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,8 @@ def add_common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--record-dir", metavar="DIR", help="where recordings and results go")
     parser.add_argument("--zenoh", metavar="FILE.json5", help="zenoh session config (default: loopback peer)")
     parser.add_argument("--no-zenoh", action="store_true", help="do not publish on zenoh")
+    parser.add_argument("--signing-key", metavar="FILE",
+                        help="MAVLink 2 signing key file (chmod 600): sign outgoing, drop unsigned incoming")
     parser.add_argument("--rerun", nargs="+", metavar="MODE",
                         help="spawn | connect URL | save FILE.rrd | off")
     parser.add_argument("--vehicle", metavar="NAME", help="vehicle name (zenoh key chunk, Rerun root)")
@@ -58,6 +60,8 @@ def config_from_args(args: argparse.Namespace, base: ServiceConfig | None = None
         cfg = cfg.replace("zenoh", config_file=args.zenoh, enabled=True)
     if args.no_zenoh:
         cfg = cfg.replace("zenoh", enabled=False)
+    if getattr(args, "signing_key", None):
+        cfg = cfg.replace("link", signing_key_file=args.signing_key)
     if args.rerun:
         mode, *rest = args.rerun
         if mode not in ("spawn", "connect", "save", "off") or len(rest) > 1:
