@@ -45,6 +45,7 @@ class DemoSubscriber:
         self.out = out
         self.counts: dict[str, int] = {}
         self._last_status_print = 0.0
+        self._last_state: tuple[Any, ...] = ()
         self._late_done = False
         self.late_task: asyncio.Task[None] | None = None
         self._port = port
@@ -60,8 +61,11 @@ class DemoSubscriber:
         doc: dict[str, Any] = json.loads(payload)
         if short == "status":
             now = time.monotonic()
-            if now - self._last_status_print >= 5.0:
+            state = (doc["link"]["up"], doc["armed"], doc["in_air"], doc["flights_completed"],
+                     doc["identification"]["state"])
+            if state != self._last_state or now - self._last_status_print >= 15.0:
                 self._last_status_print = now
+                self._last_state = state
                 link = doc["link"]
                 self.out(f"[zenoh] {key}: link {'up' if link['up'] else 'DOWN'} packets {link['packets']} "
                          f"loss {link['loss_pct']:.2f}% armed {doc['armed']} in_air {doc['in_air']} "
