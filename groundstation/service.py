@@ -484,6 +484,8 @@ class Service:
                     self.zenoh.publish_gap(flight, res["gap"])
             if res.get("gap") is not None:
                 self.log(f"flight {flight}: gap report {res.get('gap_path')} verdict {res['gap'].get('verdict')}")
+            if res.get("gap_error"):
+                self._warn(res["gap_error"])
             if self.rerun is not None and self._rerun_calls is not None:
                 has_overlay = overlay is not None and len(overlay["t_fc_s"]) > 0
                 if has_overlay:

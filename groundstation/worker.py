@@ -123,11 +123,15 @@ def run_job(job: IdentifyJob) -> dict[str, Any]:
             except ImportError:
                 diagnose = None  # type: ignore[assignment]
             if diagnose is not None:
-                gap = diagnose(model, prepared, seed=job.seed)
-                gap_path = out_dir / f"gap-flight{job.flight:02d}.json"
-                gap_path.write_text(json.dumps(gap, indent=1, default=float))
-                res["gap"] = gap
-                res["gap_path"] = str(gap_path)
+                try:
+                    gap = diagnose(model, prepared, seed=job.seed)
+                except Exception as exc:  # the model stands on its own: a failed diagnosis is reported
+                    res["gap_error"] = f"flight {job.flight}: diagnosis: {type(exc).__name__}: {exc}".splitlines()[0]
+                else:
+                    gap_path = out_dir / f"gap-flight{job.flight:02d}.json"
+                    gap_path.write_text(json.dumps(gap, indent=1, default=float))
+                    res["gap"] = gap
+                    res["gap_path"] = str(gap_path)
         res["seconds"] = time.perf_counter() - t0
         return res
     except Exception as exc:  # reported to the service as one line; the service keeps running
