@@ -105,7 +105,14 @@ def test_subscriber_cannot_publish_or_answer_and_model_is_unchanged(field, route
             s.liveliness().declare_token("heli/v2/alive")
         time.sleep(0.5)
         late = client("alice", router)
-        answers = _get(late, "heli/v2/model/latest")
+        answers: list[bytes] = []
+
+        def poll() -> bool:      # under CPU load one get can time out: retry, keep every answer
+            got_now = _get(late, "heli/v2/model/latest")
+            answers.extend(got_now)
+            return bool(got_now)
+
+        assert wait_for(poll, 15.0, 0.1)
         assert wait_for(lambda: _tokens(late, "heli/v2/alive") == 1)      # the ground station's
     finally:
         sink.close()
@@ -113,7 +120,8 @@ def test_subscriber_cannot_publish_or_answer_and_model_is_unchanged(field, route
     assert wait_for(lambda: _tokens(late, "heli/v2/alive") == 0)
     assert [k for k, _ in got] == ["heli/v2/flight/1/model", "heli/v2/flight/1/gap"]
     assert json.loads(got[0][1]) == MODEL
-    assert [json.loads(a) for a in answers] == [MODEL]   # only the ground station's queryable answers
+    # only the ground station's queryable ever answers: every reply is the real model
+    assert answers and all(json.loads(a) == MODEL for a in answers)
 
 
 def _tokens(session: zenoh.Session, key: str) -> int:
