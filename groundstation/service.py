@@ -147,6 +147,7 @@ class Service:
         self._sm_buf: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.flights_completed = 0
         self.link_drops = 0
+        self.live_errors = 0
         self.packets = 0
         self.window_seq_published = 0
         self.on_window: Callable[[Window], None] | None = None     # test/bench hook (loop thread)
@@ -354,6 +355,14 @@ class Service:
         if not events:
             return
         self.recorder.handle(events)          # recording first, before anything that could fail
+        try:
+            self._live(events, now)
+        except Exception as exc:  # a live-path bug must never stop the recording: count, warn once
+            self.live_errors += 1
+            if self.live_errors == 1:
+                self._warn(f"live path: {type(exc).__name__}: {exc} (recording goes on)".splitlines()[0])
+
+    def _live(self, events: list[Any], now: float) -> None:
         for ev in events:
             if isinstance(ev, RawPacket):
                 self.packets += 1

@@ -223,3 +223,34 @@ def test_ctrl_c_during_identification_stops_the_worker_and_exits_0(tmp_path):
     flights = sorted((tmp_path / "rec").glob("flight-*.tlog"))
     assert flights and load_log(flights[0]).has("ATTITUDE")
     assert "stopped: SIGINT" in out
+
+
+def test_a_failing_live_path_never_stops_the_recording(tmp_path):
+    cfg = service_config(tmp_path, sim={"speed": 4.0}, identification={"enabled": False},
+                         zenoh={"enabled": False})
+    service = Service(cfg, frame_source=ScriptedHelicopter(flights=1, flight_s=4.0, pause_s=1.0),
+                      log=lambda m: None)
+
+    class BrokenPipeline:
+        """The live DSP with a bug: every batch raises."""
+
+        def __init__(self, real):
+            self.real = real
+            self.flights = real.flights
+            self.aligner = real.aligner
+            self.trim_pwm = real.trim_pwm
+
+        def feed(self, events):
+            raise RuntimeError("bug in the live path")
+
+    service.live = BrokenPipeline(service.live)
+
+    async def during(svc):
+        while svc.recorder is None or len(svc.recorder.flight_paths) < 1 or svc.recorder.flight_open:
+            await asyncio.sleep(0.05)         # until the recorder has opened and closed the flight file
+        svc.request_stop("test")
+
+    report = _run(service, during)
+    assert service.live_errors > 10 and sum("bug in the live path" in w for w in report.warnings) == 1
+    flights = sorted((tmp_path / "rec").glob("flight-*.tlog"))
+    assert len(flights) == 1 and load_log(flights[0]).has("ATTITUDE")
