@@ -30,7 +30,9 @@ DELAY_GRID_S = (0.02, 0.04, 0.06, 0.08, 0.10, 0.13, 0.16, 0.20, 0.25)
 #: Slew limits as quantiles of the channel's own |input rate|.
 RATE_QUANTILES = (0.6, 0.75, 0.85, 0.92, 0.96, 0.98, 0.99, 0.995, 0.998)
 #: Deadband half-widths as quantiles of the channel's own |input|.
-DEADBAND_QUANTILES = (0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5)
+DEADBAND_QUANTILES = (0.1, 0.2, 0.35, 0.5, 0.7, 0.85)
+#: ... and as multiples of the channel's input standard deviation.
+DEADBAND_STD = (0.1, 0.25, 0.5, 0.75, 1.0)
 #: Ground-effect decay heights relative to the smallest height flown (m, added to it).
 GROUND_DECAY_M = (0.25, 0.5, 1.0, 2.0)
 
@@ -229,7 +231,8 @@ def scan_deadband(ctx: Context, channels: list[int]) -> Hypothesis:
     labels: list[dict[str, Any]] = []
     for c in channels:
         au = np.concatenate([np.abs(s.inputs[:, c]) for s in segs])
-        widths = np.quantile(au, DEADBAND_QUANTILES)
+        widths = np.unique(np.round(np.concatenate([np.quantile(au, DEADBAND_QUANTILES),
+                                                    np.array(DEADBAND_STD) * au.std()]), 6))
         for kind, fn in (("deadzone", deadzone), ("backlash", backlash)):
             for b in widths:
                 Us = [s.inputs.copy() for s in segs]
@@ -241,10 +244,9 @@ def scan_deadband(ctx: Context, channels: list[int]) -> Hypothesis:
     variants = [(lab, ev.residual(y), None) for lab, y in zip(labels, yh, strict=True)]
     sse, best, _ = ctx.nested("deadband", variants)
     lab = labels[best]
-    # resolution of the recorded input (PWM quantum): a "deadband" of a few quanta is quantisation
-    du = np.concatenate([np.abs(np.diff(s.inputs[:, lab["channel"]])) for s in segs])
-    du = du[du > 1e-9]
-    quantum = float(du.min()) if du.size else 0.0
+    # resolution of the recorded input: MAVLink servo/RC values are whole microseconds, so a
+    # "deadband" of a few quanta is indistinguishable from quantisation
+    quantum = 1.0 / ctx_pwm(ctx)
     return Hypothesis("deadband", input=INPUTS[lab["channel"]],
                       estimate={"deadband": lab["width"], "deadband_pwm_us": lab["width"] * ctx_pwm(ctx)},
                       sse=sse, channels=(3, 4, 5, 6, 7), extra={"kind": lab["kind"], "quantum": quantum})
