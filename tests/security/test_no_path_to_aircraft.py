@@ -64,7 +64,7 @@ def _evil_payloads(rng: random.Random) -> list[bytes]:
 def test_flooding_every_key_sends_nothing_beyond_the_allowlist(tmp_path):
     cfg = service_config(tmp_path, service={"exit_after_flights": 1}, sim={"speed": 2.0},
                          identification={"enabled": False})
-    service = TeeService(cfg, frame_source=ScriptedHelicopter(flights=1, flight_s=4.0, pause_s=1.0),
+    service = TeeService(cfg, frame_source=ScriptedHelicopter(flights=1, flight_s=6.0, pause_s=1.0),
                          log=lambda m: None)
     vehicle = cfg.service.vehicle
     keys = [f"heli/{vehicle}/{k}" for k in ("status", "telemetry/window", "flight/1/model", "flight/1/gap",
@@ -73,7 +73,7 @@ def test_flooding_every_key_sends_nothing_beyond_the_allowlist(tmp_path):
     keys += ["heli/**", f"heli/{vehicle}/**", "**", "@/**"]
     rng = random.Random(7)
     payloads = _evil_payloads(rng)
-    stats = {"puts": 0, "gets": 0, "replies": 0, "status_seen": 0}
+    stats = {"puts": 0, "gets": 0, "replies": 0, "status_seen": 0, "passes": 0}
     stop = threading.Event()
 
     def flood(port: int) -> None:
@@ -96,6 +96,7 @@ def test_flooding_every_key_sends_nothing_beyond_the_allowlist(tmp_path):
                     replies = session.get(f"{key}?arm=1;cmd=COMMAND_LONG", payload=payloads[0], timeout=0.5)
                     stats["gets"] += 1
                     stats["replies"] += sum(1 for _ in replies)
+                stats["passes"] += 1
             evil_q.undeclare()
             for t in tokens:
                 t.undeclare()
@@ -108,7 +109,9 @@ def test_flooding_every_key_sends_nothing_beyond_the_allowlist(tmp_path):
         th = threading.Thread(target=flood, args=(cfg.zenoh.listen_port,), daemon=True)
         th.start()
         try:
-            return await asyncio.wait_for(task, 60)
+            report = await asyncio.wait_for(task, 60)
+            stats["passes_while_running"] = stats["passes"]
+            return report
         finally:
             stop.set()
             await asyncio.to_thread(th.join, 10)
@@ -116,7 +119,8 @@ def test_flooding_every_key_sends_nothing_beyond_the_allowlist(tmp_path):
     report = asyncio.run(main())
 
     # the flood reached the service's session: it was connected, queried, and saw statuses
-    assert stats["puts"] > 500 and stats["gets"] > 3 and stats["replies"] > 0 and stats["status_seen"] > 0
+    # at least one whole pass over every key and payload while the service was running
+    assert stats["passes_while_running"] >= 1 and stats["replies"] > 0 and stats["status_seen"] > 0
     assert service.zenoh.queries_served > 0
     assert report.flights == 1 and report.packets > 300   # the service really ran a flight meanwhile
 
