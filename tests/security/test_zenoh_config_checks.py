@@ -209,3 +209,15 @@ def test_field_router_script_refuses_bad_files_and_serves_good_ones(kit):
         proc.stdout.close()
         proc.stderr.close()
     assert rc == 0
+
+
+def test_weakened_router_configs_are_flagged(kit):
+    p = kit / "router.json5"
+    text = p.read_text()
+    p.write_text(text.replace("enabled: true,\n    default_permission", "enabled: false,\n    default_permission")
+                 .replace("enable_mtls: true", "enable_mtls: false"))
+    warnings = " | ".join(check_zenoh_config(p).warnings)
+    assert "access_control is disabled" in warnings and "enable_mtls is off" in warnings
+    plain = kit / "plain.json5"
+    plain.write_text('{mode: "router", listen: {endpoints: ["tcp/127.0.0.1:7447"]}}')
+    assert any("neither encrypted nor authenticated" in w for w in check_zenoh_config(plain).warnings)
