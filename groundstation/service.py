@@ -183,8 +183,8 @@ class Service:
                 self.zenoh = ZenohSink(self.vehicle, config_path=zc.config_file or None,
                                        listen_port=zc.listen_port, window_queue=zc.window_queue, loop=loop)
                 self.report.zenoh_endpoint = self.zenoh.endpoint
-                if self.zenoh.error:
-                    self._warn(self.zenoh.error + " (retrying; recording goes on)")
+                if self.zenoh.error:    # a security problem or no router yet: one line, retried in background
+                    self._warn(self.zenoh.error + " (recording goes on)")
             except ZenohSinkError as exc:
                 self._warn(f"{exc}; running without zenoh (recording goes on)")
         rc = self.config.rerun

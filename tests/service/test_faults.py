@@ -4,6 +4,7 @@ and bad input (config, zenoh config, record dir, Rerun viewer). Real pty, real z
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import signal
 import subprocess
@@ -254,3 +255,20 @@ def test_a_failing_live_path_never_stops_the_recording(tmp_path):
     assert service.live_errors > 10 and sum("bug in the live path" in w for w in report.warnings) == 1
     flights = sorted((tmp_path / "rec").glob("flight-*.tlog"))
     assert len(flights) == 1 and load_log(flights[0]).has("ATTITUDE")
+
+
+def test_client_config_without_router_records_and_says_so_once(tmp_path):
+    from groundstation.sinks.zenoh_sink import free_tcp_port
+
+    port = free_tcp_port()
+    client = tmp_path / "client.json5"
+    client.write_text(json.dumps({"mode": "client", "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
+                                  "scouting": {"multicast": {"enabled": False}}}))
+    cfg = service_config(tmp_path, service={"exit_after_flights": 1}, sim={"speed": 4.0},
+                         identification={"enabled": False}, zenoh={"config_file": str(client)})
+    service = Service(cfg, frame_source=ScriptedHelicopter(flights=1, flight_s=3.0, pause_s=1.0),
+                      log=lambda m: None)
+    report = _run(service)
+    assert report.flights == 1 and load_log(report.flight_tlogs[0]).has("ATTITUDE")
+    lines = [w for w in report.warnings if "zenoh not connected yet" in w]
+    assert len(lines) == 1 and f"127.0.0.1:{port} unreachable" in lines[0] and str(client) in lines[0]
