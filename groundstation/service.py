@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import concurrent.futures.process
 import functools
 import inspect
 import math
@@ -236,8 +237,7 @@ class Service:
                 self.session = MavlinkSession(verifier=self.signing, signer=signer)
                 self._open_sinks(loop)
                 if self.config.identification.enabled:
-                    self._executor = concurrent.futures.ProcessPoolExecutor(
-                        max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init)
+                    self._executor = self._new_executor()
                 if not self.link_url:
                     self.link_url = self._start_builtin_sim()
                     self.log(f"built-in simulated flight controller on {self.sim.port_path} "
@@ -261,6 +261,11 @@ class Service:
                 loop.remove_signal_handler(sig)
         self.report.stopped_by = self._stop_reason
         return self.report
+
+    @staticmethod
+    def _new_executor() -> concurrent.futures.ProcessPoolExecutor:
+        return concurrent.futures.ProcessPoolExecutor(
+            max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init)
 
     def _install_signals(self, loop: asyncio.AbstractEventLoop) -> list[int]:
         installed = []
@@ -305,6 +310,8 @@ class Service:
 
     async def _drop_link(self, reason: str) -> None:
         link, self.link = self.link, None
+        if link is None:          # the other task already dropped it
+            return
         self.link_drops += 1
         if self.link_up:
             self.log(f"link lost ({reason}); reconnecting")
@@ -441,7 +448,15 @@ class Service:
         """Queue ``job`` on the worker process (call on the loop); the result is published when done."""
         if self._executor is None:
             raise RuntimeError("identification is disabled in this service")
-        fut = asyncio.wrap_future(self._executor.submit(run_job, job))
+        try:
+            cfut = self._executor.submit(run_job, job)
+        except concurrent.futures.process.BrokenProcessPool:
+            # the worker died (killed, out of memory): start a new one for this and later flights
+            self._warn("identification worker died; starting a new one")
+            self._executor.shutdown(wait=False, cancel_futures=True)
+            self._executor = self._new_executor()
+            cfut = self._executor.submit(run_job, job)
+        fut = asyncio.wrap_future(cfut)
         self._pending.add(fut)
         self.ident.queued += 1
         self.ident.state = "running"

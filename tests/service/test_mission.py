@@ -89,3 +89,33 @@ def test_two_simulated_flights_identified_published_and_logged(tmp_path, subscri
     for c in ("u", "q", "theta"):
         assert {f"{v}/outputs/{c}/raw", f"{v}/outputs/{c}/smoothed", f"{v}/outputs/{c}/model"} <= ents
     assert f"{v}/gap/verdict" in ents and any(e.startswith(f"{v}/gap/match/") for e in ents)
+
+
+def test_worker_killed_mid_identification_is_reported_and_replaced(tmp_path):
+    import os
+    import signal
+
+    cfg = service_config(tmp_path, service={"exit_after_flights": 2}, sim={"speed": 20.0, "flights": 2, "seed": 5},
+                         identification={"maxiter": 6, "refine": False, "diagnose": False, "plots": False},
+                         zenoh={"enabled": False})
+    service = Service(cfg, sim_options={"flight_duration_s": 40.0, "pause_s": 3.0}, log=lambda m: None)
+    killed: list[int] = []
+
+    async def main():
+        task = asyncio.create_task(service.run())
+        await asyncio.wait_for(service.ready.wait(), 20)
+        while not service._pending and not task.done():     # flight 1 handed to the worker
+            await asyncio.sleep(0.02)
+        await asyncio.sleep(1.0)
+        for p in list(service._executor._processes.values()):
+            os.kill(p.pid, signal.SIGKILL)                   # the worker dies (OOM killer, say)
+            killed.append(p.pid)
+        return await asyncio.wait_for(task, 240)
+
+    report = asyncio.run(main())
+    assert killed and report.flights == 2
+    by_flight = {r.get("flight"): r for r in report.results}
+    failed = [r for r in report.results if "error" in r]
+    assert len(failed) == 1 and "BrokenProcessPool" in failed[0]["error"]
+    assert "error" not in by_flight[2] and by_flight[2]["model"]["schema"] == "heli-hover-model/1"
+    assert any("worker died" in w for w in report.warnings)
