@@ -552,10 +552,22 @@ class Service:
                                "queued": self.ident.queued, "done": self.ident.done, "failed": self.ident.failed,
                                "last_error": self.ident.last_error, "last_seconds": self.ident.last_seconds},
             "windows": {"published": self.window_seq_published,
-                        "dropped": z.windows_dropped if z is not None else 0},
+                        "dropped": z.windows_dropped if z is not None else 0,
+                        "latency_ms": self._latency_ms()},
             "signing": ({**self.signing.status(), "dropped": int(getattr(stats, "unsigned_dropped", 0) or 0)}
                         if self.signing is not None else {"enabled": False}),
         }
+
+    def _latency_ms(self, last: int = 200) -> dict[str, float | None]:
+        """Packet arrival -> window handed to zenoh, over the last ``last`` windows (ms)."""
+        z = self.zenoh
+        if z is None or not z.window_latency:
+            return {"median": None, "p99": None}
+        recent = list(z.window_latency)[-last:]
+        lat = np.array([pub - arr for _, arr, pub in recent if math.isfinite(arr)]) * 1000.0
+        if len(lat) == 0:
+            return {"median": None, "p99": None}
+        return {"median": round(float(np.median(lat)), 2), "p99": round(float(np.percentile(lat, 99)), 2)}
 
     def _publish_status(self) -> None:
         if self.zenoh is not None:

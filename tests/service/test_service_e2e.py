@@ -47,6 +47,8 @@ def test_two_scripted_flights_recorded_streamed_and_logged(tmp_path, subscriber_
     windows = sub.of("/telemetry/window")
     assert status and status[-1]["flights_completed"] == 2 and status[-1]["link"]["up"] is True
     assert {"ATTITUDE", "SERVO_OUTPUT_RAW"} <= set(status[-1]["rates_hz"])
+    lat = status[-1]["windows"]["latency_ms"]
+    assert 0 < lat["median"] <= lat["p99"]
     assert len(windows) > 10
     in_flight = [w for w in windows if w["flight"] is not None]
     assert {w["flight"] for w in in_flight} == {1, 2}
