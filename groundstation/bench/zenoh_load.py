@@ -54,6 +54,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model-period-s", type=float, default=1.0, help="model + gap report every ... s")
     p.add_argument("--warmup-s", type=float, default=2.0,
                    help="windows whose data arrived this soon after start-up are left out of the latency figures")
+    p.add_argument("--router-block-close-ms", type=float, default=None,
+                   help="override the router's congestion_control/block/wait_before_close (ms)")
     p.add_argument("--repeat", type=int, default=1, help="run the phase list this many times (medians printed)")
     p.add_argument("--verbose", action="store_true", help="print the slowest windows of each phase")
     p.add_argument("--phases", default="baseline,loaded,restart", help="comma-separated subset")
@@ -84,8 +86,8 @@ def _retarget(src: Path, dst: Path, port: int) -> Path:
 class Router:
     """The field router as a Python zenoh session (restartable on the same port)."""
 
-    def __init__(self, config_path: Path, port: int) -> None:
-        self.config_path, self.port = config_path, port
+    def __init__(self, config_path: Path, port: int, block_close_ms: float | None = None) -> None:
+        self.config_path, self.port, self.block_close_ms = config_path, port, block_close_ms
         self.session: Any = None
 
     def open(self) -> None:
@@ -93,6 +95,9 @@ class Router:
 
         cfg = zenoh.Config.from_file(str(self.config_path))
         cfg.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.1:{self.port}"]))
+        if self.block_close_ms is not None:
+            cfg.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close",
+                             str(int(self.block_close_ms * 1000)))
         self.session = zenoh.open(cfg)
 
     def close(self) -> None:
@@ -112,7 +117,12 @@ class Viewer:
         self.closing = threading.Event()
         self.windows: list[tuple[float, float]] = []    # (t_received, t_host_last_s)
         self.models = 0
-        self.session = zenoh.open(zenoh.Config.from_file(str(config_path)))
+        cfg = zenoh.Config.from_file(str(config_path))
+        if kind == "stuck":
+            # a small socket receive buffer: the router's queue towards it fills within seconds,
+            # not after the megabytes of a default loopback buffer
+            cfg.insert_json5("transport/link/tls/so_rcvbuf", "4096")
+        self.session = zenoh.open(cfg)
         key = f"heli/{vehicle}/**"
         if kind == "stuck":
             self.sub = self.session.declare_subscriber(key, zenoh.handlers.FifoChannel(4))
@@ -308,7 +318,7 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="zenoh-load-") as tmp:
         work = Path(tmp)
         field = _make_field(work / "field")
-        router = Router(field / "router.json5", free_tcp_port())
+        router = Router(field / "router.json5", free_tcp_port(), args.router_block_close_ms)
         router.open()
         try:
             for rep in range(args.repeat):
