@@ -126,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
                      "model_source": args.model_source, "fresh": args.fresh, "aircraft": args.aircraft})
     real = [c for c in CLASSES if c != "none"]
     for j in range(args.combined):
-        pair = list(rng.choice(real, 2, replace=False))
+        pair = [str(x) for x in rng.choice(real, 2, replace=False)]
         jobs.append({"case": args.cases + j, "seed": int(args.seed * 1000 + 500 + j), "effects": pair,
                      "model_source": args.model_source, "fresh": False, "aircraft": args.aircraft,
                      "combined": True})
