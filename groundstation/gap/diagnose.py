@@ -345,7 +345,8 @@ def _evidence(h: hypotheses.Hypothesis, s: attribute.Score, kin: dict, lines: li
     if e == "ground_effect":
         return f"w force decaying with height ({h.estimate.get('decay_height_m')} m); {base}"
     if e == "wind_gust":
-        return f"air-mass velocity from one window predicts the next (rms {h.estimate.get('air_velocity_rms_m_s', 0):.2f} m/s); {base}"
+        return (f"a smooth air velocity (rms {h.estimate.get('air_velocity_rms_m_s', 0):.2f} m/s) fitted on alternate "
+                f"0.5 s chunks predicts the chunks between them, attitude included; {base}")
     if e == "rotor_vibration":
         ln = lines[0]
         return (f"narrow line at {ln.frequency_hz:.2f} Hz in {','.join(ln.channels)} "

@@ -77,7 +77,7 @@ def _line_stats(P: np.ndarray, n_avg: int, half: int = 6, guard: int = 2,
     # the median of chi2_dof/dof sits slightly below its mean: correct the reference
     med = stats.chi2.median(dof) / dof
     logp = stats.chi2.logsf(ratio * (med * dof)[:, None], dof[:, None]) / np.log(10)
-    return ratio, logp
+    return ratio, np.maximum(logp, -300.0)
 
 
 def spectral_lines(resid: np.ndarray, inputs: np.ndarray, dt_s: float, available: np.ndarray,
