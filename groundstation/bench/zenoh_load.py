@@ -37,6 +37,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +57,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="windows whose data arrived this soon after start-up are left out of the latency figures")
     p.add_argument("--router-block-close-ms", type=float, default=None,
                    help="override the router's congestion_control/block/wait_before_close (ms)")
+    p.add_argument("--viewers-in-process", action="store_true",
+                   help="run the viewers in the service's process (default: their own process)")
     p.add_argument("--repeat", type=int, default=1, help="run the phase list this many times (medians printed)")
     p.add_argument("--verbose", action="store_true", help="print the slowest windows of each phase")
     p.add_argument("--phases", default="baseline,loaded,restart", help="comma-separated subset")
@@ -158,6 +161,72 @@ class Viewer:
             self.session.close()
 
 
+@dataclass
+class ViewerRecord:
+    kind: str
+    windows: list[tuple[float, float]]
+    models: int
+
+
+def _drain(viewers: list[Viewer]) -> list[ViewerRecord]:
+    """Stop the slow readers' sleeping, wait until counts settle (reliable samples still in flight
+    are counted rather than cut off by closing), and snapshot them."""
+    for v in viewers:
+        v.closing.set()
+    last, stable_since, t_end = None, time.monotonic(), time.monotonic() + 10.0
+    while time.monotonic() < t_end and time.monotonic() - stable_since < 1.0:
+        now_counts = [(v.models, len(v.windows)) for v in viewers]
+        if now_counts != last:
+            last, stable_since = now_counts, time.monotonic()
+        time.sleep(0.05)
+    return [ViewerRecord(v.kind, list(v.windows), v.models) for v in viewers]
+
+
+def _host_main(viewer_cfg: str, vehicle: str, kinds: list[str], slow_s: float, conn: Any) -> None:
+    """Body of the viewer process: open the viewers, report ready, wait, drain, send the counts."""
+    viewers = []
+    try:
+        viewers = [Viewer(Path(viewer_cfg), vehicle, k, slow_s) for k in kinds]
+        conn.send("ready")
+        conn.recv()
+        conn.send([(r.kind, r.windows, r.models) for r in _drain(viewers)])
+    finally:
+        for v in viewers:
+            v.close()
+
+
+class ViewerHost:
+    """The viewers in their own process, as on teammates' laptops: their callbacks (JSON parsing,
+    sleeping) do not compete with the service for this process's interpreter."""
+
+    def __init__(self, viewer_cfg: Path, vehicle: str, kinds: list[str], slow_s: float) -> None:
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_host_main, args=(str(viewer_cfg), vehicle, kinds, slow_s, child),
+                                 name="zenoh-load-viewers", daemon=True)
+        self._proc.start()
+        if not self._conn.poll(60) or self._conn.recv() != "ready":
+            self.kill()
+            raise OSError("zenoh-load: the viewer process did not start")
+
+    def finish(self) -> list[ViewerRecord]:
+        self._conn.send("drain")
+        if not self._conn.poll(60):
+            self.kill()
+            raise OSError("zenoh-load: the viewer process did not report")
+        recs = [ViewerRecord(k, w, m) for k, w, m in self._conn.recv()]
+        self._proc.join(20)
+        self.kill()
+        return recs
+
+    def kill(self) -> None:
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(5)
+
+
 def _service_config(record_dir: Path, gs_config: Path, hop_s: float):
     from groundstation.config import ServiceConfig
 
@@ -185,11 +254,17 @@ def run_phase(name: str, args: argparse.Namespace, work: Path, field: Path, rout
     gs_cfg = _retarget(field / "groundstation.json5", work / f"{name}-gs.json5", router.port)
     viewer_cfg = _retarget(field / "viewer.json5", work / f"{name}-viewer.json5", router.port)
     viewers: list[Viewer] = []
+    host: ViewerHost | None = None
+    probe: Viewer | None = None
     out: dict[str, Any] = {"phase": name, "subscribers": n_subs}
     try:
-        for i in range(n_subs):
-            kind = "stuck" if i == n_subs - 1 else ("slow" if i < args.slow else "prompt")
-            viewers.append(Viewer(viewer_cfg, "bench", kind, args.slow_s))
+        kinds = ["stuck" if i == n_subs - 1 else ("slow" if i < args.slow else "prompt") for i in range(n_subs)]
+        if args.viewers_in_process:
+            viewers = [Viewer(viewer_cfg, "bench", k, args.slow_s) for k in kinds]
+        elif kinds:
+            host = ViewerHost(viewer_cfg, "bench", kinds, args.slow_s)
+        if restart:   # one more prompt viewer here, to time the resumption after the router restart
+            probe = Viewer(viewer_cfg, "bench", "prompt", 0.0)
         service = Service(_service_config(work / name, gs_cfg, args.hop_s), log=lambda m: None)
         stop_models = threading.Event()
         models_sent = [0]
@@ -212,7 +287,7 @@ def run_phase(name: str, args: argparse.Namespace, work: Path, field: Path, rout
 
         def restarter(loop: asyncio.AbstractEventLoop) -> None:
             time.sleep(args.duration / 2)
-            prompt = [v for v in viewers if v.kind == "prompt"]
+            prompt = [probe] if probe is not None else [v for v in viewers if v.kind == "prompt"]
             t0 = time.time()
             router.close()
             t_closed = time.time()
@@ -268,24 +343,16 @@ def run_phase(name: str, args: argparse.Namespace, work: Path, field: Path, rout
             return report
 
         report = asyncio.run(main())
-        # let the slow viewers drain their backlog (no more sleeping) so reliable samples still in
-        # flight are counted rather than cut off by closing the session
-        for v in viewers:
-            v.closing.set()
-        last, stable_since, t_end = None, time.monotonic(), time.monotonic() + 10.0
-        while time.monotonic() < t_end and time.monotonic() - stable_since < 1.0:
-            now_counts = [(v.models, len(v.windows)) for v in viewers]
-            if now_counts != last:
-                last, stable_since = now_counts, time.monotonic()
-            time.sleep(0.05)
+        records = host.finish() if host is not None else _drain(viewers)
+        host = None
         sink = service.zenoh
         t_steady = t_ready[0] + args.warmup_s
         lat_seq = [(seq, (tp - th) * 1e3) for seq, th, tp in list(sink.window_latency) if th >= t_steady]
         if args.verbose:
             print(f"  [{name}] slowest windows (seq, ms): {sorted(lat_seq, key=lambda x: -x[1])[:5]}")
         lat = [x for _s, x in lat_seq]
-        e2e = [(t - th) * 1e3 for v in viewers if v.kind == "prompt" for t, th in v.windows if th >= t_steady]
-        prompt = [v for v in viewers if v.kind == "prompt"]
+        e2e = [(t - th) * 1e3 for v in records if v.kind == "prompt" for t, th in v.windows if th >= t_steady]
+        prompt = [v for v in records if v.kind == "prompt"]
         recorded = _count_records(report.session_tlog)
         out.update(
             live_p50_ms=_pct(lat, 50), live_p99_ms=_pct(lat, 99), windows_published=report.windows_published,
@@ -294,13 +361,15 @@ def run_phase(name: str, args: argparse.Namespace, work: Path, field: Path, rout
             models_sent=models_sent[0],
             models_received_min=min((v.models for v in prompt), default=0),
             models_received_max=max((v.models for v in prompt), default=0),
-            slow_windows=[len(v.windows) for v in viewers if v.kind == "slow"],
-            slow_models=[v.models for v in viewers if v.kind == "slow"],
+            slow_windows=[len(v.windows) for v in records if v.kind == "slow"],
+            slow_models=[v.models for v in records if v.kind == "slow"],
             prompt_windows_median=statistics.median([len(v.windows) for v in prompt]) if prompt else 0,
             sink_error=sink.error, **restart_info,
         )
     finally:
-        for v in viewers:
+        if host is not None:
+            host.kill()
+        for v in viewers + ([probe] if probe is not None else []):
             v.close()
     return out
 
