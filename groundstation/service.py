@@ -628,10 +628,17 @@ class Service:
 
 
 def _worker_init() -> None:
-    """Worker process: lowest CPU priority, so the live path keeps its core while identifying."""
+    """Worker process: lowest CPU priority and one BLAS/OpenMP thread, so the live path keeps a core
+    to itself while identification and diagnosis run."""
     try:
         os.nice(19)
     except OSError:
+        pass
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)        # process-wide (not a context manager here)
+    except ImportError:
         pass
 
 
