@@ -363,14 +363,15 @@ def scan_ground_effect(ctx: Context) -> Hypothesis:
                       sse=sse, channels=(2,), extra={"height_span_m": span, "min_height_m": hmin})
 
 
-def _air_columns(ev: Evaluator, theta: np.ndarray) -> np.ndarray:
-    """Per-window responses (W, L, 8, 6) to a piecewise-linear horizontal air velocity (3 knots)."""
+def _air_columns(ev: Evaluator, theta: np.ndarray, n_knots: int = 3) -> np.ndarray:
+    """Per-window responses (W, L, 8, 2 n_knots) to a piecewise-linear horizontal air velocity."""
     A, _ = full_matrices(theta)
     # horizontal air velocity only: a vertical one would also soak up any heave-model error
     Fdir = np.stack([-A[0, :, s_idx] for s_idx in (0, 1)])  # (2, 11) per unit air velocity
     L = ev.L
     tt = np.linspace(0.0, 1.0, L)
-    hats = [np.maximum(0.0, 1.0 - np.abs(tt - c) * 2.0) for c in (0.0, 0.5, 1.0)]
+    knots = np.linspace(0.0, 1.0, n_knots)
+    hats = [np.maximum(0.0, 1.0 - np.abs(tt - c) * (n_knots - 1)) for c in knots]
     Z = np.zeros_like(ev.U)
     Y0 = np.zeros_like(ev.Y)
     cols = []
@@ -381,7 +382,8 @@ def _air_columns(ev: Evaluator, theta: np.ndarray) -> np.ndarray:
     return np.stack(cols, axis=-1) * ev.available[None, None, :, None]
 
 
-def scan_wind_gust(ctx: Context, chunk_s: float = 0.5, refine_iterations: int = 6) -> Hypothesis:
+def scan_wind_gust(ctx: Context, chunk_s: float = 0.5, refine_iterations: int = 6,
+                   knot_s: float = 1.5) -> Hypothesis:
     """Air-mass motion: a smooth horizontal air velocity entering wherever the body velocity does.
 
     In each window the air velocity is piecewise linear in time (three knots per component) and
@@ -402,15 +404,16 @@ def scan_wind_gust(ctx: Context, chunk_s: float = 0.5, refine_iterations: int = 
     # prior: air velocity of the order of the measured horizontal speed (weighted-residual units)
     s_air = float(np.sqrt((ev.Y[:, :, :2] ** 2).mean())) + 1e-6
     sig2 = float((ev.r0 ** 2).sum() / max(ev.mask.sum() * ev.W * ev.available.sum(), 1))
-    prec = np.full(6, sig2 / s_air ** 2)
+    n_knots = max(int(round(L * ev.dt_s / knot_s)) + 1, 2)
+    prec = np.full(2 * n_knots, sig2 / s_air ** 2)
     evg = Evaluator(ctx.segments, ev.dt_s, ev.theta0, ev.available, window_s=L * ev.dt_s,
                     folds=ev.folds, ridge=ev.ridge)
-    evg.nuisance = _air_columns(evg, ev.theta0)
+    evg.nuisance = _air_columns(evg, ev.theta0, n_knots)
     evg.nuisance_prec = prec
     evg.set_theta(ev.theta0)
     evg.refine(refine_iterations)
     th_g = evg.theta0
-    nuis = _air_columns(ev, th_g)
+    nuis = _air_columns(ev, th_g, n_knots)
     chunk = max(int(round(chunk_s / ev.dt_s)), 2)
     even = ((np.arange(L) // chunk) % 2 == 0) & ev.mask
     odd = ((np.arange(L) // chunk) % 2 == 1) & ev.mask
@@ -424,7 +427,7 @@ def scan_wind_gust(ctx: Context, chunk_s: float = 0.5, refine_iterations: int = 
         sse_b += (((ev.Y - yb) * ev.w8)[:, score_m] ** 2).sum(axis=1)
         sse_g += (((ev.Y - yg[0]) * ev.w8)[:, score_m] ** 2).sum(axis=1)
     assert coef is not None
-    air = coef[0, :, -6:].reshape(ev.W, 2, 3)
+    air = coef[0, :, -2 * n_knots:].reshape(ev.W, 2, n_knots)
     rms = float(np.sqrt((air ** 2).sum(axis=1).mean()))
     return Hypothesis("wind_gust", estimate={"air_velocity_rms_m_s": rms}, sse=sse_g,
                       channels=(0, 1, 3, 4, 6, 7), extra={"base_sse": sse_b})
