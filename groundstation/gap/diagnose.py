@@ -16,7 +16,8 @@ Steps (all on the prepared in-air segments, cut into windows rotating through k 
    a deadband is wider than a few steps of the recorded input's resolution, gyro bias on p/q
    must also show in the Euler kinematics, an air-mass motion must also improve the attitude
    channels); ``unexplained`` when none is significant while the held-out residual is well above
-   its noise floor and most of the excess sits in flagged windows; else ``none``;
+   its noise floor (3x, in two or more channels) and most of the excess sits in flagged windows;
+   else ``none``;
 5. report: the DESIGN.md ``heli-gap-report/1`` dict (:mod:`groundstation.gap.report`).
 
 What it leaves to others: reading logs and preparing data (``dsp.prepare``), identification
@@ -246,7 +247,9 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
     ranked = sorted((c for c in candidates if c.significant), key=lambda c: -c.score.score_pct)
     excess = np.maximum(energy_w - nominal, 0.0)
     flagged_share = float(excess[flag].sum() / excess.sum()) if excess.sum() > 0 else 0.0
-    gap_significant = bool(np.nanmax(np.where(out_excited, gap_ratio, np.nan)) > 3.0) if out_excited.any() else False
+    # well above the noise floor in at least two excited channels (one channel alone is more often a
+    # sensor whose noise is not white, e.g. velocities resampled from a slower estimate)
+    gap_significant = bool(np.sum(np.nan_to_num(np.where(out_excited, gap_ratio, 0.0)) > 3.0) >= 2)
     if ranked:
         verdict = ranked[0].hyp.effect
     elif gap_significant and flagged_share > 0.5:
