@@ -157,6 +157,10 @@ class SessionConfig:
     link_timeout_s: float = 3.0
     stale_frame_s: float = 0.25
     reboot_backstep_s: float = 1.0
+    # the requested streams flowed after the last set-up, then stopped for this long while the
+    # link stayed up (heartbeats only): the FC rebooted too briefly for the link timeout to
+    # notice and, like ArduPilot, came back with no streams; the set-up is sent again
+    stream_silence_s: float = 2.0
     target_sysid: int | None = None
     src_sysid: int = 255
     src_compid: int = 190
@@ -326,6 +330,10 @@ class MavlinkSession:
         self._last_data = 0.0
         self._lost = False
         self._setup: _Setup | None = None
+        self._setup_started = 0.0
+        self._last_stream_rx = 0.0  # host time of the last requested message from the target
+        self._requested = frozenset(n for n, _ in self.config.stream_rates_hz)
+        self.stream_rerequests = 0
         self.message_counts: dict[str, int] = {}
         self._emit_raw = self.config.emit_raw_packets
         self._decoders: dict[int, tuple[Any, int, Callable[..., Any] | None, str]] = {}
@@ -371,6 +379,8 @@ class MavlinkSession:
         self._seq[key] = seq
         unpacker, size, conv, name = dec
         self.message_counts[name] = self.message_counts.get(name, 0) + 1
+        if name in self._requested and self.target is not None and sysid == self.target[0]:
+            self._last_stream_rx = now
         sig_ok: bool | None = None
         if self._verifier is not None:
             sig_ok = bool(self._verifier.check(pkt).ok)
@@ -383,7 +393,7 @@ class MavlinkSession:
         if self._lost:
             self._lost = False
             self._events.append(LinkRestored(now))
-            self._restart_setup()
+            self._restart_setup(now)
         self._last_rx = now
         if self._emit_raw:
             self._events.append(RawPacket(now, pkt, msg_id, name, sysid, compid, seq, sig_ok))
@@ -452,6 +462,10 @@ class MavlinkSession:
             nxt = self._next_hb + self.config.heartbeat_interval_s
             self._next_hb = nxt if nxt > now else now + self.config.heartbeat_interval_s
         if self._setup is not None:
+            if (self._setup.done and self._last_stream_rx > self._setup_started
+                    and now - self._last_stream_rx > self.config.stream_silence_s):
+                self.stream_rerequests += 1
+                self._restart_setup(now)
             self._step_setup(now)
 
     def data_to_send(self, now: float) -> bytes:
@@ -473,9 +487,10 @@ class MavlinkSession:
 
     # ------------------------------------------------------------------ stream setup
 
-    def _restart_setup(self) -> None:
+    def _restart_setup(self, now: float) -> None:
         if not self.config.request_streams or self.target is None:
             return
+        self._setup_started = now
         self._setup = _Setup([_Request(n, MESSAGE_NAMES[n], r) for n, r in self.config.stream_rates_hz])
 
     def _on_heartbeat(self, hb: Heartbeat, now: float) -> None:
@@ -487,7 +502,7 @@ class MavlinkSession:
             return
         self.target = (hb.sysid, hb.compid)
         self._next_hb = now
-        self._restart_setup()
+        self._restart_setup(now)
 
     def _on_ack(self, ack: CommandAck, now: float) -> None:
         s = self._setup
@@ -580,7 +595,7 @@ class MavlinkSession:
                 for seq_key in [k for k in self._seq if k[0] == sysid]:
                     del self._seq[seq_key]
                 if self.target is not None and sysid == self.target[0]:
-                    self._restart_setup()
+                    self._restart_setup(now)
             elif t_s > ref:
                 c.last_s = t_s
         else:

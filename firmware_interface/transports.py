@@ -170,7 +170,10 @@ class SerialLink(Link):
             if self._err is not None or self._ser is None:
                 raise LinkDown(f"{self.url}: {self._err or 'port closed'}")
             try:
-                await asyncio.wait_for(self._wake.wait(), 0.5)
+                # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a cancellation
+                # that races its own timeout, and the reader task would not stop.
+                async with asyncio.timeout(0.5):
+                    await self._wake.wait()
             except TimeoutError:
                 if not os.path.exists(self.path):
                     self._fail(f"port {self.path} vanished")

@@ -65,4 +65,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # Run through the package module, not this __main__ copy, so that the
+    # exception classes caught in main() are the ones the commands raise.
+    from groundstation.cli import main as _package_main
+
+    sys.exit(_package_main())

@@ -41,7 +41,6 @@ def load_model(path: Path):
 
 def run(args: argparse.Namespace) -> int:
     from firmware_interface.readers import load_log
-
     from groundstation.dsp.prepare import prepare
     from groundstation.gap.diagnose import DiagnoseConfig, run_diagnosis
 

@@ -555,3 +555,30 @@ def test_late_sample_from_before_a_wrap_keeps_its_time():
     ts = [e.t_fc_s for e in feed_bytewise(s, frames) if isinstance(e, ServoOutputRaw)]
     assert ts == pytest.approx([(top + d) * 1e-6 for d in (-5000, 5000, -2000, 8000)])
     assert s.stats.fc_reboots == 0
+
+
+def test_brief_reboot_without_link_timeout_gets_streams_requested_again(fc):
+    """An FC that reboots in under the link timeout and comes back sending heartbeats only (as
+    ArduPilot does on a fresh boot) shows no backward time step; the silence of the requested
+    streams is what tells, and the set-up is sent again once, not on every timer tick."""
+    s = MavlinkSession(SessionConfig(stream_rates_hz=(("ATTITUDE", 50.0),), link_timeout_s=3.0))
+    s.receive_data(fc.heartbeat(), 0.0)
+    parse_out(s.data_to_send(0.0))
+    s.receive_data(fc.ack(511, 0), 0.05)
+    now, ms = 0.1, 100
+    while now < 5.0:  # streams flowing
+        s.receive_data(fc.attitude(ms), now)
+        s.data_to_send(now)
+        now, ms = round(now + 0.02, 3), ms + 20
+    sent = []
+    while now < 12.0:  # rebooted in 1 s: heartbeats every 0.5 s, no ATTITUDE
+        if now >= 6.0 and round(now * 100) % 50 == 0:
+            s.receive_data(fc.heartbeat(), now)
+        sent += [(now, m) for m in parse_out(s.data_to_send(now))]
+        now = round(now + 0.02, 3)
+    assert not [e for e in s.events() if isinstance(e, LinkLost)]
+    req = [t for t, m in sent if m.get_type() == "COMMAND_LONG" and m.command == 511]
+    assert req and 7.0 <= req[0] <= 7.3  # 2 s after the last ATTITUDE
+    assert s.stream_rerequests == 1
+    # no ack and still no streams: ordinary retries and fallback, no re-request loop
+    assert len(req) <= 1 + SessionConfig().ack_retries
