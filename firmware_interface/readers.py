@@ -181,11 +181,11 @@ def _fix_untimed(series: dict[str, Series], untimed: tuple[str, ...] = _UNTIMED)
         env_t = h[starts]
     out = dict(series)
     for name in untimed:
-        s = series.get(name)
-        if s is None or not len(s):
+        u = series.get(name)
+        if u is None or not len(u):
             continue
-        t_fc = s.t_host_s - np.interp(s.t_host_s, env_t, env_o)
-        out[name] = Series(t_fc, s.t_host_s, s.columns)
+        t_fc = u.t_host_s - np.interp(u.t_host_s, env_t, env_o)
+        out[name] = Series(t_fc, u.t_host_s, u.columns)
     return out
 
 

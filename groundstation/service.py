@@ -268,7 +268,7 @@ class Service:
             max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init)
 
     def _install_signals(self, loop: asyncio.AbstractEventLoop) -> list[int]:
-        installed = []
+        installed: list[int] = []
         for sig in (signal.SIGINT, signal.SIGTERM):
             try:
                 loop.add_signal_handler(sig, self.request_stop, signal.Signals(sig).name)
@@ -516,7 +516,7 @@ class Service:
                     self._rerun_calls.submit(self.rerun.log_model_overlay, overlay["t_fc_s"], overlay["model"])
                 gap = res.get("gap") or {}
                 t_end = float(overlay["t_fc_s"][-1]) if has_overlay else 0.0
-                self._rerun_calls.submit(self.rerun.log_gap, int(flight), match, str(gap.get("verdict", "")),
+                self._rerun_calls.submit(self.rerun.log_gap, int(flight or 0), match, str(gap.get("verdict", "")),
                                          _gap_text(gap), t_end)
         self._check_exit()
 

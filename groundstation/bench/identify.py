@@ -47,12 +47,12 @@ def _flights(args, tmp: Path) -> tuple[Any, Any, dict[str, float], str]:
 
     cfg = PrepConfig() if args.passes is None else PrepConfig(smooth_passes=args.passes)
     if args.source in ("auto", "sim"):
+        write_tlog: Any = None
         try:
             from hil_replay.sim import write_tlog
         except ImportError:
             if args.source == "sim":
                 raise
-            write_tlog = None
         if write_tlog is not None:
             from firmware_interface.readers import load_log
 
@@ -133,17 +133,18 @@ def run(args: argparse.Namespace) -> int:
         t.add_column(c, justify="right")
     z_all = []
     for n in PARAM_NAMES:
-        tv, ev, s = truth[n], model.params[n], model.parameter_std.get(n)
-        err = 100 * (ev - tv) / abs(tv) if tv != 0 else float("nan")
-        z = (ev - tv) / s if s else float("nan")
+        true_v, est_v, s = truth[n], model.params[n], model.parameter_std.get(n)
+        err = 100 * (est_v - true_v) / abs(true_v) if true_v != 0 else float("nan")
+        z = (est_v - true_v) / s if s else float("nan")
         z_all.append(z)
-        t.add_row(n, f"{tv:.4g}", f"{ev:.4g}", f"{err:.1f}", "-" if s is None else f"{s:.3g}", f"{z:.2f}")
+        t.add_row(n, f"{true_v:.4g}", f"{est_v:.4g}", f"{err:.1f}", "-" if s is None else f"{s:.3g}", f"{z:.2f}")
     con.print(t)
     key = ("M_a", "L_b", "inv_tau_s", "A_lat", "B_lon", "Z_col", "N_ped", "N_r")
     key_err = {k: abs(model.params[k] - truth[k]) / abs(truth[k]) * 100 for k in key}
     za = np.abs(np.array(z_all, dtype=float))
+    worst_key = max(key_err, key=lambda k: key_err[k])
     con.print(f"key parameters within 10%: {sum(v <= 10 for v in key_err.values())}/{len(key)} "
-              f"(worst {max(key_err, key=key_err.get)} {max(key_err.values()):.1f}%); "
+              f"(worst {worst_key} {key_err[worst_key]:.1f}%); "
               f"|z| <= 3: {int(np.sum(za <= 3))}/{int(np.isfinite(za).sum())} (max {np.nanmax(za):.2f})")
     true_model = HoverModel(params=dict(truth))
     v_id, v_true = validate(model, val), validate(true_model, val)

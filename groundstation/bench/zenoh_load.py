@@ -128,7 +128,7 @@ class Viewer:
         self.session = zenoh.open(cfg)
         key = f"heli/{vehicle}/**"
         if kind == "stuck":
-            self.sub = self.session.declare_subscriber(key, zenoh.handlers.FifoChannel(4))
+            self.sub: Any = self.session.declare_subscriber(key, zenoh.handlers.FifoChannel(4))
         else:
             def cb(sample: Any) -> None:
                 t = time.time()

@@ -62,7 +62,7 @@ class SecuritySummary:
     warnings: tuple[str, ...] = ()
 
 
-def _one_line(text: str, limit: int = 200) -> str:
+def _one_line(text: object, limit: int = 200) -> str:
     s = " ".join(str(text).split())
     return s if len(s) <= limit else s[: limit - 1] + "…"
 
