@@ -69,6 +69,9 @@ class PrepConfig:
     input_trim_pwm: tuple[float, float, float, float] | None = None
     pwm_per_unit: float = 500.0
     in_air_alt_m: float = 0.5
+    ground_clearance_m: float = 0.1  # off the ground above this height (0 turns the ground-contact trim off)
+    ground_ref_s: float = 1.0  # time on the ground after arming / before disarming that gives the ground level
+    ground_mismatch_m: float = 1.0  # ground levels before and after further apart than this: no trim
     velocity_source: str = "auto"  # "auto", "local", "global", "none"
 
     def __post_init__(self) -> None:
@@ -194,6 +197,58 @@ def _in_air_intervals(log: Any, flight: Any, cfg: PrepConfig) -> list[tuple[floa
     return [(float(alt_t[i]), float(alt_t[j - 1])) for i, j in runs(air) if j - 1 > i]
 
 
+def _trim_ground_contact(log: Any, flight: Any, intervals: list[tuple[float, float]], cfg: PrepConfig,
+                         notes: list[str]) -> list[tuple[float, float]]:
+    """Shrink in-air intervals to where the aircraft is off the ground by its own height.
+
+    A land detector declares "landed" seconds after touchdown (ArduPilot waits for low throttle
+    and no motion; our simulator likewise), and the skids sit on the ground with the collective
+    already lowered: a hover model fitted or scored there sees a large collective step and no
+    vertical motion. The ground level is the median height over the first ``ground_ref_s`` of
+    the armed time before take-off and the last ``ground_ref_s`` after landing (linear in between,
+    so a slow barometric drift is followed); the interval ends move inwards to the first and last
+    sample at least ``ground_clearance_m`` (or four ground-noise standard deviations, if larger)
+    above it. Nothing is trimmed where no reference is there, where the two disagree by more
+    than ``ground_mismatch_m`` (that is not one ground), or where the height never clears it.
+    """
+    if cfg.ground_clearance_m <= 0 or not intervals:
+        return intervals
+    alt_t, h = _altitude(log, float(flight.start_fc_s), float(flight.end_fc_s))
+    if alt_t is None or h.size < 4:
+        return intervals
+    out = []
+    t_arm, t_disarm = float(flight.start_fc_s), float(flight.end_fc_s)
+    for a, b in intervals:
+        pre = (alt_t >= t_arm) & (alt_t < min(a, t_arm + cfg.ground_ref_s))
+        post = (alt_t > max(b, t_disarm - cfg.ground_ref_s)) & (alt_t <= t_disarm)
+        ends = [float(np.median(h[sel])) if sel.sum() >= 3 else None for sel in (pre, post)]
+        if (ends[0] is None and ends[1] is None) or (
+                ends[0] is not None and ends[1] is not None and abs(ends[1] - ends[0]) > cfg.ground_mismatch_m):
+            out.append((a, b))
+            continue
+        known = [e for e in ends if e is not None]
+        g0 = ends[0] if ends[0] is not None else known[0]
+        g1 = ends[1] if ends[1] is not None else known[0]
+        noise = [np.std(h[sel] - np.median(h[sel])) for sel, e in zip((pre, post), ends, strict=True) if e is not None]
+        clear = max(cfg.ground_clearance_m, 4.0 * float(max(noise)))
+        inside = (alt_t >= a) & (alt_t <= b)
+        ti, hi = alt_t[inside], h[inside]
+        if ti.size < 2:
+            out.append((a, b))
+            continue
+        ground = g0 + (g1 - g0) * (ti - a) / max(b - a, 1e-9)
+        up = np.flatnonzero(hi - ground > clear)
+        if up.size == 0:
+            notes.append(f"{log.source}: height never clears the ground by {clear:.2f} m in flight "
+                         f"{getattr(flight, 'index', 0)}: in-air interval kept as the land detector gave it")
+            out.append((a, b))
+            continue
+        a2 = float(ti[up[0]]) if ends[0] is not None else a
+        b2 = float(ti[up[-1]]) if ends[1] is not None else b
+        out.append((max(a, a2), min(b, b2)))
+    return out
+
+
 def _altitude(log: Any, a: float, b: float) -> tuple[np.ndarray | None, np.ndarray]:
     """Height above the value at the flight start from LOCAL_POSITION_NED z or GLOBAL relative_alt."""
     for name, col, sign in (("LOCAL_POSITION_NED", "z_m", -1.0), ("GLOBAL_POSITION_INT", "relative_alt_m", 1.0)):
@@ -247,7 +302,7 @@ def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str]) -> list[_Raw]:
     out: list[_Raw] = []
     n_air = 0
     for fl in flights:
-        intervals = _in_air_intervals(log, fl, cfg)
+        intervals = _trim_ground_contact(log, fl, _in_air_intervals(log, fl, cfg), cfg, notes)
         for a, b in intervals:
             a2, b2 = a + cfg.edge_trim_s, b - cfg.edge_trim_s
             if b2 - a2 < cfg.min_segment_s:

@@ -17,7 +17,7 @@ def make_series(name: str, t_s: np.ndarray, **cols: np.ndarray) -> Series:
 def make_log(duration_s: float = 60.0, *, seed: int = 0, servo_rate_hz: float = 50.0, att_rate_hz: float = 50.0,
              pos_rate_hz: float = 10.0, yaw_rad: float = 0.7, vel_ned=(1.0, 0.5, -0.2), drop_servo=None,
              with_servo: bool = True, with_att: bool = True, flights=None, vel_nan_after_s=None,
-             landed_state=True) -> LogData:
+             landed_state=True, z_of_t=None) -> LogData:
     rng = np.random.default_rng(seed)
     series = {}
     ts = np.arange(0.0, duration_s, 1 / servo_rate_hz) + 0.003
@@ -42,7 +42,7 @@ def make_log(duration_s: float = 60.0, *, seed: int = 0, servo_rate_hz: float = 
     if vel_nan_after_s is not None:
         for v in (vx, vy, vz):
             v[tp > vel_nan_after_s] = np.nan
-    z = -np.clip((tp - 2.0) * 2.0, 0.0, 5.0)
+    z = -np.clip((tp - 2.0) * 2.0, 0.0, 5.0) if z_of_t is None else z_of_t(tp)
     series["LOCAL_POSITION_NED"] = make_series("LOCAL_POSITION_NED", tp, z_m=z, vx_m_s=vx, vy_m_s=vy, vz_m_s=vz)
     if landed_state:
         tl = np.arange(0.0, duration_s, 1.0)

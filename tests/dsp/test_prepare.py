@@ -29,6 +29,30 @@ def test_prepare_grid_trims_and_body_velocity():
     assert np.isfinite(s.alt_m).all() and s.alt_m.max() == pytest.approx(5.0, abs=0.1)
 
 
+def test_ground_contact_before_the_land_detector_is_trimmed_by_height():
+    """Touchdown at 52 s, the land detector says landed only at 57 s: the segment ends at the last
+    sample off the ground minus the edge trim; take-off (already on time) is unchanged; with the
+    trim turned off the segment runs to the land detector."""
+    def z_of_t(t):
+        climb = np.clip((t - 2.0) * 2.0, 0.0, 5.0)
+        descent = np.clip((52.0 - t) * 2.5, 0.0, 5.0)
+        return -np.minimum(climb, descent) + 0.01 * np.sin(7 * t)  # 1 cm of sensor wobble
+
+    log = make_log(60.0, z_of_t=z_of_t)
+    s = prepare([log]).segments[0]
+    assert s.t_s[0] == pytest.approx(4.0, abs=0.02)
+    off_ground = 52.0 - 0.1 / 2.5  # last moment 0.1 m up
+    assert s.t_s[-1] == pytest.approx(off_ground - 1.0, abs=0.12)
+    s0 = prepare([log], PrepConfig(ground_clearance_m=0.0)).segments[0]
+    assert s0.t_s[-1] == pytest.approx(56.0, abs=0.02)
+
+
+def test_ground_levels_that_disagree_leave_the_land_detector_alone():
+    # still at 5 m when disarmed (a log cut in the air): no common ground, nothing trimmed
+    s = prepare([make_log(60.0)]).segments[0]
+    assert s.t_s[-1] == pytest.approx(56.0, abs=0.02)
+
+
 def test_long_servo_gap_splits_segment_short_gap_does_not():
     p = prepare([make_log(80.0, drop_servo=(30.0, 32.0))])
     assert len(p.segments) == 2
