@@ -26,29 +26,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no terminal table")
 
 
-def load_model(path: Path):
-    from groundstation.sysid.model import HoverModel
-
-    try:
-        doc = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
-    try:
-        return HoverModel.from_json(doc)
-    except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from None
-
-
 def run(args: argparse.Namespace) -> int:
-    from firmware_interface.readers import load_log
+    from groundstation.commands.identify import load_logs
+    from groundstation.commands.validate import load_model
     from groundstation.dsp.prepare import prepare
     from groundstation.gap.diagnose import DiagnoseConfig, run_diagnosis
 
-    for p in args.logs:
-        if not p.exists():
-            raise OSError(f"{p}: no such log file")
     model = load_model(args.model) if args.model else None
-    logs = [load_log(p) for p in args.logs]
+    logs = load_logs(args.logs)
     prepared = prepare(logs)
     cfg = DiagnoseConfig(window_s=args.window_s)
     diag = run_diagnosis(model, prepared, seed=args.seed, config=cfg)
