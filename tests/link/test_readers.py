@@ -19,9 +19,9 @@ from firmware_interface.readers import load_log, load_tlog_bytes
 from firmware_interface.tlog import TlogWriter
 from firmware_interface.tlogread import TlogScan, scan_tlog
 from groundstation.cli import main as cli_main
+from tests.realdata import real_log
 
 REPO = Path(__file__).resolve().parents[2]
-TREX = Path("/work/shared/data/trex550/flight1.tlog")
 T0_US = 1_700_000_000_000_000
 
 
@@ -119,7 +119,7 @@ def test_project_written_tlog_loads_with_flights(tmp_path):
 
 
 def test_load_log_on_real_trex550_log():
-    log = load_log(TREX)
+    log = load_log(real_log("trex550/flight1.tlog"))
     att = log.series["ATTITUDE"]
     assert len(att) == 39810
     rate = (len(att) - 1) / (att.t_fc_s[-1] - att.t_fc_s[0])
@@ -131,7 +131,7 @@ def test_load_log_on_real_trex550_log():
 
 
 def test_log_info_json_on_real_log(capsys):
-    assert cli_main(["log-info", str(TREX), "--json"]) == 0
+    assert cli_main(["log-info", str(real_log("trex550/flight1.tlog")), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert len(info["flights"]) >= 1
     f = info["flights"][0]

@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 from groundstation.cli import main
-
-TREX = Path("/work/shared/data/trex550/flight1.tlog")
+from tests.realdata import real_log
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +84,7 @@ def test_real_trex550_log_identifies_what_it_supports():
     from groundstation.sysid.identify import IdentifyConfig, identify
     from groundstation.sysid.validate import validate
 
-    prep = prepare([load_log(TREX)])
+    prep = prepare([load_log(real_log("trex550/flight1.tlog"))])
     assert not prep.input_active[0]  # lateral cyclic was not logged
     assert any("lat never moves" in n for n in prep.notes)
     # velocities are NaN after ~215 s: a segment without u v w exists
