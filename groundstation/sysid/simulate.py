@@ -98,7 +98,8 @@ class WindowSimulator:
     def __init__(self, inputs: np.ndarray, outputs: np.ndarray, dt_s: float, available: np.ndarray | None = None,
                  *, estimate_all_initial: bool = False, ridge: float = 1e-6, block: int = 10,
                  subsystems: tuple[int, ...] = (0, 1),
-                 linear: dict[int, tuple[tuple[int, int], ...]] | None = None) -> None:
+                 linear: dict[int, tuple[tuple[int, int], ...]] | None = None,
+                 lifted_block: tuple[int, int] = (5, 5)) -> None:
         u = np.asarray(inputs, dtype=float)
         y = np.asarray(outputs, dtype=float)
         if u.ndim != 3 or u.shape[2] != 4 or y.ndim != 3 or y.shape[2] != 8 or u.shape[:2] != y.shape[:2]:
@@ -122,6 +123,8 @@ class WindowSimulator:
         self.W, self.L = u.shape[0], u.shape[1]
         self.linear = {k: tuple(v) for k, v in (linear or {}).items() if v}
         self.b = max(1, min(int(block), self.L))
+        self.lifted_block = tuple(int(v) for v in lifted_block)
+        self.chunk_bytes = 2e6
         self.nb = -(-self.L // self.b)
         Lp = self.nb * self.b
         self._prep: list[dict] = []
@@ -149,16 +152,173 @@ class WindowSimulator:
             Ub = U[0].reshape(self.W * self.nb, self.b, len(sub.inputs))
             Usel = [np.ascontiguousarray(Ub[:, :, j]) for _, j in lin]
             self._prep.append(dict(s_idx=s_idx, o_idx=o_idx, nch=nch, U=U, known=known, xm=xm, yflat=yflat, lin=lin,
-                                   Usel=Usel,
+                                   Usel=Usel, mask_hw=np.ascontiguousarray(self.mask[:, o_idx].T).astype(float),
                                    w_ch=w_ch, wflat=wflat, mflat=mflat, unk=(~known).astype(float),
                                    uniform=bool((w_ch == w_ch[:1]).all()), full_mask=bool(self.mask[:, o_idx].all())))
+            lb = self.lifted_block[_SUBS.index(sub)]
+            self._prep[-1].update(self._lifted_prep(sub, u[:, :, list(sub.inputs)], self.outputs[:, :, o_idx], xm, known,
+                                                    w_ch, lb))
+
+    def _lifted_prep(self, sub: _Sub, u: np.ndarray, y: np.ndarray, xm: np.ndarray, known: np.ndarray,
+                     w_ch: np.ndarray, block: int) -> dict:
+        """Data in the lifted layout of :meth:`_lifted`: columns ``(block i, window w)``, rows ``(channel, j)``."""
+        W = self.W
+        b = max(1, min(int(block), self.L))
+        nb = -(-self.L // b)
+        m, nch = len(sub.inputs), len(sub.meas)
+        Lp = nb * b
+        up = np.zeros((W, Lp, m))
+        up[:, :self.L] = u
+        # Ut[(l, input), (i, w)] = u[w, i b + l, input]
+        Ut = np.ascontiguousarray(up.reshape(W, nb, b, m).transpose(2, 3, 1, 0).reshape(b * m, nb * W))
+        yp = np.zeros((W, Lp, nch))
+        yp[:, :self.L] = y
+        # yT[(h, j), (i, w)] = y[w, i b + j, h]
+        yT = np.ascontiguousarray(yp.reshape(W, nb, b, nch).transpose(3, 2, 1, 0).reshape(nch * b, nb * W))
+        # Toeplitz index: T[j, l] = C A^(j-1-l) B for l < j, else the zero block (index b)
+        jj, ll = np.meshgrid(np.arange(b), np.arange(b), indexing="ij")
+        qidx = np.where(ll < jj, jj - 1 - ll, b)
+        jv = self.L - (nb - 1) * b  # valid j in the last block
+        unk = ~known
+        same = bool((unk == unk[:1]).all()) and bool((w_ch == w_ch[:1]).all())
+        return dict(Ut=Ut, yT=yT, qidx=qidx, jv=jv, x0T=np.ascontiguousarray(xm.T), X={}, lb=b, lnb=nb, same_G=same)
+
+    def _xbuf(self, pre: dict, C: int, n: int) -> np.ndarray:
+        """(C, n + b m, nb W) lifted state/input matrix; the input rows are filled once (kept for the
+        largest colony seen: fresh multi-megabyte arrays every call cost page faults)."""
+        X = pre["X"].get("X")
+        if X is None or X.shape[0] < C:
+            Ut = pre["Ut"]
+            X = np.empty((C, n + Ut.shape[0], Ut.shape[1]))
+            X[:, n:] = Ut[None]
+            pre["X"]["X"] = X
+        return X[:C]
+
+    def _rbuf(self, pre: dict, cc: int, rows: int) -> np.ndarray:
+        """(cc, rows, nb W) work buffer for one chunk of candidates, reused between calls."""
+        R = pre["X"].get("R")
+        if R is None or R.shape[0] < cc:
+            R = np.empty((cc, rows, pre["Ut"].shape[1]))
+            pre["X"]["R"] = R
+        return R[:cc]
+
+    def _lifted(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, *, explicit: bool):
+        """Windowed simulation with per-window least-squares initial states, in the lifted layout.
+
+        Blocks of b samples: the block-start states come from the recursion
+        ``x_{i+1} = [A^b | Cb] [x_i; U_i]`` (Cb the block controllability matrix), and every output
+        sample of every block from ONE product per candidate, ``Y = [Ob | T] [x; U]`` (``Ob`` rows
+        ``C_h A^j``, ``T`` the block-Toeplitz Markov parameters), laid out channel-major so that the
+        initial-state least squares needs only per-channel products ``Phi_h^T r_h``. ``explicit``:
+        return the output errors ``e = yhat - y`` (C, W, L, nch); else the per-channel sums of squared
+        errors over windows, from the quadratic form ``||r||^2 - 2 z.g + z^T H z`` (no error
+        array), recomputed explicitly for any candidate where that form loses more than ~8 digits.
+        Returns ``(e or sse, x0)``.
+        """
+        C = Ad.shape[0]
+        W, L, n = self.W, self.L, sub.n
+        b, nb = pre["lb"], pre["lnb"]
+        s_idx, nch, jv = pre["s_idx"], pre["nch"], pre["jv"]
+        m = Bd.shape[-1]
+        K = n + b * m
+        Lp = nb * b
+        pw = [np.broadcast_to(np.eye(n), (C, n, n)), Ad]
+        for _ in range(b - 1):
+            pw.append(np.matmul(Ad, pw[-1]))
+        Apow = np.stack(pw, axis=1)  # (C, b+1, n, n)
+        Ab = Apow[:, b]
+        AB = np.matmul(Apow[:, :b], Bd[:, None])  # (C, b, n, m): A^q B
+        CABz = np.concatenate([AB[:, :, s_idx, :], np.zeros((C, 1, nch, m))], axis=1)  # (C, b+1, nch, m)
+        Tq = CABz[:, pre["qidx"]]  # (C, b(j), b(l), nch, m): C_h A^(j-1-l) B, zero for l >= j
+        Obm = np.ascontiguousarray(Apow[:, :b][:, :, s_idx, :].transpose(0, 2, 1, 3))  # (C, nch, b(j), n): C_h A^j
+        M = np.concatenate([Obm, Tq.transpose(0, 3, 1, 2, 4).reshape(C, nch, b, b * m)], axis=-1)
+        M = M.reshape(C, nch * b, K)
+        AbCb = np.concatenate([Ab, AB[:, ::-1].transpose(0, 2, 1, 3).reshape(C, n, b * m)], axis=-1)  # (C, n, K)
+        X = self._xbuf(pre, C, n)
+        X[:, :n, :W] = pre["x0T"][None]
+        for i in range(nb - 1):
+            np.matmul(AbCb, X[:, :, i * W:(i + 1) * W], out=X[:, :n, (i + 1) * W:(i + 2) * W])
+        # free-response basis Phi[h, (j, i)] = C_h A^j (A^b)^i: one product with [I, Ab, Ab^2, ...]
+        Abc = np.empty((C, n, nb * n))
+        Abc[:, :, :n] = np.eye(n)
+        for i in range(nb - 1):
+            np.matmul(Ab, Abc[:, :, i * n:(i + 1) * n], out=Abc[:, :, (i + 1) * n:(i + 2) * n])
+        Phi = np.matmul(Obm.reshape(C, nch * b, n), Abc).reshape(C, nch, b, nb, n)
+        if jv < b:
+            Phi[:, :, jv:, nb - 1] = 0.0
+        Phi = Phi.reshape(C, nch, Lp, n)
+        H = np.matmul(np.swapaxes(Phi, -1, -2), Phi)  # (C, nch, n, n), the same for every window
+        # candidates in chunks of ~2 MB of output: the chunk stays in cache from product to reduction
+        cc = max(1, min(C, int(self.chunk_bytes // (8 * nch * b * nb * W))))
+        res = np.empty((C, W, L, nch) if explicit else (C, nch))
+        z = np.empty((C, W, n))
+        for c0 in range(0, C, cc):
+            c1 = min(C, c0 + cc)
+            z[c0:c1], res[c0:c1] = self._lifted_chunk(pre, M[c0:c1], X[c0:c1], Phi[c0:c1], H[c0:c1], explicit)
+        return res, pre["xm"][None] + z
+
+    def _lifted_chunk(self, pre: dict, M: np.ndarray, X: np.ndarray, Phi: np.ndarray, H: np.ndarray, explicit: bool):
+        """Least squares and errors of one chunk of candidates: ``(z (k, W, n), e (k, W, L, nch) or sse (k, nch))``."""
+        k, nch, Lp, n = Phi.shape
+        W, L, b, nb, jv = self.W, self.L, pre["lb"], pre["lnb"], pre["jv"]
+        # r = y - forced - known free response; g = Phi_h^T r_h per window; rr = ||r_h||^2 per window
+        R = self._rbuf(pre, k, nch * b)
+        np.matmul(M, X, out=R)  # (k, nch b, nb W)
+        np.subtract(pre["yT"][None], R, out=R)
+        if jv < b:
+            R.reshape(k, nch, b, nb, W)[:, :, jv:, nb - 1] = 0.0
+        R4 = R.reshape(k, nch, Lp, W)
+        g = np.matmul(np.swapaxes(R4, -1, -2), Phi)  # (k, nch, W, n)
+        # normal equations per candidate per window: G = sum_h w_h H_h (+ ridge), rhs = sum_h w_h g_h
+        unk = pre["unk"]
+        w_ch = pre["w_ch"]  # (W, nch)
+        rhs = np.einsum("wh,chwn->cwn", w_ch, g)
+        rhs *= unk[None]
+        if pre["same_G"]:  # one G per candidate (same weights and unknowns in every window)
+            G = np.matmul(w_ch[:1][None], H.reshape(k, nch, n * n)).reshape(k, n, n)
+            uk = unk[0]
+            G *= uk[:, None] * uk[None, :]
+            scale = np.maximum(np.einsum("cii->ci", G).max(axis=-1, keepdims=True), 1e-300)
+            G += np.where(uk[None] > 0, self.ridge * scale, 1.0)[..., :, None] * np.eye(n)
+            z = np.swapaxes(np.linalg.solve(G, np.swapaxes(rhs, 1, 2)), 1, 2)  # (k, W, n)
+        else:
+            G = np.matmul(w_ch[None], H.reshape(k, nch, n * n)).reshape(k, W, n, n)
+            G *= (unk[:, :, None] * unk[:, None, :])[None]
+            scale = np.maximum(np.einsum("cwii->cwi", G).max(axis=-1, keepdims=True), 1e-300)
+            G += np.where(unk[None] > 0, self.ridge * scale, 1.0)[..., :, None] * np.eye(n)
+            z = np.linalg.solve(G, rhs[..., None])[..., 0]  # (k, W, n), zero on known dims
+        if explicit:
+            e = np.matmul(Phi, np.swapaxes(z, 1, 2)[:, None])  # (k, nch, Lp, W)
+            e -= R4
+            return z, e.reshape(k, nch, b, nb, W).transpose(0, 4, 3, 2, 1).reshape(k, W, Lp, nch)[:, :, :L]
+        rr = np.einsum("chkw,chkw->chw", R4, R4)
+        zHz = np.einsum("chwn,cwn->chw", np.matmul(z[:, None], H), z)
+        zg = np.einsum("chwn,cwn->chw", g, z)
+        q = rr - 2.0 * zg + zHz  # (k, nch, W)
+        if not pre["full_mask"]:
+            q *= pre["mask_hw"][None]
+            rr *= pre["mask_hw"][None]
+        sse = q.sum(axis=-1)  # (k, nch)
+        # the quadratic form cancels: trust it to ~1e-8 of ||r||^2, else compute those errors explicitly
+        rr_sum = rr.sum(axis=-1)
+        bad = ~(sse > 1e-8 * rr_sum) & np.isfinite(rr_sum)
+        if bad.any():
+            cb = np.flatnonzero(bad.any(axis=1))
+            e = np.matmul(Phi[cb], np.swapaxes(z[cb], 1, 2)[:, None])
+            e -= R4[cb]
+            if not pre["full_mask"]:
+                e *= pre["mask_hw"][None, :, None, :]
+            sse[cb] = np.einsum("chkw,chkw->ch", e, e)
+        return z, sse
 
     @property
     def state_updates_per_call(self) -> int:
         """State updates (one x[k+1] = A x[k] + B u[k]) per candidate per call."""
         return self.W * self.L
 
-    def _run(self, theta: np.ndarray):
+    def _run(self, theta: np.ndarray, *, sse: bool = False):
+        """Per subsystem ``(i, (e, x0[, beta]))``; e (C, W, L*nch) output errors, or with ``sse`` and no
+        projected B entries the per-channel sums of squared errors (C, nch) in place of e."""
         th = np.atleast_2d(np.asarray(theta, dtype=float))
         Ah, Bh, Av, Bv = build_matrices(th)
         out = []
@@ -166,14 +326,18 @@ class WindowSimulator:
             for i in self.subsystems:
                 A, B = ((Ah, Bh), (Av, Bv))[i]
                 n = A.shape[-1]
-                if self._prep[i]["lin"]:
+                pre = self._prep[i]
+                if pre["lin"]:
                     # Ad and Gamma = int_0^dt e^(A s) ds in one exponential; Bd = Gamma B (exact ZOH)
                     Ad, Gam = discretize(A, np.broadcast_to(np.eye(n), A.shape), self.dt_s)
                     Bd = np.matmul(Gam, B)
-                else:
-                    Ad, Bd = discretize(A, B, self.dt_s)
-                    Gam = None
-                out.append((i, self._sub(_SUBS[i], self._prep[i], Ad, Bd, Gam)))
+                    out.append((i, self._sub(_SUBS[i], pre, Ad, Bd, Gam)))
+                    continue
+                Ad, Bd = discretize(A, B, self.dt_s)
+                e, x0 = self._lifted(_SUBS[i], pre, Ad, Bd, explicit=not sse)
+                if not sse:
+                    e = e.reshape(e.shape[0], self.W, self.L * pre["nch"])
+                out.append((i, (e, x0)))
         return out
 
     def solve_linear(self, theta: np.ndarray) -> dict[int, np.ndarray]:
@@ -195,11 +359,14 @@ class WindowSimulator:
 
     def sse(self, theta: np.ndarray) -> np.ndarray:
         """Sum of squared output errors per candidate and channel over used samples; shape (C, 8)."""
-        res = self._run(theta)
+        res = self._run(theta, sse=True)
         C = res[0][1][0].shape[0]
         out = np.zeros((C, 8))
         for i, (e, *_rest) in res:
             pre = self._prep[i]
+            if e.ndim == 2:  # already per channel (lifted path)
+                out[:, pre["o_idx"]] = e
+                continue
             if not pre["full_mask"]:
                 e *= pre["mflat"][None]
             e *= e

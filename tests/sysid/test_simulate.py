@@ -113,3 +113,46 @@ def test_variable_projection_recovers_the_input_matrix(windows):
     for name in LINEAR_B:
         assert full[PARAM_INDEX[name]] == pytest.approx(th[PARAM_INDEX[name]], rel=2e-3, abs=1e-6)
     assert cost(x_true[None])[0] < 1e-3
+
+
+def test_expm_batched_matches_scipy():
+    from scipy.linalg import expm
+
+    from groundstation.sysid.model import expm_batched
+
+    rng = np.random.default_rng(5)
+    M = rng.normal(size=(40, 10, 10)) * np.logspace(-4, 1.5, 40)[:, None, None]  # norms from tiny to ~1e2
+    E = expm_batched(M)
+    for i in range(M.shape[0]):
+        ref = expm(M[i])
+        assert np.abs(E[i] - ref).max() <= 1e-12 * np.abs(ref).max()
+    M[3, 0, 0] = np.nan
+    E = expm_batched(M)
+    assert not np.isfinite(E[3]).all() and np.isfinite(np.delete(E, 3, axis=0)).all()
+
+
+@pytest.mark.parametrize("block", [(5, 5), (7, 4), (10, 10)])
+def test_sse_equals_the_explicit_errors(windows, block):
+    """The quadratic-form SSE (no error array) equals the sum of squared explicit errors, also for
+    unstable candidates (where the form cancels and the explicit fallback runs), L not a multiple of
+    the block, and a channel missing in some windows."""
+    from groundstation.sysid.model import bounds_array
+
+    th, u, y, _, _, dt = windows
+    rng = np.random.default_rng(7)
+    b = bounds_array()
+    wild = b[:, 0] + rng.random((6, th.size)) * (b[:, 1] - b[:, 0])  # mostly unstable
+    near = th * (1 + 0.05 * rng.normal(size=(4, th.size)))
+    thetas = np.vstack([th, near, wild])
+    avail = np.ones((6, 8), dtype=bool)
+    avail[1, 0] = avail[4, 5] = False  # u missing in window 1, r in window 4
+    for est in (False, True):
+        sim = WindowSimulator(u, y + rng.normal(0, 0.01, y.shape), dt, avail, estimate_all_initial=est,
+                              lifted_block=block)
+        sse = sim.sse(thetas)
+        e = sim.errors(thetas)
+        ref = (e ** 2).sum(axis=(1, 2))
+        ok = ref < 1e200
+        assert ok[:5].all()
+        assert np.allclose(sse[ok], ref[ok], rtol=1e-7, atol=0)
+        assert np.allclose(sse[:5], ref[:5], rtol=1e-10, atol=0)
