@@ -101,6 +101,10 @@ def run_case(job: dict[str, Any]) -> dict[str, Any]:
         out["verdict"] = rep["verdict"]
         out["effects"] = [{k: e[k] for k in ("effect", "input", "output", "estimate", "shrink_pct", "score")}
                           for e in rep["effects"]]
+        # every scored hypothesis (significant or not), for inspecting why a case went wrong
+        out["candidates"] = [{k: e.get(k) for k in ("effect", "input", "output", "estimate", "score", "p_value",
+                                                    "shrink_pct")} for e in rep["effects"] + rep["candidates"]]
+        out["gap_to_noise_ratio"] = rep["gap"].get("gap_to_noise_ratio")
         if job.get("fresh") and job["effects"]:
             path2 = Path(td) / "fresh.tlog"
             rng2 = np.random.default_rng(job["seed"])

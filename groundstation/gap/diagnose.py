@@ -204,21 +204,7 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
             continue
         base = h.extra.get("base_sse", ctx.base_sse)
         s = attribute.score(base, h.sse, ev.energy, h.channels, rng, n_boot=min(cfg.n_boot, 1000))
-        # two resampling units: ~0.5 s blocks (an effect at the sharpest inputs or near the ground
-        # lives in a handful of windows but in many blocks) and whole windows (a coarse check
-        # that the gain is not the within-window dependence of the blocks)
-        p_win = attribute.paired_bootstrap(base.sum(1), h.sse.sum(1), rng, cfg.n_boot)
-        if h.effect in ctx.blocks:
-            p_blk = attribute.paired_bootstrap(ctx.base_blocks.ravel(), ctx.blocks[h.effect].ravel(), rng, cfg.n_boot)
-            s.p_value = p_blk if p_win < cfg.window_alpha else max(p_blk, p_win)
-        else:
-            s.p_value = p_win
-        if h.effect == "wind_gust":
-            # an air-mass motion moves the attitude too (speed-stability moments): demand that
-            att = [3, 4, 6, 7]
-            p_att = attribute.paired_bootstrap(base[:, att].sum(1), h.sse[:, att].sum(1), rng, cfg.n_boot)
-            h.extra["p_attitude"] = p_att
-            s.p_value = max(s.p_value, p_att)
+        s.p_value = _p_value(h, ctx, base, rng, cfg)
         results.append((h, s))
     # rotor vibration: score on the raw residual of the line channels
     vib = None
@@ -244,7 +230,13 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
             gb.significant = gb.score.score_pct > 0
             gb.evidence = _evidence(gb.hyp, gb.score, kin, lines)
 
+    pairs = _encompass(candidates, ctx, segs, rng, cfg, crit)
+
     ranked = sorted((c for c in candidates if c.significant), key=lambda c: -c.score.score_pct)
+    for first, second in pairs:
+        if first in ranked and second in ranked and ranked.index(first) > ranked.index(second):
+            ranked.remove(first)
+            ranked.insert(ranked.index(second), first)
     excess = np.maximum(energy_w - nominal, 0.0)
     flagged_share = float(excess[flag].sum() / excess.sum()) if excess.sum() > 0 else 0.0
     # well above the noise floor in at least two excited channels (one channel alone is more often a
@@ -277,10 +269,127 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
     return Diagnosis(report=report, arrays=arrays)
 
 
+def _p_value(h: hypotheses.Hypothesis, ctx: hypotheses.Context | None, base: np.ndarray, rng: np.random.Generator,
+             cfg: DiagnoseConfig) -> float:
+    """One-sided p-value that hypothesis ``h`` (scanned in ``ctx``) does not lower the held-out cost."""
+    assert h.sse is not None
+    # two resampling units: ~0.5 s blocks (an effect at the sharpest inputs or near the ground
+    # lives in a handful of windows but in many blocks) and whole windows (a coarse check
+    # that the gain is not the within-window dependence of the blocks)
+    p_win = attribute.paired_bootstrap(base.sum(1), h.sse.sum(1), rng, cfg.n_boot)
+    if ctx is not None and h.effect in ctx.blocks:
+        p_blk = attribute.paired_bootstrap(ctx.base_blocks.ravel(), ctx.blocks[h.effect].ravel(), rng, cfg.n_boot)
+        p = p_blk if p_win < cfg.window_alpha else max(p_blk, p_win)
+    else:
+        p = p_win
+    if h.effect == "wind_gust":
+        # an air-mass motion moves the attitude too (speed-stability moments): demand that
+        att = [3, 4, 6, 7]
+        p_att = attribute.paired_bootstrap(base[:, att].sum(1), h.sse[:, att].sum(1), rng, cfg.n_boot)
+        h.extra["p_attitude"] = p_att
+        p = max(p, p_att)
+    return p
+
+
+def _p_pair(base: np.ndarray, base_blocks: np.ndarray, alt: np.ndarray, alt_blocks: np.ndarray,
+            rng: np.random.Generator, cfg: DiagnoseConfig) -> float:
+    """The block/window p-value of :func:`_p_value` for two held-out costs (W, 8) and blocks (W, n)."""
+    p_win = attribute.paired_bootstrap(base.sum(1), alt.sum(1), rng, cfg.n_boot)
+    p_blk = attribute.paired_bootstrap(base_blocks.ravel(), alt_blocks.ravel(), rng, cfg.n_boot)
+    return p_blk if p_win < cfg.window_alpha else max(p_blk, p_win)
+
+
+def _encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: list[SegmentArrays],
+               rng: np.random.Generator, cfg: DiagnoseConfig, crit: float
+               ) -> list[tuple[attribute.Candidate, attribute.Candidate]]:
+    """Encompassing tests between an input effect and the effects a closed loop makes look input-linked.
+
+    The pilot's corrective inputs answer the disturbances: an unmeasured air mass (or the ground's
+    extra lift, or drag) is partly cancelled by small inputs, so removing or delaying those inputs
+    in the model (deadband, delay, slew limit) mimics the disturbance, and a per-window air velocity
+    can in turn soak up part of an input effect's error. Each pair is decided by conditional tests,
+    both on held-out data: does the input effect still lower the cost once the other effect is in
+    the model (same channel, same grid, nested selection), and does the other effect still lower it
+    once the input effect is in? An effect that adds nothing given the other is not significant.
+    Changes ``cands`` in place (``significant``, ``evidence``, ``hyp.extra``); returns the pairs
+    (first, second) that both stay, the first keeping the larger share of its gain given the other.
+    """
+    ev = ctx.ev
+    by = {c.hyp.effect: c for c in cands}
+    gust = by.get("wind_gust")
+    order: list[tuple[attribute.Candidate, attribute.Candidate]] = []
+    for a in [c for c in cands if c.hyp.effect in hypotheses.INPUT_EFFECTS and c.significant]:
+        # --- air mass: the four models (base, +A, +air mass, +both) in the air-mass protocol
+        # (within-window chunk cross-validation, where a per-window smooth air velocity cannot
+        # follow the fast, input-linked error of an input effect)
+        if gust is not None and gust.score.score_pct > 0 and "base_sse" in gust.hyp.extra:
+            segs_a = hypotheses.apply_input_effect(a.hyp, segs, ev.dt_s)
+            ev_a = Evaluator(segs_a, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s,
+                             folds=ev.folds, ridge=ev.ridge)
+            ev_a.refine(3)
+            hg = hypotheses.scan_wind_gust(hypotheses.Context(ev_a, segs_a))
+            assert hg.sse is not None and gust.hyp.sse is not None
+            m0, mg = gust.hyp.extra["base_sse"], gust.hyp.sse
+            ma, mag = hg.extra["base_sse"], hg.sse
+            p_a = attribute.paired_bootstrap(mg.sum(1), mag.sum(1), rng, cfg.n_boot)
+            p_g = _p_value(hg, None, ma, rng, cfg)
+            ret_a = float((mg - mag).sum() / max((m0 - ma).sum(), 1e-300))
+            ret_g = float((ma - mag).sum() / max((m0 - mg).sum(), 1e-300))
+            da, dg = (mg - mag).sum(1), (ma - mag).sum(1)
+            a.hyp.extra.update(p_given_air_mass=p_a, retained_given_air_mass=ret_a,
+                               z_given_air_mass=float(da.mean() / (da.std(ddof=1) / np.sqrt(da.size))),
+                               z_g_given=float(dg.mean() / (dg.std(ddof=1) / np.sqrt(dg.size))),
+                               chan_a_given=np.round(100 * (mg - mag).sum(0) / np.maximum(m0.sum(0), 1e-300), 1).tolist(),
+                               chan_g_given=np.round(100 * (ma - mag).sum(0) / np.maximum(m0.sum(0), 1e-300), 1).tolist())
+            gust.hyp.extra.update({f"p_given_{a.hyp.effect}": p_g, f"retained_given_{a.hyp.effect}": ret_g})
+            a_ok = p_a < crit and float((mg - mag).sum()) > 0
+            g_ok = p_g < crit and float((ma - mag).sum()) > 0
+            if not a_ok:
+                a.significant = False
+                a.evidence += f"; adds nothing once an air-mass motion is allowed (p={p_a:.2g})"
+                continue
+            if gust.significant and not g_ok:
+                gust.significant = False
+                gust.evidence += f"; adds nothing once the {a.hyp.input} {a.hyp.effect} is in the model (p={p_g:.2g})"
+            elif gust.significant:
+                # both stay: the one keeping the larger share of its gain given the other comes first
+                order.append((a, gust) if ret_a >= ret_g else (gust, a))
+        # --- effects entering as forcing columns (ground effect, drag)
+        for b in cands:
+            if b.hyp.effect not in ("ground_effect", "quadratic_drag") or not b.significant or not a.significant:
+                continue
+            Xb = b.hyp.extra.get("X")
+            if Xb is None:
+                continue
+            ctx_b = hypotheses.Context(ev, segs, given=Xb)
+            ha = hypotheses.rescan_input_effect(ctx_b, a.hyp)
+            assert ha.sse is not None
+            p = _p_value(ha, ctx_b, ctx_b.base_sse, rng, cfg)
+            a.hyp.extra[f"p_given_{b.hyp.effect}"] = p
+            ra = a.hyp.extra["r_best"]
+            s0, _, _ = ev.heldout(ra)
+            b0 = ev.last_blocks.copy()
+            s1, _, _ = ev.heldout(ra, Xb)
+            pb = _p_pair(s0, b0, s1, ev.last_blocks, rng, cfg)
+            b.hyp.extra[f"p_given_{a.hyp.effect}"] = pb
+            a_ok = p < crit and float(ctx_b.base_sse.sum() - ha.sse.sum()) > 0
+            b_ok = pb < crit and float(s0.sum() - s1.sum()) > 0
+            if not a_ok and b_ok:
+                a.significant = False
+                a.evidence += f"; adds nothing once {b.hyp.effect} is in the model (p={p:.2g})"
+            elif a_ok and not b_ok:
+                b.significant = False
+                b.evidence += f"; adds nothing once the {a.hyp.input} {a.hyp.effect} is in the model (p={pb:.2g})"
+    return order
+
+
 def _physical(h: hypotheses.Hypothesis) -> bool:
-    """Sign constraints of the physics: drag opposes motion, ground effect adds lift."""
+    """Sign constraints of the physics: drag opposes motion (on every axis), ground effect adds lift."""
     if h.effect == "quadratic_drag":
-        return float(np.mean(list(h.estimate.values()) or [0.0])) > 0
+        # drag opposes the motion along every axis it is estimated on (a term of either sign on
+        # one axis is model-structure error, e.g. the rigid body's velocity-rate products)
+        vals = [float(v) for v in h.estimate.values()]
+        return bool(vals) and all(v > 0 for v in vals)
     if h.effect == "ground_effect":
         return float(h.estimate.get("accel_m_s2", 0.0)) > 0
     if h.effect == "deadband":

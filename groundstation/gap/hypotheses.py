@@ -102,10 +102,13 @@ def backlash(x: np.ndarray, b: float) -> np.ndarray:
 class Context:
     """Base-model windows plus the cached base held-out cost, shared by every scan."""
 
-    def __init__(self, ev: Evaluator, segments: list[SegmentArrays]):
+    def __init__(self, ev: Evaluator, segments: list[SegmentArrays], given: np.ndarray | None = None):
         self.ev = ev
         self.segments = segments
-        self.base_sse, self.base_train, _ = ev.heldout(ev.r0)
+        # ``given`` (W, L, 8, K): linear columns of another effect already in the model (conditional
+        # scans: does this effect still add anything once the other one is in?)
+        self.given = given
+        self.base_sse, self.base_train, _ = ev.heldout(ev.r0, given)
         self.dt_s = ev.dt_s
         self.change: dict[str, np.ndarray] = {}  # effect -> (W,) prediction change of its variant
         self.blocks: dict[str, np.ndarray] = {}  # effect -> (W, n_blocks) nested held-out cost
@@ -133,10 +136,13 @@ class Context:
         ev = self.ev
         sses, trains, coefs, blks = [], [], [], []
         for _, r, X in variants:
+            k_own = 0 if X is None else X.shape[-1]
+            if self.given is not None:
+                X = self.given if X is None else np.concatenate([X, self.given], axis=-1)
             s, t, c = ev.heldout(r, X)
             sses.append(s)
             trains.append(t)
-            coefs.append(c)
+            coefs.append(c[:, :k_own])
             blks.append(ev.last_blocks.copy())
         T = np.array(trains)  # (V, folds)
         out = np.empty((ev.W, 8))
@@ -193,7 +199,8 @@ def scan_input_delay(ctx: Context, channels: list[int]) -> Hypothesis:
     sse, best, _ = ctx.nested("input_delay", variants)
     lab = labels[best]
     return Hypothesis("input_delay", input=INPUTS[lab["channel"]], estimate={"delay_s": lab["delay_s"]},
-                      sse=sse, channels=(3, 4, 5, 6, 7), extra={"variants": len(variants)})
+                      sse=sse, channels=(3, 4, 5, 6, 7),
+                      extra={"variants": len(variants), "label": lab, "r_best": variants[best][1]})
 
 
 def scan_rate_limit(ctx: Context, channels: list[int]) -> Hypothesis:
@@ -218,7 +225,7 @@ def scan_rate_limit(ctx: Context, channels: list[int]) -> Hypothesis:
     return Hypothesis("rate_limit", input=INPUTS[lab["channel"]],
                       estimate={"rate_limit_per_s": lab["rate_per_s"],
                                 "rate_limit_pwm_us_per_s": lab["rate_per_s"] * ctx_pwm(ctx)},
-                      sse=sse, channels=(3, 4, 5, 6, 7))
+                      sse=sse, channels=(3, 4, 5, 6, 7), extra={"label": lab, "r_best": variants[best][1]})
 
 
 def ctx_pwm(ctx: Context) -> float:
@@ -249,7 +256,37 @@ def scan_deadband(ctx: Context, channels: list[int]) -> Hypothesis:
     quantum = 1.0 / ctx_pwm(ctx)
     return Hypothesis("deadband", input=INPUTS[lab["channel"]],
                       estimate={"deadband": lab["width"], "deadband_pwm_us": lab["width"] * ctx_pwm(ctx)},
-                      sse=sse, channels=(3, 4, 5, 6, 7), extra={"kind": lab["kind"], "quantum": quantum})
+                      sse=sse, channels=(3, 4, 5, 6, 7),
+                      extra={"kind": lab["kind"], "quantum": quantum, "label": lab, "r_best": variants[best][1]})
+
+
+INPUT_EFFECTS = ("input_delay", "rate_limit", "deadband")
+
+
+def apply_input_effect(h: Hypothesis, segments: list[SegmentArrays], dt_s: float) -> list[SegmentArrays]:
+    """The segments with the selected variant of an input-effect hypothesis applied to its input."""
+    lab = h.extra["label"]
+    c = int(lab["channel"])
+    out = []
+    for s in segments:
+        u = s.inputs.copy()
+        if h.effect == "input_delay":
+            u[:, c] = shift(u[:, c], lab["delay_s"] / dt_s)
+        elif h.effect == "rate_limit":
+            u[:, c] = rate_limit(u[:, c], np.array([lab["rate_per_s"] * dt_s]))[:, 0]
+        elif h.effect == "deadband":
+            u[:, c] = (deadzone if lab["kind"] == "deadzone" else backlash)(u[:, c], float(lab["width"]))
+        else:
+            raise ValueError(f"not an input effect: {h.effect}")
+        out.append(SegmentArrays(t_s=s.t_s, inputs=u, outputs=s.outputs, outputs_raw=s.outputs_raw,
+                                 alt_m=s.alt_m, flight=s.flight))
+    return out
+
+
+def rescan_input_effect(ctx: Context, h: Hypothesis) -> Hypothesis:
+    """The scan of ``h``'s effect on its selected channel only, in another (conditional) context."""
+    scan = {"input_delay": scan_input_delay, "rate_limit": scan_rate_limit, "deadband": scan_deadband}[h.effect]
+    return scan(ctx, [int(h.extra["label"]["channel"])])
 
 
 def scan_velocity_latency(ctx: Context) -> Hypothesis:
@@ -335,7 +372,7 @@ def scan_quadratic_drag(ctx: Context) -> Hypothesis:
     sse, best, coefs = ctx.nested("quadratic_drag", [({}, ev.r0, X)])
     c = coefs[0].mean(axis=0)
     est = {f"drag_{n}_per_m": float(v) for n, v in zip(used, c, strict=True)}
-    return Hypothesis("quadratic_drag", estimate=est, sse=sse, channels=(0, 1))
+    return Hypothesis("quadratic_drag", estimate=est, sse=sse, channels=(0, 1), extra={"X": X})
 
 
 def scan_ground_effect(ctx: Context) -> Hypothesis:
@@ -360,7 +397,8 @@ def scan_ground_effect(ctx: Context) -> Hypothesis:
     span = float(np.quantile(h, 0.98) - hmin)
     return Hypothesis("ground_effect", estimate={"accel_m_s2": float(-coefs[best].mean()),
                                                   "decay_height_m": labels[best]},
-                      sse=sse, channels=(2,), extra={"height_span_m": span, "min_height_m": hmin})
+                      sse=sse, channels=(2,), extra={"height_span_m": span, "min_height_m": hmin,
+                                                     "X": variants[best][2]})
 
 
 def _air_columns(ev: Evaluator, theta: np.ndarray, n_knots: int = 3) -> np.ndarray:
@@ -411,23 +449,41 @@ def scan_wind_gust(ctx: Context, chunk_s: float = 0.5, refine_iterations: int = 
     evg.nuisance = _air_columns(evg, ev.theta0, n_knots)
     evg.nuisance_prec = prec
     evg.set_theta(ev.theta0)
-    evg.refine(refine_iterations)
-    th_g = evg.theta0
-    nuis = _air_columns(ev, th_g, n_knots)
+    if refine_iterations > 0:
+        evg.refine(refine_iterations)
     chunk = max(int(round(chunk_s / ev.dt_s)), 2)
     even = ((np.arange(L) // chunk) % 2 == 0) & ev.mask
     odd = ((np.arange(L) // chunk) % 2 == 1) & ev.mask
-    sse_b = np.zeros((ev.W, 8))
-    sse_g = np.zeros((ev.W, 8))
-    coef = None
-    for fit_m, score_m in ((even, odd), (odd, even)):
-        yb = lsim(ev.theta0, ev.U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available, fit_mask=fit_m)[0]
-        yg, coef = lsim(th_g, ev.U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available,
-                        nuisance=nuis, fit_mask=fit_m, return_coef=True, nuisance_prec=prec)
-        sse_b += (((ev.Y - yb) * ev.w8)[:, score_m] ** 2).sum(axis=1)
-        sse_g += (((ev.Y - yg[0]) * ev.w8)[:, score_m] ** 2).sum(axis=1)
+
+    def chunk_cv(theta: np.ndarray, nuis: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        sse = np.zeros((ev.W, 8))
+        coef = None
+        for fit_m, score_m in ((even, odd), (odd, even)):
+            y, coef = lsim(theta, ev.U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available, nuisance=nuis,
+                           fit_mask=fit_m, return_coef=True, nuisance_prec=None if nuis is None else prec)
+            sse += (((ev.Y - y[0]) * ev.w8)[:, score_m] ** 2).sum(axis=1)
+        return sse, coef
+
+    sse_b, _ = chunk_cv(ev.theta0, None)
+    # two parameter sets for the air-mass model: the base as it is, and the base re-identified under
+    # the air velocity (which can also over-fit it); chosen per fold on the other folds' windows
+    # (nested selection, like every other hypothesis)
+    thetas = [ev.theta0] if refine_iterations <= 0 else [ev.theta0, evg.theta0]
+    cv = [chunk_cv(th, _air_columns(ev, th, n_knots)) for th in thetas]
+    sse_g = np.empty((ev.W, 8))
+    picks = []
+    for f in range(ev.folds):
+        tr, te = ev.fold != f, ev.fold == f
+        k = int(np.argmin([c[0][tr].sum() for c in cv]))
+        picks.append(k)
+        sse_g[te] = cv[k][0][te]
+    best = int(np.argmin([c[0].sum() for c in cv]))
+    coef = cv[best][1]
     assert coef is not None
     air = coef[0, :, -2 * n_knots:].reshape(ev.W, 2, n_knots)
     rms = float(np.sqrt((air ** 2).sum(axis=1).mean()))
     return Hypothesis("wind_gust", estimate={"air_velocity_rms_m_s": rms}, sse=sse_g,
-                      channels=(0, 1, 3, 4, 6, 7), extra={"base_sse": sse_b})
+                      channels=(0, 1, 3, 4, 6, 7),
+                      extra={"base_sse": sse_b, "theta": thetas[best], "n_knots": n_knots,
+                             "reidentified": [bool(k) for k in picks]})
+
