@@ -75,7 +75,11 @@ class IdentifyConfig:
     estimate_all_initial: bool = True
     varpro: bool = True
     vertical_iter_factor: float = 2.0
+    estimate_trim: bool = True
 
+
+#: Input channels (indices into lat lon col ped) of each subsystem.
+_SUBS_INPUTS = ((0, 1), (2, 3))
 
 DEFAULT_MAXITER = {"cabc": 50, "abc": 75, "ga": 75, "de": 50}
 
@@ -146,14 +150,16 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
         histories: dict[str, list[float]] = {}
         search_by_sub: dict[str, float] = {}
         histories_nfev: dict[str, list[int]] = {}
+        delta = np.zeros(4)  # input trim corrections (normalised units), lat lon col ped
         for sub, sub_name, sub_params in ((0, "horizontal", HOR_PARAMS), (1, "vertical", VER_PARAMS)):
             idx = np.array([PARAM_INDEX[p] for p in sub_params])
             sub_free = np.zeros(N_PARAMS, dtype=bool)
             sub_free[idx] = free[idx]
+            trim = cfg.estimate_trim and refine
             cost = WindowedCost(win, sub_free, theta, estimate_all_initial=cfg.estimate_all_initial,
-                                subsystems=(sub,))
+                                subsystems=(sub,), estimate_trim=trim)
             cost_s = WindowedCost(win_s, sub_free, theta, estimate_all_initial=cfg.estimate_all_initial,
-                                  subsystems=(sub,))
+                                  subsystems=(sub,), estimate_trim=trim)
             cost_v = WindowedCost(win_s, sub_free, theta, estimate_all_initial=cfg.estimate_all_initial,
                                   subsystems=(sub,), varpro=cfg.varpro)
             if not cost.used.any():
@@ -213,10 +219,13 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
             else:
                 F = float(cost(x[None])[0])
             theta = cost.full(x)[0]
+            if trim:
+                delta[list(_SUBS_INPUTS[sub])] = cost.sim.solve_trim(theta[None])[sub][0]
             F_total += F
             nfev += cost.nfev + cost_s.nfev + cost_v.nfev
         full_cost = WindowedCost(win, np.zeros(N_PARAMS, dtype=bool), theta,
-                                 estimate_all_initial=cfg.estimate_all_initial)
+                                 estimate_all_initial=cfg.estimate_all_initial,
+                                 estimate_trim=cfg.estimate_trim and refine)
         errs = full_cost.sim.errors(theta[None])[0]
         y = full_cost.sim.outputs
         match = {}
@@ -245,11 +254,15 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
         "history": histories,
         "history_nfev": histories_nfev,
         "notes": list(prepared.notes),
+        "trim_estimated": bool(cfg.estimate_trim and refine),
+        "input_trim_correction_pwm": {k: float(delta[j]) * float(prepared.pwm_per_unit)
+                                      for j, k in enumerate(prepared.input_trim_pwm)},
     }
     return HoverModel(
         params={n: float(v) for n, v in zip(PARAM_NAMES, theta, strict=True)},
         sample_rate_hz=float(1.0 / prepared.dt_s),
-        input_trim_pwm=dict(prepared.input_trim_pwm),
+        input_trim_pwm={k: float(v) + float(delta[j]) * float(prepared.pwm_per_unit)
+                        for j, (k, v) in enumerate(prepared.input_trim_pwm.items())},
         pwm_per_unit=float(prepared.pwm_per_unit),
         output_trim=dict(prepared.output_trim),
         parameter_std=std,

@@ -86,6 +86,10 @@ class WindowSimulator:
         solved by least squares together with the initial states (variable projection: the output
         is linear in B for a given A); the values of those entries in ``theta`` are ignored and the
         estimates are returned by :meth:`solve_linear`
+    lifted_block : block length per subsystem of the lifted simulation (see Notes)
+    estimate_trim : also solve, per subsystem, one constant offset per input shared by all windows
+        (the model sees ``u - delta``): the input trim, which the in-air median only approximates,
+        is a nuisance of the perturbation model like the initial states (see :meth:`solve_trim`)
 
     Notes
     -----
@@ -99,7 +103,7 @@ class WindowSimulator:
                  *, estimate_all_initial: bool = False, ridge: float = 1e-6, block: int = 10,
                  subsystems: tuple[int, ...] = (0, 1),
                  linear: dict[int, tuple[tuple[int, int], ...]] | None = None,
-                 lifted_block: tuple[int, int] = (5, 5)) -> None:
+                 lifted_block: tuple[int, int] = (5, 5), estimate_trim: bool = False) -> None:
         u = np.asarray(inputs, dtype=float)
         y = np.asarray(outputs, dtype=float)
         if u.ndim != 3 or u.shape[2] != 4 or y.ndim != 3 or y.shape[2] != 8 or u.shape[:2] != y.shape[:2]:
@@ -124,6 +128,9 @@ class WindowSimulator:
         self.linear = {k: tuple(v) for k, v in (linear or {}).items() if v}
         self.b = max(1, min(int(block), self.L))
         self.lifted_block = tuple(int(v) for v in lifted_block)
+        self.estimate_trim = bool(estimate_trim)
+        if self.estimate_trim and linear:
+            raise ValueError("estimate_trim and linear (projected B entries) cannot be combined")
         self.chunk_bytes = 2e6
         self.nb = -(-self.L // self.b)
         Lp = self.nb * self.b
@@ -181,7 +188,9 @@ class WindowSimulator:
         jv = self.L - (nb - 1) * b  # valid j in the last block
         unk = ~known
         same = bool((unk == unk[:1]).all()) and bool((w_ch == w_ch[:1]).all())
-        return dict(Ut=Ut, yT=yT, qidx=qidx, jv=jv, x0T=np.ascontiguousarray(xm.T), X={}, lb=b, lnb=nb, same_G=same)
+        Uones = np.broadcast_to(np.eye(m)[None, :, None, :], (b, m, nb, m)).reshape(b * m, nb * m)
+        return dict(Ut=Ut, yT=yT, qidx=qidx, jv=jv, x0T=np.ascontiguousarray(xm.T), X={}, lb=b, lnb=nb, same_G=same,
+                    Uones=Uones)
 
     def _xbuf(self, pre: dict, C: int, n: int) -> np.ndarray:
         """(C, n + b m, nb W) lifted state/input matrix; the input rows are filled once (kept for the
@@ -241,25 +250,52 @@ class WindowSimulator:
         # free-response basis Phi[h, (j, i)] = C_h A^j (A^b)^i: one product with [I, Ab, Ab^2, ...]
         Abc = np.empty((C, n, nb * n))
         Abc[:, :, :n] = np.eye(n)
-        for i in range(nb - 1):
-            np.matmul(Ab, Abc[:, :, i * n:(i + 1) * n], out=Abc[:, :, (i + 1) * n:(i + 2) * n])
+        Abk, k = Ab, 1  # doubling: [I .. Ab^(k-1)] -> [I .. Ab^(2k-1)] with one product by Ab^k
+        while k < nb:
+            kk = min(k, nb - k)
+            np.matmul(Abk, Abc[:, :, :kk * n], out=Abc[:, :, k * n:(k + kk) * n])
+            k += kk
+            if k < nb:  # then kk was the old k, so the new k is twice it
+                Abk = np.matmul(Abk, Abk)
         Phi = np.matmul(Obm.reshape(C, nch * b, n), Abc).reshape(C, nch, b, nb, n)
         if jv < b:
             Phi[:, :, jv:, nb - 1] = 0.0
         Phi = Phi.reshape(C, nch, Lp, n)
-        H = np.matmul(np.swapaxes(Phi, -1, -2), Phi)  # (C, nch, n, n), the same for every window
+        nt = 0
+        if self.estimate_trim:
+            # response to a constant unit input on each channel from rest: the same in every window, so
+            # one lifted "window" per input; appended to Phi as global least-squares columns
+            Xo = np.zeros((C, K, nb * m))
+            Xo[:, n:] = pre["Uones"][None]
+            for i in range(nb - 1):
+                np.matmul(AbCb, Xo[:, :, i * m:(i + 1) * m], out=Xo[:, :n, (i + 1) * m:(i + 2) * m])
+            Fo = np.matmul(M, Xo).reshape(C, nch, b, nb, m)
+            if jv < b:
+                Fo[:, :, jv:, nb - 1] = 0.0
+            Phi = np.concatenate([Phi, Fo.reshape(C, nch, Lp, m)], axis=-1)
+            nt = m
+        H = np.matmul(np.swapaxes(Phi, -1, -2), Phi)  # (C, nch, n+nt, n+nt), the same for every window
         # candidates in chunks of ~2 MB of output: the chunk stays in cache from product to reduction
         cc = max(1, min(C, int(self.chunk_bytes // (8 * nch * b * nb * W))))
         res = np.empty((C, W, L, nch) if explicit else (C, nch))
         z = np.empty((C, W, n))
+        beta = np.zeros((C, nt))
         for c0 in range(0, C, cc):
             c1 = min(C, c0 + cc)
-            z[c0:c1], res[c0:c1] = self._lifted_chunk(pre, M[c0:c1], X[c0:c1], Phi[c0:c1], H[c0:c1], explicit)
-        return res, pre["xm"][None] + z
+            z[c0:c1], beta[c0:c1], res[c0:c1] = self._lifted_chunk(pre, M[c0:c1], X[c0:c1], Phi[c0:c1], H[c0:c1],
+                                                                  explicit, n)
+        return res, pre["xm"][None] + z, -beta  # input offsets: the model sees u - delta, e = ... - F delta
 
-    def _lifted_chunk(self, pre: dict, M: np.ndarray, X: np.ndarray, Phi: np.ndarray, H: np.ndarray, explicit: bool):
-        """Least squares and errors of one chunk of candidates: ``(z (k, W, n), e (k, W, L, nch) or sse (k, nch))``."""
-        k, nch, Lp, n = Phi.shape
+    def _lifted_chunk(self, pre: dict, M: np.ndarray, X: np.ndarray, Phi: np.ndarray, H: np.ndarray, explicit: bool,
+                      n: int):
+        """Least squares and errors of one chunk of candidates.
+
+        ``Phi`` (k, nch, Lp, n + nt): free-response basis, then ``nt`` global columns (constant-input
+        responses) whose coefficients ``beta`` are shared by all windows. Returns ``(z (k, W, n),
+        beta (k, nt), e (k, W, L, nch) or sse (k, nch))``.
+        """
+        k, nch, Lp, na = Phi.shape
+        nt = na - n
         W, L, b, nb, jv = self.W, self.L, pre["lb"], pre["lnb"], pre["jv"]
         # r = y - forced - known free response; g = Phi_h^T r_h per window; rr = ||r_h||^2 per window
         R = self._rbuf(pre, k, nch * b)
@@ -268,33 +304,52 @@ class WindowSimulator:
         if jv < b:
             R.reshape(k, nch, b, nb, W)[:, :, jv:, nb - 1] = 0.0
         R4 = R.reshape(k, nch, Lp, W)
-        g = np.matmul(np.swapaxes(R4, -1, -2), Phi)  # (k, nch, W, n)
+        g = np.matmul(np.swapaxes(R4, -1, -2), Phi)  # (k, nch, W, na)
         # normal equations per candidate per window: G = sum_h w_h H_h (+ ridge), rhs = sum_h w_h g_h
         unk = pre["unk"]
         w_ch = pre["w_ch"]  # (W, nch)
-        rhs = np.einsum("wh,chwn->cwn", w_ch, g)
+        rhs = np.einsum("wh,chwn->cwn", w_ch, g[..., :n])
         rhs *= unk[None]
-        if pre["same_G"]:  # one G per candidate (same weights and unknowns in every window)
-            G = np.matmul(w_ch[:1][None], H.reshape(k, nch, n * n)).reshape(k, n, n)
+        Hzz = H[:, :, :n, :n]
+        same = pre["same_G"] and nt == 0
+        if same:  # one G per candidate (same weights and unknowns in every window)
+            G = np.matmul(w_ch[:1][None], Hzz.reshape(k, nch, n * n)).reshape(k, n, n)
             uk = unk[0]
             G *= uk[:, None] * uk[None, :]
             scale = np.maximum(np.einsum("cii->ci", G).max(axis=-1, keepdims=True), 1e-300)
             G += np.where(uk[None] > 0, self.ridge * scale, 1.0)[..., :, None] * np.eye(n)
             z = np.swapaxes(np.linalg.solve(G, np.swapaxes(rhs, 1, 2)), 1, 2)  # (k, W, n)
         else:
-            G = np.matmul(w_ch[None], H.reshape(k, nch, n * n)).reshape(k, W, n, n)
+            G = np.matmul(w_ch[None], np.ascontiguousarray(Hzz).reshape(k, nch, n * n)).reshape(k, W, n, n)
             G *= (unk[:, :, None] * unk[:, None, :])[None]
             scale = np.maximum(np.einsum("cwii->cwi", G).max(axis=-1, keepdims=True), 1e-300)
             G += np.where(unk[None] > 0, self.ridge * scale, 1.0)[..., :, None] * np.eye(n)
-            z = np.linalg.solve(G, rhs[..., None])[..., 0]  # (k, W, n), zero on known dims
+            if nt:
+                # global columns: Schur complement over the windows (variable projection)
+                E = np.matmul(w_ch[None], np.ascontiguousarray(H[:, :, :n, n:]).reshape(k, nch, n * nt))
+                E = E.reshape(k, W, n, nt) * unk[None, :, :, None]
+                FF = np.einsum("wh,chpq->cpq", w_ch, H[:, :, n:, n:])
+                rb = np.einsum("wh,chwp->cp", w_ch, g[..., n:])
+                sol = np.linalg.solve(G, np.concatenate([E, rhs[..., None]], axis=-1))
+                GiE, Gia = sol[..., :nt], sol[..., nt]
+                S = FF - np.einsum("cwnp,cwnq->cpq", E, GiE)
+                dS = np.einsum("cpp->cp", S)
+                S += (1e-10 * np.maximum(dS.max(axis=-1), 1e-300))[:, None, None] * np.eye(nt)
+                beta = np.linalg.solve(S, (rb - np.einsum("cwnp,cwn->cp", E, Gia))[..., None])[..., 0]
+                z = Gia - np.einsum("cwnp,cp->cwn", GiE, beta)
+            else:
+                z = np.linalg.solve(G, rhs[..., None])[..., 0]  # (k, W, n), zero on known dims
+        if not nt:
+            beta = np.zeros((k, 0))
+        v = np.concatenate([z, np.broadcast_to(beta[:, None, :], (k, W, nt))], axis=-1) if nt else z  # (k, W, na)
         if explicit:
-            e = np.matmul(Phi, np.swapaxes(z, 1, 2)[:, None])  # (k, nch, Lp, W)
+            e = np.matmul(Phi, np.swapaxes(v, 1, 2)[:, None])  # (k, nch, Lp, W)
             e -= R4
-            return z, e.reshape(k, nch, b, nb, W).transpose(0, 4, 3, 2, 1).reshape(k, W, Lp, nch)[:, :, :L]
+            return z, beta, e.reshape(k, nch, b, nb, W).transpose(0, 4, 3, 2, 1).reshape(k, W, Lp, nch)[:, :, :L]
         rr = np.einsum("chkw,chkw->chw", R4, R4)
-        zHz = np.einsum("chwn,cwn->chw", np.matmul(z[:, None], H), z)
-        zg = np.einsum("chwn,cwn->chw", g, z)
-        q = rr - 2.0 * zg + zHz  # (k, nch, W)
+        vHv = np.einsum("chwn,cwn->chw", np.matmul(v[:, None], H), v)
+        vg = np.einsum("chwn,cwn->chw", g, v)
+        q = rr - 2.0 * vg + vHv  # (k, nch, W)
         if not pre["full_mask"]:
             q *= pre["mask_hw"][None]
             rr *= pre["mask_hw"][None]
@@ -304,12 +359,12 @@ class WindowSimulator:
         bad = ~(sse > 1e-8 * rr_sum) & np.isfinite(rr_sum)
         if bad.any():
             cb = np.flatnonzero(bad.any(axis=1))
-            e = np.matmul(Phi[cb], np.swapaxes(z[cb], 1, 2)[:, None])
+            e = np.matmul(Phi[cb], np.swapaxes(v[cb], 1, 2)[:, None])
             e -= R4[cb]
             if not pre["full_mask"]:
                 e *= pre["mask_hw"][None, :, None, :]
             sse[cb] = np.einsum("chkw,chkw->ch", e, e)
-        return z, sse
+        return z, beta, sse
 
     @property
     def state_updates_per_call(self) -> int:
@@ -331,18 +386,24 @@ class WindowSimulator:
                     # Ad and Gamma = int_0^dt e^(A s) ds in one exponential; Bd = Gamma B (exact ZOH)
                     Ad, Gam = discretize(A, np.broadcast_to(np.eye(n), A.shape), self.dt_s)
                     Bd = np.matmul(Gam, B)
-                    out.append((i, self._sub(_SUBS[i], pre, Ad, Bd, Gam)))
+                    e, x0, beta = self._sub(_SUBS[i], pre, Ad, Bd, Gam)
+                    out.append((i, (e, x0, beta, None)))
                     continue
                 Ad, Bd = discretize(A, B, self.dt_s)
-                e, x0 = self._lifted(_SUBS[i], pre, Ad, Bd, explicit=not sse)
+                e, x0, delta = self._lifted(_SUBS[i], pre, Ad, Bd, explicit=not sse)
                 if not sse:
                     e = e.reshape(e.shape[0], self.W, self.L * pre["nch"])
-                out.append((i, (e, x0)))
+                out.append((i, (e, x0, None, delta if self.estimate_trim else None)))
         return out
 
     def solve_linear(self, theta: np.ndarray) -> dict[int, np.ndarray]:
         """Least-squares values (C, P) of the ``linear`` B entries per subsystem for candidates ``theta``."""
-        return {i: r[2] for i, r in self._run(theta) if len(r) > 2}
+        return {i: r[2] for i, r in self._run(theta) if r[2] is not None}
+
+    def solve_trim(self, theta: np.ndarray) -> dict[int, np.ndarray]:
+        """With ``estimate_trim``: least-squares input offsets (C, m) per subsystem (normalised units, the
+        model sees ``u - delta``: add ``delta * pwm_per_unit`` to the input trim PWM)."""
+        return {i: r[3] for i, r in self._run(theta, sse=True) if r[3] is not None}
 
     def simulate(self, theta: np.ndarray, *, return_x0: bool = False):
         """yhat (C, W, L, 8) (unavailable channels hold the simulation too; x0 per subsystem if asked)."""

@@ -156,3 +156,18 @@ def test_sse_equals_the_explicit_errors(windows, block):
         assert ok[:5].all()
         assert np.allclose(sse[ok], ref[ok], rtol=1e-7, atol=0)
         assert np.allclose(sse[:5], ref[:5], rtol=1e-10, atol=0)
+
+
+def test_input_trim_offsets_are_recovered(windows):
+    """Inputs logged with a constant offset (a wrong trim): the offset is solved and the fit is exact."""
+    th, u, y, _, _, dt = windows
+    delta = np.array([0.02, -0.015, 0.03, 0.01])  # lat lon col ped
+    sim = WindowSimulator(u + delta, y, dt, estimate_all_initial=True, ridge=1e-12, estimate_trim=True)
+    trims = sim.solve_trim(th[None])
+    assert np.allclose(trims[0][0], delta[:2], atol=1e-6)
+    assert np.allclose(trims[1][0], delta[2:], atol=1e-6)
+    assert sim.sse(th[None])[0].max() < 1e-12
+    assert np.abs(sim.errors(th[None])).max() < 1e-6
+    # without the trim the same data fit clearly worse
+    plain = WindowSimulator(u + delta, y, dt, estimate_all_initial=True, ridge=1e-12)
+    assert plain.sse(th[None])[0].sum() > 1e3 * sim.sse(th[None])[0].sum()
