@@ -283,8 +283,10 @@ def _p_value(h: hypotheses.Hypothesis, ctx: hypotheses.Context | None, base: np.
     else:
         p = p_win
     if h.effect == "wind_gust":
-        # an air-mass motion moves the attitude too (speed-stability moments): demand that
-        att = [3, 4, 6, 7]
+        # an air-mass motion moves the attitude too (speed-stability moments): demand that of the
+        # attitude angles, which integrate those moments; the body rates also carry the air
+        # velocity's rough part, which no smooth air-velocity model predicts between its knots
+        att = [6, 7]
         p_att = attribute.paired_bootstrap(base[:, att].sum(1), h.sse[:, att].sum(1), rng, cfg.n_boot)
         h.extra["p_attitude"] = p_att
         p = max(p, p_att)

@@ -37,6 +37,8 @@ DEADBAND_STD = (0.1, 0.25, 0.5, 0.75, 1.0)
 GROUND_DECAY_M = (0.25, 0.5, 1.0, 2.0)
 
 VEL = (0, 1, 2)
+#: channels on which an air-mass motion is scored: horizontal velocities and attitude angles
+GUST_CHANNELS = (0, 1, 6, 7)
 RATE_CH = {"p": 3, "q": 4, "r": 5}
 
 
@@ -478,12 +480,17 @@ def scan_wind_gust(ctx: Context, chunk_s: float = 0.5, refine_iterations: int = 
         picks.append(k)
         sse_g[te] = cv[k][0][te]
     best = int(np.argmin([c[0].sum() for c in cv]))
+    # scored on the channels an air mass moves at low frequency (horizontal velocities, attitude
+    # angles); the body rates also carry its rough part, which no smooth air velocity predicts
+    # between its knots, and w is untouched (horizontal air velocity): those keep the base cost
+    rough = [c for c in range(8) if c not in GUST_CHANNELS]
+    sse_g[:, rough] = sse_b[:, rough]
     coef = cv[best][1]
     assert coef is not None
     air = coef[0, :, -2 * n_knots:].reshape(ev.W, 2, n_knots)
     rms = float(np.sqrt((air ** 2).sum(axis=1).mean()))
     return Hypothesis("wind_gust", estimate={"air_velocity_rms_m_s": rms}, sse=sse_g,
-                      channels=(0, 1, 3, 4, 6, 7),
+                      channels=GUST_CHANNELS,
                       extra={"base_sse": sse_b, "theta": thetas[best], "n_knots": n_knots,
                              "reidentified": [bool(k) for k in picks]})
 
