@@ -141,6 +141,7 @@ def _bee_colony(fun: Fun, bounds, *, rng, maxiter: int, maxfev: int | None, call
     X, f = X0[order].copy(), f0[order].copy()
     trial = np.zeros(ne, dtype=int)
     cmap = _avoid_bad(rng.random(D), rng)
+    R_last = 0.0
     for it in range(maxiter):
         if tr.budget_left() <= 0:
             break
@@ -174,8 +175,13 @@ def _bee_colony(fun: Fun, bounds, *, rng, maxiter: int, maxfev: int | None, call
             trial[i] = 0
         # step 7: chaotic search around the best
         if chaos and tr.budget_left() > 0:
+            # progress through the run: iterations, or the evaluation budget when that binds first (with
+            # maxiter=10**6 and a budget the radius would otherwise never shrink)
             frac = it / max(maxiter - 1, 1)
-            R = span * radius0 * (radius_end / radius0) ** frac
+            if maxfev is not None:
+                frac = min(1.0, max(frac, tr.nfev / maxfev))
+            R_last = radius0 * (radius_end / radius0) ** frac
+            R = span * R_last
             m = min(chaos_points, tr.budget_left())
             cands = np.empty((m, D))
             best = X[int(np.argmin(f))]
@@ -190,7 +196,9 @@ def _bee_colony(fun: Fun, bounds, *, rng, maxiter: int, maxfev: int | None, call
             X[r], f[r], trial[r] = cands[q], fc[q], 0
         if tr.end_iteration():
             break
-    return tr.result("stopped by callback" if tr.stopped else "iteration or evaluation budget reached", X, f)
+    out = tr.result("stopped by callback" if tr.stopped else "iteration or evaluation budget reached", X, f)
+    out.chaos_radius = float(R_last)  # last chaotic-search radius as a fraction of the range (0 without chaos)
+    return out
 
 
 def minimize_cabc(fun: Fun, bounds, *, rng=None, maxiter: int = 100, maxfev: int | None = None, callback=None,

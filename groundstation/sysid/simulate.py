@@ -357,13 +357,12 @@ class WindowSimulator:
         # the quadratic form cancels: trust it to ~1e-8 of ||r||^2, else compute those errors explicitly
         rr_sum = rr.sum(axis=-1)
         bad = ~(sse > 1e-8 * rr_sum) & np.isfinite(rr_sum)
-        if bad.any():
-            cb = np.flatnonzero(bad.any(axis=1))
-            e = np.matmul(Phi[cb], np.swapaxes(v[cb], 1, 2)[:, None])
-            e -= R4[cb]
+        for c in np.flatnonzero(bad.any(axis=1)):  # one candidate at a time: views, no fancy-index copies
+            e = np.matmul(Phi[c], v[c].T)  # (nch, Lp, W)
+            e -= R4[c]
             if not pre["full_mask"]:
-                e *= pre["mask_hw"][None, :, None, :]
-            sse[cb] = np.einsum("chkw,chkw->ch", e, e)
+                e *= pre["mask_hw"][:, None, :]
+            sse[c] = np.einsum("hkw,hkw->h", e, e)
         return z, beta, sse
 
     @property

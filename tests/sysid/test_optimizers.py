@@ -66,3 +66,16 @@ def test_chaotic_search_helps_on_a_narrow_valley():
     fc = [minimize_cabc(rosen, b, rng=s, maxfev=6000, maxiter=10_000).fun for s in range(5)]
     fa = [minimize_abc(rosen, b, rng=s, maxfev=6000, maxiter=10_000).fun for s in range(5)]
     assert np.median(fc) < np.median(fa)
+
+
+def test_chaotic_radius_shrinks_over_an_evaluation_budget():
+    """With an evaluation budget and no practical iteration limit (the bench's equal-budget runs), the
+    chaotic search radius still shrinks from radius0 to radius_end over the run."""
+    res = minimize_cabc(sphere, BOUNDS, rng=0, maxiter=10**6, maxfev=1500, radius0=0.05, radius_end=1e-4)
+    assert res.chaos_radius < 2e-4
+    short = minimize_cabc(sphere, BOUNDS, rng=0, maxiter=10**6, maxfev=1500 // 3, radius0=0.05, radius_end=1e-4)
+    assert short.chaos_radius < 2e-4  # shrinks over whatever budget is given
+    half = minimize_cabc(sphere, BOUNDS, rng=0, maxiter=20, radius0=0.05, radius_end=1e-4,
+                         callback=lambda r: r.nit >= 10)
+    assert 1e-3 < half.chaos_radius < 5e-3  # half way in iterations: geometric mean ~2.2e-3
+    assert minimize_abc(sphere, BOUNDS, rng=0, maxiter=5).chaos_radius == 0.0
