@@ -160,31 +160,44 @@ def build_logdata(events: Iterable[Any], source: str, stats: LinkStats | None = 
 
 
 def _fix_untimed(series: dict[str, Series], untimed: tuple[str, ...] = _UNTIMED) -> dict[str, Series]:
-    """Give messages without an FC time field t_fc_s from the host-fc lower envelope."""
+    """Give messages without an FC time field a t_fc_s from the timed messages around them.
+
+    All messages of a log came down one byte stream in the order they were sent, so a message
+    without a time field was sent between the timed messages received just before and just
+    after it: its FC time is interpolated between theirs on the host clock (timed messages
+    received in one read share a host time; the latest FC time of each arrival is used).
+    Transport latency cancels, and a link replayed N times faster than real time (FC seconds
+    per host second = N) is followed as well as a real one. Before the first / after the last
+    timed message the host clock runs on from it at one FC second per host second.
+    """
     th, tf = [], []
     for name, s in series.items():
         if name not in untimed and len(s):
-            ok = np.isfinite(s.t_fc_s)
+            ok = np.isfinite(s.t_fc_s) & np.isfinite(s.t_host_s)
             th.append(s.t_host_s[ok])
             tf.append(s.t_fc_s[ok])
-    if not th:
-        base = min((float(s.t_host_s[0]) for s in series.values() if len(s)), default=0.0)
-        env_t, env_o = np.array([0.0]), np.array([base])
-    else:
-        h = np.concatenate(th)
-        o = h - np.concatenate(tf)
-        order = np.argsort(h, kind="stable")
-        h, o = h[order], o[order]
-        b = np.floor((h - h[0]) / 1.0).astype(np.int64)
-        starts = np.flatnonzero(np.r_[True, b[1:] != b[:-1]])
-        env_o = np.minimum.reduceat(o, starts)
-        env_t = h[starts]
+    h = np.concatenate(th) if th else np.zeros(0)
     out = dict(series)
+    if h.size == 0:
+        base = min((float(s.t_host_s[0]) for s in series.values() if len(s)), default=0.0)
+        for name in untimed:
+            u = series.get(name)
+            if u is not None and len(u):
+                out[name] = Series(u.t_host_s - base, u.t_host_s, u.columns)
+        return out
+    f = np.concatenate(tf)
+    order = np.lexsort((f, h))
+    h, f = h[order], f[order]
+    last = np.r_[h[1:] != h[:-1], True]  # the latest FC time of each arrival
+    h, f = h[last], np.maximum.accumulate(f[last])
     for name in untimed:
         u = series.get(name)
         if u is None or not len(u):
             continue
-        t_fc = u.t_host_s - np.interp(u.t_host_s, env_t, env_o)
+        x = u.t_host_s
+        t_fc = np.interp(x, h, f)
+        t_fc = np.where(x < h[0], f[0] - (h[0] - x), t_fc)
+        t_fc = np.where(x > h[-1], f[-1] + (x - h[-1]), t_fc)
         out[name] = Series(t_fc, u.t_host_s, u.columns)
     return out
 

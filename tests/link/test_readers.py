@@ -102,6 +102,38 @@ def test_host_clock_jump_is_followed_not_treated_as_garbage():
     assert len(got) == 40 and st.corrupt_bytes == 0
 
 
+@pytest.mark.parametrize("speed", [1.0, 10.0])
+def test_untimed_messages_get_fc_times_from_their_neighbours_even_when_replayed_fast(speed):
+    """HEARTBEAT and EXTENDED_SYS_STATE carry no time: they take the FC time of the timed messages
+    around them in the stream. A link replayed at 10x (10 FC seconds per host second) must not
+    shift them by the drift over a clock bin (it did: arming and landing came out 9 s late)."""
+    mav = mavlink2.MAVLink(None, 1, 1)
+    rng = np.random.default_rng(1)
+    recs = []
+    arm_s, takeoff_s, land_s, disarm_s = 3.0, 7.0, 20.0, 22.0
+    for k in range(int(25.0 / 0.02)):
+        t_fc = k * 0.02
+        host_us = T0_US + int((t_fc / speed + rng.exponential(0.004)) * 1e6)  # 4 ms mean latency
+        msgs = [mav.attitude_encode(int(round(t_fc * 1000)), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)]
+        if k % 50 == 0:
+            armed = arm_s <= t_fc < disarm_s
+            msgs.append(mav.heartbeat_encode(4, 3, 0x81 if armed else 0x01, 0, 4))
+        if k % 10 == 5:
+            state = 2 if takeoff_s <= t_fc < land_s else 1
+            msgs.append(mav.extended_sys_state_encode(0, state))
+        for m in msgs:
+            recs.append((host_us, bytes(m.pack(mav))))
+            mav.seq = (mav.seq + 1) & 0xFF
+    recs.sort(key=lambda r: r[0])
+    log = load_tlog_bytes(_blob(recs))
+    f = log.flights[0]
+    assert f.start_fc_s == pytest.approx(arm_s, abs=0.05) and f.end_fc_s == pytest.approx(disarm_s, abs=1.05)
+    es = log.series["EXTENDED_SYS_STATE"]
+    air = np.asarray(es["landed_state"]) == 2
+    assert es.t_fc_s[air][0] == pytest.approx(takeoff_s + 0.1, abs=0.05)
+    assert es.t_fc_s[air][-1] == pytest.approx(land_s - 0.1, abs=0.05)
+
+
 def test_project_written_tlog_loads_with_flights(tmp_path):
     path = tmp_path / "w.tlog"
     with TlogWriter(path) as w:
