@@ -1,7 +1,8 @@
 """``groundstation validate model.json LOG... [--json] [--plot PNG] [--window-s S]``.
 
 Scores a model file on flight logs (validation segments or another flight): per-channel match
-degree (eq. 19), NRMSE fit and Theil inequality coefficient, as a table or JSON on stdout.
+degree (eq. 19), NRMSE fit, Theil inequality coefficient and Pearson correlation, as a table or
+JSON on stdout.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ import argparse
 import json
 from pathlib import Path
 
-HELP = "score a hover model file on flight logs (match degree, NRMSE fit, Theil U per channel)"
+HELP = "score a hover model file on flight logs (match degree, NRMSE fit, Theil U, correlation per channel)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -66,10 +67,10 @@ def run(args: argparse.Namespace) -> int:
 
     t = Table(title=f"{args.model.name} on {', '.join(p.name for p in args.logs)} "
                     f"({res['windows']} windows of {res['window_s']:g} s)")
-    for c in ("channel", "match %", "fit %", "Theil U"):
+    for c in ("channel", "match %", "fit %", "Theil U", "corr"):
         t.add_column(c, justify="right")
     for ch, m in res["channels"].items():
-        t.add_row(ch, f"{m['match']:.1f}", f"{m['fit']:.1f}", f"{m['tic']:.3f}")
+        t.add_row(ch, f"{m['match']:.1f}", f"{m['fit']:.1f}", f"{m['tic']:.3f}", f"{m['corr']:.2f}")
     t.add_row("mean", f"{res['mean_match']:.1f}", f"{res['mean_fit']:.1f}", "")
     con = Console()
     con.print(t)

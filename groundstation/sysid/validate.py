@@ -5,7 +5,9 @@ states as the identification, so an identified and a true model are scored the s
 
 * ``match_degree``: ``(1 - ||yhat - y|| / ||y||) * 100`` (paper eq. 19);
 * ``nrmse``: fit ``(1 - ||yhat - y|| / ||y - mean(y)||) * 100`` (the usual "fit %");
-* ``theil_u``: ``rms(yhat - y) / (rms(yhat) + rms(y))`` (0 perfect, 1 useless).
+* ``theil_u``: ``rms(yhat - y) / (rms(yhat) + rms(y))`` (0 perfect, 1 useless);
+* ``corr``: Pearson correlation of yhat with y (what published fits of the real TREX 550 log
+  quote: 0.67-0.90 per channel), blind to a gain error, so never the only figure.
 
 Data are used with their own trims (the validation flight's median PWM is its hover trim). Pure
 numpy; printing and JSON are the CLI's.
@@ -55,6 +57,14 @@ def theil_u(yhat: np.ndarray, y: np.ndarray) -> float:
     return rms(yhat - y) / den if den > 0 else float("nan")
 
 
+def pearson(yhat: np.ndarray, y: np.ndarray) -> float:
+    """Pearson correlation of one channel (arrays of any shape, flattened); 0 when either is constant."""
+    yhat, y = np.ravel(yhat), np.ravel(y)
+    a, b = yhat - yhat.mean(), y - y.mean()
+    den = float(np.linalg.norm(a) * np.linalg.norm(b))
+    return float(a @ b) / den if den > 0 else 0.0
+
+
 def channel_metrics(yhat: np.ndarray, y: np.ndarray, mask: np.ndarray) -> dict[str, dict[str, float]]:
     """Metrics per used channel; yhat and y (W, L, 8), mask (W, 8)."""
     out: dict[str, dict[str, float]] = {}
@@ -62,7 +72,7 @@ def channel_metrics(yhat: np.ndarray, y: np.ndarray, mask: np.ndarray) -> dict[s
         if not mask[:, j].any():
             continue
         a, b = _flat(yhat, y, mask, j)
-        out[ch] = {"match": match_degree(a, b), "fit": nrmse(a, b), "tic": theil_u(a, b)}
+        out[ch] = {"match": match_degree(a, b), "fit": nrmse(a, b), "tic": theil_u(a, b), "corr": pearson(a, b)}
     return out
 
 

@@ -9,7 +9,7 @@ from groundstation.dsp.prepare import prepared_from_arrays
 from groundstation.sysid.identify import identify
 from groundstation.sysid.model import PARAM_NAMES, HoverModel, theta_from_dict
 from groundstation.sysid.synthetic import EXAMPLE_TRUTH, simulate_flight
-from groundstation.sysid.validate import match_degree, nrmse, theil_u, validate
+from groundstation.sysid.validate import match_degree, nrmse, pearson, theil_u, validate
 
 KEY = ("M_a", "L_b", "inv_tau_s", "A_lat", "B_lon", "Z_col", "N_ped", "N_r")
 
@@ -90,3 +90,6 @@ def test_metrics_on_known_values():
     assert nrmse(np.full(4, y.mean()), y) == pytest.approx(0.0)
     assert theil_u(y, y) == pytest.approx(0.0)
     assert theil_u(-y, y) == pytest.approx(1.0)
+    assert pearson(0.5 * y + 3.0, y) == pytest.approx(1.0)  # blind to gain and offset: never alone
+    assert pearson(-y, y) == pytest.approx(-1.0)
+    assert pearson(np.zeros(4), y) == 0.0
