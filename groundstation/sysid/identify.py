@@ -43,6 +43,7 @@ from groundstation.sysid.model import (
 )
 from groundstation.sysid.optimizers import ALGORITHMS
 from groundstation.sysid.refine import refine as refine_ls
+from groundstation.sysid.simulate import kinematic_forcing
 
 #: Parameters that need each input to move.
 INPUT_PARAMS: dict[str, tuple[str, ...]] = {
@@ -76,6 +77,12 @@ class IdentifyConfig:
     varpro: bool = True
     vertical_iter_factor: float = 2.0
     estimate_trim: bool = True
+    #: velocity channels (of u, v, w) whose measured kinematic/gravity terms enter as known forcing in the
+    #: refinement (``kinematic_forcing`` of simulate); "" = none. Default w: on the trex600 sim flight the
+    #: heave terms ``q u - p v + g (cos phi cos theta - 1)`` were what biased Z_col (7-11 % low, worse
+    #: with less collective excitation); u and v terms did not help (they bias X_u: the rotor terms
+    #: ``T sin a_s`` they would need are not measured).
+    kinematic_forcing: str = "w"
 
 
 #: Input channels (indices into lat lon col ped) of each subsystem.
@@ -143,6 +150,17 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
         if cfg.search_stride > 1 and win_s.count >= 2 * cfg.search_stride:
             win_s = subset_windows(win_s, np.arange(0, win_s.count, cfg.search_stride))
         free, reasons = free_mask(prepared)
+        forcing = forcing_s = None
+        kf = [c.strip() for c in cfg.kinematic_forcing.split(",") if c.strip()]
+        if any(c not in ("u", "v", "w") for c in kf):
+            raise ValueError(f"kinematic_forcing: channels must be among u, v, w, got {cfg.kinematic_forcing!r}")
+        if kf and refine:
+            trim_vec = np.array([float(prepared.output_trim.get(c, 0.0)) for c in OUTPUTS])
+            off = [j for j, c in enumerate(("u", "v", "w")) if c not in kf]
+            forcing = kinematic_forcing(win.outputs, trim_vec)
+            forcing_s = kinematic_forcing(win_s.outputs, trim_vec)
+            forcing[..., off] = 0.0
+            forcing_s[..., off] = 0.0
         theta = np.clip(np.zeros(N_PARAMS), b_all[:, 0], b_all[:, 1])
         std_all = np.full(N_PARAMS, np.nan)
         sigma_all = np.full(8, np.nan)
@@ -157,9 +175,9 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
             sub_free[idx] = free[idx]
             trim = cfg.estimate_trim and refine
             cost = WindowedCost(win, sub_free, theta, estimate_all_initial=cfg.estimate_all_initial,
-                                subsystems=(sub,), estimate_trim=trim)
+                                subsystems=(sub,), estimate_trim=trim, forcing=forcing)
             cost_s = WindowedCost(win_s, sub_free, theta, estimate_all_initial=cfg.estimate_all_initial,
-                                  subsystems=(sub,), estimate_trim=trim)
+                                  subsystems=(sub,), estimate_trim=trim, forcing=forcing_s)
             cost_v = WindowedCost(win_s, sub_free, theta, estimate_all_initial=cfg.estimate_all_initial,
                                   subsystems=(sub,), varpro=cfg.varpro)
             if not cost.used.any():
@@ -225,7 +243,7 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
             nfev += cost.nfev + cost_s.nfev + cost_v.nfev
         full_cost = WindowedCost(win, np.zeros(N_PARAMS, dtype=bool), theta,
                                  estimate_all_initial=cfg.estimate_all_initial,
-                                 estimate_trim=cfg.estimate_trim and refine)
+                                 estimate_trim=cfg.estimate_trim and refine, forcing=forcing)
         errs = full_cost.sim.errors(theta[None])[0]
         y = full_cost.sim.outputs
         match = {}
@@ -255,6 +273,7 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
         "history_nfev": histories_nfev,
         "notes": list(prepared.notes),
         "trim_estimated": bool(cfg.estimate_trim and refine),
+        "kinematic_forcing": kf if refine else [],
         "input_trim_correction_pwm": {k: float(delta[j]) * float(prepared.pwm_per_unit)
                                       for j, k in enumerate(prepared.input_trim_pwm)},
     }

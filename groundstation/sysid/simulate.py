@@ -40,6 +40,8 @@ class _Sub:
 
 
 _SUBS = (_Sub(8, (0, 1), _HOR_MEAS), _Sub(3, (2, 3), _VER_MEAS))
+#: per subsystem: (state, column of ``forcing``) of the known accelerations on u, v (horizontal) and w
+_FORCED: tuple[tuple[tuple[int, int], ...], ...] = (((0, 0), (1, 1)), ((0, 2),))
 
 
 def _avail_2d(available: np.ndarray | None, outputs: np.ndarray) -> np.ndarray:
@@ -87,6 +89,8 @@ class WindowSimulator:
         is linear in B for a given A); the values of those entries in ``theta`` are ignored and the
         estimates are returned by :meth:`solve_linear`
     lifted_block : block length per subsystem of the lifted simulation (see Notes)
+    forcing : (W, L, 3) known accelerations (m/s^2) added to u_dot, v_dot, w_dot, e.g. the measured
+        kinematic and gravity terms that eq. 8 linearises away (:func:`kinematic_forcing`)
     estimate_trim : also solve, per subsystem, one constant offset per input shared by all windows
         (the model sees ``u - delta``): the input trim, which the in-air median only approximates,
         is a nuisance of the perturbation model like the initial states (see :meth:`solve_trim`)
@@ -103,7 +107,8 @@ class WindowSimulator:
                  *, estimate_all_initial: bool = False, ridge: float = 1e-6, block: int = 10,
                  subsystems: tuple[int, ...] = (0, 1),
                  linear: dict[int, tuple[tuple[int, int], ...]] | None = None,
-                 lifted_block: tuple[int, int] = (5, 5), estimate_trim: bool = False) -> None:
+                 lifted_block: tuple[int, int] = (5, 5), estimate_trim: bool = False,
+                 forcing: np.ndarray | None = None) -> None:
         u = np.asarray(inputs, dtype=float)
         y = np.asarray(outputs, dtype=float)
         if u.ndim != 3 or u.shape[2] != 4 or y.ndim != 3 or y.shape[2] != 8 or u.shape[:2] != y.shape[:2]:
@@ -131,6 +136,12 @@ class WindowSimulator:
         self.estimate_trim = bool(estimate_trim)
         if self.estimate_trim and linear:
             raise ValueError("estimate_trim and linear (projected B entries) cannot be combined")
+        self.forcing = None if forcing is None else np.nan_to_num(np.asarray(forcing, dtype=float))
+        if self.forcing is not None:
+            if self.forcing.shape != (u.shape[0], u.shape[1], 3):
+                raise ValueError(f"forcing must be (W, L, 3) like the inputs, got {self.forcing.shape}")
+            if linear:
+                raise ValueError("forcing and linear (projected B entries) cannot be combined")
         self.chunk_bytes = 2e6
         self.nb = -(-self.L // self.b)
         Lp = self.nb * self.b
@@ -163,7 +174,10 @@ class WindowSimulator:
                                    w_ch=w_ch, wflat=wflat, mflat=mflat, unk=(~known).astype(float),
                                    uniform=bool((w_ch == w_ch[:1]).all()), full_mask=bool(self.mask[:, o_idx].all())))
             lb = self.lifted_block[_SUBS.index(sub)]
-            self._prep[-1].update(self._lifted_prep(sub, u[:, :, list(sub.inputs)], self.outputs[:, :, o_idx], xm, known,
+            u_sub = u[:, :, list(sub.inputs)]
+            if self.forcing is not None:  # known accelerations enter as extra inputs with unit gain
+                u_sub = np.concatenate([u_sub, self.forcing[:, :, [c for _, c in _FORCED[_SUBS.index(sub)]]]], axis=2)
+            self._prep[-1].update(self._lifted_prep(sub, u_sub, self.outputs[:, :, o_idx], xm, known,
                                                     w_ch, lb))
 
     def _lifted_prep(self, sub: _Sub, u: np.ndarray, y: np.ndarray, xm: np.ndarray, known: np.ndarray,
@@ -172,7 +186,7 @@ class WindowSimulator:
         W = self.W
         b = max(1, min(int(block), self.L))
         nb = -(-self.L // b)
-        m, nch = len(sub.inputs), len(sub.meas)
+        m, nch = u.shape[2], len(sub.meas)  # inputs, then any known forcing channels
         Lp = nb * b
         up = np.zeros((W, Lp, m))
         up[:, :self.L] = u
@@ -188,7 +202,8 @@ class WindowSimulator:
         jv = self.L - (nb - 1) * b  # valid j in the last block
         unk = ~known
         same = bool((unk == unk[:1]).all()) and bool((w_ch == w_ch[:1]).all())
-        Uones = np.broadcast_to(np.eye(m)[None, :, None, :], (b, m, nb, m)).reshape(b * m, nb * m)
+        mi = len(sub.inputs)  # trims only for the real inputs
+        Uones = np.broadcast_to(np.eye(m)[None, :, None, :mi], (b, m, nb, mi)).reshape(b * m, nb * mi)
         return dict(Ut=Ut, yT=yT, qidx=qidx, jv=jv, x0T=np.ascontiguousarray(xm.T), X={}, lb=b, lnb=nb, same_G=same,
                     Uones=Uones)
 
@@ -265,15 +280,16 @@ class WindowSimulator:
         if self.estimate_trim:
             # response to a constant unit input on each channel from rest: the same in every window, so
             # one lifted "window" per input; appended to Phi as global least-squares columns
-            Xo = np.zeros((C, K, nb * m))
+            mi = len(sub.inputs)
+            Xo = np.zeros((C, K, nb * mi))
             Xo[:, n:] = pre["Uones"][None]
             for i in range(nb - 1):
-                np.matmul(AbCb, Xo[:, :, i * m:(i + 1) * m], out=Xo[:, :n, (i + 1) * m:(i + 2) * m])
-            Fo = np.matmul(M, Xo).reshape(C, nch, b, nb, m)
+                np.matmul(AbCb, Xo[:, :, i * mi:(i + 1) * mi], out=Xo[:, :n, (i + 1) * mi:(i + 2) * mi])
+            Fo = np.matmul(M, Xo).reshape(C, nch, b, nb, mi)
             if jv < b:
                 Fo[:, :, jv:, nb - 1] = 0.0
-            Phi = np.concatenate([Phi, Fo.reshape(C, nch, Lp, m)], axis=-1)
-            nt = m
+            Phi = np.concatenate([Phi, Fo.reshape(C, nch, Lp, mi)], axis=-1)
+            nt = mi
         H = np.matmul(np.swapaxes(Phi, -1, -2), Phi)  # (C, nch, n+nt, n+nt), the same for every window
         # candidates in chunks of ~2 MB of output: the chunk stays in cache from product to reduction
         cc = max(1, min(C, int(self.chunk_bytes // (8 * nch * b * nb * W))))
@@ -388,6 +404,11 @@ class WindowSimulator:
                     e, x0, beta = self._sub(_SUBS[i], pre, Ad, Bd, Gam)
                     out.append((i, (e, x0, beta, None)))
                     continue
+                if self.forcing is not None:  # unit forcing columns on the forced states (ZOH like the inputs)
+                    E = np.zeros(B.shape[:-1] + (len(_FORCED[i]),))
+                    for c, (st, _) in enumerate(_FORCED[i]):
+                        E[..., st, c] = 1.0
+                    B = np.concatenate([B, E], axis=-1)
                 Ad, Bd = discretize(A, B, self.dt_s)
                 e, x0, delta = self._lifted(_SUBS[i], pre, Ad, Bd, explicit=not sse)
                 if not sse:
@@ -564,6 +585,31 @@ class WindowSimulator:
         e += np.matmul(beta[:, None, :], F.reshape(C, P, W * LN)).reshape(C, W, LN)
         e -= r
         return e, pre["xm"][None] + z, beta
+
+
+def kinematic_forcing(outputs: np.ndarray, output_trim: np.ndarray | None = None, g: float = 9.81) -> np.ndarray:
+    """Measured body-axis kinematic and gravity terms that the hover linearisation (eq. 8) drops.
+
+    ``outputs (..., 8)`` u v w p q r theta phi with trims removed; ``output_trim (8,)`` adds them back
+    (absolute attitude and velocities). Returns ``(..., 3)`` accelerations on u, v, w (m/s^2)::
+
+        u: r v - q w - g (sin theta - sin theta0 - (theta - theta0))
+        v: p w - r u + g (sin phi cos theta - sin phi0 cos theta0 - (phi - phi0))
+        w: q u - p v + g (cos phi cos theta - cos phi0 cos theta0)
+
+    i.e. the rigid-body terms ``omega x V`` and the gravity components beyond eq. 8's ``-g theta`` and
+    ``g phi`` (perturbations from the trim attitude ``theta0 phi0``); NaN (unmeasured channel) gives 0. Rotor-flapping terms (T sin a_s ...) are not
+    measured and stay in the residual.
+    """
+    y = np.asarray(outputs, dtype=float)
+    t = np.zeros(8) if output_trim is None else np.asarray(output_trim, dtype=float)
+    u, v, w, p, q, r, th, ph = (np.nan_to_num(y[..., j]) + t[j] for j in range(8))
+    th0, ph0 = t[6], t[7]
+    out = np.empty(y.shape[:-1] + (3,))
+    out[..., 0] = r * v - q * w - g * (np.sin(th) - np.sin(th0) - (th - th0))
+    out[..., 1] = p * w - r * u + g * (np.sin(ph) * np.cos(th) - np.sin(ph0) * np.cos(th0) - (ph - ph0))
+    out[..., 2] = q * u - p * v + g * (np.cos(ph) * np.cos(th) - np.cos(ph0) * np.cos(th0))
+    return out
 
 
 def simulate_windows(theta: np.ndarray, inputs: np.ndarray, outputs: np.ndarray, dt_s: float,

@@ -171,3 +171,55 @@ def test_input_trim_offsets_are_recovered(windows):
     # without the trim the same data fit clearly worse
     plain = WindowSimulator(u + delta, y, dt, estimate_all_initial=True, ridge=1e-12)
     assert plain.sse(th[None])[0].sum() > 1e3 * sim.sse(th[None])[0].sum()
+
+
+def test_known_forcing_enters_like_an_input(windows):
+    """Accelerations added to u_dot, v_dot, w_dot (held over a sample, like the inputs) are simulated
+    exactly; without them the same data do not fit."""
+    th, u, _, x0h, x0v, dt = windows
+    rng = np.random.default_rng(11)
+    W, L = u.shape[:2]
+    f = rng.normal(0, 0.3, (W, L, 3))
+    Ah, Bh, Av, Bv = build_matrices(th)
+    Eh = np.zeros((8, 2))
+    Eh[0, 0] = Eh[1, 1] = 1.0
+    Ev = np.zeros((3, 1))
+    Ev[0, 0] = 1.0
+    Adh, Bdh = discretize(Ah, np.hstack([Bh, Eh]), dt)
+    Adv, Bdv = discretize(Av, np.hstack([Bv, Ev]), dt)
+    y = np.zeros((W, L, 8))
+    for w in range(W):
+        xh, xv = x0h[w].copy(), x0v[w].copy()
+        for k in range(L):
+            for s, o in HOR_OUT:
+                y[w, k, o] = xh[s]
+            for s, o in VER_OUT:
+                y[w, k, o] = xv[s]
+            xh = Adh @ xh + Bdh @ np.r_[u[w, k, :2], f[w, k, :2]]
+            xv = Adv @ xv + Bdv @ np.r_[u[w, k, 2:], f[w, k, 2]]
+    sim = WindowSimulator(u, y, dt, estimate_all_initial=True, ridge=1e-12, forcing=f)
+    assert sim.sse(th[None])[0].max() < 1e-12
+    assert np.abs(sim.simulate(th[None])[0] - y).max() < 1e-7
+    trim = WindowSimulator(u, y, dt, estimate_all_initial=True, ridge=1e-12, forcing=f, estimate_trim=True)
+    assert np.abs(trim.solve_trim(th[None])[1]).max() < 1e-7  # no offset to find
+    plain = WindowSimulator(u, y, dt, estimate_all_initial=True, ridge=1e-12)
+    assert plain.sse(th[None])[0].sum() > 1e3 * max(sim.sse(th[None])[0].sum(), 1e-12)
+
+
+def test_kinematic_forcing_terms():
+    from groundstation.sysid.simulate import kinematic_forcing
+
+    trim = np.array([0.1, -0.2, 0.05, 0.0, 0.0, 0.0, 0.03, -0.02])
+    y = np.zeros((2, 8))
+    assert np.allclose(kinematic_forcing(y, trim), 0.0)  # nothing at the trim point
+    y[1] = [1.0, 0.5, 0.2, 0.1, -0.2, 0.3, 0.0, 0.0]  # perturbations; attitude at trim
+    f = kinematic_forcing(y, trim)[1]
+    u, v, w, p, q, r = y[1, :6] + trim[:6]
+    assert f[0] == pytest.approx(r * v - q * w)
+    assert f[1] == pytest.approx(p * w - r * u)
+    assert f[2] == pytest.approx(q * u - p * v)
+    y2 = np.zeros(8)
+    y2[6] = 0.2  # pitch 0.2 rad above trim: only the gravity remainders beyond eq. 8's -g theta
+    f2 = kinematic_forcing(y2, np.zeros(8))
+    assert f2[0] == pytest.approx(-9.81 * (np.sin(0.2) - 0.2))
+    assert f2[2] == pytest.approx(9.81 * (np.cos(0.2) - 1.0))
