@@ -30,7 +30,9 @@ def linear_flight(T_s: float = 90.0, dt: float = 0.02, seed: int = 0, effect: tu
     """A prepared-data-like object (segments, dt_s, output_trim) of one linear flight.
 
     effect: ("input_delay", channel, samples) | ("gyro_bias", output index, rad/s) |
-            ("rotor_vibration", frequency_hz, amplitude) | ("velocity_latency", None, samples)
+            ("rotor_vibration", frequency_hz, amplitude) | ("velocity_latency", None, samples) |
+            ("deadband", channel, half_width) | ("wind_gust", tau_s, sigma_m_s) (horizontal air velocity,
+            Gauss-Markov, entering through the u and v columns of A; the pilot answers it)
     """
     rng = np.random.default_rng(seed)
     th = theta_from_dict(PAPER)
@@ -56,14 +58,23 @@ def linear_flight(T_s: float = 90.0, dt: float = 0.02, seed: int = 0, effect: tu
     y = np.zeros((n, 8))
     u = np.zeros((n, 4))
     hist = []
+    air = np.zeros(2)
+    gust_rng = np.random.default_rng(seed + 1000)
     for k in range(n):
         u[k] = -K @ x + exc[k]
         act = u[k].copy()
         hist.append(u[k].copy())
         if effect and effect[0] == "input_delay":
             act[effect[1]] = hist[max(0, k - effect[2])][effect[1]]
+        if effect and effect[0] == "deadband":
+            c, b = effect[1], effect[2]
+            act[c] = np.sign(act[c]) * max(abs(act[c]) - b, 0.0)
         y[k] = x[OUT_STATE]
         x = Ad @ x + Bu @ act
+        if effect and effect[0] == "wind_gust":
+            a = np.exp(-dt / effect[1])
+            air = a * air + effect[2] * np.sqrt(1 - a * a) * gust_rng.standard_normal(2)
+            x = x - dt * (A[0][:, 0] * air[0] + A[0][:, 1] * air[1])  # forces act on airspeed
     if effect and effect[0] == "velocity_latency":
         d = effect[2]
         y[d:, :3] = y[:-d, :3].copy()

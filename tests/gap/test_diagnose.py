@@ -23,6 +23,7 @@ def reports(flight_factory, start_model):
         "input_delay": ("input_delay", 1, 4),
         "gyro_bias": ("gyro_bias", 4, 0.008),
         "velocity_latency": ("velocity_latency", None, 5),
+        "deadband": ("deadband", 1, 0.02),
     }
     return {k: diagnose(start_model, flight_factory(T_s=90.0, seed=11, effect=e), seed=0) for k, e in cases.items()}
 
@@ -52,6 +53,15 @@ def test_velocity_latency_found(reports):
     r = reports["velocity_latency"]
     assert r["verdict"] == "velocity_latency"
     assert 0.06 <= r["effects"][0]["estimate"]["latency_s"] <= 0.13  # truth 0.10 s
+
+
+def test_deadband_found_on_its_channel(reports):
+    r = reports["deadband"]
+    assert r["verdict"] == "deadband"
+    top = r["effects"][0]
+    assert top["input"] == "lon"
+    assert 0.014 <= top["estimate"]["deadband"] <= 0.028  # truth 0.02 (play around the trim)
+    assert top["shrink_pct"] > 0
 
 
 def test_report_schema(reports):
