@@ -12,10 +12,17 @@ Steps (all on the prepared in-air segments, cut into windows rotating through k 
    for gyro bias);
 4. verdict: the significant candidate (block-level paired bootstrap, Bonferroni over the tested
    hypotheses, plus a coarse whole-window check) with the largest held-out cost reduction, after
-   physical plausibility checks that need no tuning (drag opposes motion, ground effect adds lift,
-   a deadband is wider than a few steps of the recorded input's resolution, gyro bias on p/q
-   must also show in the Euler kinematics, an air-mass motion must also improve the attitude
-   channels); ``unexplained`` when none is significant while the held-out residual is well above
+   physical plausibility checks that need no tuning (drag opposes motion on every axis, ground
+   effect adds lift, a deadband is wider than a few steps of the recorded input's resolution,
+   gyro bias on p/q must also show in the Euler kinematics, an air-mass motion must also improve
+   the attitude angles) and after
+   * an outer iteration for each significant input effect (base re-identified with the effect
+     in place, channel re-scanned), since the base had absorbed part of it;
+   * encompassing tests of each significant input effect against the air mass and the forcing
+     effects (ground effect, drag): in closed loop the pilot's corrections answer a disturbance,
+     so removing or delaying them mimics it; an effect that adds nothing once the other is in
+     the model (held-out, both ways round) is dropped (:func:`_encompass`);
+   ``unexplained`` when none is significant while the held-out residual is well above
    its noise floor (3x, in two or more channels) and most of the excess sits in flagged windows;
    else ``none``;
 5. report: the DESIGN.md ``heli-gap-report/1`` dict (:mod:`groundstation.gap.report`).
