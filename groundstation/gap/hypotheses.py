@@ -8,6 +8,11 @@ base parameters and of the effect's linear parameters (:meth:`Evaluator.heldout`
 channel and grid value *inside each fold on the training cost* (nested selection), so the held-out
 cost of the hypothesis carries the penalty for what it adds.
 
+A :class:`Context` built with ``given`` columns (another effect's linear columns) runs the same
+scans conditionally on that effect (encompassing tests); :func:`apply_input_effect` re-applies the
+selected variant of an input effect to the data, :func:`rescan_input_effect` scans its channel
+again in another context (around a re-identified base, or given another effect).
+
 ``rotor_vibration`` is not a model change at the sample rate of the cost: it is tested by
 :mod:`groundstation.gap.fingerprints` on the raw residual spectrum. Pure numpy; no IO.
 """
@@ -435,7 +440,10 @@ def scan_wind_gust(ctx: Context, chunk_s: float = 0.5, refine_iterations: int = 
     alternate chunks of ``chunk_s`` and the residual is scored on the other chunks, both ways
     round; the base model goes through the same protocol. A smooth air-mass motion fitted on some
     chunks predicts the chunks between them; parameters fitted to noise (correlated over a few
-    samples only) do not.
+    samples only) do not. The air-mass model's parameters (the base as it is, or re-identified
+    under the air velocity, which can also over-fit) are chosen per fold on the other folds'
+    windows. Scored on :data:`GUST_CHANNELS` only (the rates also carry the air velocity's rough
+    part, which no smooth air velocity predicts between its knots; w sees no horizontal air).
     """
     ev = ctx.ev
     if not ev.available[[0, 1]].all():
