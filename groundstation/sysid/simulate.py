@@ -80,8 +80,7 @@ class WindowSimulator:
     available : (8,) or (W, 8) bool, channel measured
     estimate_all_initial : estimate every initial state by least squares (not only the unmeasured)
     ridge : relative Tikhonov weight that keeps unobservable initial states finite
-    block : time-lifting block length (samples); the simulation steps ``L / block`` lifted
-        systems and does the within-block response as one batched matrix product
+    block : time-lifting block length (samples) for both subsystems (overrides ``lifted_block``)
     subsystems : which decoupled subsystems to simulate (0 horizontal, 1 vertical/yaw); the
         outputs of the others stay zero and their channels are not used
     linear : per subsystem, B-matrix entries ``(state, input)`` (input index within the subsystem)
@@ -100,11 +99,16 @@ class WindowSimulator:
     The forced response is computed by time lifting: with blocks of b samples,
     ``x_{i+1} = A^b x_i + Cb U_i`` and ``Y_i = Ob x_i + T U_i`` (``Ob`` the stacked ``C A^j``, ``T`` the
     block-Toeplitz Markov parameters, ``Cb`` the block controllability matrix) - exactly the same
-    numbers as stepping ``x[k+1] = A x[k] + B u[k]`` sample by sample, but in a few large products.
+    numbers as stepping ``x[k+1] = A x[k] + B u[k]`` sample by sample, but in a few large products:
+    per candidate one ``[Ob | T] [x; U]`` product over all blocks of all windows, laid out channel-major
+    (rows channel and in-block sample, columns block and window), so that the initial-state least
+    squares needs only ``Phi_h^T r_h`` per channel and the per-channel SSE follows from the quadratic
+    form without an error array (explicit where the form cancels). Candidates run in chunks of
+    ``chunk_bytes`` of output so that product, subtraction and reductions stay in cache.
     """
 
     def __init__(self, inputs: np.ndarray, outputs: np.ndarray, dt_s: float, available: np.ndarray | None = None,
-                 *, estimate_all_initial: bool = False, ridge: float = 1e-6, block: int = 10,
+                 *, estimate_all_initial: bool = False, ridge: float = 1e-6, block: int | None = None,
                  subsystems: tuple[int, ...] = (0, 1),
                  linear: dict[int, tuple[tuple[int, int], ...]] | None = None,
                  lifted_block: tuple[int, int] = (5, 5), estimate_trim: bool = False,
@@ -131,8 +135,7 @@ class WindowSimulator:
         self.ridge = ridge
         self.W, self.L = u.shape[0], u.shape[1]
         self.linear = {k: tuple(v) for k, v in (linear or {}).items() if v}
-        self.b = max(1, min(int(block), self.L))
-        self.lifted_block = tuple(int(v) for v in lifted_block)
+        self.lifted_block = (int(block), int(block)) if block is not None else tuple(int(v) for v in lifted_block)
         self.estimate_trim = bool(estimate_trim)
         if self.estimate_trim and linear:
             raise ValueError("estimate_trim and linear (projected B entries) cannot be combined")
@@ -142,9 +145,7 @@ class WindowSimulator:
                 raise ValueError(f"forcing must be (W, L, 3) like the inputs, got {self.forcing.shape}")
             if linear:
                 raise ValueError("forcing and linear (projected B entries) cannot be combined")
-        self.chunk_bytes = 2e6
-        self.nb = -(-self.L // self.b)
-        Lp = self.nb * self.b
+        self.chunk_bytes = 2e6  # candidates are processed in chunks of about this much lifted output
         self._prep: list[dict] = []
         for sub in _SUBS:
             if _SUBS.index(sub) not in self.subsystems:
@@ -153,9 +154,6 @@ class WindowSimulator:
             s_idx = np.array([s for s, _ in sub.meas])
             o_idx = np.array([o for _, o in sub.meas])
             nch = len(sub.meas)
-            up = np.zeros((self.W, Lp, len(sub.inputs)))
-            up[:, :self.L] = u[:, :, list(sub.inputs)]
-            U = up.reshape(1, self.W * self.nb, self.b * len(sub.inputs))  # block input vectors
             known = np.zeros((self.W, sub.n), dtype=bool)
             if not estimate_all_initial:
                 known[:, s_idx] = self.mask[:, o_idx]
@@ -164,15 +162,12 @@ class WindowSimulator:
             xm = np.where(known, xm, 0.0)
             yflat = self.outputs[:, :, o_idx].reshape(self.W, self.L * nch)
             w_ch = self.weights[:, o_idx]
-            wflat = np.repeat(w_ch[:, None, :], self.L, axis=1).reshape(self.W, self.L * nch)
             mflat = np.repeat(self.mask[:, None, o_idx], self.L, axis=1).reshape(self.W, self.L * nch)
             lin = self.linear.get(_SUBS.index(sub), ())
-            Ub = U[0].reshape(self.W * self.nb, self.b, len(sub.inputs))
-            Usel = [np.ascontiguousarray(Ub[:, :, j]) for _, j in lin]
-            self._prep.append(dict(s_idx=s_idx, o_idx=o_idx, nch=nch, U=U, known=known, xm=xm, yflat=yflat, lin=lin,
-                                   Usel=Usel, mask_hw=np.ascontiguousarray(self.mask[:, o_idx].T).astype(float),
-                                   w_ch=w_ch, wflat=wflat, mflat=mflat, unk=(~known).astype(float),
-                                   uniform=bool((w_ch == w_ch[:1]).all()), full_mask=bool(self.mask[:, o_idx].all())))
+            self._prep.append(dict(s_idx=s_idx, o_idx=o_idx, nch=nch, xm=xm, yflat=yflat, lin=lin,
+                                   mask_hw=np.ascontiguousarray(self.mask[:, o_idx].T).astype(float),
+                                   w_ch=w_ch, mflat=mflat, unk=(~known).astype(float),
+                                   full_mask=bool(self.mask[:, o_idx].all())))
             lb = self.lifted_block[_SUBS.index(sub)]
             u_sub = u[:, :, list(sub.inputs)]
             if self.forcing is not None:  # known accelerations enter as extra inputs with unit gain
@@ -381,6 +376,124 @@ class WindowSimulator:
             sse[c] = np.einsum("hkw,hkw->h", e, e)
         return z, beta, sse
 
+    def _lifted_vp(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, Gam: np.ndarray, *, explicit: bool):
+        """Lifted simulation with the ``linear`` B entries solved by least squares (variable projection).
+
+        For a given A the output is linear in those entries: each has a unit response ``F_p`` (input
+        ``inp_p`` through the ZOH column ``Gamma[:, st_p]``, from rest), simulated like the forced
+        response, and the coefficients ``beta`` (global) and the initial states (per window) come from
+        one least-squares solve (Schur complement over the windows). Returns ``(e or sse, x0, beta)``.
+        """
+        C = Ad.shape[0]
+        W, L, n = self.W, self.L, sub.n
+        b, nb = pre["lb"], pre["lnb"]
+        s_idx, nch, jv = pre["s_idx"], pre["nch"], pre["jv"]
+        lin = pre["lin"]
+        P = len(lin)
+        m = Bd.shape[-1]
+        K = n + b * m
+        Lp, N = nb * b, nb * W
+        pw = [np.broadcast_to(np.eye(n), (C, n, n)), Ad]
+        for _ in range(b - 1):
+            pw.append(np.matmul(Ad, pw[-1]))
+        Apow = np.stack(pw, axis=1)  # (C, b+1, n, n)
+        Ab = Apow[:, b]
+        Obm = np.ascontiguousarray(Apow[:, :b][:, :, s_idx, :].transpose(0, 2, 1, 3))  # (C, nch, b, n)
+        # forced response of the fixed B entries, as in _lifted
+        AB = np.matmul(Apow[:, :b], Bd[:, None])  # (C, b, n, m)
+        CABz = np.concatenate([AB[:, :, s_idx, :], np.zeros((C, 1, nch, m))], axis=1)
+        Tq = CABz[:, pre["qidx"]]
+        M = np.concatenate([Obm, Tq.transpose(0, 3, 1, 2, 4).reshape(C, nch, b, b * m)], axis=-1).reshape(C, nch * b, K)
+        AbCb = np.concatenate([Ab, AB[:, ::-1].transpose(0, 2, 1, 3).reshape(C, n, b * m)], axis=-1)
+        X = self._xbuf(pre, C, n)
+        X[:, :n, :W] = pre["x0T"][None]
+        for i in range(nb - 1):
+            np.matmul(AbCb, X[:, :, i * W:(i + 1) * W], out=X[:, :n, (i + 1) * W:(i + 2) * W])
+        # unit responses: one single-input lifted system per projected entry
+        G1 = Gam[:, :, [st for st, _ in lin]]  # (C, n, P)
+        AG = np.matmul(Apow[:, :b], G1[:, None])  # (C, b, n, P): A^q Gamma e_st
+        CAGz = np.concatenate([AG[:, :, s_idx, :], np.zeros((C, 1, nch, P))], axis=1)
+        Tp = CAGz[:, pre["qidx"]]  # (C, b(j), b(l), nch, P)
+        Mp = np.concatenate([np.broadcast_to(Obm[:, None], (C, P, nch, b, n)),
+                             Tp.transpose(0, 4, 3, 1, 2)], axis=-1).reshape(C, P, nch * b, n + b)
+        AbCp = np.concatenate([np.broadcast_to(Ab[:, None], (C, P, n, n)),
+                               AG[:, ::-1].transpose(0, 3, 2, 1)], axis=-1)  # (C, P, n, n + b)
+        Xp = pre["X"].get("Xp")
+        if Xp is None or Xp.shape[0] < C:
+            Xp = np.empty((C, P, n + b, N))
+            for q, (_, inp) in enumerate(lin):
+                Xp[:, q, n:] = pre["Ut"][inp::m][None]
+            pre["X"]["Xp"] = Xp
+        Xp = Xp[:C]
+        Xp[:, :, :n, :W] = 0.0
+        for i in range(nb - 1):
+            np.matmul(AbCp, Xp[:, :, :, i * W:(i + 1) * W], out=Xp[:, :, :n, (i + 1) * W:(i + 2) * W])
+        Abc = np.empty((C, n, nb * n))
+        Abc[:, :, :n] = np.eye(n)
+        Abk, k = Ab, 1
+        while k < nb:
+            kk = min(k, nb - k)
+            np.matmul(Abk, Abc[:, :, :kk * n], out=Abc[:, :, k * n:(k + kk) * n])
+            k += kk
+            if k < nb:
+                Abk = np.matmul(Abk, Abk)
+        Phi = np.matmul(Obm.reshape(C, nch * b, n), Abc).reshape(C, nch, b, nb, n)
+        if jv < b:
+            Phi[:, :, jv:, nb - 1] = 0.0
+        Phi = Phi.reshape(C, nch, Lp, n)
+        H = np.matmul(np.swapaxes(Phi, -1, -2), Phi)
+        cc = max(1, min(C, int(self.chunk_bytes // (8 * (P + 1) * nch * b * N))))
+        res = np.empty((C, W, L, nch) if explicit else (C, nch))
+        z = np.empty((C, W, n))
+        beta = np.empty((C, P))
+        for c0 in range(0, C, cc):
+            c1 = min(C, c0 + cc)
+            z[c0:c1], beta[c0:c1], res[c0:c1] = self._vp_chunk(pre, M[c0:c1], X[c0:c1], Mp[c0:c1], Xp[c0:c1],
+                                                               Phi[c0:c1], H[c0:c1], explicit)
+        return res, pre["xm"][None] + z, beta
+
+    def _vp_chunk(self, pre, M, X, Mp, Xp, Phi, H, explicit):
+        k, nch, Lp, n = Phi.shape
+        P = Mp.shape[1]
+        W, L, b, nb, jv = self.W, self.L, pre["lb"], pre["lnb"], pre["jv"]
+        R = self._rbuf(pre, k, nch * b)
+        np.matmul(M, X, out=R)
+        np.subtract(pre["yT"][None], R, out=R)
+        F = np.matmul(Mp, Xp)  # (k, P, nch b, N)
+        if jv < b:
+            R.reshape(k, nch, b, nb, W)[:, :, jv:, nb - 1] = 0.0
+            F.reshape(k, P, nch, b, nb, W)[:, :, :, jv:, nb - 1] = 0.0
+        R4 = R.reshape(k, nch, Lp, W)
+        F5 = F.reshape(k, P, nch, Lp, W)
+        w_ch, unk = pre["w_ch"], pre["unk"]
+        g = np.matmul(np.swapaxes(R4, -1, -2), Phi)  # (k, nch, W, n)
+        gF = np.matmul(np.swapaxes(F5, -1, -2), Phi[:, None])  # (k, P, nch, W, n)
+        rhs = np.einsum("wh,chwn->cwn", w_ch, g) * unk[None]
+        E = np.einsum("wh,cphwn->cwnp", w_ch, gF) * unk[None, :, :, None]  # (k, W, n, P)
+        Fw = F5 * w_ch.T[None, None, :, None, :]
+        FF = np.matmul(F.reshape(k, P, -1), np.swapaxes(Fw.reshape(k, P, -1), 1, 2))  # (k, P, P)
+        rb = np.matmul(Fw.reshape(k, P, -1), R.reshape(k, -1, 1))[..., 0]  # (k, P)
+        G = np.matmul(w_ch[None], H.reshape(k, nch, n * n)).reshape(k, W, n, n)
+        G *= (unk[:, :, None] * unk[:, None, :])[None]
+        scale = np.maximum(np.einsum("cwii->cwi", G).max(axis=-1, keepdims=True), 1e-300)
+        G += np.where(unk[None] > 0, self.ridge * scale, 1.0)[..., :, None] * np.eye(n)
+        sol = np.linalg.solve(G, np.concatenate([E, rhs[..., None]], axis=-1))
+        GiE, Gia = sol[..., :P], sol[..., P]
+        S = FF - np.einsum("cwnp,cwnq->cpq", E, GiE)
+        dS = np.einsum("cpp->cp", S)
+        S += (1e-10 * np.maximum(dS.max(axis=-1), 1e-300))[:, None, None] * np.eye(P)
+        beta = np.linalg.solve(S, (rb - np.einsum("cwnp,cwn->cp", E, Gia))[..., None])[..., 0]
+        z = Gia - np.einsum("cwnp,cp->cwn", GiE, beta)
+        # e = Phi z + F beta - r, explicitly (no cancellation to guard)
+        e = np.matmul(beta[:, None, :], F.reshape(k, P, -1)).reshape(k, nch, Lp, W)
+        e -= R4
+        e += np.matmul(Phi, np.swapaxes(z, 1, 2)[:, None])
+        if explicit:
+            return z, beta, e.reshape(k, nch, b, nb, W).transpose(0, 4, 3, 2, 1).reshape(k, W, Lp, nch)[:, :, :L]
+        if not pre["full_mask"]:
+            e *= pre["mask_hw"][None, :, None, :]
+        return z, beta, np.einsum("chkw,chkw->ch", e, e)
+
     @property
     def state_updates_per_call(self) -> int:
         """State updates (one x[k+1] = A x[k] + B u[k]) per candidate per call."""
@@ -401,7 +514,9 @@ class WindowSimulator:
                     # Ad and Gamma = int_0^dt e^(A s) ds in one exponential; Bd = Gamma B (exact ZOH)
                     Ad, Gam = discretize(A, np.broadcast_to(np.eye(n), A.shape), self.dt_s)
                     Bd = np.matmul(Gam, B)
-                    e, x0, beta = self._sub(_SUBS[i], pre, Ad, Bd, Gam)
+                    e, x0, beta = self._lifted_vp(_SUBS[i], pre, Ad, Bd, Gam, explicit=not sse)
+                    if not sse:
+                        e = e.reshape(e.shape[0], self.W, self.L * pre["nch"])
                     out.append((i, (e, x0, beta, None)))
                     continue
                 if self.forcing is not None:  # unit forcing columns on the forced states (ZOH like the inputs)
@@ -465,126 +580,6 @@ class WindowSimulator:
             pre = self._prep[i]
             out[:, :, :, pre["o_idx"]] = (e * pre["mflat"][None]).reshape(C, self.W, self.L, pre["nch"])
         return np.where(np.isfinite(out), out, 1e6)
-
-    def _sub(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, Gam: np.ndarray | None):
-        C = Ad.shape[0]
-        W, L, n, b, nb = self.W, self.L, sub.n, self.b, self.nb
-        s_idx, nch = pre["s_idx"], pre["nch"]
-        m = Bd.shape[-1]
-        # powers A^0..A^b
-        pw = [np.broadcast_to(np.eye(n), (C, n, n))]
-        for _ in range(b):
-            pw.append(np.matmul(Ad, pw[-1]))
-        Apow = np.stack(pw, axis=1)  # (C, b+1, n, n)
-        Ob = Apow[:, :b][:, :, s_idx, :].reshape(C, b * nch, n)  # rows (j, ch): C A^j
-        AB = np.matmul(Apow[:, :b], Bd[:, None])  # (C, b, n, m): A^q B
-        CAB = AB[:, :, s_idx, :]  # (C, b, nch, m) Markov parameters C A^q B
-        T = np.zeros((C, b, nch, b, m))
-        for j in range(1, b):
-            for l in range(j):
-                T[:, j, :, l, :] = CAB[:, j - 1 - l]
-        T = T.reshape(C, b * nch, b * m)
-        Cb = np.stack([AB[:, b - 1 - l] for l in range(b)], axis=-2)  # (C, n, b, m)
-        Cb = Cb.reshape(C, n, b * m)
-        Ab = Apow[:, b]
-        U = pre["U"][0]  # (W*nb, b*m)
-        # one BLAS product: (W*nb, b*m) x (b*m, C*n)
-        CbU = (U @ Cb.transpose(2, 0, 1).reshape(b * m, C * n)).reshape(W, nb, C, n).transpose(2, 0, 1, 3)
-        # block states (zero initial state)
-        xm, unk = pre["xm"], pre["unk"]
-        xs = np.empty((C, W, nb, n))
-        x = np.broadcast_to(xm, (C, W, n))  # known initial states; the unknown part is added below
-        AbT = np.swapaxes(Ab, 1, 2)
-        for i in range(nb):
-            xs[:, :, i] = x
-            x = np.matmul(x, AbT) + CbU[:, :, i]
-        # Y_i = Ob x_i + T U_i: a batched product for the states, one BLAS product for the inputs
-        yf = np.matmul(xs.reshape(C, W * nb, n), np.ascontiguousarray(np.swapaxes(Ob, 1, 2)))
-        yf += np.matmul(U[None], np.ascontiguousarray(np.swapaxes(T, 1, 2)))
-        r = yf.reshape(C, W, nb * b * nch)[:, :, : L * nch]
-        np.subtract(pre["yflat"][None], r, out=r)  # r = y - forced - known free response, (C, W, L*nch)
-        # free response basis Phi (C, L*nch, n): rows (k, ch) = C A^k
-        Abp = [np.broadcast_to(np.eye(n), (C, n, n))]
-        for _ in range(nb - 1):
-            Abp.append(np.matmul(Ab, Abp[-1]))
-        Phi = np.ascontiguousarray(np.matmul(Ob[:, None], np.stack(Abp, axis=1)).reshape(C, nb * b * nch, n)[:, : L * nch])
-        # normal equations per candidate per window: G = sum_ch w_ch Phi_ch^T Phi_ch
-        Phi4 = Phi.reshape(C, L, nch, n).transpose(0, 2, 3, 1)  # (C, nch, n, L)
-        H = np.matmul(Phi4, np.swapaxes(Phi4, -1, -2))  # (C, nch, n, n)
-        G = np.matmul(pre["w_ch"][None], H.reshape(C, nch, n * n)).reshape(C, W, n, n)
-        G *= (unk[:, :, None] * unk[:, None, :])[None]
-        diag = np.einsum("cwii->cwi", G)
-        scale = np.maximum(diag.max(axis=-1, keepdims=True), 1e-300)
-        reg = np.where(unk[None] > 0, self.ridge * scale, 1.0)
-        G += reg[..., :, None] * np.eye(n)
-        if pre["uniform"]:
-            PhiW = Phi * pre["wflat"][0][None, :, None]
-            rhs = np.matmul(r, PhiW)  # (C, W, n)
-        else:
-            rhs = np.matmul(r * pre["wflat"][None], Phi)
-        rhs *= unk[None]
-        if pre["lin"]:
-            return self._varpro(pre, Apow, Ob, Gam, Phi, G, rhs, r, C, W, L, n, b, nb, nch)
-        z = np.linalg.solve(G, rhs[..., None])[..., 0]  # (C, W, n), zero on known dims
-        e = np.matmul(z, np.ascontiguousarray(np.swapaxes(Phi, 1, 2)))
-        e -= r  # yhat - y
-        x0 = xm[None] + z
-        return e, x0
-
-    def _varpro(self, pre, Apow, Ob, Gam, Phi, G, rhs, r, C, W, L, n, b, nb, nch):
-        """Joint least squares of the linear B entries (global) and the initial states (per window)."""
-        lin = pre["lin"]
-        P = len(lin)
-        s_idx = pre["s_idx"]
-        K = W * nb
-        cols = Gam[:, :, [i for i, _ in lin]]  # (C, n, P): Bd columns of unit B entries
-        AB = np.matmul(Apow[:, :b], cols[:, None])  # (C, b, n, P)
-        CAB = AB[:, :, s_idx, :]  # (C, b, nch, P)
-        Tp = np.zeros((C, P, b, nch, b))
-        CABp = np.moveaxis(CAB, 3, 1)  # (C, P, b, nch)
-        for j in range(1, b):
-            for l in range(j):
-                Tp[:, :, j, :, l] = CABp[:, :, j - 1 - l]
-        Tp = Tp.reshape(C, P, b * nch, b)
-        Cbp = np.stack([AB[:, b - 1 - l] for l in range(b)], axis=-1)  # (C, n, P, b)
-        CbU = np.empty((C, P, K, n))
-        TU = np.empty((C, P, K, b * nch))
-        for p in range(P):
-            Uj = pre["Usel"][p]  # (K, b)
-            CbU[:, p] = (Uj @ Cbp[:, :, p, :].transpose(2, 0, 1).reshape(b, C * n)).reshape(K, C, n).transpose(1, 0, 2)
-            TU[:, p] = (Uj @ Tp[:, p].transpose(2, 0, 1).reshape(b, C * b * nch)).reshape(K, C, b * nch).transpose(1, 0, 2)
-        CbU = CbU.reshape(C, P * W, nb, n)
-        Ab = Apow[:, b]
-        AbT = np.swapaxes(Ab, 1, 2)
-        xs = np.empty((C, P * W, nb, n))
-        x = np.zeros((C, P * W, n))
-        for i in range(nb):
-            xs[:, :, i] = x
-            x = np.matmul(x, AbT) + CbU[:, :, i]
-        F = np.matmul(xs.reshape(C, P * K, n), np.ascontiguousarray(np.swapaxes(Ob, 1, 2)))
-        F += TU.reshape(C, P * K, b * nch)
-        F = np.ascontiguousarray(F.reshape(C, P, W, nb * b * nch)[..., : L * nch])  # (C, P, W, LN)
-        LN = L * nch
-        Fw = F * pre["wflat"][None, None]
-        unk = pre["unk"]
-        E = np.empty((C, W, n, P))
-        for p in range(P):
-            E[..., p] = np.matmul(Fw[:, p], Phi)  # Phi^T W F_p per window
-        E *= unk[None, :, :, None]
-        FF = np.matmul(F.reshape(C, P, W * LN), np.swapaxes(Fw.reshape(C, P, W * LN), 1, 2))  # (C, P, P)
-        rb = np.matmul(Fw.reshape(C, P, W * LN), r.reshape(C, W * LN, 1))[..., 0]  # (C, P)
-        GiE = np.linalg.solve(G, E)  # (C, W, n, P)
-        Gia = np.linalg.solve(G, rhs[..., None])[..., 0]  # (C, W, n)
-        S = FF - np.einsum("cwnp,cwnq->cpq", E, GiE)
-        rr = rb - np.einsum("cwnp,cwn->cp", E, Gia)
-        dS = np.einsum("cpp->cp", S)
-        S = S + (1e-10 * np.maximum(dS.max(axis=-1), 1e-300))[:, None, None] * np.eye(P)
-        beta = np.linalg.solve(S, rr[..., None])[..., 0]  # (C, P)
-        z = Gia - np.einsum("cwnp,cp->cwn", GiE, beta)
-        e = np.matmul(z, np.ascontiguousarray(np.swapaxes(Phi, 1, 2)))
-        e += np.matmul(beta[:, None, :], F.reshape(C, P, W * LN)).reshape(C, W, LN)
-        e -= r
-        return e, pre["xm"][None] + z, beta
 
 
 def kinematic_forcing(outputs: np.ndarray, output_trim: np.ndarray | None = None, g: float = 9.81) -> np.ndarray:

@@ -223,3 +223,34 @@ def test_kinematic_forcing_terms():
     f2 = kinematic_forcing(y2, np.zeros(8))
     assert f2[0] == pytest.approx(-9.81 * (np.sin(0.2) - 0.2))
     assert f2[2] == pytest.approx(9.81 * (np.cos(0.2) - 1.0))
+
+
+@pytest.mark.parametrize("est_all", [False, True])
+def test_variable_projection_cost_equals_the_plain_cost_at_the_solved_b(windows, est_all):
+    """The projected cost of x is the plain cost of the completed parameters (B entries = their LS values),
+    with a channel missing in one window and L not a multiple of the block."""
+    from groundstation.sysid.cost import LINEAR_B, WindowedCost, Windows
+
+    th, u, y, _, _, dt = windows
+    rng = np.random.default_rng(4)
+    avail = np.ones((6, 8), bool)
+    avail[2, 1] = False
+    win = Windows(u, y + rng.normal(0, 0.01, y.shape), avail, np.zeros(6, int), np.zeros(6), dt)
+    free = np.ones(31, dtype=bool)
+    cv = WindowedCost(win, free, th, estimate_all_initial=est_all, varpro=True)
+    plain = WindowedCost(win, free, th, estimate_all_initial=est_all)
+    X = th[cv.free][None] * (1 + 0.05 * rng.normal(size=(4, cv.dim)))
+    full = cv.complete(X)
+    assert np.allclose(cv(X), plain(full), rtol=1e-9, atol=0)
+    # and the projected entries really minimise the least-squares criterion (channel SSE / scale^2;
+    # not eq. 11 itself): nudging one raises it
+    from groundstation.sysid.model import PARAM_INDEX
+
+    def wsse(t):
+        return (plain.sim.sse(t) / plain.sim.scales[None] ** 2).sum(axis=1)
+
+    for name in ("Z_col", "L_lat"):
+        nudged = full.copy()
+        nudged[:, PARAM_INDEX[name]] *= 1.01
+        assert (wsse(nudged) > wsse(full)).all()
+    assert len(LINEAR_B) == 11
