@@ -126,7 +126,8 @@ def _neighbour(X: np.ndarray, i: np.ndarray, rng: np.random.Generator, lo: np.nd
 
 
 def _bee_colony(fun: Fun, bounds, *, rng, maxiter: int, maxfev: int | None, callback, colony_size: int,
-                limit: int, chaos: bool, chaos_points: int, radius0: float, radius_end: float) -> OptimizeResult:
+                limit: int, chaos: bool, chaos_points: int, radius0: float, radius_end: float,
+                shrink_over_budget: bool = False) -> OptimizeResult:
     rng = _rng(rng)
     b = np.asarray(bounds, dtype=float)
     lo, hi = b[:, 0], b[:, 1]
@@ -175,10 +176,10 @@ def _bee_colony(fun: Fun, bounds, *, rng, maxiter: int, maxfev: int | None, call
             trial[i] = 0
         # step 7: chaotic search around the best
         if chaos and tr.budget_left() > 0:
-            # progress through the run: iterations, or the evaluation budget when that binds first (with
-            # maxiter=10**6 and a budget the radius would otherwise never shrink)
+            # progress through the run in iterations; with shrink_over_budget also in evaluations, which
+            # binds in budgeted runs with maxiter=10**6 (there the radius otherwise stays ~radius0)
             frac = it / max(maxiter - 1, 1)
-            if maxfev is not None:
+            if shrink_over_budget and maxfev is not None:
                 frac = min(1.0, max(frac, tr.nfev / maxfev))
             R_last = radius0 * (radius_end / radius0) ** frac
             R = span * R_last
@@ -203,11 +204,18 @@ def _bee_colony(fun: Fun, bounds, *, rng, maxiter: int, maxfev: int | None, call
 
 def minimize_cabc(fun: Fun, bounds, *, rng=None, maxiter: int = 100, maxfev: int | None = None, callback=None,
                   colony_size: int = 20, limit: int = 5, chaos_points: int = 10, radius0: float = 0.05,
-                  radius_end: float = 1e-4) -> OptimizeResult:
-    """Chaotic artificial bee colony (paper section 3.2, steps 1-8)."""
+                  radius_end: float = 1e-4, shrink_over_budget: bool = False) -> OptimizeResult:
+    """Chaotic artificial bee colony (paper section 3.2, steps 1-8).
+
+    The chaotic radius shrinks geometrically from ``radius0`` to ``radius_end`` (fractions of the range)
+    over ``maxiter`` iterations; ``shrink_over_budget`` also over ``maxfev`` evaluations. Off by
+    default: in the bench's equal-budget comparison (maxiter=10**6) shrinking over the budget made
+    CABC clearly worse (median search cost 1.25 vs 1.07 over 20 seeds: the chaotic winner replaces an
+    employed bee every iteration and the colony collapses onto the best), see ``chaos_radius``.
+    """
     return _bee_colony(fun, bounds, rng=rng, maxiter=maxiter, maxfev=maxfev, callback=callback,
                        colony_size=colony_size, limit=limit, chaos=True, chaos_points=chaos_points,
-                       radius0=radius0, radius_end=radius_end)
+                       radius0=radius0, radius_end=radius_end, shrink_over_budget=shrink_over_budget)
 
 
 def minimize_abc(fun: Fun, bounds, *, rng=None, maxiter: int = 100, maxfev: int | None = None, callback=None,
