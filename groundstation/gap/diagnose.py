@@ -15,7 +15,7 @@ Steps (all on the prepared in-air segments, cut into windows rotating through k 
    physical plausibility checks that need no tuning (drag opposes motion on every axis, ground
    effect adds lift, a deadband is wider than a few steps of the recorded input's resolution,
    gyro bias on p/q must also show in the Euler kinematics, an air-mass motion must also improve
-   the attitude angles) and after
+   the attitude angles and move faster than the velocity sensors resolve) and after
    * an outer iteration for each significant input effect (base re-identified with the effect
      in place, channel re-scanned), since the base had absorbed part of it;
    * encompassing tests of each significant input effect against the air mass and the forcing
@@ -204,6 +204,10 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
     lines, spectra = fingerprints.spectral_lines(resid_raw, ev.U[:, ev.start:], dt, line_ch, alpha=cfg.alpha)
     kin = fingerprints.kinematic_rate_offsets(ev.Y, dt, avail, trims=_trims(prepared))
 
+    for h in hyps:
+        if h.effect == "wind_gust" and h.testable:
+            # horizontal air speed the velocity sensors resolve: excitation_snr x their white noise
+            h.extra["resolvable_m_s"] = float(cfg.excitation_snr * np.hypot(nf["sigma_raw"][0], nf["sigma_raw"][1]))
     n_tests = sum(h.testable for h in hyps) + 1
     crit = cfg.alpha / n_tests
     results = []
@@ -370,7 +374,7 @@ def _encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: 
         # --- air mass: the four models (base, +A, +air mass, +both) in the air-mass protocol
         # (within-window chunk cross-validation, where a per-window smooth air velocity cannot
         # follow the fast, input-linked error of an input effect)
-        if gust is not None and gust.score.score_pct > 0 and "base_sse" in gust.hyp.extra:
+        if gust is not None and gust.score.score_pct > 0 and "base_sse" in gust.hyp.extra and _physical(gust.hyp):
             segs_a = hypotheses.apply_input_effect(a.hyp, segs, ev.dt_s)
             ev_a = Evaluator(segs_a, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s,
                              folds=ev.folds, ridge=ev.ridge)
@@ -423,7 +427,8 @@ def _encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: 
 
 
 def _physical(h: hypotheses.Hypothesis) -> bool:
-    """Sign constraints of the physics: drag opposes motion (on every axis), ground effect adds lift."""
+    """Physical plausibility: drag opposes motion (on every axis), ground effect adds lift, a deadband
+    is wider than the input resolution, an air mass moves more than the velocity sensors resolve."""
     if h.effect == "quadratic_drag":
         # drag opposes the motion along every axis it is estimated on (a term of either sign on
         # one axis is model-structure error, e.g. the rigid body's velocity-rate products)
@@ -434,6 +439,11 @@ def _physical(h: hypotheses.Hypothesis) -> bool:
     if h.effect == "deadband":
         # wider than a few steps of the recorded input's resolution, else it is quantisation
         return float(h.estimate.get("deadband", 0.0)) > 3.0 * float(h.extra.get("quantum", 0.0))
+    if h.effect == "wind_gust":
+        # a low-frequency air mass carries the aircraft along: one moving less than the velocity
+        # sensors resolve cannot be what the gap is (the fitted air velocity is then soaking up
+        # slow model-structure error)
+        return float(h.estimate.get("air_velocity_rms_m_s", 0.0)) > float(h.extra.get("resolvable_m_s", 0.0))
     return True
 
 

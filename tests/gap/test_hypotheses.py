@@ -60,3 +60,14 @@ def test_air_mass_predicts_velocities_between_its_chunks_and_leaves_rates_alone(
     ev0 = Evaluator(segs0, prep.dt_s, paper_theta, avail, window_s=3.0, folds=3)
     h0 = scan_wind_gust(Context(ev0, segs0), refine_iterations=0)
     assert h0.sse.sum() > 0.97 * h0.extra["base_sse"].sum()
+
+
+def test_air_mass_slower_than_the_velocity_sensors_resolve_is_not_physical():
+    from groundstation.gap.diagnose import _physical
+
+    slow = Hypothesis("wind_gust", estimate={"air_velocity_rms_m_s": 0.06}, extra={"resolvable_m_s": 0.13})
+    real = Hypothesis("wind_gust", estimate={"air_velocity_rms_m_s": 0.9}, extra={"resolvable_m_s": 0.13})
+    assert not _physical(slow) and _physical(real)
+    # drag must oppose the motion on every axis it is estimated on
+    assert not _physical(Hypothesis("quadratic_drag", estimate={"drag_u_per_m": -0.0002, "drag_v_per_m": 0.0016}))
+    assert _physical(Hypothesis("quadratic_drag", estimate={"drag_u_per_m": 0.03, "drag_v_per_m": 0.04}))
