@@ -201,9 +201,8 @@ def _trim_ground_contact(log: Any, flight: Any, intervals: list[tuple[float, flo
                          notes: list[str]) -> list[tuple[float, float]]:
     """Shrink in-air intervals to where the aircraft is off the ground by its own height.
 
-    A land detector declares "landed" seconds after touchdown (ArduPilot waits for low throttle
-    and no motion; our simulator likewise), and the skids sit on the ground with the collective
-    already lowered: a hover model fitted or scored there sees a large collective step and no
+    A land detector declares "landed" some time after touchdown (ArduPilot waits for low throttle
+    and no motion), and meanwhile the skids sit on the ground with the collective lowered: a hover model fitted or scored there sees a large collective step and no
     vertical motion. The ground level is the median height over the first ``ground_ref_s`` of
     the armed time before take-off and the last ``ground_ref_s`` after landing (linear in between,
     so a slow barometric drift is followed); the interval ends move inwards to the first and last
@@ -245,7 +244,7 @@ def _trim_ground_contact(log: Any, flight: Any, intervals: list[tuple[float, flo
             continue
         a2 = float(ti[up[0]]) if ends[0] is not None else a
         b2 = float(ti[up[-1]]) if ends[1] is not None else b
-        out.append((max(a, a2), min(b, b2)))
+        out.append((a2, b2))  # both inside [a, b]: only ever shrinks
     return out
 
 
