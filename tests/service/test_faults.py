@@ -61,9 +61,10 @@ def test_unplug_mid_flight_keeps_recording_and_streaming(tmp_path):
 def test_one_percent_corrupted_bytes(tmp_path, subscriber_factory):
     cfg = service_config(tmp_path, service={"exit_after_flights": 2}, sim={"speed": 4.0},
                          identification={"enabled": False})
-    # ~20% of 1 Hz heartbeats are hit: a 4 s pause keeps the chance of losing every disarmed
-    # heartbeat between the flights (which would merge them, as on a real link) near 0.1%
-    service = Service(cfg, frame_source=ScriptedHelicopter(flights=2, flight_s=4.0, pause_s=4.0),
+    # ~20% of 1 Hz heartbeats are hit: a 6 s pause keeps the chance of losing every disarmed
+    # heartbeat between the flights (which would merge them, as on a real link) near 1e-4
+    # (with 4 s: 0.2**4 = 0.16 %; a clean-checkout run once timed out waiting for the 2nd flight)
+    service = Service(cfg, frame_source=ScriptedHelicopter(flights=2, flight_s=4.0, pause_s=6.0),
                       fc_config=FcConfig(corrupt_rate=0.01, packet_loss=0.0, seed=3), log=lambda m: None)
     subs = []
 
