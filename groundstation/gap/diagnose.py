@@ -474,7 +474,8 @@ def _vibration_candidate(lines: list[fingerprints.Line], resid_raw: np.ndarray, 
     Lw = resid_raw.shape[1]
     chance = 1.0 - 2.0 * len(lines) / Lw  # expected share left if the "line" were white noise
     sse_b = base.sum(axis=1)
-    sse_a = alt.sum(axis=1) / max(chance, 0.5)
+    sse_a = alt.sum(axis=1)
+    sse_a[:, chans] /= max(chance, 0.5)  # only where sinusoids were fitted: the others are unchanged
     energy = ((ev.Yraw[:, ev.start:] - ev.Yraw[:, ev.start:].reshape(-1, 8).mean(0)) * ev.w8) ** 2
     sc = attribute.score(sse_b, np.minimum(sse_a, sse_b * 1.5), energy.sum(axis=1), tuple(chans),
                          np.random.default_rng(0), n_boot=500)

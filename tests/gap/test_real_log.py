@@ -46,3 +46,5 @@ def test_real_trex550_diagnosis(tmp_path, capsys):
     assert "p" in lines[0]["channels"]
     vib = [e for e in rep["effects"] if e["effect"] == "rotor_vibration"]
     assert vib and vib[0]["per_channel_shrink"]["p"] > 0
+    untouched = [c for c in vib[0]["per_channel_shrink"] if c not in lines[0]["channels"]]
+    assert untouched and all(vib[0]["per_channel_shrink"][c] == 0 for c in untouched)
