@@ -38,7 +38,52 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="base model: identified from the flight (blind) or the simulator's truth parameters")
     parser.add_argument("--fresh", action="store_true", help="also measure the shrink on a fresh flight")
     parser.add_argument("--aircraft", default=None, help="simulator aircraft name (default: the simulator's)")
+    parser.add_argument("--rates", default=None,
+                        help="telemetry rates of the simulated autopilot, e.g. ATTITUDE=25,LOCAL_POSITION_NED=10 "
+                             "(default: the simulator's); a robustness check against other stream set-ups")
+    parser.add_argument("--pilot", choices=tuple(PILOTS), default="default",
+                        help="synthetic pilot: tight (stiffer loops, less input left on the excited axis), "
+                             "loose, or the simulator's default; a robustness check against other pilots")
+    parser.add_argument("--excitation", type=float, default=1.0,
+                        help="scale of the card's sweep and doublet amplitudes (e.g. 0.5: a cautious pilot)")
     parser.add_argument("--json", type=Path, default=None, help="write every case result to this JSON file")
+
+
+#: Pilot variants for robustness runs: Bryson allowed deviations scaled (smaller = stiffer loops).
+PILOTS: dict[str, dict[str, float]] = {"default": {}, "tight": {"scale": 0.5, "excited_axis_gain": 0.6},
+                                       "loose": {"scale": 1.6, "excited_axis_gain": 0.15}}
+
+
+def pilot_config(name: str) -> Any:
+    """The :class:`hil_replay.sim.pilot.PilotConfig` of a named variant (None for the default)."""
+    from dataclasses import replace
+
+    from hil_replay.sim.pilot import PilotConfig
+
+    v = PILOTS[name]
+    if not v:
+        return None
+    c = PilotConfig()
+    k = v["scale"]
+    return replace(c, vel_m_s=c.vel_m_s * k, att_rad=c.att_rad * k, rate_rad_s=c.rate_rad_s * k,
+                   pos_m=c.pos_m * k, w_m_s=c.w_m_s * k, r_rad_s=c.r_rad_s * k, height_m=c.height_m * k,
+                   heading_rad=c.heading_rad * k, excited_axis_gain=v["excited_axis_gain"])
+
+
+def parse_rates(text: str | None) -> dict[str, float] | None:
+    """``NAME=HZ,...`` -> {NAME: HZ}; None for no text. ValueError names the bad item."""
+    if not text:
+        return None
+    out: dict[str, float] = {}
+    for item in text.split(","):
+        name, sep, value = item.strip().partition("=")
+        try:
+            if not sep:
+                raise ValueError
+            out[name.strip().upper()] = float(value)
+        except ValueError:
+            raise ValueError(f"--rates: {item.strip()!r} is not NAME=HZ") from None
+    return out
 
 
 def _effect_channel(e: dict[str, Any]) -> str | None:
@@ -86,7 +131,13 @@ def run_case(job: dict[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {"case": job["case"], "truth_effects": job["effects"]}
     with tempfile.TemporaryDirectory() as td:
         path = Path(td) / f"case{job['case']}.tlog"
-        kw = {} if job.get("aircraft") is None else {"aircraft": job["aircraft"]}
+        kw: dict[str, Any] = {} if job.get("aircraft") is None else {"aircraft": job["aircraft"]}
+        if job.get("rates"):
+            kw["rates_hz"] = job["rates"]
+        if job.get("pilot", "default") != "default":
+            kw["pilot"] = pilot_config(job["pilot"])
+        if job.get("excitation", 1.0) != 1.0:
+            kw["excitation_scale"] = job["excitation"]
         truth = write_tlog(path, seed=job["seed"], flights=1, effects=effects, **kw)
         out["truth"] = truth.get("effects", [])
         t0 = time.perf_counter()
@@ -122,18 +173,20 @@ def run(args: argparse.Namespace) -> int:
     unknown = set(classes) - set(CLASSES)
     if unknown:
         raise ValueError(f"--classes: unknown effect name(s) {sorted(unknown)}; allowed {CLASSES}")
+    rates = parse_rates(args.rates)
     rng = np.random.default_rng(args.seed)
     jobs = []
     for i in range(args.cases):
         name = classes[i % len(classes)]
         jobs.append({"case": i, "seed": int(args.seed * 1000 + i), "effects": [] if name == "none" else [name],
-                     "model_source": args.model_source, "fresh": args.fresh, "aircraft": args.aircraft})
+                     "model_source": args.model_source, "fresh": args.fresh, "aircraft": args.aircraft,
+                     "rates": rates, "pilot": args.pilot, "excitation": args.excitation})
     real = [c for c in CLASSES if c != "none"]
     for j in range(args.combined):
         pair = [str(x) for x in rng.choice(real, 2, replace=False)]
         jobs.append({"case": args.cases + j, "seed": int(args.seed * 1000 + 500 + j), "effects": pair,
                      "model_source": args.model_source, "fresh": False, "aircraft": args.aircraft,
-                     "combined": True})
+                     "rates": rates, "pilot": args.pilot, "excitation": args.excitation, "combined": True})
     t0 = time.perf_counter()
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
         results = list(pool.map(run_case, jobs))

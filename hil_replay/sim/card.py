@@ -169,10 +169,11 @@ def excitation_gains(ac: Aircraft) -> dict[str, float]:
 
 
 def make_card(ac: Aircraft, rng: np.random.Generator, *, duration_s: float | None = None,
-              heading_rad: float | None = None) -> Card:
-    """Plan one flight. ``duration_s`` (armed time, default ~150-200 s, minimum ~30 s) scales the card."""
+              heading_rad: float | None = None, excitation_scale: float = 1.0) -> Card:
+    """Plan one flight. ``duration_s`` (armed time, default ~150-200 s, minimum ~30 s) scales the card;
+    ``excitation_scale`` multiplies the sweep and doublet amplitudes (a bolder or more cautious pilot)."""
     gains = excitation_gains(ac)
-    amp = {a: float(np.clip(_TARGET[a] / max(gains[a], 1e-6), 0.01, 0.3)) for a in INPUTS}
+    amp = {a: float(np.clip(_TARGET[a] / max(gains[a], 1e-6), 0.01, 0.3)) * float(excitation_scale) for a in INPUTS}
     heading = float(rng.uniform(-math.pi, math.pi)) if heading_rad is None else float(heading_rad)
     nominal = 175.0 if duration_s is None else float(duration_s)
     if nominal < 30.0:

@@ -32,7 +32,7 @@ from hil_replay.sim.aircraft import INPUTS, PARAM_NAMES, Aircraft, resolve_aircr
 from hil_replay.sim.card import Card, make_card
 from hil_replay.sim.dynamics import G_M_S2, ground_effect_excess, make_specific_force, make_stepper
 from hil_replay.sim.effects import Effect, GustModel, InputChain, aliased_hz, resolve_effects
-from hil_replay.sim.pilot import Pilot, design_gains
+from hil_replay.sim.pilot import Pilot, PilotConfig, design_gains
 from hil_replay.sim.telemetry import FIELD_ORIGIN, MESSAGE_NAMES, Measurement, TelemetryFrame, heartbeat
 
 FRAME_RATE_HZ = 50.0
@@ -82,11 +82,16 @@ class SimulatedSession:
     def __init__(self, seed: int = 0, flights: int = 1, effects: Sequence[Effect | str] = (),
                  aircraft: Aircraft | str | os.PathLike[str] | None = None, pause_s: float = 10.0, *,
                  flight_duration_s: float | None = None, pre_arm_s: float = 3.0, post_s: float = 2.0,
-                 noise: NoiseConfig | None = None) -> None:
+                 noise: NoiseConfig | None = None, pilot: PilotConfig | None = None,
+                 excitation_scale: float = 1.0) -> None:
         if int(flights) < 1:
             raise ValueError(f"flights: {flights} must be >= 1")
         if not pause_s >= 0 or not pre_arm_s >= 0 or not post_s >= 0:
             raise ValueError("pause_s, pre_arm_s and post_s must be >= 0")
+        if not 0.0 < excitation_scale <= 4.0:
+            raise ValueError(f"excitation_scale: {excitation_scale} not in (0, 4]")
+        self.pilot_config = pilot or PilotConfig()
+        self.excitation_scale = float(excitation_scale)
         self.seed = int(seed)
         self.n_flights = int(flights)
         base = resolve_aircraft(aircraft)  # type: ignore[arg-type]
@@ -98,14 +103,14 @@ class SimulatedSession:
         plan = np.random.default_rng(self._seeds[0])
         trims = {k: int(v + plan.integers(-15, 16)) for k, v in base.trim_pwm.items()}
         self.aircraft = base.with_trim(trims)
-        design_gains(self.aircraft)  # an aircraft the pilot cannot fly fails here, before any output
+        design_gains(self.aircraft, self.pilot_config)  # an aircraft the pilot cannot fly fails here, before any output
         self.cards: list[Card] = []
         self.arm_times_s: list[float] = []
         t = float(pre_arm_s)
         heading = None
         for _ in range(self.n_flights):
             # later flights take off facing about where the last one landed
-            card = make_card(self.aircraft, plan, duration_s=flight_duration_s,
+            card = make_card(self.aircraft, plan, duration_s=flight_duration_s, excitation_scale=self.excitation_scale,
                              heading_rad=None if heading is None else heading + float(plan.uniform(-0.15, 0.15)))
             heading = card.heading_rad
             self.cards.append(card)
@@ -152,6 +157,8 @@ class SimulatedSession:
             "rotor_rpm": ac.rotor_rpm,
             "hub_height_m": ac.hub_height_m,
             "noise": asdict(self.noise),
+            "pilot": asdict(self.pilot_config),
+            "excitation_scale": self.excitation_scale,
             "field_origin": {"lat_deg": FIELD_ORIGIN[0], "lon_deg": FIELD_ORIGIN[1], "alt_m": FIELD_ORIGIN[2]},
         }
 
@@ -166,7 +173,7 @@ class SimulatedSession:
         ge_gain = float(eff["ground_effect"].params["gain"]) if "ground_effect" in eff else 0.0
         step = make_stepper(ac, drag_c_per_m=drag_c, ground_effect_gain=ge_gain, wind="wind_gust" in eff)
         sf = make_specific_force(ac, drag_c_per_m=drag_c, ground_effect_gain=ge_gain)
-        pilot = Pilot(ac, np.random.default_rng(self._seeds[1]), dt_s=dt)
+        pilot = Pilot(ac, np.random.default_rng(self._seeds[1]), dt_s=dt, config=self.pilot_config)
         noise_rng = np.random.default_rng(self._seeds[2])
         gust = None
         if "wind_gust" in eff:
@@ -405,7 +412,8 @@ def _wrap(a: float) -> float:
 def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
                effects: Sequence[Effect | str] = (), aircraft: Aircraft | str | os.PathLike[str] | None = None,
                flight_duration_s: float | None = None, rates_hz: Mapping[str, float] | None = None,
-               pause_s: float = 10.0, packet_loss: float = 0.002) -> dict[str, Any]:
+               pause_s: float = 10.0, packet_loss: float = 0.002, pilot: PilotConfig | None = None,
+               excitation_scale: float = 1.0) -> dict[str, Any]:
     """Simulate a session and write ``path`` (.tlog) and ``path.with_suffix('.truth.json')``.
 
     MAVLink 2 frames from sysid 1 compid 1 with a proper sequence number; host timestamps are
@@ -429,7 +437,7 @@ def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
         raise ValueError(f"packet_loss: {packet_loss} not in [0, 1)")
     period = {n: max(1, int(round(FRAME_RATE_HZ / r))) for n, r in rates.items() if r > 0}
     sess = SimulatedSession(seed=seed, flights=flights, effects=effects, aircraft=aircraft, pause_s=pause_s,
-                            flight_duration_s=flight_duration_s)
+                            flight_duration_s=flight_duration_s, pilot=pilot, excitation_scale=excitation_scale)
     truth = sess.truth()
     truth["tlog_rates_hz"] = {n: rates[n] for n in MESSAGE_NAMES}
     truth["packet_loss"] = packet_loss
