@@ -133,6 +133,15 @@ class PreparedData:
     pwm_per_unit: float
     output_trim: dict[str, float]
     notes: list[str] = field(default_factory=list)
+    #: median sample interval (s) of the message each channel was resampled from (lat..ped, u..phi);
+    #: empty when unknown (arrays made on the grid). A channel sent slower than the grid is
+    #: interpolated, so its noise on the grid is not white: the diagnosis' noise floors use this.
+    native_interval_s: dict[str, float] = field(default_factory=dict)
+
+    def native_stride(self, names: tuple[str, ...]) -> np.ndarray:
+        """Source interval over grid step per channel (1 where unknown or faster than the grid)."""
+        st = [self.native_interval_s.get(n, float("nan")) / self.dt_s for n in names]
+        return np.array([s if np.isfinite(s) and s > 1.0 else 1.0 for s in st])
 
     @property
     def available(self) -> np.ndarray:
@@ -168,6 +177,7 @@ class _Raw:
     available: np.ndarray
     flight: int
     source: str
+    native_s: np.ndarray  # (12,) median source sample interval of lat lon col ped u v w p q r theta phi
 
 
 def _series_gap(cfg: PrepConfig, t_src: np.ndarray) -> float:
@@ -298,6 +308,9 @@ def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str]) -> list[_Raw]:
     if vel_series is None and cfg.velocity_source != "none":
         notes.append(f"{src}: no LOCAL_POSITION_NED or GLOBAL_POSITION_INT: u v w unavailable")
 
+    vel_dt = median_interval_s(vel_series[1].t_fc_s) if vel_series is not None else float("nan")
+    att_dt = median_interval_s(att.t_fc_s)
+    native_s = np.array([median_interval_s(servo.t_fc_s)] * 4 + [max(vel_dt, att_dt)] * 3 + [att_dt] * 5)
     out: list[_Raw] = []
     n_air = 0
     for fl in flights:
@@ -357,7 +370,7 @@ def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str]) -> list[_Raw]:
                         outputs[:, 0:3] = ned_to_body(v, roll, pitch, yaw)
                         avail[0:3] = True
                     out.append(_Raw(t_s=t[sl], pwm=pwm[sl], outputs=outputs, alt_m=alt_g[sl], available=avail,
-                                    flight=int(fl.index), source=src))
+                                    flight=int(fl.index), source=src, native_s=native_s))
     if n_air == 0:
         raise ValueError(
             f"{src}: never in the air for at least {cfg.min_segment_s:g} s "
@@ -414,6 +427,9 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
         raw_out[:, ~r.available] = np.nan
         segs.append(Segment(t_s=r.t_s, inputs=inputs, outputs=sm, outputs_raw=raw_out, alt_m=r.alt_m,
                             available=r.available.copy(), flight=r.flight, source=r.source))
+    native = np.array([r.native_s for r in raws], dtype=float)
+    native_med = [float(np.nanmedian(native[:, k])) if np.isfinite(native[:, k]).any() else float("nan")
+                  for k in range(12)]
     return PreparedData(
         segments=segs,
         dt_s=1.0 / cfg.rate_hz,
@@ -421,6 +437,7 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
         pwm_per_unit=float(cfg.pwm_per_unit),
         output_trim={n: float(v) for n, v in zip(OUTPUTS, out_trim, strict=True)},
         notes=notes,
+        native_interval_s=dict(zip(INPUTS + OUTPUTS, native_med, strict=True)),
     )
 
 

@@ -8,6 +8,12 @@
 * :func:`noise_floor` — the normalised RMS error a perfect model would still show on the smoothed
   outputs (per channel), i.e. the floor under every gap figure of the report.
 
+A channel sent slower than the grid (``stride`` = source interval / grid step > 1, e.g. a 10 Hz
+position estimate on the 50 Hz grid) reaches the grid linearly interpolated: its noise there is not
+white (most second differences vanish between source samples). Every estimator then works on the
+grid sampled at the source stride and is calibrated on white noise passed through the same
+interpolation (a deterministic simulation per stride), so all figures stay "noise std on the grid".
+
 Arrays: ``(n_samples, n_channels)``. Pure numpy.
 """
 
@@ -15,50 +21,109 @@ from __future__ import annotations
 
 import numpy as np
 
+from functools import lru_cache
+
 from groundstation.dsp.smoothing import smooth5
 
 _MAD_TO_STD = 1.4826
+_MAX_PASSES = 8
 
 
-def raw_noise_std(raw: list[np.ndarray]) -> np.ndarray:
-    """White-noise standard deviation per channel from second differences of raw segments (n, C)."""
-    d2 = np.concatenate([np.diff(r, n=2, axis=0) for r in raw if r.shape[0] > 3])
-    med = np.nanmedian(d2, axis=0)
-    mad = np.nanmedian(np.abs(d2 - med), axis=0)
-    return _MAD_TO_STD * mad / np.sqrt(6.0)
+def _step(stride: float) -> int:
+    """Sub-sampling step of the second differences for a source stride (1 at or above the grid rate)."""
+    return max(1, int(round(stride))) if stride > 1.2 else 1
 
 
-def _smooth_factors(max_passes: int = 8, n: int = 4096) -> np.ndarray:
-    """(passes, [var(S n)/s^2, var(S n - n)/s^2]) for unit white noise (deterministic sequence)."""
+def _mad_std(d2: np.ndarray) -> float:
+    med = np.nanmedian(d2)
+    return float(_MAD_TO_STD * np.nanmedian(np.abs(d2 - med)) / np.sqrt(6.0))
+
+
+def _d2_scale(parts: list[np.ndarray], step: int) -> float:
+    """White-noise std from second differences of 1-D ``parts``, each sampled every ``step`` grid steps.
+
+    With ``step > 1`` the grid is read at every phase 0..step-1 and the estimates combined in
+    quadrature: a phase next to a source sample sees the source noise, one half-way between two sees
+    their average; over all phases the figure does not depend on where the source samples fell.
+    """
+    ests = []
+    for ph in range(step):
+        d2 = [np.diff(p[ph::step], n=2) for p in parts if p[ph::step].shape[0] > 3]
+        if d2:
+            ests.append(_mad_std(np.concatenate(d2)))
+    return float(np.sqrt(np.mean(np.square(ests)))) if ests else float("nan")
+
+
+@lru_cache(maxsize=64)
+def _calibration(stride_key: float) -> tuple[float, np.ndarray]:
+    """For unit white noise sent every ``stride`` grid steps and linearly interpolated onto the grid
+    (grid noise ``g``): ``(d2 estimate / std(g), [(var(S_p g), var(S_p g - g)) / var(g) per pass])``."""
     rng = np.random.default_rng(12345)
-    x = rng.standard_normal(n)
-    out = np.empty((max_passes + 1, 2))
-    for p in range(max_passes + 1):
-        s = smooth5(x, p)
-        out[p] = (s[10:-10].var(), (s - x)[10:-10].var())
+    n = 32768
+    if stride_key <= 1.0:
+        g = rng.standard_normal(n)
+    else:
+        m = int(n / stride_key) + 4
+        t_src = (np.arange(m) - 1.0 + rng.uniform()) * stride_key
+        t_src += rng.uniform(-0.1, 0.1, m) * stride_key   # send-time jitter
+        g = np.interp(np.arange(n, dtype=float), np.sort(t_src), rng.standard_normal(m))
+    g = g[64:-64]
+    sd = float(g.std())
+    # white noise: the second-difference estimator is unbiased by construction
+    k = 1.0 if stride_key <= 1.0 else _d2_scale([g], _step(stride_key)) / sd
+    fac = np.empty((_MAX_PASSES + 1, 2))
+    for p in range(_MAX_PASSES + 1):
+        s = smooth5(g, p)
+        fac[p] = (s[10:-10].var() / sd ** 2, (s - g)[10:-10].var() / sd ** 2)
+    return k, fac
+
+
+def _key(stride: float) -> float:
+    return 1.0 if not np.isfinite(stride) or stride <= 1.2 else round(float(stride) * 20.0) / 20.0
+
+
+def raw_noise_std(raw: list[np.ndarray], strides: np.ndarray | None = None) -> np.ndarray:
+    """Noise standard deviation on the grid per channel, from second differences of raw segments (n, C).
+
+    ``strides`` (C,) source interval / grid step per channel (None: all sent at the grid rate).
+    """
+    C = raw[0].shape[1]
+    st = np.ones(C) if strides is None else np.asarray(strides, dtype=float)
+    out = np.empty(C)
+    for c in range(C):
+        key = _key(st[c])
+        step = _step(key)
+        parts = [r[:, c] for r in raw if r.shape[0] > 3 * step]
+        out[c] = _d2_scale(parts, step) / _calibration(key)[0] if parts else np.nan
     return out
 
 
-def smoothing_gain(raw: list[np.ndarray], smoothed: list[np.ndarray], sigma: np.ndarray) -> np.ndarray:
-    """Per channel: fraction of the raw noise variance left in the smoothed outputs."""
-    fac = _smooth_factors()
+def smoothing_gain(raw: list[np.ndarray], smoothed: list[np.ndarray], sigma: np.ndarray,
+                   strides: np.ndarray | None = None) -> np.ndarray:
+    """Per channel: fraction of the raw (grid) noise variance left in the smoothed outputs."""
     diff = np.concatenate([s - r for s, r in zip(smoothed, raw, strict=True)])
     v = np.nanvar(diff, axis=0)
+    st = np.ones(v.shape[0]) if strides is None else np.asarray(strides, dtype=float)
     gains = np.empty(v.shape[0])
     for c in range(v.shape[0]):
         if not np.isfinite(sigma[c]) or sigma[c] <= 0:
             gains[c] = 1.0
             continue
+        fac = _calibration(_key(st[c]))[1]
         ratio = v[c] / sigma[c] ** 2
         p = int(np.argmin(np.abs(fac[:, 1] - ratio)))
         gains[c] = fac[p, 0]
     return gains
 
 
-def noise_floor(raw: list[np.ndarray], smoothed: list[np.ndarray]) -> dict[str, np.ndarray]:
-    """Noise figures per channel: ``sigma_raw``, ``sigma_smoothed``, ``nrmse_floor`` (sigma / signal std)."""
-    sigma = raw_noise_std(raw)
-    gain = smoothing_gain(raw, smoothed, sigma)
+def noise_floor(raw: list[np.ndarray], smoothed: list[np.ndarray],
+                strides: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Noise figures per channel: ``sigma_raw``, ``sigma_smoothed``, ``nrmse_floor`` (sigma / signal std).
+
+    ``strides``: see :func:`raw_noise_std`.
+    """
+    sigma = raw_noise_std(raw, strides)
+    gain = smoothing_gain(raw, smoothed, sigma, strides)
     sig_s = sigma * np.sqrt(gain)
     y = np.concatenate(smoothed)
     sd = np.nanstd(y, axis=0)

@@ -117,3 +117,13 @@ def test_by_flight_needs_two_flights():
     p = prepare([make_log(40.0)])
     with pytest.raises(ValueError, match="two flights"):
         by_flight(p)
+
+
+def test_native_sample_intervals_are_kept_per_channel():
+    """The diagnosis calibrates its noise floors for channels sent slower than the grid."""
+    p = prepare([make_log(60.0, servo_rate_hz=25.0, att_rate_hz=50.0, pos_rate_hz=10.0)])
+    ni = p.native_interval_s
+    assert ni["lat"] == pytest.approx(0.04) and ni["ped"] == pytest.approx(0.04)
+    assert ni["u"] == pytest.approx(0.1) and ni["w"] == pytest.approx(0.1)
+    assert ni["p"] == pytest.approx(0.02) and ni["phi"] == pytest.approx(0.02)
+    assert p.native_stride(("lat", "u", "p")) == pytest.approx([2.0, 5.0, 1.0])
