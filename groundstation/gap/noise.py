@@ -19,9 +19,9 @@ Arrays: ``(n_samples, n_channels)``. Pure numpy.
 
 from __future__ import annotations
 
-import numpy as np
-
 from functools import lru_cache
+
+import numpy as np
 
 from groundstation.dsp.smoothing import smooth5
 
