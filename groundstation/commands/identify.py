@@ -25,6 +25,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-refine", action="store_true", help="skip the least-squares refinement (no std errors)")
     parser.add_argument("--maxiter", type=int, default=None, help="search iterations per subsystem")
+    parser.add_argument("--restarts", type=int, default=None,
+                        help="independent searches per subsystem, lowest refined cost wins (default 1; "
+                             "each one costs a whole search: use 3 on an aircraft you have not flown)")
     parser.add_argument("--config", type=Path, default=None, help="TOML with [prepare], [identify], [bounds]")
     parser.add_argument("--no-plot", action="store_true", help="do not write the PNG")
     parser.add_argument("--rrd", type=Path, default=None, help="also write measured vs model to a Rerun .rrd file")
@@ -69,6 +72,12 @@ def run(args: argparse.Namespace) -> int:
     from groundstation.sysid.identify import identify
 
     prep_cfg, id_cfg, bounds = load_configs(args.config)
+    if args.restarts is not None:
+        if args.restarts < 1:
+            raise ValueError(f"--restarts: {args.restarts} must be >= 1")
+        from dataclasses import replace
+
+        id_cfg = replace(id_cfg, search_restarts=args.restarts)
     logs = load_logs(args.logs)
     prepared = prepare(logs, prep_cfg)
     con = Console(stderr=True, quiet=args.quiet)

@@ -93,3 +93,16 @@ def test_metrics_on_known_values():
     assert pearson(0.5 * y + 3.0, y) == pytest.approx(1.0)  # blind to gain and offset: never alone
     assert pearson(-y, y) == pytest.approx(-1.0)
     assert pearson(np.zeros(4), y) == 0.0
+
+
+def test_search_restarts_keep_the_lowest_refined_cost(flights):
+    """Independent searches: the first is the single search (same seed, same stream), the model kept
+    is the one with the lowest refined cost, so restarts can only lower it."""
+    from groundstation.sysid.identify import IdentifyConfig
+
+    _, train, _ = flights
+    quick = dict(refine_max_nfev=10, refine_passes=1)
+    one = identify(train, seed=2, maxiter=3, config=IdentifyConfig(search_restarts=1, **quick))
+    three = identify(train, seed=2, maxiter=3, config=IdentifyConfig(search_restarts=3, **quick))
+    assert three.fit["cost"] <= one.fit["cost"] * (1 + 1e-8)   # (the same search refined again: rounding)
+    assert three.fit["iterations"] > one.fit["iterations"]   # the extra searches did run
