@@ -90,6 +90,7 @@ class IdentificationSection:
     algorithm: str = "cabc"
     seed: int = 0
     maxiter: int = 0                 # 0 = the identifier's default
+    restarts: int = 2                # independent searches, lowest refined cost wins (time between flights is cheap)
     refine: bool = True
     diagnose: bool = True
     plots: bool = True
@@ -151,6 +152,8 @@ def validate(cfg: ServiceConfig, where: str = "config") -> None:
         raise bad("rerun.target", cfg.rerun.target, "save needs a PATH.rrd")
     if cfg.identification.scope not in ("last", "all"):
         raise bad("identification.scope", cfg.identification.scope, "must be last or all")
+    if cfg.identification.restarts < 1:
+        raise bad("identification.restarts", cfg.identification.restarts, "must be >= 1")
     if not cfg.sim.speed > 0:
         raise bad("sim.speed", cfg.sim.speed, "must be > 0")
     if cfg.sim.flights < 1:

@@ -440,7 +440,7 @@ class Service:
                      else (path,))
             self.submit_identification(IdentifyJob(
                 flight=fe.flight, tlogs=tlogs, out_dir=str(Path(path).parent), vehicle=self.vehicle,
-                algorithm=ic.algorithm, seed=ic.seed, maxiter=ic.maxiter, refine=ic.refine,
+                algorithm=ic.algorithm, seed=ic.seed, maxiter=ic.maxiter, restarts=ic.restarts, refine=ic.refine,
                 diagnose=ic.diagnose, plots=ic.plots))
         self._check_exit()
 

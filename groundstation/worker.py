@@ -34,6 +34,7 @@ class IdentifyJob:
     algorithm: str = "cabc"
     seed: int = 0
     maxiter: int = 0                 # 0 = identifier default
+    restarts: int = 1                # independent searches (IdentifyConfig.search_restarts)
     refine: bool = True
     diagnose: bool = True
     plots: bool = True
@@ -95,6 +96,10 @@ def run_job(job: IdentifyJob) -> dict[str, Any]:
         kwargs: dict[str, Any] = {"algorithm": job.algorithm, "seed": job.seed, "refine": job.refine}
         if job.maxiter:
             kwargs["maxiter"] = job.maxiter
+        if job.restarts > 1:
+            from groundstation.sysid.identify import IdentifyConfig
+
+            kwargs["config"] = IdentifyConfig(search_restarts=job.restarts)
         model = identify(prepared, **kwargs)
         doc = model.to_json()
         from groundstation.sysid.validate import validate

@@ -71,7 +71,7 @@ class DiagnoseConfig:
     #: gap that grows on the effect's own channels).
     min_score_pct: float = 1.0
     #: independent identification searches when no model is given (the lowest refined cost wins):
-    #: one search lands in a wrong basin on ~1 flight in 7-10 of the simulated R-50 (roll flapping
+    #: on one simulated R-50 flight 2 of 14 searches landed in a wrong basin (roll flapping
     #: sign flipped, p match 49 % instead of 95 %), and the diagnosis then "finds" an effect
     identify_restarts: int = 3
 

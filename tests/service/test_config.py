@@ -33,6 +33,7 @@ def test_values_are_read(tmp_path):
     ("[live]\nhop_s = 10\n", "live.hop_s"),
     ("[rerun]\nmode = 'tv'\n", "rerun.mode"),
     ("[service]\nvehicle = 'a/b'\n", "service.vehicle"),
+    ("[identification]\nrestarts = 0\n", "identification.restarts"),
     ("[service\n", "not valid TOML"),
 ])
 def test_bad_config_is_one_line_naming_file_and_key(tmp_path, text, needle):
