@@ -26,8 +26,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-refine", action="store_true", help="skip the least-squares refinement (no std errors)")
     parser.add_argument("--maxiter", type=int, default=None, help="search iterations per subsystem")
     parser.add_argument("--restarts", type=int, default=None,
-                        help="independent searches per subsystem, lowest refined cost wins (default 1; "
-                             "each one costs a whole search: use 3 on an aircraft you have not flown)")
+                        help="independent searches per subsystem (the second and later by differential evolution), "
+                             "lowest refined cost wins (default 1; each costs a whole search: use 2 on an "
+                             "aircraft you have not flown)")
     parser.add_argument("--config", type=Path, default=None, help="TOML with [prepare], [identify], [bounds]")
     parser.add_argument("--no-plot", action="store_true", help="do not write the PNG")
     parser.add_argument("--rrd", type=Path, default=None, help="also write measured vs model to a Rerun .rrd file")

@@ -70,10 +70,11 @@ class DiagnoseConfig:
     #: every effect the simulator injects scores >= 1.5 %, the false calls below 0.3 % or with a
     #: gap that grows on the effect's own channels).
     min_score_pct: float = 1.0
-    #: independent identification searches when no model is given (the lowest refined cost wins):
-    #: on one simulated R-50 flight 2 of 14 searches landed in a wrong basin (roll flapping
-    #: sign flipped, p match 49 % instead of 95 %), and the diagnosis then "finds" an effect
-    identify_restarts: int = 3
+    #: independent identification searches when no model is given (CABC, then DE; the lowest
+    #: refined cost wins): on one simulated R-50 flight 2 of 14 CABC searches landed in a wrong basin
+    #: (roll flapping sign flipped, p match 49 % instead of 95 %), and the diagnosis then "finds" an
+    #: effect
+    identify_restarts: int = 2
     #: smallest air-mass motion (rms, m/s) reported as a gust: the WMO "calm" / "light air" boundary.
     #: A hover model's slow structure error in u or v is soaked up by a fitted air velocity of
     #: 0.05-0.16 m/s (measured on effect-free simulated trex600 and R-50 flights); injected gusts of

@@ -106,3 +106,7 @@ def test_search_restarts_keep_the_lowest_refined_cost(flights):
     three = identify(train, seed=2, maxiter=3, config=IdentifyConfig(search_restarts=3, **quick))
     assert three.fit["cost"] <= one.fit["cost"] * (1 + 1e-8)   # (the same search refined again: rounding)
     assert three.fit["iterations"] > one.fit["iterations"]   # the extra searches did run
+    assert set(three.fit["search_algorithm_by_subsystem"].values()) <= {"cabc", "de"}
+    assert one.fit["search_algorithm_by_subsystem"] == {"horizontal": "cabc", "vertical": "cabc"}
+    with pytest.raises(ValueError, match="restart_algorithm"):
+        identify(train, seed=2, maxiter=3, config=IdentifyConfig(search_restarts=2, restart_algorithm="pso"))
