@@ -80,7 +80,7 @@ class IdentifyConfig:
     #: One colony can settle in a wrong basin (a simulated R-50 flight: L_b with the wrong sign, cost
     #: 0.98 against 0.36 from most other seeds) and the search cost does not tell the basins apart;
     #: the refined cost does. Each restart costs a whole search and refinement, so the default stays
-    #: at one (the 15 s budget); ``diagnose`` uses three.
+    #: at one (the 15 s budget); ``diagnose`` and the service use two (CABC, then DE).
     search_restarts: int = 1
     #: optimiser of the searches after the first ("" = the same as the first). A different method is
     #: a more independent second opinion than another seed: on the R-50 flight above both CABC
@@ -222,43 +222,43 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
                 th = cost_v.complete(np.asarray(xv, dtype=float)[None])[0]
                 return np.clip(th[sub_free], bfree[:, 0], bfree[:, 1])
 
+            def search_once(alg: str, it: int, label: str, cost_v=cost_v, cost_s=cost_s, cost=cost,
+                            bfree=bfree, to_free=to_free, sub_name=sub_name, cb=cb) -> tuple[float, np.ndarray, Any, Any]:
+                """One search, then (with ``refine``) successive-halving screening of its best distinct
+                points on the search windows and a full refinement of the winner: (F, x, opt, refinement)."""
+                opt = ALGORITHMS[alg](cost_v, b_all[cost_v.free], rng=rng, maxiter=it, maxfev=cfg.maxfev, callback=cb)
+                if not refine:
+                    xr = to_free(opt.x)
+                    return float(cost(xr[None])[0]), xr, opt, None
+                vb = b_all[cost_v.free]
+                starts = [to_free(xv) for xv in _starts(opt, cfg.refine_starts, vb[:, 1] - vb[:, 0])]
+                nfev_round = cfg.screen_max_nfev
+                screen_f = float("nan")
+                while len(starts) > 1:   # short refinements of many starts, longer ones of the best few
+                    if callback is not None:
+                        callback({"stage": f"screen {sub_name} ({len(starts)} starts)", "nit": 0, "maxiter": 1,
+                                  "fun": float(opt.fun), "nfev": cost_s.nfev + cost.nfev})
+                    scored = [(float(r.fun), r.x) for r in
+                              (refine_ls(cost_s, x0, bfree, passes=1, max_nfev=nfev_round, with_std=False)
+                               for x0 in starts)]
+                    scored.sort(key=lambda t: t[0])
+                    starts = [sx for _, sx in scored[: max(1, len(scored) // 3)]]
+                    screen_f = scored[0][0]
+                    nfev_round *= 2
+                if callback is not None:
+                    callback({"stage": f"refine {sub_name}{label}", "nit": 0, "maxiter": 1, "fun": screen_f,
+                              "nfev": cost_s.nfev + cost.nfev})
+                ref = refine_ls(cost, starts[0], bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev)
+                return float(ref.fun), ref.x, opt, ref
+
             best: tuple[float, np.ndarray, Any, Any, str] | None = None   # (F, x, opt, refinement, algorithm)
             for restart in range(max(1, cfg.search_restarts if refine else 1)):
                 alg = algorithm if restart == 0 or not cfg.restart_algorithm else cfg.restart_algorithm
                 it = sub_iters
                 if alg != algorithm and not (maxiter or cfg.maxiter):
                     it = DEFAULT_MAXITER[alg] if sub == 0 else int(DEFAULT_MAXITER[alg] * cfg.vertical_iter_factor)
-                opt = ALGORITHMS[alg](cost_v, b_all[cost_v.free], rng=rng, maxiter=it, maxfev=cfg.maxfev, callback=cb)
+                F, xr, opt, ref = search_once(alg, it, f" (search {restart + 1})" if restart else "")
                 nit += int(opt.nit)
-                ref = None
-                if refine:
-                    # screen a few of the best distinct sources with a short refinement on the search
-                    # windows (the least-squares basin is what matters), then refine the winner fully
-                    vb = b_all[cost_v.free]
-                    starts = [to_free(xv) for xv in _starts(opt, cfg.refine_starts, vb[:, 1] - vb[:, 0])]
-                    # successive halving: short refinements of many starts, longer ones of the best few
-                    nfev_round = cfg.screen_max_nfev
-                    screen_f = float("nan")
-                    while len(starts) > 1:
-                        if callback is not None:
-                            callback({"stage": f"screen {sub_name} ({len(starts)} starts)", "nit": 0, "maxiter": 1,
-                                      "fun": float(opt.fun), "nfev": cost_s.nfev + cost.nfev})
-                        scored = []
-                        for x0 in starts:
-                            r = refine_ls(cost_s, x0, bfree, passes=1, max_nfev=nfev_round, with_std=False)
-                            scored.append((float(r.fun), r.x))
-                        scored.sort(key=lambda t: t[0])
-                        starts = [sx for _, sx in scored[: max(1, len(scored) // 3)]]
-                        screen_f = scored[0][0]
-                        nfev_round *= 2
-                    if callback is not None:
-                        callback({"stage": f"refine {sub_name}" + (f" (search {restart + 1})" if restart else ""),
-                                  "nit": 0, "maxiter": 1, "fun": screen_f, "nfev": cost_s.nfev + cost.nfev})
-                    ref = refine_ls(cost, starts[0], bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev)
-                    F, xr = float(ref.fun), ref.x
-                else:
-                    xr = to_free(opt.x)
-                    F = float(cost(xr[None])[0])
                 if best is None or F < best[0]:
                     best = (F, xr, opt, ref, alg)
             assert best is not None
