@@ -29,9 +29,9 @@ _MAD_TO_STD = 1.4826
 _MAX_PASSES = 8
 
 
-def _step(stride: float) -> int:
-    """Sub-sampling step of the second differences for a source stride (1 at or above the grid rate)."""
-    return max(1, int(round(stride))) if stride > 1.2 else 1
+def _step(key: float) -> int:
+    """Sub-sampling step of the second differences for a stride key (see :func:`_key`)."""
+    return max(1, int(round(key)))
 
 
 def _mad_std(d2: np.ndarray) -> float:
@@ -79,6 +79,7 @@ def _calibration(stride_key: float) -> tuple[float, np.ndarray]:
 
 
 def _key(stride: float) -> float:
+    """Calibration key of a source stride: 1 at (or within 20 % of) the grid rate, else rounded to 0.05."""
     return 1.0 if not np.isfinite(stride) or stride <= 1.2 else round(float(stride) * 20.0) / 20.0
 
 

@@ -69,6 +69,34 @@ def channel_scales(outputs: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.where((cnt > 0) & (s > 0), s, 1.0)
 
 
+
+def _window_gram(w_ch: np.ndarray, Hzz: np.ndarray, unk: np.ndarray, ridge: float) -> np.ndarray:
+    """Per-window normal matrices of the initial states (k, W, n, n): ``sum_h w_h Hzz_h`` over the
+    channels, restricted to the unknown states ``unk`` (W, n), with a relative ridge on their
+    diagonal and the identity on the known ones (their solution is then zero)."""
+    k, nch, n = Hzz.shape[0], Hzz.shape[1], Hzz.shape[-1]
+    W = w_ch.shape[0]
+    G = np.matmul(w_ch[None], np.ascontiguousarray(Hzz).reshape(k, nch, n * n)).reshape(k, W, n, n)
+    G *= (unk[:, :, None] * unk[:, None, :])[None]
+    scale = np.maximum(np.einsum("cwii->cwi", G).max(axis=-1, keepdims=True), 1e-300)
+    G += np.where(unk[None] > 0, ridge * scale, 1.0)[..., :, None] * np.eye(n)
+    return G
+
+
+def _schur_solve(G: np.ndarray, E: np.ndarray, rhs: np.ndarray, FF: np.ndarray,
+                 rb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Block least squares with per-window unknowns ``z`` (k, W, n) and shared ones ``beta`` (k, P):
+    ``[[G_w, E_w], [E_w^T, FF]] [z_w; beta] = [rhs_w; rb]``, by the Schur complement over the windows
+    (variable projection; a 1e-10 relative ridge keeps S solvable). Returns ``(z, beta)``."""
+    P = E.shape[-1]
+    sol = np.linalg.solve(G, np.concatenate([E, rhs[..., None]], axis=-1))
+    GiE, Gia = sol[..., :P], sol[..., P]
+    S = FF - np.einsum("cwnp,cwnq->cpq", E, GiE)
+    dS = np.einsum("cpp->cp", S)
+    S += (1e-10 * np.maximum(dS.max(axis=-1), 1e-300))[:, None, None] * np.eye(P)
+    beta = np.linalg.solve(S, (rb - np.einsum("cwnp,cwn->cp", E, Gia))[..., None])[..., 0]
+    return Gia - np.einsum("cwnp,cp->cwn", GiE, beta), beta
+
 class WindowSimulator:
     """Precomputed windows; ``simulate(theta)`` returns ``yhat (C, W, L, 8)``, ``sse(theta)`` (C, 8).
 
@@ -331,23 +359,14 @@ class WindowSimulator:
             G += np.where(uk[None] > 0, self.ridge * scale, 1.0)[..., :, None] * np.eye(n)
             z = np.swapaxes(np.linalg.solve(G, np.swapaxes(rhs, 1, 2)), 1, 2)  # (k, W, n)
         else:
-            G = np.matmul(w_ch[None], np.ascontiguousarray(Hzz).reshape(k, nch, n * n)).reshape(k, W, n, n)
-            G *= (unk[:, :, None] * unk[:, None, :])[None]
-            scale = np.maximum(np.einsum("cwii->cwi", G).max(axis=-1, keepdims=True), 1e-300)
-            G += np.where(unk[None] > 0, self.ridge * scale, 1.0)[..., :, None] * np.eye(n)
+            G = _window_gram(w_ch, Hzz, unk, self.ridge)
             if nt:
                 # global columns: Schur complement over the windows (variable projection)
                 E = np.matmul(w_ch[None], np.ascontiguousarray(H[:, :, :n, n:]).reshape(k, nch, n * nt))
                 E = E.reshape(k, W, n, nt) * unk[None, :, :, None]
                 FF = np.einsum("wh,chpq->cpq", w_ch, H[:, :, n:, n:])
                 rb = np.einsum("wh,chwp->cp", w_ch, g[..., n:])
-                sol = np.linalg.solve(G, np.concatenate([E, rhs[..., None]], axis=-1))
-                GiE, Gia = sol[..., :nt], sol[..., nt]
-                S = FF - np.einsum("cwnp,cwnq->cpq", E, GiE)
-                dS = np.einsum("cpp->cp", S)
-                S += (1e-10 * np.maximum(dS.max(axis=-1), 1e-300))[:, None, None] * np.eye(nt)
-                beta = np.linalg.solve(S, (rb - np.einsum("cwnp,cwn->cp", E, Gia))[..., None])[..., 0]
-                z = Gia - np.einsum("cwnp,cp->cwn", GiE, beta)
+                z, beta = _schur_solve(G, E, rhs, FF, rb)
             else:
                 z = np.linalg.solve(G, rhs[..., None])[..., 0]  # (k, W, n), zero on known dims
         if not nt:
@@ -473,17 +492,7 @@ class WindowSimulator:
         Fw = F5 * w_ch.T[None, None, :, None, :]
         FF = np.matmul(F.reshape(k, P, -1), np.swapaxes(Fw.reshape(k, P, -1), 1, 2))  # (k, P, P)
         rb = np.matmul(Fw.reshape(k, P, -1), R.reshape(k, -1, 1))[..., 0]  # (k, P)
-        G = np.matmul(w_ch[None], H.reshape(k, nch, n * n)).reshape(k, W, n, n)
-        G *= (unk[:, :, None] * unk[:, None, :])[None]
-        scale = np.maximum(np.einsum("cwii->cwi", G).max(axis=-1, keepdims=True), 1e-300)
-        G += np.where(unk[None] > 0, self.ridge * scale, 1.0)[..., :, None] * np.eye(n)
-        sol = np.linalg.solve(G, np.concatenate([E, rhs[..., None]], axis=-1))
-        GiE, Gia = sol[..., :P], sol[..., P]
-        S = FF - np.einsum("cwnp,cwnq->cpq", E, GiE)
-        dS = np.einsum("cpp->cp", S)
-        S += (1e-10 * np.maximum(dS.max(axis=-1), 1e-300))[:, None, None] * np.eye(P)
-        beta = np.linalg.solve(S, (rb - np.einsum("cwnp,cwn->cp", E, Gia))[..., None])[..., 0]
-        z = Gia - np.einsum("cwnp,cp->cwn", GiE, beta)
+        z, beta = _schur_solve(_window_gram(w_ch, H, unk, self.ridge), E, rhs, FF, rb)
         # e = Phi z + F beta - r, explicitly (no cancellation to guard)
         e = np.matmul(beta[:, None, :], F.reshape(k, P, -1)).reshape(k, nch, Lp, W)
         e -= R4
