@@ -14,8 +14,9 @@ One :class:`Service` per run, one ``asyncio.TaskGroup``:
 * ``stopper``   -- waits for Ctrl-C/SIGTERM, ``exit_after_flights`` or :meth:`Service.request_stop`.
 
 On disarm (a flight ends) the flight's .tlog is handed to :func:`groundstation.worker.run_job` in a
-``ProcessPoolExecutor(max_workers=1)`` with the spawn context; its result (model, gap report) is
-published on zenoh and logged to Rerun when it comes back. Shutdown closes the recorder first, then
+``ProcessPoolExecutor(max_workers=1)`` with the spawn context, one job at a time (later flights wait
+in the service's queue, so a worker that dies loses only the job it was running); its result (model,
+gap report) is published on zenoh and logged to Rerun when it comes back. Shutdown closes the recorder first, then
 kills the worker, then closes the sinks and the link: well within 2 s.
 
 The numbers are computed elsewhere (``dsp``, ``sysid``, ``gap``); this module only wires.
@@ -33,6 +34,7 @@ import multiprocessing
 import os
 import signal
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -111,12 +113,15 @@ class Service:
     sim_options : extra keyword arguments for the built-in simulator's ``SimulatedSession``
     fc_config : :class:`hil_replay.fc.FcConfig` for the built-in simulator (faults in tests)
     frame_source : replaces the built-in simulator's helicopter (anything with ``frames()``)
+    job_fn : the picklable function the worker process runs per job (default
+        :func:`groundstation.worker.run_job`; tests give one that blocks until killed)
     """
 
     def __init__(self, config: ServiceConfig, *, log: Callable[[str], None] = print,
                  sim_options: dict[str, Any] | None = None, fc_config: Any = None,
-                 frame_source: Any = None) -> None:
+                 frame_source: Any = None, job_fn: Callable[[IdentifyJob], Any] = run_job) -> None:
         self.frame_source = frame_source
+        self.job_fn = job_fn
         self.config = config
         self.log = log
         self.sim_options = sim_options
@@ -142,7 +147,9 @@ class Service:
         self._stop_reason = ""
         self._bytes_q: asyncio.Queue[tuple[bytes, float]] = asyncio.Queue(config.service.queue_size)
         self._executor: concurrent.futures.ProcessPoolExecutor | None = None
-        self._pending: set[asyncio.Future[Any]] = set()
+        self._pending: set[asyncio.Future[Any]] = set()        # submitted jobs without a result yet
+        self._queue: deque[tuple[IdentifyJob, asyncio.Future[Any]]] = deque()   # waiting for the worker
+        self._running: asyncio.Future[Any] | None = None        # the executor's future of the running job
         self._flight_tlogs: dict[int, str] = {}
         self._rows_buf: list[tuple[np.ndarray, ...]] = []
         self._sm_buf: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -445,24 +452,47 @@ class Service:
         self._check_exit()
 
     def submit_identification(self, job: IdentifyJob) -> asyncio.Future[Any]:
-        """Queue ``job`` on the worker process (call on the loop); the result is published when done."""
+        """Queue ``job`` for the worker process (call on the loop); the result is published when done.
+
+        The worker runs one job at a time; the returned future resolves to the job's result."""
         if self._executor is None:
             raise RuntimeError("identification is disabled in this service")
+        fut: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        self._pending.add(fut)
+        self._queue.append((job, fut))
+        self.ident.queued += 1
+        self.ident.state = "running"
+        fut.add_done_callback(self._on_result)
+        self._dispatch()
+        return fut
+
+    def _dispatch(self) -> None:
+        """Hand the next queued job to the worker when it is free."""
+        if self._running is not None or not self._queue or self._executor is None:
+            return
+        job, fut = self._queue.popleft()
         try:
-            cfut = self._executor.submit(run_job, job)
+            cfut = self._executor.submit(self.job_fn, job)
         except concurrent.futures.process.BrokenProcessPool:
             # the worker died (killed, out of memory): start a new one for this and later flights
             self._warn("identification worker died; starting a new one")
             self._executor.shutdown(wait=False, cancel_futures=True)
             self._executor = self._new_executor()
-            cfut = self._executor.submit(run_job, job)
-        fut = asyncio.wrap_future(cfut)
-        self._pending.add(fut)
-        self.ident.queued += 1
-        self.ident.state = "running"
+            cfut = self._executor.submit(self.job_fn, job)
         self.ident.flight = job.flight
-        fut.add_done_callback(self._on_result)
-        return fut
+        self._running = asyncio.wrap_future(cfut)
+        self._running.add_done_callback(functools.partial(self._job_done, fut))
+
+    def _job_done(self, fut: asyncio.Future[Any], inner: asyncio.Future[Any]) -> None:
+        self._running = None
+        if not fut.done():
+            if inner.cancelled():
+                fut.cancel()
+            elif (exc := inner.exception()) is not None:
+                fut.set_exception(exc)
+            else:
+                fut.set_result(inner.result())
+        self._dispatch()
 
     def _last_flight_tlog(self) -> str | None:
         rec = self.recorder
@@ -585,9 +615,12 @@ class Service:
             self.report.session_tlog = self.report.session_tlog or str(
                 getattr(self.recorder, "session_path", "") or "") or None
         # 2. the worker: cancel queued jobs, kill a running identification
+        while self._queue:
+            self._queue.popleft()[1].cancel()
         if self._executor is not None:
-            procs = list(getattr(self._executor, "_processes", {}).values())
-            self._executor.shutdown(wait=False, cancel_futures=True)
+            executor, self._executor = self._executor, None
+            procs = list(getattr(executor, "_processes", {}).values())
+            executor.shutdown(wait=False, cancel_futures=True)
             for p in procs:
                 if p.is_alive():
                     p.terminate()

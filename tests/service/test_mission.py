@@ -6,7 +6,11 @@ the queryable; the .rrd has the live, model and gap entities."""
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
+import os
+import signal
+import threading
 import time
 
 import pytest
@@ -91,25 +95,44 @@ def test_two_simulated_flights_identified_published_and_logged(tmp_path, subscri
     assert f"{v}/gap/verdict" in ents and any(e.startswith(f"{v}/gap/match/") for e in ents)
 
 
-def test_worker_killed_mid_identification_is_reported_and_replaced(tmp_path):
-    import os
-    import signal
+def _blocks_on_flight_1(fifo: str, job):
+    """Worker job for the kill test: flight 1 announces its pid on ``fifo`` and then blocks until the
+    process is killed; later flights are identified for real."""
+    if job.flight != 1:
+        from groundstation.worker import run_job
 
+        return run_job(job)
+    with open(fifo, "w") as f:            # opens when the test is reading: a rendezvous, not a delay
+        f.write(str(os.getpid()))
+    threading.Event().wait()              # until killed
+
+
+def test_worker_killed_mid_identification_is_reported_and_replaced(tmp_path):
+    fifo = tmp_path / "job-started.fifo"
+    os.mkfifo(fifo)
     cfg = service_config(tmp_path, service={"exit_after_flights": 2}, sim={"speed": 20.0, "flights": 2, "seed": 5},
                          identification={"maxiter": 6, "refine": False, "diagnose": False, "plots": False},
                          zenoh={"enabled": False})
-    service = Service(cfg, sim_options={"flight_duration_s": 40.0, "pause_s": 3.0}, log=lambda m: None)
+    service = Service(cfg, sim_options={"flight_duration_s": 40.0, "pause_s": 3.0}, log=lambda m: None,
+                      job_fn=functools.partial(_blocks_on_flight_1, str(fifo)))
     killed: list[int] = []
+
+    def job_pid() -> int:
+        with open(fifo) as f:            # returns when flight 1's job has started in the worker
+            return int(f.read())
 
     async def main():
         task = asyncio.create_task(service.run())
-        await asyncio.wait_for(service.ready.wait(), 20)
-        while not service._pending and not task.done():     # flight 1 handed to the worker
-            await asyncio.sleep(0.02)
-        await asyncio.sleep(1.0)
-        for p in list(service._executor._processes.values()):
-            os.kill(p.pid, signal.SIGKILL)                   # the worker dies (OOM killer, say)
-            killed.append(p.pid)
+        try:
+            pid = await asyncio.wait_for(asyncio.to_thread(job_pid), 240)
+        except BaseException:
+            try:                                             # release the reader thread
+                os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+            except OSError:
+                pass
+            raise
+        os.kill(pid, signal.SIGKILL)                         # the worker dies (OOM killer, say) mid-job
+        killed.append(pid)
         return await asyncio.wait_for(task, 240)
 
     report = asyncio.run(main())
