@@ -1,6 +1,7 @@
-"""Log readers: .tlog, ArduPilot dataflash .bin and PX4 .px4log into one :class:`LogData`.
+"""Log readers: .tlog, ArduPilot dataflash .bin, PX4 .px4log and PX4 .ulg into one :class:`LogData`.
 
-:func:`load_log` picks the reader by content (a dataflash FMT header, else .tlog records). The .tlog
+:func:`load_log` picks the reader by content (a dataflash FMT header, the ULog magic (read by
+:mod:`firmware_interface.ulog` through pyulog), else .tlog records). The .tlog
 path scans records tolerantly (:mod:`firmware_interface.tlogread`) and decodes them through the same
 :class:`~firmware_interface.session.MavlinkSession` as the live link (passive: nothing is sent), so
 units, clock unwrapping and reboot handling are identical offline and live. Dataflash logs go
@@ -50,6 +51,7 @@ from firmware_interface.samples import (
 )
 from firmware_interface.session import MavlinkSession, SessionConfig
 from firmware_interface.tlogread import TlogScan, scan_tlog
+from firmware_interface.ulog import ULOG_MAGIC, load_ulog
 
 __all__ = ["build_logdata", "find_flights", "load_log", "load_tlog_bytes", "load_dataflash"]
 
@@ -60,7 +62,7 @@ _MAV_TYPE_GCS = 6
 
 
 def load_log(path: str | os.PathLike[str]) -> LogData:
-    """Read a .tlog, dataflash .bin or PX4 .px4log into :class:`LogData` (raises LogError)."""
+    """Read a .tlog, dataflash .bin, PX4 .px4log or PX4 .ulg into :class:`LogData` (raises LogError)."""
     p = Path(path)
     try:
         data = p.read_bytes()
@@ -74,6 +76,8 @@ def load_log(path: str | os.PathLike[str]) -> LogData:
         raise LogError(f"{p}: empty file")
     if data[:3] == _DF_MAGIC:
         return load_dataflash(p)
+    if data[:7] == ULOG_MAGIC:
+        return load_ulog(p)
     return load_tlog_bytes(data, str(p))
 
 

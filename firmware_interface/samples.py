@@ -244,7 +244,8 @@ class LogData:
 
     ``series`` keys are the MAVLink message names above; a log that lacks a type simply lacks the
     key (callers must say which type is missing rather than guess). ``message_counts`` counts
-    every decoded message type, including ones without a series.
+    every decoded message type, including ones without a series. ``notes`` are one-line remarks
+    of the reader (a topic the file lacks, a log never armed) for the user.
     """
 
     source: str
@@ -252,6 +253,7 @@ class LogData:
     message_counts: dict[str, int]
     stats: LinkStats
     flights: list[FlightInterval]
+    notes: list[str] = field(default_factory=list)
 
     def has(self, name: str) -> bool:
         return name in self.series and len(self.series[name]) > 0

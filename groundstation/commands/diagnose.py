@@ -16,7 +16,7 @@ HELP = "diagnose where and why the hover model departs from flight data (gap rep
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("logs", nargs="+", type=Path, help=".tlog / .bin / .px4log flight logs")
+    parser.add_argument("logs", nargs="+", type=Path, help=".tlog / .bin / .px4log / .ulg flight logs")
     parser.add_argument("--model", type=Path, default=None, help="heli-hover-model/1 JSON (default: identify first)")
     parser.add_argument("--out", type=Path, required=True, help="gap report JSON to write")
     parser.add_argument("--plots", type=Path, default=None, help="directory for PNG plots")

@@ -19,7 +19,7 @@ HELP = "identify the hover model (paper eq. 8) from flight logs with CABC and wr
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("logs", nargs="+", type=Path, help=".tlog / .bin / .px4log flight logs")
+    parser.add_argument("logs", nargs="+", type=Path, help=".tlog / .bin / .px4log / .ulg flight logs")
     parser.add_argument("--out", type=Path, required=True, help="model JSON to write")
     parser.add_argument("--algorithm", choices=("cabc", "abc", "ga", "de"), default="cabc")
     parser.add_argument("--seed", type=int, default=0)

@@ -1,13 +1,13 @@
 """``groundstation log-info LOG [--json]``: flights, message rates, gaps, corruption and loss of a log.
 
-Reads .tlog, dataflash .bin or PX4 .px4log through :func:`firmware_interface.readers.load_log` and
+Reads .tlog, dataflash .bin, PX4 .px4log or PX4 .ulg through :func:`firmware_interface.readers.load_log` and
 prints one JSON object (``--json``) or the same as readable tables (rich)::
 
     {"source": ..., "flights": [{"index", "start_s", "end_s", "duration_s", "in_air_s"}],
      "messages": {TYPE: {"count", "rate_hz"}},
      "gaps": [{"message", "start_s", "duration_s"}], "gaps_total": n,
      "corrupt_bytes": n, "truncated_tail_bytes": n, "fc_reboots": n,
-     "packet_loss": {"lost": n, "by_source": {"sysid:compid": n}}}
+     "packet_loss": {"lost": n, "by_source": {"sysid:compid": n}}, "notes": [str]}
 
 Times are on the FC clock (s). ``rate_hz`` is the mean rate over the message's own span (series
 types) or over the log span (other types). A gap is an interval longer than 3 median sample periods
@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-HELP = "summarise a flight log (.tlog, .bin, .px4log): flights, message rates, gaps, corruption"
+HELP = "summarise a flight log (.tlog, .bin, .px4log, .ulg): flights, message rates, gaps, corruption"
 
 MAX_GAPS_LISTED = 200
 
@@ -77,6 +77,7 @@ def summarise(log: Any) -> dict[str, Any]:
         "truncated_tail_bytes": int(st.truncated_tail_bytes),
         "fc_reboots": int(st.fc_reboots),
         "packet_loss": {"lost": int(st.packets_lost), "by_source": dict(st.loss_by_source)},
+        "notes": list(getattr(log, "notes", [])),
     }
 
 
@@ -109,6 +110,8 @@ def _print_tables(info: dict[str, Any]) -> None:
     pl = info["packet_loss"]
     con.print(f"corrupt bytes {info['corrupt_bytes']}, truncated tail {info['truncated_tail_bytes']} B, "
               f"packets lost {pl['lost']} {pl['by_source'] or ''}, FC reboots {info['fc_reboots']}")
+    for note in info["notes"]:
+        con.print(note, markup=False, highlight=False)
 
 
 def run(args: argparse.Namespace) -> int:

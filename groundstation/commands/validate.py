@@ -16,7 +16,7 @@ HELP = "score a hover model file on flight logs (match degree, NRMSE fit, Theil 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("model", type=Path, help="heli-hover-model/1 JSON")
-    parser.add_argument("logs", nargs="+", type=Path, help=".tlog / .bin / .px4log flight logs")
+    parser.add_argument("logs", nargs="+", type=Path, help=".tlog / .bin / .px4log / .ulg flight logs")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.add_argument("--plot", type=Path, default=None, help="write measured vs model PNG here")
     parser.add_argument("--window-s", type=float, default=None, help="window length (default: the model's)")

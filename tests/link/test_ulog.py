@@ -1,0 +1,128 @@
+"""PX4 ULog import on the real pyulog sample log, and on variants of it written back by pyulog itself
+(an armed flight with a land detector, a topic removed): nothing here writes ULog bytes by hand."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from pyulog import ULog
+
+from firmware_interface.errors import LogError
+from firmware_interface.readers import load_log
+from groundstation.cli import main as cli_main
+from tests.realdata import real_log
+
+
+@pytest.fixture(scope="module")
+def sample():
+    return real_log("px4/pyulog_sample.ulg")
+
+
+def test_log_info_agrees_with_pyulog_counts_and_finds_the_flight(sample, capsys):
+    assert cli_main(["log-info", str(sample), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    ref = ULog(str(sample))
+    want = {d.name if d.multi_id == 0 else f"{d.name}/{d.multi_id}": len(d.data["timestamp"]) for d in ref.data_list}
+    got = {k: v["count"] for k, v in info["messages"].items()}
+    assert got == want
+    # a bench log (never armed): one flight over the whole log, and a note says so
+    assert len(info["flights"]) == 1
+    f = info["flights"][0]
+    span_s = (ref.last_timestamp - ref.start_timestamp) * 1e-6
+    assert f["duration_s"] == pytest.approx(span_s, abs=0.5)
+    assert any("never shows the vehicle armed" in n and str(sample) in n for n in info["notes"])
+
+
+def test_series_map_onto_mavlink_names_in_si_units(sample):
+    log = load_log(sample)
+    ref = ULog(str(sample))
+    va = ref.get_dataset("vehicle_attitude").data
+    att = log.series["ATTITUDE"]
+    assert len(att) == len(va["timestamp"])
+    assert att.t_fc_s[0] == pytest.approx(va["timestamp"][0] * 1e-6)
+    # roll from the quaternion: rotating body z by (roll, pitch) gives the quaternion's own z axis
+    w, x, y, z = (va[f"q[{k}]"] for k in range(4))
+    zb_y = 2 * (y * z + w * x)
+    zb_z = 1 - 2 * (x * x + y * y)
+    assert np.tan(att["roll_rad"]) == pytest.approx(zb_y / zb_z, rel=1e-5, abs=1e-6)
+    assert att["p_rad_s"] == pytest.approx(va["rollspeed"])  # this PX4 version kept the rates there
+    assert len(log.series["SERVO_OUTPUT_RAW"]) == len(ref.get_dataset("actuator_outputs").data["timestamp"])
+    lp = ref.get_dataset("vehicle_local_position").data
+    assert log.series["LOCAL_POSITION_NED"]["vz_m_s"] == pytest.approx(lp["vz"])
+    sc = ref.get_dataset("sensor_combined").data
+    assert log.series["IMU"]["gz_rad_s"] == pytest.approx(sc["gyro_rad[2]"])
+
+
+def _variant(sample, tmp_path, name, edit):
+    ulog = ULog(str(sample))
+    edit(ulog)
+    out = tmp_path / name
+    ulog.write_ulog(str(out))
+    return out
+
+
+def test_armed_interval_and_land_detector_give_flight_and_in_air_time(sample, tmp_path):
+    def edit(ulog):
+        vs = ulog.get_dataset("vehicle_status").data
+        t = vs["timestamp"] * 1e-6
+        vs["arming_state"][:] = np.where((t > 120.0) & (t < 170.0), 2, 1)
+
+    path = _variant(sample, tmp_path, "armed.ulg", edit)
+    log = load_log(path)
+    assert len(log.flights) == 1 and not log.notes[1:]
+    f = log.flights[0]
+    assert f.start_fc_s == pytest.approx(120.0, abs=0.3) and f.end_fc_s == pytest.approx(170.0, abs=0.3)
+
+
+def test_ulog_without_vehicle_attitude_is_one_line_naming_file_and_topic(sample, tmp_path, capsys):
+    def edit(ulog):
+        ulog._data_list = [d for d in ulog.data_list if d.name != "vehicle_attitude"]
+
+    path = _variant(sample, tmp_path, "noatt.ulg", edit)
+    with pytest.raises(LogError, match="noatt.ulg.*vehicle_attitude"):
+        load_log(path)
+    assert cli_main(["log-info", str(path)]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "noatt.ulg" in err[0] and "vehicle_attitude" in err[0]
+
+
+def test_ulog_without_servo_outputs_names_the_topic(sample, tmp_path):
+    def edit(ulog):
+        ulog._data_list = [d for d in ulog.data_list if d.name != "actuator_outputs"]
+
+    path = _variant(sample, tmp_path, "noout.ulg", edit)
+    log = load_log(path)
+    assert not log.has("SERVO_OUTPUT_RAW")
+    assert any("noout.ulg" in n and "actuator_outputs" in n for n in log.notes)
+
+
+def _one_line_or_ok(code, err, log):
+    if code != 0:
+        assert len(err.strip().splitlines()) == 1 and str(log) in err, err
+
+
+@pytest.mark.slow
+def test_every_command_reads_the_ulog_and_px4log(sample, tmp_path, capsys):
+    """Each command runs on the ULog and the .px4log; where the log cannot support the command (a
+    bench ULog never in the air) it says why in one line naming the file."""
+    px4log = real_log("px4/trex550_groundrun.px4log")
+    model = tmp_path / "m.json"
+    assert cli_main(["identify", str(px4log), "--out", str(model), "--maxiter", "2", "--no-plot", "--quiet"]) == 0
+    capsys.readouterr()
+    assert json.loads(model.read_text())["schema"] == "heli-hover-model/1"
+    for log in (sample, px4log):
+        assert cli_main(["log-info", str(log), "--json"]) == 0
+        assert json.loads(capsys.readouterr().out)["flights"]
+        code = cli_main(["identify", str(log), "--out", str(tmp_path / "m2.json"), "--maxiter", "2", "--no-plot",
+                         "--quiet"])
+        _one_line_or_ok(code, capsys.readouterr().err, log)
+        code = cli_main(["validate", str(model), str(log), "--json"])
+        out = capsys.readouterr()
+        _one_line_or_ok(code, out.err, log)
+        if code == 0:
+            assert json.loads(out.out)
+        code = cli_main(["diagnose", str(log), "--model", str(model), "--out", str(tmp_path / "gap.json"),
+                         "--quiet"])
+        _one_line_or_ok(code, capsys.readouterr().err, log)
