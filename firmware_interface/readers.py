@@ -26,6 +26,7 @@ import io
 import math
 import os
 from collections.abc import Iterable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +35,9 @@ import numpy as np
 from firmware_interface.errors import LogError
 from firmware_interface.samples import (
     SERIES_FIELDS,
+    SYSID_AXES,
     Attitude,
+    ChirpSegment,
     ExtendedSysState,
     FlightInterval,
     GlobalPositionInt,
@@ -53,7 +56,8 @@ from firmware_interface.session import MavlinkSession, SessionConfig
 from firmware_interface.tlogread import TlogScan, scan_tlog
 from firmware_interface.ulog import ULOG_MAGIC, load_ulog
 
-__all__ = ["build_logdata", "find_flights", "load_log", "load_tlog_bytes", "load_dataflash"]
+__all__ = ["build_logdata", "chirp_segments", "find_flights", "load_dataflash", "load_log", "load_tlog_bytes",
+           "restrict_to_chirps"]
 
 _UNTIMED = ("HEARTBEAT", "SYS_STATUS", "EXTENDED_SYS_STATE")
 _DF_MAGIC = b"\xa3\x95\x80"  # dataflash FMT record header
@@ -317,6 +321,7 @@ def load_dataflash(path: str | os.PathLike[str]) -> LogData:
     counts: dict[str, int] = {}
     gyro: list[tuple[float, float, float, float]] = []
     rate: list[tuple[float, float, float, float]] = []
+    sids: list[tuple[float, ...]] = []
 
     def add(name: str, t_fc: float, t_host: float, vals: tuple[float, ...]) -> None:
         if name not in cols:
@@ -325,7 +330,7 @@ def load_dataflash(path: str | os.PathLike[str]) -> LogData:
         tms[name].append((t_fc, t_host))
 
     with contextlib.redirect_stdout(noise):
-        _read_df(log, add, counts, gyro, rate)
+        _read_df(log, add, counts, gyro, rate, sids)
     px4 = "_PX4" in counts
     counts.pop("_PX4", None)
     counts.pop("_DFREADER_ERROR", None)  # the import stopped at a damaged record: keep what came before
@@ -344,10 +349,61 @@ def load_dataflash(path: str | os.PathLike[str]) -> LogData:
     if not series:
         raise LogError(f"{p}: dataflash log holds none of ATT, RCOU, IMU, GPS, XKF1/NKF1, POS, OUT0, LPOS")
     stats = LinkStats(packets=sum(counts.values()))
-    return _finish(str(p), series, counts, stats)
+    tail = _dataflash_tail_bytes(log)
+    stats.truncated_tail_bytes = tail
+    out = _finish(str(p), series, counts, stats)
+    if tail:
+        out.notes.append(f"{p}: the log ends inside a record (last {tail} bytes not a whole record); "
+                         "everything before it was read")
+    out.chirps.extend(chirp_segments(sids, series.get("SYSID")))
+    return out
 
 
-def _read_df(log: Any, add: Any, counts: dict[str, int], gyro: list, rate: list) -> None:
+def _dataflash_tail_bytes(log: Any) -> int:
+    """Bytes at the end of the file DFReader could not read as a whole record (0 when it ended cleanly)."""
+    data_len = int(getattr(log, "data_len", 0) or 0)
+    offset = int(getattr(log, "offset", data_len) or 0)
+    if offset >= data_len:
+        return 0
+    left = data_len - offset
+    try:  # a record cut short: DFReader consumed its 3-byte header before finding the body missing
+        head = bytes(log.data_map[offset - 3:offset - 1]) if offset >= 3 else b""
+    except (AttributeError, ValueError):
+        head = b""
+    return left + 3 if head == _DF_MAGIC[:2] else left
+
+
+def chirp_segments(sids: list[tuple[float, ...]], sidd: Series | None, *, gap_s: float = 0.5) -> list[ChirpSegment]:
+    """The SYSID chirps: each SIDS record (t, axis, magnitude, f_start, f_stop, t_fade_in, t_const,
+    t_record, t_fade_out) starts one; it spans the SIDD data that follow it without a gap longer than
+    ``gap_s`` (else the settings' own length t_const + t_record + t_fade_out)."""
+    out: list[ChirpSegment] = []
+    t_d = sidd.t_fc_s if sidd is not None and len(sidd) else np.zeros(0)
+    for k, (t0, axis, mag, f0, f1, _fin, tc, tr, tfout) in enumerate(sids):
+        end = t0 + tc + tr + tfout
+        nxt = sids[k + 1][0] if k + 1 < len(sids) else math.inf
+        sel = t_d[(t_d >= t0 - gap_s) & (t_d < nxt)]
+        if sel.size >= 2:
+            brk = np.flatnonzero(np.diff(sel) > gap_s)
+            start, end = float(sel[0]), float(sel[brk[0]] if brk.size else sel[-1])
+        else:
+            start = t0
+        out.append(ChirpSegment(k, int(axis), SYSID_AXES.get(int(axis), f"axis_{int(axis)}"), float(mag),
+                                float(f0), float(f1), float(start), float(end)))
+    return out
+
+
+def restrict_to_chirps(log: LogData) -> LogData:
+    """The same log with its flights replaced by its SYSID chirps (each one flight, all in the air), so
+    identification and validation use just those segments; LogError when the log has none."""
+    if not log.chirps:
+        raise LogError(f"{log.source}: no SYSID chirp in the log (no SIDS record): nothing for --segments sysid")
+    flights = [FlightInterval(c.index, c.start_fc_s, c.end_fc_s, c.duration_s, ((c.start_fc_s, c.end_fc_s),))
+               for c in log.chirps]
+    return replace(log, flights=flights)
+
+
+def _read_df(log: Any, add: Any, counts: dict[str, int], gyro: list, rate: list, sids: list) -> None:
     """Walk a DFReader log, mapping records onto MAVLink-named series through ``add``."""
     t0: float | None = None
     px4_time_s: float | None = None
@@ -400,6 +456,17 @@ def _read_df(log: Any, add: Any, counts: dict[str, int], gyro: list, rate: list)
                 add("IMU", t_fc, t_host, (g("AccX"), g("AccY"), g("AccZ"), g("GyrX"), g("GyrY"), g("GyrZ")))
             elif g("GyroX") is not None:  # PX4
                 add("IMU", t_fc, t_host, (g("AccX"), g("AccY"), g("AccZ"), g("GyroX"), g("GyroY"), g("GyroZ")))
+        elif typ == "RCIN":
+            add("RC_CHANNELS", t_fc, t_host, tuple(float(g(f"C{k}", 0) or 0) for k in range(1, 19)))
+        elif typ == "HELI":
+            add("ROTOR", t_fc, t_host, (g("ERRPM", math.nan), g("DRRPM", math.nan)))
+        elif typ == "GYR" and inst == 0:
+            add("GYRO_FAST", t_fc, t_host, (g("GyrX"), g("GyrY"), g("GyrZ")))
+        elif typ == "SIDS":
+            sids.append((t_fc, g("Ax", 0), g("Mag", 0.0), g("FSt", 0.0), g("FSp", 0.0), g("TFin", 0.0), g("TC", 0.0),
+                         g("TR", 0.0), g("TFout", 0.0)))
+        elif typ == "SIDD":
+            add("SYSID", t_fc, t_host, (g("Time", math.nan), g("Targ", math.nan), g("F", math.nan)))
         elif typ == "RCOU":
             add("SERVO_OUTPUT_RAW", t_fc, t_host, tuple(float(g(f"C{k}", 0) or 0) for k in range(1, 17)))
         elif typ == "OUT0":

@@ -191,6 +191,17 @@ SERIES_FIELDS: dict[str, tuple[str, ...]] = {
     "GPS_RAW_INT": ("fix_type", "lat_deg", "lon_deg", "alt_m", "ground_speed_m_s", "satellites"),
     "EXTENDED_SYS_STATE": ("landed_state",),
     "SYS_STATUS": ("voltage_v", "current_a", "drop_rate_comm_pct"),
+    # dataflash only: HELI rotor speed, high-rate gyro (GYR), SYSID chirp data (SIDD)
+    "ROTOR": ("rotor_speed_rpm", "desired_rotor_speed_rpm"),
+    "GYRO_FAST": ("gx_rad_s", "gy_rad_s", "gz_rad_s"),
+    "SYSID": ("waveform_time_s", "target", "frequency_hz"),
+}
+
+#: ArduPilot SID_AXIS values and the input they excite.
+SYSID_AXES: dict[int, str] = {
+    1: "input_roll", 2: "input_pitch", 3: "input_yaw", 4: "recovery_roll", 5: "recovery_pitch",
+    6: "recovery_yaw", 7: "rate_roll", 8: "rate_pitch", 9: "rate_yaw", 10: "mixer_roll", 11: "mixer_pitch",
+    12: "mixer_yaw", 13: "mixer_thrust",
 }
 
 
@@ -224,6 +235,25 @@ class FlightInterval:
         return self.end_fc_s - self.start_fc_s
 
 
+@dataclass(frozen=True)
+class ChirpSegment:
+    """One system-identification chirp of a dataflash log (ArduPilot SYSID mode: SIDS settings,
+    SIDD data), on the FC clock."""
+
+    index: int
+    axis: int  # SID_AXIS
+    axis_name: str  # see SYSID_AXES
+    magnitude: float
+    f_start_hz: float
+    f_stop_hz: float
+    start_fc_s: float
+    end_fc_s: float
+
+    @property
+    def duration_s(self) -> float:
+        return self.end_fc_s - self.start_fc_s
+
+
 @dataclass
 class LinkStats:
     """What went wrong on the link or in the file (counted, never raised)."""
@@ -245,7 +275,8 @@ class LogData:
     ``series`` keys are the MAVLink message names above; a log that lacks a type simply lacks the
     key (callers must say which type is missing rather than guess). ``message_counts`` counts
     every decoded message type, including ones without a series. ``notes`` are one-line remarks
-    of the reader (a topic the file lacks, a log never armed) for the user.
+    of the reader (a topic the file lacks, a log never armed) for the user; ``chirps`` the
+    system-identification chirps of a dataflash log.
     """
 
     source: str
@@ -254,6 +285,7 @@ class LogData:
     stats: LinkStats
     flights: list[FlightInterval]
     notes: list[str] = field(default_factory=list)
+    chirps: list[ChirpSegment] = field(default_factory=list)
 
     def has(self, name: str) -> bool:
         return name in self.series and len(self.series[name]) > 0

@@ -17,6 +17,8 @@ HELP = "diagnose where and why the hover model departs from flight data (gap rep
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("logs", nargs="+", type=Path, help=".tlog / .bin / .px4log / .ulg flight logs")
+    parser.add_argument("--segments", choices=("flights", "sysid"), default="flights",
+                        help="'flights' (every in-air interval, default) or 'sysid' (only the SYSID chirps)")
     parser.add_argument("--model", type=Path, default=None, help="heli-hover-model/1 JSON (default: identify first)")
     parser.add_argument("--out", type=Path, required=True, help="gap report JSON to write")
     parser.add_argument("--plots", type=Path, default=None, help="directory for PNG plots")
@@ -33,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from groundstation.gap.diagnose import DiagnoseConfig, run_diagnosis
 
     model = load_model(args.model) if args.model else None
-    logs = load_logs(args.logs)
+    logs = load_logs(args.logs, args.segments)
     prepared = prepare(logs)
     cfg = DiagnoseConfig(window_s=args.window_s)
     diag = run_diagnosis(model, prepared, seed=args.seed, config=cfg)

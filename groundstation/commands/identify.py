@@ -32,6 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, default=None, help="TOML with [prepare], [identify], [bounds]")
     parser.add_argument("--no-plot", action="store_true", help="do not write the PNG")
     parser.add_argument("--rrd", type=Path, default=None, help="also write measured vs model to a Rerun .rrd file")
+    parser.add_argument("--segments", choices=("flights", "sysid"), default="flights", help=SEGMENTS_HELP)
     parser.add_argument("--quiet", action="store_true")
 
 
@@ -49,13 +50,20 @@ def load_configs(path: Path | None):
     return parse_sysid_config(doc, str(path))
 
 
-def load_logs(paths: list[Path]):
-    from firmware_interface.readers import load_log
+SEGMENTS_HELP = ("which data to use: 'flights' (every in-air interval, default) or 'sysid' (only the "
+                 "system-identification chirps of ArduPilot SYSID-mode dataflash logs)")
+
+
+def load_logs(paths: list[Path], segments: str = "flights"):
+    from firmware_interface.readers import load_log, restrict_to_chirps
 
     for p in paths:
         if not p.exists():
             raise OSError(f"{p}: no such log file")
-    return [load_log(p) for p in paths]
+    logs = [load_log(p) for p in paths]
+    if segments == "sysid":
+        logs = [restrict_to_chirps(log) for log in logs]
+    return logs
 
 
 def write_json(path: Path, doc: dict) -> None:
@@ -79,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         from dataclasses import replace
 
         id_cfg = replace(id_cfg, search_restarts=args.restarts)
-    logs = load_logs(args.logs)
+    logs = load_logs(args.logs, args.segments)
     prepared = prepare(logs, prep_cfg)
     con = Console(stderr=True, quiet=args.quiet)
     t0 = time.perf_counter()

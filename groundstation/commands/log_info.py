@@ -7,7 +7,8 @@ prints one JSON object (``--json``) or the same as readable tables (rich)::
      "messages": {TYPE: {"count", "rate_hz"}},
      "gaps": [{"message", "start_s", "duration_s"}], "gaps_total": n,
      "corrupt_bytes": n, "truncated_tail_bytes": n, "fc_reboots": n,
-     "packet_loss": {"lost": n, "by_source": {"sysid:compid": n}}, "notes": [str]}
+     "packet_loss": {"lost": n, "by_source": {"sysid:compid": n}}, "notes": [str],
+     "chirps": [{"index", "axis", "sid_axis", "magnitude", "f_start_hz", "f_stop_hz", "start_s", "duration_s"}]}
 
 Times are on the FC clock (s). ``rate_hz`` is the mean rate over the message's own span (series
 types) or over the log span (other types). A gap is an interval longer than 3 median sample periods
@@ -78,6 +79,10 @@ def summarise(log: Any) -> dict[str, Any]:
         "fc_reboots": int(st.fc_reboots),
         "packet_loss": {"lost": int(st.packets_lost), "by_source": dict(st.loss_by_source)},
         "notes": list(getattr(log, "notes", [])),
+        "chirps": [{"index": c.index, "axis": c.axis_name, "sid_axis": c.axis, "magnitude": _num(c.magnitude),
+                    "f_start_hz": _num(c.f_start_hz), "f_stop_hz": _num(c.f_stop_hz),
+                    "start_s": _num(c.start_fc_s), "duration_s": _num(c.duration_s)}
+                   for c in getattr(log, "chirps", [])],
     }
 
 
@@ -110,6 +115,14 @@ def _print_tables(info: dict[str, Any]) -> None:
     pl = info["packet_loss"]
     con.print(f"corrupt bytes {info['corrupt_bytes']}, truncated tail {info['truncated_tail_bytes']} B, "
               f"packets lost {pl['lost']} {pl['by_source'] or ''}, FC reboots {info['fc_reboots']}")
+    if info["chirps"]:
+        ct = Table(title="system-identification chirps (SYSID mode)")
+        for c in ("#", "axis", "from Hz", "to Hz", "start s", "duration s", "magnitude"):
+            ct.add_column(c, justify="right")
+        for c in info["chirps"]:
+            ct.add_row(str(c["index"]), c["axis"], f"{c['f_start_hz']:g}", f"{c['f_stop_hz']:g}",
+                       f"{c['start_s']:.1f}", f"{c['duration_s']:.1f}", f"{c['magnitude']:g}")
+        con.print(ct)
     for note in info["notes"]:
         con.print(note, markup=False, highlight=False)
 

@@ -17,6 +17,8 @@ HELP = "score a hover model file on flight logs (match degree, NRMSE fit, Theil 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("model", type=Path, help="heli-hover-model/1 JSON")
     parser.add_argument("logs", nargs="+", type=Path, help=".tlog / .bin / .px4log / .ulg flight logs")
+    parser.add_argument("--segments", choices=("flights", "sysid"), default="flights",
+                        help="'flights' (every in-air interval, default) or 'sysid' (only the SYSID chirps)")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.add_argument("--plot", type=Path, default=None, help="write measured vs model PNG here")
     parser.add_argument("--window-s", type=float, default=None, help="window length (default: the model's)")
@@ -46,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
 
     model = load_model(args.model)
     prep_cfg, _, _ = load_configs(args.config)
-    prepared = prepare(load_logs(args.logs), prep_cfg)
+    prepared = prepare(load_logs(args.logs, args.segments), prep_cfg)
     want_series = args.plot is not None or args.rrd is not None
     res = validate(model, prepared, window_s=args.window_s, return_series=want_series)
     series = res.pop("series", None)

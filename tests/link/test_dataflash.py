@@ -132,3 +132,84 @@ def test_log_info_json_on_a_bin_keeps_stdout_clean(tmp_path, capsys):
     assert cli_main(["log-info", str(path), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["messages"]["ATT"]["count"] == 500 and len(info["flights"]) == 1
+
+
+def heli_sysid_bin() -> bytes:
+    """An ArduPilot heli log in SYSID mode: RCIN, HELI, GYR at 400 Hz and one roll-mixer chirp."""
+    out = _fmt(128, "FMT", "BBnNZ", "Type,Length,Name,Format,Columns")
+    out += _fmt(130, "ATT", "Qffffff", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw")
+    out += _fmt(131, "RCIN", "QHHHH", "TimeUS,C1,C2,C3,C4")
+    out += _fmt(132, "HELI", "Qffff", "TimeUS,DRRPM,ERRPM,Gov,Throt")
+    out += _fmt(133, "GYR", "QBIfff", "TimeUS,I,SampleUS,GyrX,GyrY,GyrZ")
+    out += _fmt(134, "SIDS", "QBfffffff", "TimeUS,Ax,Mag,FSt,FSp,TFin,TC,TR,TFout")
+    out += _fmt(135, "SIDD", "Qfffffffff", "TimeUS,Time,Targ,F,Gx,Gy,Gz,Ax,Ay,Az")
+    out += _fmt(136, "EV", "QB", "TimeUS,Id")
+    for k in range(4000):  # 10 s at 400 Hz
+        t = 1_000_000 + k * 2_500
+        if k == 0:
+            out += _rec(136, "QB", t, 10)
+        if k == 800:
+            out += _rec(134, "QBfffffff", t, 10, 0.1, 0.5, 6.0, 0.5, 0.5, 5.0, 0.5)
+        if k % 8 == 0:
+            out += _rec(130, "Qffffff", t, 0, 1.0, 0, 2.0, 0, 3.0)
+            out += _rec(131, "QHHHH", t, 1500, 1510, 1520, 1530)
+            out += _rec(132, "Qffff", t, 1500.0, 1490.0 + (k % 3), 0.5, 0.6)
+        out += _rec(133, "QBIfff", t, 0, t, 0.01 * np.sin(2 * np.pi * 24.9 * t * 1e-6), 0.0, 0.0)
+        if 800 <= k < 800 + 6 * 400:  # 6 s of chirp data at 400 Hz
+            out += _rec(135, "Qfffffffff", t, (k - 800) / 400, 0.05, 0.5 + (k - 800) / 400, 0, 0, 0, 0, 0, 0)
+    return out
+
+
+def test_heli_sysid_log_chirps_rotor_speed_rc_and_fast_gyro(tmp_path, capsys):
+    import json
+
+    from firmware_interface.readers import restrict_to_chirps
+    from groundstation.cli import main as cli_main
+
+    path = tmp_path / "sysid.bin"
+    path.write_bytes(heli_sysid_bin())
+    log = load_log(path)
+    assert log.series["RC_CHANNELS"]["pwm_us_4"][0] == 1530
+    assert log.series["ROTOR"]["desired_rotor_speed_rpm"][0] == 1500.0
+    assert np.median(np.diff(log.series["GYRO_FAST"].t_fc_s)) == pytest.approx(0.0025)
+    (c,) = log.chirps
+    assert (c.axis_name, c.f_start_hz, c.f_stop_hz) == ("mixer_roll", 0.5, 6.0)
+    assert c.start_fc_s == pytest.approx(3.0) and c.duration_s == pytest.approx(6.0, abs=0.01)
+    only = restrict_to_chirps(log)
+    assert [(f.start_fc_s, f.end_fc_s) for f in only.flights] == [(c.start_fc_s, c.end_fc_s)]
+    assert cli_main(["log-info", str(path), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["chirps"][0]["axis"] == "mixer_roll" and info["chirps"][0]["duration_s"] == pytest.approx(6.0, abs=0.01)
+
+
+def test_segments_sysid_without_chirps_is_one_line(tmp_path, capsys):
+    from groundstation.cli import main as cli_main
+
+    path = tmp_path / "plain.bin"
+    path.write_bytes(ardupilot_bin())
+    assert cli_main(["identify", str(path), "--segments", "sysid", "--out", str(tmp_path / "m.json")]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "plain.bin" in err[0] and "SYSID" in err[0]
+
+
+def test_truncated_mid_record_is_one_note_and_keeps_everything_before(tmp_path, capsys):
+    import json
+
+    from groundstation.cli import main as cli_main
+
+    data = ardupilot_bin()
+    whole = load_log_bytes(tmp_path, data)
+    path = tmp_path / "cut.bin"
+    path.write_bytes(data[:-7])  # the last record (RCOU/XKF1/GPS) loses its tail
+    log = load_log(path)
+    assert len(log.series["ATTITUDE"]) == len(whole.series["ATTITUDE"])
+    assert log.stats.truncated_tail_bytes > 0
+    assert len(log.notes) == 1 and "cut.bin" in log.notes[0] and "ends inside a record" in log.notes[0]
+    assert cli_main(["log-info", str(path), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["truncated_tail_bytes"] == log.stats.truncated_tail_bytes
+
+
+def load_log_bytes(tmp_path, data):
+    p = tmp_path / "whole.bin"
+    p.write_bytes(data)
+    return load_log(p)
