@@ -1,8 +1,10 @@
-"""``groundstation validate model.json LOG... [--json] [--plot PNG] [--window-s S]``.
+"""``groundstation validate model.json LOG... [--json] [--plot PNG] [--window-s S] [--freq [--bode PNG] [--rerun save RRD]]``.
 
 Scores a model file on flight logs (validation segments or another flight): per-channel match
 degree (eq. 19), NRMSE fit, Theil inequality coefficient and Pearson correlation, as a table or
-JSON on stdout.
+JSON on stdout. With ``--freq``: the frequency-domain check instead (flight-data frequency
+responses with coherence and random error, Tischler's J per input-output pair with pass/fail,
+phase-slope delay, ADS-33 bandwidth; :mod:`groundstation.freq`), Bode plots to PNG and Rerun.
 """
 
 from __future__ import annotations
@@ -24,6 +26,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--window-s", type=float, default=None, help="window length (default: the model's)")
     parser.add_argument("--config", type=Path, default=None, help="TOML with a [prepare] table")
     parser.add_argument("--rrd", type=Path, default=None, help="write measured vs model to a Rerun .rrd file")
+    parser.add_argument("--freq", action="store_true",
+                        help="frequency-domain check: J per input-output pair (JSON with --json: J_avg and pairs)")
+    parser.add_argument("--bode", type=Path, default=None, help="with --freq: Bode PNGs, one per input (PATH_<input>.png)")
+    parser.add_argument("--rerun", nargs="+", metavar="MODE", default=None,
+                        help="with --freq: 'save FILE.rrd' writes the Bode data to a Rerun recording")
+    from groundstation.commands.freq_support import add_freq_arguments
+
+    add_freq_arguments(parser)
 
 
 def load_model(path: Path):
@@ -48,6 +58,10 @@ def run(args: argparse.Namespace) -> int:
 
     model = load_model(args.model)
     prep_cfg, _, _ = load_configs(args.config)
+    if args.freq:
+        return run_freq(args, model, prep_cfg)
+    if args.bode is not None or args.rerun is not None:
+        raise ValueError("--bode and --rerun need --freq")
     prepared = prepare(load_logs(args.logs, args.segments), prep_cfg)
     want_series = args.plot is not None or args.rrd is not None
     res = validate(model, prepared, window_s=args.window_s, return_series=want_series)
@@ -76,6 +90,45 @@ def run(args: argparse.Namespace) -> int:
     t.add_row("mean", f"{res['mean_match']:.1f}", f"{res['mean_fit']:.1f}", "")
     con = Console()
     con.print(t)
+    for n in prepared.notes:
+        con.print(f"note: {n}")
+    return 0
+
+
+def run_freq(args: argparse.Namespace, model, prep_cfg) -> int:
+    """``validate --freq``: the J table (or one JSON object), Bode PNGs and Rerun recording."""
+    from groundstation.commands.freq_support import (
+        load_freq_config,
+        prepare_native,
+        print_verification,
+        verification_json,
+        write_rerun,
+    )
+    from groundstation.commands.identify import load_logs
+    from groundstation.freq.model_response import delays_from_augmentations
+    from groundstation.freq.spectra import estimate_responses
+    from groundstation.freq.verify import verify
+
+    fcfg = load_freq_config(args.freq_config)
+    prepared = prepare_native(load_logs(args.logs), prep_cfg, grid_only=args.grid_rate)
+    v = verify(model.theta, estimate_responses(prepared, fcfg), delays_from_augmentations(model.augmentations))
+    names = ", ".join(p.name for p in args.logs)
+    if args.bode is not None:
+        from groundstation.sinks.bode import plot_bode
+
+        plot_bode(v, args.bode, title=f"{args.model.name} on {names}")
+    if args.rerun is not None:
+        write_rerun(v, args.rerun, "groundstation-validate-freq")
+    if args.json:
+        print(verification_json(v, model=str(args.model), logs=[str(p) for p in args.logs],
+                                prepare_notes=list(prepared.notes)))
+        return 0
+    from rich.console import Console
+
+    con = Console()
+    print_verification(v, f"Tischler's J of {args.model.name} on {names} "
+                          f"({1 / prepared.dt_s:.0f} Hz, windows {', '.join(f'{w:g}' for w in v.responses.windows_s)} s)",
+                       con)
     for n in prepared.notes:
         con.print(f"note: {n}")
     return 0

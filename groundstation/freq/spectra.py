@@ -46,7 +46,7 @@ from groundstation.sysid.model import INPUTS, OUTPUTS
 class FreqConfig:
     """Frequency-analysis settings (``[freq]`` TOML table)."""
 
-    window_s: tuple[float, ...] = (8.0, 15.0, 30.0)
+    window_s: tuple[float, ...] = (5.0, 10.0, 20.0)
     overlap: float = 0.8
     taper: str = "hann"
     detrend: str = "linear"
@@ -361,3 +361,19 @@ def _pair(i: int, j: int, inp: str, out: str, f_hz: np.ndarray, active: list[int
             why = "no frequency resolved by the windows"
         return PairResponse(inp, out, f_hz, H, g2, eps, np.zeros(f_hz.size, bool), why)
     return PairResponse(inp, out, f_hz, H, g2, eps, coherent)
+
+
+def native_rate_hz(prepared: Any, grid_rate_hz: float | None = None) -> float | None:
+    """Sample rate at which the moving inputs and the body rates and attitude were logged, when that is
+    faster than the grid of ``prepared`` (else None): the rate to prepare at for frequency analysis.
+
+    The slowest of those channels sets it (velocities, often slower, are left interpolated).
+    """
+    names = [n for n, a in zip(INPUTS, prepared.input_active, strict=True) if a] + ["p", "q", "r", "theta", "phi"]
+    iv = [float(prepared.native_interval_s.get(n, float("nan"))) for n in names]
+    iv = [x for x in iv if np.isfinite(x) and x > 0]
+    if not iv:
+        return None
+    rate = 1.0 / max(iv)
+    grid = grid_rate_hz if grid_rate_hz is not None else 1.0 / float(prepared.dt_s)
+    return float(rate) if rate > 1.05 * grid else None

@@ -1,0 +1,233 @@
+"""Frequency-domain identification: the eq.-8 parameters (optionally one delay per input) fitted by
+minimising Tischler's J averaged over the input-output pairs with a response.
+
+``identify_frequency(responses, prepared=None, algorithm="cabc", seed=0, bounds=None, config=None)``
+
+1. the two decoupled subsystems (horizontal 22 parameters: lat/lon pairs of u v p q theta phi;
+   vertical/yaw 9: col/ped pairs of w r) one after the other, as the time-domain fit does: J_avg is a
+   mean over pairs, and the pairs of one subsystem depend only on its parameters;
+2. a parameter is fixed at 0 when its input never moves or its subsystem has no pair with a
+   response (reported in ``fit["fixed"]``); input delays (``fit_delays``) are searched in
+   ``[0, max_delay_s]`` for the inputs with a response;
+3. the global search with one of the registered optimisers
+   (:data:`groundstation.sysid.optimizers.ALGORITHMS`: CABC by default, ABC, GA, DE) on the
+   batched cost, then a least-squares refinement (scipy ``least_squares``, trust region) of the J
+   residuals from the ``refine_starts`` best distinct points the search evaluated; the lowest
+   refined J wins;
+4. standard errors: ``s^2 (R^T R)^-1`` with ``R`` the Jacobian of the J residuals and ``s^2`` their
+   mean square per degree of freedom (Tischler's Cramér-Rao form); neighbouring frequency points
+   are not independent estimates, so the figure is a lower bound - read it together with the
+   insensitive/correlated parameters it exposes, not as a confidence interval.
+
+Pure numpy/scipy; the model file and the timing are the caller's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from groundstation.freq import FreqError
+from groundstation.freq.cost import pair_residuals
+from groundstation.freq.model_response import has_path, model_response
+from groundstation.freq.spectra import ResponseSet
+from groundstation.sysid.model import (
+    HOR_PARAMS,
+    INPUTS,
+    N_PARAMS,
+    OUTPUTS,
+    PARAM_INDEX,
+    PARAM_NAMES,
+    VER_PARAMS,
+    HoverModel,
+    bounds_array,
+)
+from groundstation.sysid.optimizers import ALGORITHMS
+
+#: B-matrix parameters of each input (fixed at 0 when the input never moves).
+INPUT_PARAMS: dict[str, tuple[str, ...]] = {
+    "lat": ("X_lat", "M_lat", "L_lat", "A_lat"), "lon": ("Y_lon", "M_lon", "L_lon", "B_lon"),
+    "col": ("Z_col", "N_col"), "ped": ("Z_ped", "N_ped"),
+}
+_SUBSYSTEMS = (("horizontal", HOR_PARAMS, ("lat", "lon")), ("vertical", VER_PARAMS, ("col", "ped")))
+
+
+@dataclass(frozen=True)
+class FreqIdentifyConfig:
+    """Frequency-domain identification settings (``[freq_identify]`` TOML table)."""
+
+    maxiter: int = 150
+    fit_delays: bool = False
+    max_delay_s: float = 0.3
+    refine: bool = True
+    refine_starts: int = 5
+    refine_max_nfev: int = 300
+
+    def __post_init__(self) -> None:
+        if self.maxiter < 1 or self.refine_starts < 1:
+            raise FreqError("freq_identify.maxiter and refine_starts must be >= 1")
+        if not 0 < self.max_delay_s <= 1.0:
+            raise FreqError(f"freq_identify.max_delay_s must be in (0, 1] s, got {self.max_delay_s}")
+
+
+class _SubCost:
+    """J_avg of one subsystem's pairs as a function of its free parameters (and delays), batched."""
+
+    def __init__(self, rs: ResponseSet, pairs: list[Any], free_idx: np.ndarray, delay_inputs: list[int],
+                 theta0: np.ndarray) -> None:
+        self.rs, self.pairs, self.free_idx, self.delay_inputs, self.theta0 = rs, pairs, free_idx, delay_inputs, theta0
+        self.cols = [(OUTPUTS.index(p.output), INPUTS.index(p.input)) for p in pairs]
+        self.nfev = 0
+
+    def unpack(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        X = np.atleast_2d(X)
+        th = np.repeat(self.theta0[None], X.shape[0], axis=0)
+        th[:, self.free_idx] = X[:, : self.free_idx.size]
+        d = np.zeros((X.shape[0], 4))
+        d[:, self.delay_inputs] = X[:, self.free_idx.size:]
+        return th, d
+
+    def residuals(self, X: np.ndarray) -> np.ndarray:
+        """(C, n_res) residuals whose sum of squares is J_avg."""
+        th, d = self.unpack(X)
+        G = model_response(th, self.rs.f_hz, dt_s=self.rs.dt_s, delays_s=d)
+        self.nfev += th.shape[0]
+        k = np.sqrt(1.0 / len(self.pairs))
+        return np.concatenate([k * pair_residuals(G[:, :, j, i], p.response, p.coherence, p.coherent)
+                               for p, (j, i) in zip(self.pairs, self.cols, strict=True)], axis=1)
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        r = self.residuals(X)
+        with np.errstate(over="ignore", invalid="ignore"):
+            f = np.sum(r ** 2, axis=1)
+        return np.where(np.isfinite(f), f, np.inf)
+
+
+def _distinct_best(opt: Any, k: int, span: np.ndarray, min_dist: float = 0.2) -> list[np.ndarray]:
+    X, f = getattr(opt, "archive_x", None), getattr(opt, "archive_f", None)
+    if X is None or f is None:
+        return [np.asarray(opt.x, float)]
+    out: list[np.ndarray] = []
+    for i in np.argsort(f):
+        if len(out) >= k or not np.isfinite(f[i]):
+            break
+        if all(np.linalg.norm((X[i] - o) / span) / np.sqrt(span.size) >= min_dist for o in out):
+            out.append(np.asarray(X[i], float))
+    return out or [np.asarray(opt.x, float)]
+
+
+def _refine(cost: _SubCost, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_nfev: int) -> Any:
+    span = hi - lo
+    x0 = np.clip(x0, lo + 1e-9 * span, hi - 1e-9 * span)
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        r = cost.residuals(x[None])[0]
+        return np.where(np.isfinite(r), r, 1e6)
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        h = 1e-6 * np.maximum(np.abs(x), 1e-2 * span)
+        h = np.where(x + h > hi, -h, h)
+        R = cost.residuals(np.vstack([x[None], x[None] + np.diag(h)]))
+        R = np.where(np.isfinite(R), R, 1e6)
+        return ((R[1:] - R[0]) / h[:, None]).T
+
+    return least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac", max_nfev=max_nfev)
+
+
+def _std(res: Any, n_params: int) -> np.ndarray:
+    J = res.jac
+    dof = max(res.fun.size - n_params, 1)
+    s2 = float(np.sum(res.fun ** 2)) / dof
+    cov = s2 * np.linalg.pinv(J.T @ J)
+    return np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+
+def identify_frequency(responses: ResponseSet, prepared: Any = None, *, algorithm: str = "cabc", seed: int = 0,
+                       bounds: dict[str, tuple[float, float]] | None = None, config: FreqIdentifyConfig | None = None,
+                       callback: Callable[[dict], Any] | None = None) -> HoverModel:
+    """Fit the hover model to ``responses``; trims and sources come from ``prepared`` when given."""
+    cfg = config or FreqIdentifyConfig()
+    if algorithm not in ALGORITHMS:
+        raise FreqError(f"unknown algorithm {algorithm!r}; choose one of {sorted(ALGORITHMS)}")
+    rs = responses
+    b_all = bounds_array(bounds)
+    rng = np.random.default_rng(seed)
+    theta = np.clip(np.zeros(N_PARAMS), b_all[:, 0], b_all[:, 1])
+    std = np.full(N_PARAMS, np.nan)
+    delays = np.zeros(4)
+    fixed: list[str] = []
+    reasons: list[str] = []
+    fit: dict[str, Any] = {"algorithm": algorithm, "domain": "frequency", "evaluations": 0, "history": {},
+                           "search_cost": {}, "J_by_subsystem": {}}
+    active = set(rs.conditioned_on)
+    for name, params, inputs in _SUBSYSTEMS:
+        pairs = [p for p in rs.with_response if p.input in inputs and has_path(p.input, p.output)]
+        idx = [PARAM_INDEX[n] for n in params]
+        if not pairs:
+            fixed += list(params)
+            reasons.append(f"{name} subsystem: no input-output pair with a coherent response; parameters fixed at 0")
+            continue
+        drop = {PARAM_INDEX[n] for i in inputs if i not in active for n in INPUT_PARAMS[i]}
+        for i in inputs:
+            if i not in active:
+                fixed += list(INPUT_PARAMS[i])
+                reasons.append(f"input {i} never moves: {', '.join(INPUT_PARAMS[i])} fixed at 0")
+        free_idx = np.array([k for k in idx if k not in drop])
+        d_in = [INPUTS.index(i) for i in inputs if cfg.fit_delays and any(p.input == i for p in pairs)]
+        cost = _SubCost(rs, pairs, free_idx, d_in, theta)
+        lo = np.concatenate([b_all[free_idx, 0], np.zeros(len(d_in))])
+        hi = np.concatenate([b_all[free_idx, 1], np.full(len(d_in), cfg.max_delay_s)])
+
+        def cb(res: Any, name: str = name) -> bool:
+            if callback is not None:
+                return bool(callback({"stage": f"search {name} (frequency)", "nit": res.nit, "maxiter": cfg.maxiter,
+                                      "fun": float(res.fun), "nfev": res.nfev}))
+            return False
+
+        opt = ALGORITHMS[algorithm](cost, np.stack([lo, hi], axis=1), rng=rng, maxiter=cfg.maxiter, callback=cb)
+        best_x, best_f, best_res = np.asarray(opt.x, float), float(opt.fun), None
+        if cfg.refine:
+            best_f = np.inf
+            for x0 in _distinct_best(opt, cfg.refine_starts, hi - lo):
+                res = _refine(cost, x0, lo, hi, cfg.refine_max_nfev)
+                f = float(cost(res.x[None])[0])
+                if f < best_f:
+                    best_x, best_f, best_res = res.x, f, res
+        th, d = cost.unpack(best_x[None])
+        theta = th[0]
+        delays[d_in] = d[0, d_in]
+        if best_res is not None:
+            s = _std(best_res, best_x.size)
+            std[free_idx] = s[: free_idx.size]
+        fit["evaluations"] += cost.nfev
+        fit["history"][name] = [float(h) for h in opt.history]
+        fit["search_cost"][name] = float(opt.fun)
+        fit["J_by_subsystem"][name] = best_f
+    return _model(theta, std, delays, cfg, fit, fixed, reasons, rs, prepared, b_all)
+
+
+def _model(theta: np.ndarray, std: np.ndarray, delays: np.ndarray, cfg: FreqIdentifyConfig, fit: dict[str, Any],
+           fixed: list[str], reasons: list[str], rs: ResponseSet, prepared: Any, b_all: np.ndarray) -> HoverModel:
+    span = b_all[:, 1] - b_all[:, 0]
+    pinned = [n for k, n in enumerate(PARAM_NAMES)
+              if n not in fixed and min(theta[k] - b_all[k, 0], b_all[k, 1] - theta[k]) < 1e-3 * span[k]]
+    fit.update({"fixed": fixed, "fixed_reasons": reasons, "windows_s": list(rs.windows_s),
+                "frequency_hz": [float(rs.f_hz[0]), float(rs.f_hz[-1])], "sample_interval_s": rs.dt_s,
+                "cost": float(sum(fit["J_by_subsystem"].values())), "fitness": 0.0})
+    fit["fitness"] = 1.0 / (1.0 + fit["cost"])
+    augment = [{"name": "input_delay", "input": INPUTS[i], "delay_s": float(delays[i])}
+               for i in range(4) if cfg.fit_delays and delays[i] > 0]
+    kw: dict[str, Any] = {}
+    if prepared is not None:
+        kw = {"input_trim_pwm": dict(prepared.input_trim_pwm), "pwm_per_unit": float(prepared.pwm_per_unit),
+              "output_trim": dict(prepared.output_trim),
+              "source": {"logs": sorted({s.source for s in prepared.segments})}}
+    return HoverModel(params={n: float(v) for n, v in zip(PARAM_NAMES, theta, strict=True)},
+                      sample_rate_hz=float(1.0 / rs.dt_s),
+                      parameter_std={n: (None if n in fixed or not np.isfinite(s) else float(s))
+                                     for n, s in zip(PARAM_NAMES, std, strict=True)},
+                      augmentations=augment, fit=fit, pinned=pinned, **kw)
