@@ -135,7 +135,8 @@ def test_record_command_sigterm_exits_0_with_summary_json(bare_pty, tmp_path):
         bad[14] ^= 0x10
         pkts2 = [fc.attitude(6000 + 20 * k) for k in range(10)] + [fc.heartbeat(armed=False)]
         bare_pty.write(b"".join(pkts) + bytes(bad) + b"".join(pkts2))
-        time.sleep(0.5)
+        session = next(out.glob("session-*.tlog"))           # flushed at least every 0.5 s
+        assert _wait_for(lambda: len(_packets(session)) >= len(pkts) + len(pkts2), 30)
         proc.send_signal(signal.SIGTERM)
         stdout, stderr = proc.communicate(timeout=20)
     finally:

@@ -44,10 +44,11 @@ def test_two_simulated_flights_identified_published_and_logged(tmp_path, subscri
             def ask():
                 s = zenoh.open(zenoh.Config.from_json5(loopback_peer_config(connect_ports=(port,))))
                 try:
-                    time.sleep(0.3)
-                    for r in s.get(f"heli/{service.vehicle}/model/latest", timeout=5):
-                        if r.ok is not None:
-                            late_replies.append(json.loads(r.ok.payload.to_string()))
+                    end = time.monotonic() + 30      # until the queryable is known to the new peer
+                    while not late_replies and time.monotonic() < end:
+                        for r in s.get(f"heli/{service.vehicle}/model/latest", timeout=1):
+                            if r.ok is not None:
+                                late_replies.append(json.loads(r.ok.payload.to_string()))
                 finally:
                     s.close()
             await asyncio.to_thread(ask)
@@ -71,7 +72,7 @@ def test_two_simulated_flights_identified_published_and_logged(tmp_path, subscri
     assert sub.of("/status") and len(sub.of("/telemetry/window")) > 20
     # live input trim follows the latest model (automatic trim)
     last_model = max(report.results, key=lambda r: r["flight"])["model"]
-    deadline = time.monotonic() + 3.0          # the final status is published during shutdown
+    deadline = time.monotonic() + 30.0         # the final status is published during shutdown
     while (time.monotonic() < deadline
            and sub.of("/status")[-1]["input_trim_pwm"] != pytest.approx(last_model["input_trim_pwm"])):
         time.sleep(0.05)

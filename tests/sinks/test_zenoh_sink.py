@@ -12,12 +12,24 @@ import zenoh
 from groundstation.sinks.zenoh_sink import ZenohSink, ZenohSinkError, free_tcp_port, loopback_peer_config
 
 
+def _retry(attempt, timeout_s: float = 20.0) -> bool:
+    """Repeat ``attempt()`` (which waits on its own, e.g. a query with a timeout) until it is true:
+    a new peer is ready when it answers, not after a fixed delay."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if attempt():
+            return True
+        time.sleep(0.01)
+    return False
+
+
 def test_status_windows_model_gap_reach_a_subscriber(collector_factory):
     sink = ZenohSink("t1")
     try:
         col = collector_factory(sink.endpoint)
-        # wait for the subscriber to be known before publishing DROP traffic
-        time.sleep(0.5)
+        # status until the subscriber gets one: it is known to the sink before DROP traffic is published
+        assert _retry(lambda: sink.publish_status({"i": -1, "nan": float("nan")})
+                      or col.wait_for(lambda s: any(k == "heli/t1/status" for k, _ in s), 0.2))
         for i in range(3):
             sink.publish_status({"i": i, "nan": float("nan")})
             assert sink.publish_window({"seq": i}, seq=i, t_host_last_s=time.time())
@@ -41,8 +53,8 @@ def test_late_subscriber_gets_latest_model_by_query_and_liveliness():
         assert sink.flush()
         late = zenoh.open(zenoh.Config.from_json5(loopback_peer_config(connect_ports=(port,))))
         try:
-            time.sleep(0.3)
-            replies = list(late.get("heli/t2/model/latest", timeout=3))
+            replies: list = []
+            assert _retry(lambda: replies.extend(late.get("heli/t2/model/latest", timeout=1)) or bool(replies))
             assert len(replies) == 1 and replies[0].ok is not None
             assert json.loads(replies[0].ok.payload.to_string())["flight"] == 3
             gap = list(late.get("heli/t2/gap/latest", timeout=3))
@@ -69,8 +81,10 @@ def test_query_callback_comes_back_on_the_event_loop():
         port = int(sink.endpoint.rsplit(":", 1)[1])
         other = zenoh.open(zenoh.Config.from_json5(loopback_peer_config(connect_ports=(port,))))
         try:
-            await asyncio.sleep(0.3)
-            await asyncio.to_thread(lambda: list(other.get("heli/t3/model/latest", timeout=3)))
+            for _ in range(50):       # until the queryable is known to the other peer (no fixed delay)
+                await asyncio.to_thread(lambda: list(other.get("heli/t3/model/latest", timeout=1)))
+                if got.is_set():
+                    break
             await asyncio.wait_for(got.wait(), 5)
         finally:
             other.close()
@@ -78,7 +92,7 @@ def test_query_callback_comes_back_on_the_event_loop():
         return seen
 
     seen = asyncio.run(main())
-    assert seen == [("heli/t3/model/latest", True)]
+    assert seen and set(seen) == {("heli/t3/model/latest", True)}
 
 
 def test_windows_are_dropped_not_blocking_when_the_queue_is_full():
@@ -121,8 +135,9 @@ def test_client_to_a_router_that_appears_late(tmp_path, collector_factory):
                 "mode": "client", "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
                 "scouting": {"multicast": {"enabled": False}}})))
             try:
-                time.sleep(0.3)
-                replies = [r for r in client.get("heli/t6/model/latest", timeout=3) if r.ok]
+                replies: list = []
+                assert _retry(lambda: replies.extend(r for r in client.get("heli/t6/model/latest", timeout=1)
+                                                     if r.ok) or bool(replies))
                 assert json.loads(replies[0].ok.payload.to_string()) == {"flight": 1}
             finally:
                 client.close()
