@@ -3,7 +3,7 @@
 Each subcommand lives in ``groundstation/commands/<name>.py`` exposing ``HELP`` (one line),
 ``add_arguments(parser)`` and ``run(args) -> int``; benchmarks live in ``groundstation/bench/<name>.py``
 with the same shape and are reached through ``groundstation bench NAME``. Modules are imported lazily
-so a broken optional piece never stops the others. Errors derived from :class:`GroundstationError`
+so a broken optional piece never stops the others. Errors derived from :class:`groundstation.errors.GroundstationError`
 (and ValueError/OSError at the edge) print one line and exit non-zero.
 """
 
@@ -12,6 +12,8 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+
+from groundstation.errors import GroundstationError
 
 # command name -> module under groundstation.commands
 COMMANDS: dict[str, str] = {
@@ -26,10 +28,6 @@ COMMANDS: dict[str, str] = {
     "diagnose": "diagnose",
     "bench": "bench",
 }
-
-
-class GroundstationError(Exception):
-    """Base of errors that the CLI reports as one line."""
 
 
 def _load(module: str):

@@ -1,12 +1,29 @@
-"""Service configuration: frozen dataclasses loaded from one TOML file.
+"""One configuration model: a tree of frozen dataclasses, loaded once from one TOML file.
 
-``load_config(path)`` reads a TOML file whose tables mirror the dataclasses below
-(``[service]``, ``[link]``, ``[live]``, ``[inputs]``, ``[zenoh]``, ``[rerun]``, ``[identification]``,
-``[sim]``); every key is optional (defaults below) and an unknown table or key raises
-:class:`ConfigError` naming the file and the key. Command-line options override fields with
-:func:`dataclasses.replace` in the command modules. No environment variables, no globals.
+:class:`ServiceConfig` holds the domain configurations themselves as sections, so a value exists
+once and every command reads the same file (``--config FILE.toml``)::
 
-This module only parses and validates; the service (:mod:`groundstation.service`) uses the values.
+    [service] [link] [zenoh] [rerun] [sim]   the live service (ServiceSection, LinkSection, ...)
+    [prepare]                                  dsp.prepare.PrepConfig: channel map, trims, pwm_per_unit,
+                                               in-air height -- used by identification AND the live path
+    [live]                                     dsp.live.LiveConfig: grid, smoothing, windows
+    [identify]                                 sysid.identify.IdentifyConfig
+    [bounds]                                   search bounds, NAME = [low, high] (paper parameter names)
+    [diagnose]                                 gap.diagnose.DiagnoseConfig
+    [freq]                                     freq.spectra.FreqConfig (``validate --freq``)
+    [identification]                           what the service does between flights (and the
+                                               defaults of ``groundstation identify``'s options)
+
+Every key is optional (the dataclass defaults); an unknown table or key, a value of the wrong type or
+out of range raises :class:`ConfigError` with one line naming the file and the key. A field some other
+section decides (the live path's channel map comes from ``[prepare]``) is listed in the parent's
+``CONFIG_DERIVED`` and rejected with a pointer to where it is set.
+
+:func:`load_toml` is generic: it builds any dataclass tree from a TOML file from the field types
+(``bool int float str``, ``tuple[...]``, ``X | None``, ``dict[str, ...]``, nested dataclasses), so
+a new section is one more dataclass field. Command-line options override fields with
+:meth:`ServiceConfig.replace`. No environment variables, no globals. This module only parses and
+validates; the service and the commands use the values.
 """
 
 from __future__ import annotations
@@ -14,11 +31,19 @@ from __future__ import annotations
 import dataclasses
 import os
 import tomllib
+import types
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
-from groundstation.cli import GroundstationError
+from groundstation.dsp.live import LiveConfig
+from groundstation.dsp.prepare import PrepConfig
+from groundstation.errors import GroundstationError
+from groundstation.freq.spectra import FreqConfig
+from groundstation.gap.diagnose import DiagnoseConfig
+from groundstation.sysid.identify import IdentifyConfig
+from groundstation.sysid.model import PARAM_NAMES
 
 
 class ConfigError(GroundstationError, ValueError):
@@ -46,30 +71,6 @@ class LinkSection:
 
 
 @dataclass(frozen=True)
-class LiveSection:
-    grid_rate_hz: float = 50.0
-    smoothing_passes: int = 1
-    window_s: float = 4.0
-    hop_s: float = 0.5
-    stale_s: float = 0.5             # a stream silent this long (FC clock) stops holding the grid back
-    in_air_alt_m: float = 0.3        # in-air from altitude when EXTENDED_SYS_STATE is absent
-
-
-@dataclass(frozen=True)
-class InputsSection:
-    """Channel map (1-based servo numbers on SERVO_OUTPUT_RAW) and normalisation."""
-
-    lat_servo: int = 1
-    lon_servo: int = 2
-    col_servo: int = 3
-    ped_servo: int = 4
-    # empty = automatic: 1500 until a model is identified, then the latest model's input_trim_pwm
-    # (the median in-air PWM); four values (lat lon col ped) fix it
-    trim_pwm: tuple[float, ...] = ()
-    pwm_per_unit: float = 500.0
-
-
-@dataclass(frozen=True)
 class ZenohSection:
     enabled: bool = True
     config_file: str = ""            # json5 session config; empty = peer on loopback, scouting off
@@ -85,12 +86,12 @@ class RerunSection:
 
 @dataclass(frozen=True)
 class IdentificationSection:
+    """Identification between flights (the service) and the defaults of ``groundstation identify``."""
+
     enabled: bool = True
     scope: str = "last"              # last | all (all flights so far of this aircraft)
     algorithm: str = "cabc"
     seed: int = 0
-    maxiter: int = 0                 # 0 = the identifier's default
-    restarts: int = 2                # independent searches, lowest refined cost wins (time between flights is cheap)
     refine: bool = True
     diagnose: bool = True
     plots: bool = True
@@ -104,24 +105,50 @@ class SimSection:
     effects: tuple[str, ...] = ()
 
 
+#: live-path fields taken from [prepare]: one channel map, one trim, one in-air height
+_LIVE_FROM_PREPARE = {"servo_numbers": "input_channels", "trim_pwm": "input_trim_pwm",
+                      "pwm_per_unit": "pwm_per_unit", "in_air_alt_m": "in_air_alt_m"}
+_AUTO_TRIM_PWM: tuple[float, float, float, float] = (1500.0, 1500.0, 1500.0, 1500.0)   # live inputs until a model's trim is known
+
+
 @dataclass(frozen=True)
 class ServiceConfig:
     service: ServiceSection = field(default_factory=ServiceSection)
     link: LinkSection = field(default_factory=LinkSection)
-    live: LiveSection = field(default_factory=LiveSection)
-    inputs: InputsSection = field(default_factory=InputsSection)
+    prepare: PrepConfig = field(default_factory=PrepConfig)
+    live: LiveConfig = field(default_factory=LiveConfig)
+    identify: IdentifyConfig = field(default_factory=IdentifyConfig)
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
+    diagnose: DiagnoseConfig = field(default_factory=DiagnoseConfig)
+    freq: FreqConfig = field(default_factory=FreqConfig)
+    identification: IdentificationSection = field(default_factory=IdentificationSection)
     zenoh: ZenohSection = field(default_factory=ZenohSection)
     rerun: RerunSection = field(default_factory=RerunSection)
-    identification: IdentificationSection = field(default_factory=IdentificationSection)
     sim: SimSection = field(default_factory=SimSection)
 
+    #: keys set elsewhere: "section.key" -> where the value comes from (rejected in a file)
+    CONFIG_DERIVED: typing.ClassVar[dict[str, str]] = {
+        **{f"live.{k}": f"prepare.{v}" for k, v in _LIVE_FROM_PREPARE.items()},
+        "diagnose.identify_restarts": "identify.search_restarts",
+    }
+
     def __post_init__(self) -> None:
+        prep = self.prepare
+        live = dataclasses.replace(
+            self.live, servo_numbers=prep.input_channels,
+            trim_pwm=prep.input_trim_pwm if prep.input_trim_pwm is not None else _AUTO_TRIM_PWM,
+            pwm_per_unit=prep.pwm_per_unit, in_air_alt_m=prep.in_air_alt_m)
+        object.__setattr__(self, "live", live)
+        if self.diagnose.identify_restarts != self.identify.search_restarts:
+            object.__setattr__(self, "diagnose", dataclasses.replace(
+                self.diagnose, identify_restarts=self.identify.search_restarts))
         validate(self)
 
     def replace(self, section: str, **changes: Any) -> ServiceConfig:
         """A copy with fields of one section changed (validated)."""
         sec = getattr(self, section)
-        return dataclasses.replace(self, **{section: dataclasses.replace(sec, **changes)})
+        new: Any = {**sec, **changes} if isinstance(sec, dict) else dataclasses.replace(sec, **changes)
+        return dataclasses.replace(self, **{section: new})
 
 
 def validate(cfg: ServiceConfig, where: str = "config") -> None:
@@ -130,108 +157,128 @@ def validate(cfg: ServiceConfig, where: str = "config") -> None:
         return ConfigError(f"{where}: {key} = {value!r}: {why}")
 
     lv = cfg.live
-    if not lv.grid_rate_hz > 0:
-        raise bad("live.grid_rate_hz", lv.grid_rate_hz, "must be > 0")
-    if lv.smoothing_passes < 0:
-        raise bad("live.smoothing_passes", lv.smoothing_passes, "must be >= 0")
-    if not lv.window_s * lv.grid_rate_hz >= 5:
-        raise bad("live.window_s", lv.window_s, "must hold at least 5 grid samples")
-    if not 0 < lv.hop_s <= lv.window_s:
-        raise bad("live.hop_s", lv.hop_s, "must be in (0, window_s]")
-    if not lv.stale_s > 0:
-        raise bad("live.stale_s", lv.stale_s, "must be > 0")
-    if not cfg.service.vehicle or "/" in cfg.service.vehicle or any(c in cfg.service.vehicle for c in "*$?#"):
-        raise bad("service.vehicle", cfg.service.vehicle, "must be a non-empty zenoh key chunk (no / * $ ? #)")
-    if not cfg.service.status_rate_hz > 0:
-        raise bad("service.status_rate_hz", cfg.service.status_rate_hz, "must be > 0")
-    if cfg.service.queue_size < 1:
-        raise bad("service.queue_size", cfg.service.queue_size, "must be >= 1")
-    if cfg.rerun.mode not in ("off", "spawn", "connect", "save"):
-        raise bad("rerun.mode", cfg.rerun.mode, "must be off, spawn, connect or save")
-    if cfg.rerun.mode == "save" and not cfg.rerun.target:
-        raise bad("rerun.target", cfg.rerun.target, "save needs a PATH.rrd")
-    if cfg.identification.scope not in ("last", "all"):
-        raise bad("identification.scope", cfg.identification.scope, "must be last or all")
-    if cfg.identification.restarts < 1:
-        raise bad("identification.restarts", cfg.identification.restarts, "must be >= 1")
-    if not cfg.sim.speed > 0:
-        raise bad("sim.speed", cfg.sim.speed, "must be > 0")
-    if cfg.sim.flights < 1:
-        raise bad("sim.flights", cfg.sim.flights, "must be >= 1")
-    servos = (cfg.inputs.lat_servo, cfg.inputs.lon_servo, cfg.inputs.col_servo, cfg.inputs.ped_servo)
-    if any(not 1 <= s <= 16 for s in servos):
-        raise bad("inputs.*_servo", servos, "servo numbers must be 1..16")
-    if len(cfg.inputs.trim_pwm) not in (0, 4):
-        raise bad("inputs.trim_pwm", cfg.inputs.trim_pwm, "needs 4 values (lat lon col ped) or [] for automatic")
-    if not cfg.inputs.pwm_per_unit > 0:
-        raise bad("inputs.pwm_per_unit", cfg.inputs.pwm_per_unit, "must be > 0")
-    if not 0 <= cfg.zenoh.listen_port <= 65535:
-        raise bad("zenoh.listen_port", cfg.zenoh.listen_port, "must be 0..65535")
-    if cfg.zenoh.window_queue < 1:
-        raise bad("zenoh.window_queue", cfg.zenoh.window_queue, "must be >= 1")
+    checks: list[tuple[bool, str, Any, str]] = [
+        (lv.grid_rate_hz > 0, "live.grid_rate_hz", lv.grid_rate_hz, "must be > 0"),
+        (lv.smoothing_passes >= 0, "live.smoothing_passes", lv.smoothing_passes, "must be >= 0"),
+        (lv.window_s * lv.grid_rate_hz >= 5, "live.window_s", lv.window_s, "must hold at least 5 grid samples"),
+        (0 < lv.hop_s <= lv.window_s, "live.hop_s", lv.hop_s, "must be in (0, window_s]"),
+        (lv.stale_s > 0, "live.stale_s", lv.stale_s, "must be > 0"),
+        (bool(cfg.service.vehicle) and not any(c in cfg.service.vehicle for c in "/*$?#"), "service.vehicle",
+         cfg.service.vehicle, "must be a non-empty zenoh key chunk (no / * $ ? #)"),
+        (cfg.service.status_rate_hz > 0, "service.status_rate_hz", cfg.service.status_rate_hz, "must be > 0"),
+        (cfg.service.queue_size >= 1, "service.queue_size", cfg.service.queue_size, "must be >= 1"),
+        (cfg.rerun.mode in ("off", "spawn", "connect", "save"), "rerun.mode", cfg.rerun.mode,
+         "must be off, spawn, connect or save"),
+        (cfg.rerun.mode != "save" or bool(cfg.rerun.target), "rerun.target", cfg.rerun.target, "save needs a PATH.rrd"),
+        (cfg.identification.scope in ("last", "all"), "identification.scope", cfg.identification.scope,
+         "must be last or all"),
+        (cfg.identification.algorithm in ("cabc", "abc", "ga", "de"), "identification.algorithm",
+         cfg.identification.algorithm, "must be cabc, abc, ga or de"),
+        (cfg.identify.search_restarts >= 1, "identify.search_restarts", cfg.identify.search_restarts, "must be >= 1"),
+        (cfg.sim.speed > 0, "sim.speed", cfg.sim.speed, "must be > 0"),
+        (cfg.sim.flights >= 1, "sim.flights", cfg.sim.flights, "must be >= 1"),
+        (all(1 <= s <= 16 for s in cfg.prepare.input_channels), "prepare.input_channels",
+         cfg.prepare.input_channels, "channel numbers must be 1..16"),
+        (cfg.prepare.input_trim_pwm is None or len(cfg.prepare.input_trim_pwm) == 4, "prepare.input_trim_pwm",
+         cfg.prepare.input_trim_pwm, "needs 4 values (lat lon col ped) or [] for automatic"),
+        (cfg.prepare.pwm_per_unit > 0, "prepare.pwm_per_unit", cfg.prepare.pwm_per_unit, "must be > 0"),
+        (0 <= cfg.zenoh.listen_port <= 65535, "zenoh.listen_port", cfg.zenoh.listen_port, "must be 0..65535"),
+        (cfg.zenoh.window_queue >= 1, "zenoh.window_queue", cfg.zenoh.window_queue, "must be >= 1"),
+    ]
+    for ok, key, value, why in checks:
+        if not ok:
+            raise bad(key, value, why)
+    for name, (low, high) in cfg.bounds.items():
+        if name not in PARAM_NAMES:
+            raise bad(f"bounds.{name}", [low, high], "unknown parameter (see the model file's parameter names)")
+        if not low < high:
+            raise bad(f"bounds.{name}", [low, high], "needs low < high")
 
 
-_SECTIONS: dict[str, type] = {f.name: f.default_factory for f in dataclasses.fields(ServiceConfig)}  # type: ignore[misc]
+# ------------------------------------------------------------------ generic TOML -> dataclass tree
+
+T = TypeVar("T")
 
 
-def _coerce(where: str, key: str, value: Any, default: Any) -> Any:
-    """Check a TOML value against the type of the dataclass default."""
-    if isinstance(default, bool):
-        if not isinstance(value, bool):
-            raise ConfigError(f"{where}: {key} = {value!r}: expected true/false")
-        return value
-    if isinstance(default, int) and not isinstance(default, bool):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{where}: {key} = {value!r}: expected an integer")
-        return value
-    if isinstance(default, float):
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ConfigError(f"{where}: {key} = {value!r}: expected a number")
-        return float(value)
-    if isinstance(default, str):
-        if not isinstance(value, str):
-            raise ConfigError(f"{where}: {key} = {value!r}: expected a string")
-        return value
-    if isinstance(default, tuple):
+def _type_name(tp: Any) -> str:
+    return {bool: "true/false", int: "an integer", float: "a number", str: "a string"}.get(tp, str(tp))
+
+
+def _convert(tp: Any, value: Any, where: str, key: str) -> Any:
+    """``value`` (parsed TOML) as type ``tp``; ConfigError naming ``where`` and ``key`` otherwise."""
+    def wrong(expected: str) -> ConfigError:
+        return ConfigError(f"{where}: {key} = {value!r}: expected {expected}")
+
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        inner = [a for a in args if a is not type(None)]
+        if len(inner) == 1 and typing.get_origin(inner[0]) is tuple and value == []:
+            return None                                  # [] = "not set" for an optional array
+        return _convert(inner[0], value, where, key) if len(inner) == 1 else value
+    if dataclasses.is_dataclass(tp) and isinstance(tp, type):
+        if not isinstance(value, dict):
+            raise wrong(f"a table [{key}]")
+        return _from_dict(tp, value, where, f"{key}.")
+    if origin is tuple:
         if not isinstance(value, list):
-            raise ConfigError(f"{where}: {key} = {value!r}: expected an array")
-        if key.endswith("trim_pwm") or (default and isinstance(default[0], float)):
-            if any(isinstance(v, bool) or not isinstance(v, int | float) for v in value):
-                raise ConfigError(f"{where}: {key} = {value!r}: expected numbers")
-            return tuple(float(v) for v in value)
-        if any(not isinstance(v, str) for v in value):
-            raise ConfigError(f"{where}: {key} = {value!r}: expected strings")
-        return tuple(value)
+            raise wrong("an array")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(args[0], v, where, key) for v in value)
+        if len(value) != len(args):
+            raise wrong(f"an array of {len(args)} values")
+        return tuple(_convert(a, v, where, key) for a, v in zip(args, value, strict=True))
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise wrong(f"a table [{key}]")
+        return {str(k): _convert(args[1], v, where, f"{key}.{k}") for k, v in value.items()}
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise wrong(_type_name(bool))
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise wrong(_type_name(int))
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise wrong(_type_name(float))
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise wrong(_type_name(str))
+        return value
     return value
 
 
-def config_from_dict(data: dict[str, Any], where: str = "config") -> ServiceConfig:
-    """Build a :class:`ServiceConfig` from parsed TOML; unknown tables/keys raise ConfigError."""
-    sections: dict[str, Any] = {}
-    for name, table in data.items():
-        if name not in _SECTIONS:
-            raise ConfigError(f"{where}: unknown table [{name}] (known: {', '.join(_SECTIONS)})")
-        if not isinstance(table, dict):
-            raise ConfigError(f"{where}: {name} must be a table [{name}]")
-        default = _SECTIONS[name]()
-        known = {f.name for f in dataclasses.fields(default)}
-        values: dict[str, Any] = {}
-        for key, value in table.items():
-            if key not in known:
-                raise ConfigError(f"{where}: unknown key {name}.{key} (known: {', '.join(sorted(known))})")
-            values[key] = _coerce(where, f"{name}.{key}", value, getattr(default, key))
-        sections[name] = dataclasses.replace(default, **values)
-    cfg = ServiceConfig.__new__(ServiceConfig)
-    for f in dataclasses.fields(ServiceConfig):
-        object.__setattr__(cfg, f.name, sections.get(f.name, _SECTIONS[f.name]()))
-    validate(cfg, where)
-    return cfg
+def _from_dict(cls: type[T], data: dict[str, Any], where: str, prefix: str = "") -> T:
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
+    derived: dict[str, str] = getattr(cls, "CONFIG_DERIVED", {})
+    values: dict[str, Any] = {}
+    for key, value in data.items():
+        if key not in fields:
+            kind = "table" if isinstance(value, dict) else "key"
+            shown = f"[{prefix}{key}]" if kind == "table" else f"{prefix}{key}"
+            raise ConfigError(f"{where}: unknown {kind} {shown} (known: {', '.join(fields)})")
+        if isinstance(value, dict):
+            for sub in value:
+                if f"{key}.{sub}" in derived:
+                    raise ConfigError(f"{where}: {prefix}{key}.{sub} is not set here: it is "
+                                      f"{derived[f'{key}.{sub}']} (one value for the whole configuration)")
+        values[key] = _convert(hints[key], value, where, f"{prefix}{key}")
+    try:
+        return cls(**values)
+    except (TypeError, ValueError) as exc:     # the dataclass's own checks (validate() says "config:")
+        raise ConfigError(f"{where}: {str(exc).splitlines()[0].removeprefix('config: ')}") from None
 
 
-def load_config(path: str | os.PathLike[str] | None) -> ServiceConfig:
-    """Read the service TOML (``None`` = all defaults)."""
-    if path is None:
-        return ServiceConfig()
+def from_dict(cls: type[T], data: dict[str, Any], where: str = "config") -> T:
+    """Build dataclass ``cls`` (and its nested dataclass fields) from parsed TOML ``data``."""
+    return _from_dict(cls, data, where)
+
+
+def load_toml(path: str | os.PathLike[str], cls: type[T]) -> T:
+    """Read the TOML file ``path`` into the dataclass tree ``cls`` (errors name the file and key)."""
     p = Path(path)
     try:
         raw = p.read_bytes()
@@ -241,4 +288,16 @@ def load_config(path: str | os.PathLike[str] | None) -> ServiceConfig:
         data = tomllib.loads(raw.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from None
-    return config_from_dict(data, str(p))
+    return from_dict(cls, data, str(p))
+
+
+def config_from_dict(data: dict[str, Any], where: str = "config") -> ServiceConfig:
+    """A :class:`ServiceConfig` from parsed TOML; unknown tables/keys raise ConfigError."""
+    return from_dict(ServiceConfig, data, where)
+
+
+def load_config(path: str | os.PathLike[str] | None) -> ServiceConfig:
+    """Read the configuration TOML (``None`` = all defaults)."""
+    if path is None:
+        return ServiceConfig()
+    return load_toml(path, ServiceConfig)

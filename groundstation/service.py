@@ -49,7 +49,7 @@ from firmware_interface.samples import (
     RawPacket,
 )
 from groundstation.config import ServiceConfig
-from groundstation.dsp.live import FlightEnded, FlightStarted, LiveConfig, LivePipeline, RateMeter, Window
+from groundstation.dsp.live import FlightEnded, FlightStarted, LivePipeline, RateMeter, Window
 from groundstation.sinks.background import BackgroundCalls
 from groundstation.worker import IdentifyJob, run_job
 
@@ -87,16 +87,6 @@ class RunReport:
     flights: int = 0
     warnings: list[str] = field(default_factory=list)
     stopped_by: str = ""
-
-
-def live_config(cfg: ServiceConfig) -> LiveConfig:
-    lv, inp = cfg.live, cfg.inputs
-    return LiveConfig(
-        grid_rate_hz=lv.grid_rate_hz, smoothing_passes=lv.smoothing_passes, window_s=lv.window_s,
-        hop_s=lv.hop_s, stale_s=lv.stale_s, in_air_alt_m=lv.in_air_alt_m,
-        servo_numbers=(inp.lat_servo, inp.lon_servo, inp.col_servo, inp.ped_servo),
-        trim_pwm=tuple(inp.trim_pwm) if inp.trim_pwm else (1500.0, 1500.0, 1500.0, 1500.0),  # type: ignore[arg-type]
-        pwm_per_unit=inp.pwm_per_unit)
 
 
 async def _maybe_await(x: Any) -> Any:
@@ -141,7 +131,7 @@ class Service:
         self.zenoh: Any = None
         self.rerun: Any = None
         self._rerun_calls: BackgroundCalls | None = None
-        self.live = LivePipeline(live_config(config))
+        self.live = LivePipeline(config.live)     # its channel map and trim are [prepare]'s
         self.rates = RateMeter(2.0)
         self._stop = asyncio.Event()
         self._stop_reason = ""
@@ -234,6 +224,9 @@ class Service:
         installed = self._install_signals(loop)      # first: Ctrl-C during start-up is a clean stop too
         try:
             self._open_recorder()
+            if self.config.prepare.input_source != "SERVO_OUTPUT_RAW":
+                self._warn(f"prepare.input_source = {self.config.prepare.input_source}: identification uses it; "
+                           "the live inputs are read from SERVO_OUTPUT_RAW")
             try:
                 from firmware_interface.session import MavlinkSession
                 from firmware_interface.signing import SigningConfig, session_hooks
@@ -445,10 +438,8 @@ class Service:
             ic = self.config.identification
             tlogs = (tuple(self._flight_tlogs[k] for k in sorted(self._flight_tlogs)) if ic.scope == "all"
                      else (path,))
-            self.submit_identification(IdentifyJob(
-                flight=fe.flight, tlogs=tlogs, out_dir=str(Path(path).parent), vehicle=self.vehicle,
-                algorithm=ic.algorithm, seed=ic.seed, maxiter=ic.maxiter, restarts=ic.restarts, refine=ic.refine,
-                diagnose=ic.diagnose, plots=ic.plots))
+            self.submit_identification(IdentifyJob(flight=fe.flight, tlogs=tlogs, out_dir=str(Path(path).parent),
+                                                   config=self.config))
         self._check_exit()
 
     def submit_identification(self, job: IdentifyJob) -> asyncio.Future[Any]:
@@ -530,7 +521,7 @@ class Service:
             table = " ".join(f"{k}={v:.1f}" for k, v in match.items() if isinstance(v, int | float))
             self.log(f"flight {flight}: model {res.get('model_path')} ({res.get('seconds', 0):.1f} s); match % {table}")
             trim = res["model"].get("input_trim_pwm") or {}
-            if not self.config.inputs.trim_pwm and all(k in trim for k in ("lat", "lon", "col", "ped")):
+            if self.config.prepare.input_trim_pwm is None and all(k in trim for k in ("lat", "lon", "col", "ped")):
                 self.live.set_trim((float(trim["lat"]), float(trim["lon"]), float(trim["col"]), float(trim["ped"])))
             if self.zenoh is not None:
                 self.zenoh.publish_model(flight, res["model"])

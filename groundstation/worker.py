@@ -1,9 +1,9 @@
 """Identification and diagnosis of a just-closed flight, run in a worker process.
 
 :func:`run_job` is the picklable entry point the service submits to a
-``ProcessPoolExecutor(max_workers=1, mp_context=spawn)``: it reads the flight's .tlog file(s)
-(:func:`firmware_interface.readers.load_log`), prepares them (:func:`groundstation.dsp.prepare.prepare`),
-identifies the hover model (:func:`groundstation.sysid.identify.identify`), validates it, writes
+``ProcessPoolExecutor(max_workers=1, mp_context=spawn)``: it reads and prepares the flight's .tlog
+file(s) and identifies the hover model exactly as ``groundstation identify --config`` does
+(:mod:`groundstation.pipeline`, with the service's configuration), validates it, writes
 ``model-flightNN.json`` next to the recording, diagnoses the gap when :mod:`groundstation.gap` is there
 (``gap-flightNN.json``), draws a model-vs-measured PNG, and returns a JSON-able dict for the service to
 publish. Errors come back as ``{"error": "one line"}`` so a bad flight never stops the service.
@@ -22,22 +22,23 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.config import ServiceConfig
+
 OUTPUTS = ("u", "v", "w", "p", "q", "r", "theta", "phi")
 
 
 @dataclass(frozen=True)
 class IdentifyJob:
+    """One flight to identify, with the whole configuration (picklable: frozen dataclasses)."""
+
     flight: int
     tlogs: tuple[str, ...]          # the flight's .tlog (scope "last") or all flights so far ("all")
     out_dir: str
-    vehicle: str = "heli"
-    algorithm: str = "cabc"
-    seed: int = 0
-    maxiter: int = 0                 # 0 = identifier default
-    restarts: int = 1                # independent searches (IdentifyConfig.search_restarts)
-    refine: bool = True
-    diagnose: bool = True
-    plots: bool = True
+    config: ServiceConfig = ServiceConfig()
+
+    @property
+    def vehicle(self) -> str:
+        return self.config.service.vehicle
 
 
 def _warm() -> bool:
@@ -83,24 +84,15 @@ def run_job(job: IdentifyJob) -> dict[str, Any]:
     t0 = time.perf_counter()
     out_dir = Path(job.out_dir)
     res: dict[str, Any] = {"flight": job.flight, "tlogs": list(job.tlogs)}
+    cfg = job.config
     try:
-        from firmware_interface.readers import load_log
-        from groundstation.dsp.prepare import prepare
-        from groundstation.sysid.identify import identify
+        from groundstation.pipeline import identify_prepared, prepare_logs
 
-        logs = [load_log(p) for p in job.tlogs]
-        prepared = prepare(logs)
+        prepared = prepare_logs(job.tlogs, cfg)
         if not prepared.segments:
             notes = "; ".join(prepared.notes) or "no in-air data"
             return {**res, "error": f"flight {job.flight}: nothing to identify ({notes})"}
-        kwargs: dict[str, Any] = {"algorithm": job.algorithm, "seed": job.seed, "refine": job.refine}
-        if job.maxiter:
-            kwargs["maxiter"] = job.maxiter
-        if job.restarts > 1:
-            from groundstation.sysid.identify import IdentifyConfig
-
-            kwargs["config"] = IdentifyConfig(search_restarts=job.restarts)
-        model = identify(prepared, **kwargs)
+        model = identify_prepared(prepared, cfg)
         doc = model.to_json()
         from groundstation.sysid.validate import validate
 
@@ -114,7 +106,7 @@ def run_job(job: IdentifyJob) -> dict[str, Any]:
         res["model"] = doc
         res["model_path"] = str(model_path)
         overlay = _overlay(series, prepared.output_trim)
-        if job.plots and len(overlay["t_fc_s"]):
+        if cfg.identification.plots and len(overlay["t_fc_s"]):
             png = out_dir / f"model-flight{job.flight:02d}.png"
             _plot(overlay, png, f"{job.vehicle} flight {job.flight}: model vs measured")
             res["png"] = [str(png)]
@@ -122,14 +114,14 @@ def run_job(job: IdentifyJob) -> dict[str, Any]:
         res["overlay"] = {"t_fc_s": np.asarray(overlay["t_fc_s"], dtype=float),
                           "model": np.asarray(overlay["model"], dtype=float)}
         res["identify_s"] = time.perf_counter() - t0
-        if job.diagnose:
+        if cfg.identification.diagnose:
             try:
                 from groundstation.gap.diagnose import diagnose
             except ImportError:
                 diagnose = None  # type: ignore[assignment]
             if diagnose is not None:
                 try:
-                    gap = diagnose(model, prepared, seed=job.seed)
+                    gap = diagnose(model, prepared, seed=cfg.identification.seed, config=cfg.diagnose)
                 except Exception as exc:  # the model stands on its own: a failed diagnosis is reported
                     res["gap_error"] = f"flight {job.flight}: diagnosis: {type(exc).__name__}: {exc}".splitlines()[0]
                 else:

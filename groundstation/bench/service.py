@@ -181,8 +181,8 @@ async def _realtime_and_load(tmp: Path, seconds: float, seed: int, load: bool, r
         out["realtime"] = {**base, "seconds": t1 - t0, "cpu_pct_one_core": 100.0 * (c1 - c0) / (t1 - t0),
                            "windows_dropped": service.zenoh.windows_dropped if service.zenoh else None}
         if load and job_tlog is not None:
-            job = IdentifyJob(flight=99, tlogs=(job_tlog,), out_dir=str(tmp / "rec"), vehicle=service.vehicle,
-                              plots=False)
+            job = IdentifyJob(flight=99, tlogs=(job_tlog,), out_dir=str(tmp / "rec"),
+                              config=service.config.replace("identification", plots=False))
             t2 = time.time()
             fut = service.submit_identification(job)
             res = await asyncio.wait_for(fut, 600)

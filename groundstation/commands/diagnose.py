@@ -1,7 +1,8 @@
-"""``groundstation diagnose LOG... [--model model.json] --out report.json [--plots DIR] [--seed N]``.
+"""``groundstation diagnose LOG... [--model model.json] --out report.json [--plots DIR] [--seed N] [--config FILE.toml]``.
 
-Reads the logs (``firmware_interface.readers.load_log``), prepares them (``dsp.prepare``), loads
-the model file if given (else ``diagnose`` identifies one first), runs
+Reads and prepares the logs as ``groundstation identify`` does (:mod:`groundstation.pipeline`,
+``[prepare]`` of the configuration file), loads the model file if given (else the diagnosis
+identifies one first), runs
 :func:`groundstation.gap.diagnose.run_diagnosis`, writes the gap-report JSON, prints a summary
 table and optionally PNG plots and a Rerun .rrd recording of the residuals.
 """
@@ -23,22 +24,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="gap report JSON to write")
     parser.add_argument("--plots", type=Path, default=None, help="directory for PNG plots")
     parser.add_argument("--rrd", type=Path, default=None, help="write the residuals to a Rerun .rrd file")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--window-s", type=float, default=3.0, help="scoring window length (s)")
+    parser.add_argument("--seed", type=int, default=None, help="random seed (default: [identification] seed, 0)")
+    parser.add_argument("--window-s", type=float, default=None,
+                        help="scoring window length (s) (default: [diagnose] window_s, 3)")
+    parser.add_argument("--config", type=Path, default=None,
+                        help="configuration TOML ([prepare] channel map and trims, [diagnose], ...)")
     parser.add_argument("--quiet", action="store_true", help="no terminal table")
 
 
 def run(args: argparse.Namespace) -> int:
-    from groundstation.commands.identify import load_logs
     from groundstation.commands.validate import load_model
-    from groundstation.dsp.prepare import prepare
-    from groundstation.gap.diagnose import DiagnoseConfig, run_diagnosis
+    from groundstation.config import load_config
+    from groundstation.gap.diagnose import run_diagnosis
+    from groundstation.pipeline import prepare_logs
 
+    cfg = load_config(args.config)
+    if args.window_s is not None:
+        cfg = cfg.replace("diagnose", window_s=args.window_s)
+    seed = cfg.identification.seed if args.seed is None else args.seed
     model = load_model(args.model) if args.model else None
-    logs = load_logs(args.logs, args.segments)
-    prepared = prepare(logs)
-    cfg = DiagnoseConfig(window_s=args.window_s)
-    diag = run_diagnosis(model, prepared, seed=args.seed, config=cfg)
+    prepared = prepare_logs(args.logs, cfg, args.segments)
+    diag = run_diagnosis(model, prepared, seed=seed, config=cfg.diagnose)
     report = diag.report
     report["source"] = {"logs": [str(p) for p in args.logs], "model": str(args.model) if args.model else None}
     args.out.parent.mkdir(parents=True, exist_ok=True)

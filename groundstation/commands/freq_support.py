@@ -13,29 +13,19 @@ from typing import Any
 
 def add_freq_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--freq-config", type=Path, default=None,
-                        help="TOML with a [freq] table (window_s, overlap, coherence_min, f_max_hz, ...)")
+                        help="TOML whose [freq] table (window_s, overlap, coherence_min, f_max_hz, ...) replaces "
+                             "the one of --config")
     parser.add_argument("--grid-rate", action="store_true",
                         help="analyse on the 50 Hz grid even where the log is sampled faster")
 
 
-def load_freq_config(path: Path | None):
-    import tomllib
+def load_freq_config(path: Path | None, cfg: Any = None) -> Any:
+    """The ``[freq]`` settings: of ``path`` if given, else of the configuration ``cfg`` (``--config``)."""
+    from groundstation.config import ServiceConfig, load_config
 
-    from groundstation.freq.spectra import FreqConfig
-
-    if path is None:
-        return FreqConfig()
-    try:
-        doc = tomllib.loads(path.read_text()).get("freq", {})
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{path}: not valid TOML ({exc})") from None
-    known = set(FreqConfig.__dataclass_fields__)
-    unknown = set(doc) - known
-    if unknown:
-        raise ValueError(f"{path}: unknown [freq] key(s) {sorted(unknown)}; allowed: {sorted(known)}")
-    if "window_s" in doc:
-        doc["window_s"] = tuple(float(w) for w in doc["window_s"])
-    return FreqConfig(**doc)
+    if path is not None:
+        return load_config(path).freq
+    return (cfg if cfg is not None else ServiceConfig()).freq
 
 
 def prepare_native(logs: list[Any], prep_cfg: Any, *, grid_only: bool = False) -> Any:

@@ -1,8 +1,10 @@
 """``groundstation identify LOG... --out model.json [--algorithm cabc|abc|ga|de] [--seed N] [--no-refine] [--config FILE.toml]``.
 
-Reads the logs (``firmware_interface.readers.load_log``), prepares them (``dsp.prepare``), runs
-:func:`groundstation.sysid.identify.identify` with a rich progress bar, writes the DESIGN.md model
-file (atomically) and a PNG of measured vs model next to it (``model.png``), and prints a summary.
+Reads and prepares the logs and identifies the hover model through :mod:`groundstation.pipeline`
+(the same chain the service's worker runs) with a rich progress bar, writes the model file
+(docs/model-file.md; atomically) and a PNG of measured vs model next to it (``model.png``), and prints
+a summary. Options override the configuration file (``[prepare]``, ``[identify]``, ``[bounds]``,
+``[identification]``; see docs/configuration.md).
 """
 
 from __future__ import annotations
@@ -10,7 +12,6 @@ from __future__ import annotations
 import argparse
 import json
 import time
-import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -21,49 +22,49 @@ HELP = "identify the hover model (paper eq. 8) from flight logs with CABC and wr
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("logs", nargs="+", type=Path, help=".tlog / .bin / .px4log / .ulg flight logs")
     parser.add_argument("--out", type=Path, required=True, help="model JSON to write")
-    parser.add_argument("--algorithm", choices=("cabc", "abc", "ga", "de"), default="cabc")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--algorithm", choices=("cabc", "abc", "ga", "de"), default=None,
+                        help="search algorithm (default: [identification] algorithm, cabc)")
+    parser.add_argument("--seed", type=int, default=None, help="random seed (default: [identification] seed, 0)")
     parser.add_argument("--no-refine", action="store_true", help="skip the least-squares refinement (no std errors)")
     parser.add_argument("--maxiter", type=int, default=None, help="search iterations per subsystem")
     parser.add_argument("--restarts", type=int, default=None,
                         help="independent searches per subsystem (the second and later by differential evolution), "
-                             "lowest refined cost wins (default 1; each costs a whole search: use 2 on an "
-                             "aircraft you have not flown)")
-    parser.add_argument("--config", type=Path, default=None, help="TOML with [prepare], [identify], [bounds]")
+                             "lowest refined cost wins (default: [identify] search_restarts, 2)")
+    parser.add_argument("--config", type=Path, default=None,
+                        help="configuration TOML ([prepare] channel map and trims, [identify], [bounds], ...)")
     parser.add_argument("--no-plot", action="store_true", help="do not write the PNG")
     parser.add_argument("--rrd", type=Path, default=None, help="also write measured vs model to a Rerun .rrd file")
     parser.add_argument("--segments", choices=("flights", "sysid"), default="flights", help=SEGMENTS_HELP)
     parser.add_argument("--quiet", action="store_true")
 
 
-def load_configs(path: Path | None):
-    from groundstation.dsp.prepare import PrepConfig
-    from groundstation.sysid.config import parse_sysid_config
-    from groundstation.sysid.identify import IdentifyConfig
+def config_from_args(args: argparse.Namespace):
+    """The configuration file (``--config``) with this command's options applied."""
+    from groundstation.config import load_config
 
-    if path is None:
-        return PrepConfig(), IdentifyConfig(), {}
-    try:
-        doc = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{path}: not valid TOML ({exc})") from None
-    return parse_sysid_config(doc, str(path))
+    cfg = load_config(args.config)
+    ident: dict = {}
+    if getattr(args, "algorithm", None) is not None:
+        ident["algorithm"] = args.algorithm
+    if getattr(args, "seed", None) is not None:
+        ident["seed"] = args.seed
+    if getattr(args, "no_refine", False):
+        ident["refine"] = False
+    if ident:
+        cfg = cfg.replace("identification", **ident)
+    if getattr(args, "restarts", None) is not None:
+        if args.restarts < 1:
+            raise ValueError(f"--restarts: {args.restarts} must be >= 1")
+        cfg = cfg.replace("identify", search_restarts=args.restarts)
+    if getattr(args, "maxiter", None) is not None:
+        if args.maxiter < 1:
+            raise ValueError(f"--maxiter: {args.maxiter} must be >= 1")
+        cfg = cfg.replace("identify", maxiter=args.maxiter)
+    return cfg
 
 
 SEGMENTS_HELP = ("which data to use: 'flights' (every in-air interval, default) or 'sysid' (only the "
                  "system-identification chirps of ArduPilot SYSID-mode dataflash logs)")
-
-
-def load_logs(paths: list[Path], segments: str = "flights"):
-    from firmware_interface.readers import load_log, restrict_to_chirps
-
-    for p in paths:
-        if not p.exists():
-            raise OSError(f"{p}: no such log file")
-    logs = [load_log(p) for p in paths]
-    if segments == "sysid":
-        logs = [restrict_to_chirps(log) for log in logs]
-    return logs
 
 
 def write_json(path: Path, doc: dict) -> None:
@@ -77,18 +78,11 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from groundstation.dsp.prepare import prepare
-    from groundstation.sysid.identify import identify
+    from groundstation.pipeline import identify_prepared, prepare_logs
 
-    prep_cfg, id_cfg, bounds = load_configs(args.config)
-    if args.restarts is not None:
-        if args.restarts < 1:
-            raise ValueError(f"--restarts: {args.restarts} must be >= 1")
-        from dataclasses import replace
-
-        id_cfg = replace(id_cfg, search_restarts=args.restarts)
-    logs = load_logs(args.logs, args.segments)
-    prepared = prepare(logs, prep_cfg)
+    cfg = config_from_args(args)
+    algorithm = cfg.identification.algorithm
+    prepared = prepare_logs(args.logs, cfg, args.segments)
     con = Console(stderr=True, quiet=args.quiet)
     t0 = time.perf_counter()
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
@@ -101,8 +95,7 @@ def run(args: argparse.Namespace) -> int:
                         info=f"F={info['fun']:.4g} evals={info['nfev']}")
             return False
 
-        model = identify(prepared, algorithm=args.algorithm, seed=args.seed, refine=not args.no_refine,
-                         maxiter=args.maxiter, callback=cb, bounds=bounds or None, config=id_cfg)
+        model = identify_prepared(prepared, cfg, callback=cb)
     model.fit["seconds"] = round(time.perf_counter() - t0, 3)
     model.source["logs"] = [str(p) for p in args.logs]
     write_json(args.out, model.to_json())
@@ -114,8 +107,8 @@ def run(args: argparse.Namespace) -> int:
             from groundstation.sysid.plots import plot_convergence, plot_fit
 
             plot_fit(v["series"], v["channels"], args.out.with_suffix(".png"),
-                     title=f"{args.algorithm.upper()} model on its training data ({', '.join(p.name for p in args.logs)})")
-            curves = {f"{args.algorithm} {sub}": [(np.asarray(model.fit["history_nfev"][sub], dtype=float),
+                     title=f"{algorithm.upper()} model on its training data ({', '.join(p.name for p in args.logs)})")
+            curves = {f"{algorithm} {sub}": [(np.asarray(model.fit["history_nfev"][sub], dtype=float),
                                                    np.asarray(h, dtype=float))]
                       for sub, h in model.fit["history"].items() if len(h) > 1}
             if curves:

@@ -18,7 +18,7 @@ HELP = "run the live ground-station service (no --link: built-in simulated helic
 
 
 def add_common(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", metavar="FILE.toml", help="service configuration (TOML)")
+    parser.add_argument("--config", metavar="FILE.toml", help="configuration TOML (see docs/configuration.md)")
     parser.add_argument("--record-dir", metavar="DIR", help="where recordings and results go")
     parser.add_argument("--zenoh", metavar="FILE.json5", help="zenoh session config (default: loopback peer)")
     parser.add_argument("--no-zenoh", action="store_true", help="do not publish on zenoh")

@@ -1,10 +1,12 @@
-"""``groundstation validate model.json LOG... [--json] [--plot PNG] [--window-s S] [--freq [--bode PNG] [--rerun save RRD]]``.
+"""``groundstation validate model.json LOG... [--json] [--plot PNG] [--window-s S] [--config FILE.toml] [--freq [--bode PNG] [--rerun save RRD]]``.
 
 Scores a model file on flight logs (validation segments or another flight): per-channel match
 degree (eq. 19), NRMSE fit, Theil inequality coefficient and Pearson correlation, as a table or
 JSON on stdout. With ``--freq``: the frequency-domain check instead (flight-data frequency
 responses with coherence and random error, Tischler's J per input-output pair with pass/fail,
 phase-slope delay, ADS-33 bandwidth; :mod:`groundstation.freq`), Bode plots to PNG and Rerun.
+The logs are prepared as ``groundstation identify`` prepares them (``[prepare]`` of the
+configuration file).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.add_argument("--plot", type=Path, default=None, help="write measured vs model PNG here")
     parser.add_argument("--window-s", type=float, default=None, help="window length (default: the model's)")
-    parser.add_argument("--config", type=Path, default=None, help="TOML with a [prepare] table")
+    parser.add_argument("--config", type=Path, default=None, help="configuration TOML (its [prepare] channel map and trims are used)")
     parser.add_argument("--rrd", type=Path, default=None, help="write measured vs model to a Rerun .rrd file")
     parser.add_argument("--freq", action="store_true",
                         help="frequency-domain check: J per input-output pair (JSON with --json: J_avg and pairs)")
@@ -52,17 +54,17 @@ def load_model(path: Path):
 
 
 def run(args: argparse.Namespace) -> int:
-    from groundstation.commands.identify import load_configs, load_logs
-    from groundstation.dsp.prepare import prepare
+    from groundstation.config import load_config
+    from groundstation.pipeline import prepare_logs
     from groundstation.sysid.validate import validate
 
+    cfg = load_config(args.config)
     model = load_model(args.model)
-    prep_cfg, _, _ = load_configs(args.config)
     if args.freq:
-        return run_freq(args, model, prep_cfg)
+        return run_freq(args, model, cfg)
     if args.bode is not None or args.rerun is not None:
         raise ValueError("--bode and --rerun need --freq")
-    prepared = prepare(load_logs(args.logs, args.segments), prep_cfg)
+    prepared = prepare_logs(args.logs, cfg, args.segments)
     want_series = args.plot is not None or args.rrd is not None
     res = validate(model, prepared, window_s=args.window_s, return_series=want_series)
     series = res.pop("series", None)
@@ -95,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_freq(args: argparse.Namespace, model, prep_cfg) -> int:
+def run_freq(args: argparse.Namespace, model, cfg) -> int:
     """``validate --freq``: the J table (or one JSON object), Bode PNGs and Rerun recording."""
     from groundstation.commands.freq_support import (
         load_freq_config,
@@ -104,13 +106,13 @@ def run_freq(args: argparse.Namespace, model, prep_cfg) -> int:
         verification_json,
         write_rerun,
     )
-    from groundstation.commands.identify import load_logs
     from groundstation.freq.model_response import delays_from_augmentations
     from groundstation.freq.spectra import estimate_responses
     from groundstation.freq.verify import verify
+    from groundstation.pipeline import load_logs
 
-    fcfg = load_freq_config(args.freq_config)
-    prepared = prepare_native(load_logs(args.logs), prep_cfg, grid_only=args.grid_rate)
+    fcfg = load_freq_config(args.freq_config, cfg)
+    prepared = prepare_native(load_logs(args.logs), cfg.prepare, grid_only=args.grid_rate)
     v = verify(model.theta, estimate_responses(prepared, fcfg), delays_from_augmentations(model.augmentations))
     names = ", ".join(p.name for p in args.logs)
     if args.bode is not None:

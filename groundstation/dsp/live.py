@@ -320,7 +320,7 @@ class FlightEnded:
 class FlightTracker:
     """Flights from the armed flag; in air from EXTENDED_SYS_STATE landed_state, else height."""
 
-    def __init__(self, in_air_alt_m: float = 0.3) -> None:
+    def __init__(self, in_air_alt_m: float = 0.5) -> None:
         self.in_air_alt_m = in_air_alt_m
         self.armed = False
         self.flight = 0                       # number of the current or last flight
@@ -476,7 +476,7 @@ class LiveConfig:
     window_s: float = 4.0
     hop_s: float = 0.5
     stale_s: float = 0.5
-    in_air_alt_m: float = 0.3
+    in_air_alt_m: float = 0.5                                  # as dsp.prepare.PrepConfig
     servo_numbers: tuple[int, int, int, int] = (1, 2, 3, 4)   # 1-based SERVO_OUTPUT_RAW channels
     trim_pwm: tuple[float, float, float, float] = (1500.0, 1500.0, 1500.0, 1500.0)
     pwm_per_unit: float = 500.0

@@ -28,7 +28,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from groundstation.cli import GroundstationError
+from groundstation.errors import GroundstationError
 
 INPUTS = ("lat", "lon", "col", "ped")
 OUTPUTS = ("u", "v", "w", "p", "q", "r", "theta", "phi")

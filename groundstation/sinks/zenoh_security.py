@@ -40,7 +40,7 @@ from cryptography import x509
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import serialization
 
-from groundstation.cli import GroundstationError
+from groundstation.errors import GroundstationError
 
 
 class ZenohSecurityError(GroundstationError, ValueError):

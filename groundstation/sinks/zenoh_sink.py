@@ -38,7 +38,7 @@ from typing import Any
 
 import zenoh
 
-from groundstation.cli import GroundstationError
+from groundstation.errors import GroundstationError
 
 
 class ZenohSinkError(GroundstationError):

@@ -79,9 +79,10 @@ class IdentifyConfig:
     #: independent searches per subsystem, each screened and refined; the lowest refined cost wins.
     #: One colony can settle in a wrong basin (a simulated R-50 flight: L_b with the wrong sign, cost
     #: 0.98 against 0.36 from most other seeds) and the search cost does not tell the basins apart;
-    #: the refined cost does. Each restart costs a whole search and refinement, so the default stays
-    #: at one (the 15 s budget); ``diagnose`` and the service use two (CABC, then DE).
-    search_restarts: int = 1
+    #: the refined cost does. Each restart costs a whole search and refinement; two (CABC, then DE)
+    #: is the default everywhere (command line, service, diagnosis): a wrong basin costs more than
+    #: a second search.
+    search_restarts: int = 2
     #: optimiser of the searches after the first ("" = the same as the first). A different method is
     #: a more independent second opinion than another seed: on the R-50 flight above both CABC
     #: restarts of one seed stream agreed on the wrong basin, DE (3 seeds) found the right one, and

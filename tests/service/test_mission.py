@@ -25,7 +25,7 @@ from tests.service.conftest import service_config
 def test_two_simulated_flights_identified_published_and_logged(tmp_path, subscriber_factory):
     rrd = tmp_path / "mission.rrd"
     cfg = service_config(tmp_path, service={"exit_after_flights": 2}, sim={"speed": 20.0, "flights": 2, "seed": 4},
-                         identification={"maxiter": 8, "refine": False, "scope": "all"},
+                         identify={"maxiter": 8}, identification={"refine": False, "scope": "all"},
                          rerun={"mode": "save", "target": str(rrd)})
     lines: list[str] = []
     service = Service(cfg, sim_options={"flight_duration_s": 40.0, "pause_s": 3.0},
@@ -112,7 +112,7 @@ def test_worker_killed_mid_identification_is_reported_and_replaced(tmp_path):
     fifo = tmp_path / "job-started.fifo"
     os.mkfifo(fifo)
     cfg = service_config(tmp_path, service={"exit_after_flights": 2}, sim={"speed": 20.0, "flights": 2, "seed": 5},
-                         identification={"maxiter": 6, "refine": False, "diagnose": False, "plots": False},
+                         identify={"maxiter": 6}, identification={"refine": False, "diagnose": False, "plots": False},
                          zenoh={"enabled": False})
     service = Service(cfg, sim_options={"flight_duration_s": 40.0, "pause_s": 3.0}, log=lambda m: None,
                       job_fn=functools.partial(_blocks_on_flight_1, str(fifo)))

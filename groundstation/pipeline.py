@@ -1,0 +1,49 @@
+"""The offline chain every entry point shares: logs -> prepared data -> identified model.
+
+``groundstation identify``, ``validate``, ``diagnose`` and the service's worker process all call
+these two functions with the same :class:`groundstation.config.ServiceConfig`, so a flight is
+prepared (``[prepare]``: channel map, trims, ``pwm_per_unit``, in-air height) and identified
+(``[identify]``, ``[bounds]``, ``[identification]`` algorithm/seed/refine) the same way whichever
+of them runs it. Reading files is here; the numbers are :mod:`groundstation.dsp` and
+:mod:`groundstation.sysid`'s.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from groundstation.config import ServiceConfig
+
+
+def load_logs(paths: Sequence[str | os.PathLike[str]], segments: str = "flights") -> list[Any]:
+    """Read the logs (.tlog/.bin/.px4log/.ulg); ``segments="sysid"`` keeps only the system-identification
+    chirps of ArduPilot SYSID-mode logs. A missing file raises OSError naming it."""
+    from firmware_interface.readers import load_log, restrict_to_chirps
+
+    for p in paths:
+        if not Path(p).exists():
+            raise OSError(f"{p}: no such log file")
+    logs = [load_log(p) for p in paths]
+    if segments == "sysid":
+        logs = [restrict_to_chirps(log) for log in logs]
+    return logs
+
+
+def prepare_logs(paths: Sequence[str | os.PathLike[str]], cfg: ServiceConfig, segments: str = "flights") -> Any:
+    """Read the logs and prepare them with ``cfg.prepare`` (a :class:`groundstation.dsp.prepare.PreparedData`)."""
+    from groundstation.dsp.prepare import prepare
+
+    return prepare(load_logs(paths, segments), cfg.prepare)
+
+
+def identify_prepared(prepared: Any, cfg: ServiceConfig, *, callback: Callable[[dict], Any] | None = None) -> Any:
+    """The hover model of ``prepared`` (a :class:`groundstation.sysid.model.HoverModel`) identified with
+    ``cfg.identify``, ``cfg.bounds`` and ``cfg.identification``'s algorithm, seed and refine."""
+    from groundstation.sysid.identify import identify
+
+    ic = cfg.identification
+    return identify(prepared, algorithm=ic.algorithm, seed=ic.seed, refine=ic.refine, callback=callback,
+                    bounds=dict(cfg.bounds) or None, config=cfg.identify)
