@@ -46,6 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="skip a phase (repeatable)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=None, help="also write the figures as JSON here")
+    parser.add_argument("--rerun", action="store_true",
+                        help="also save a Rerun .rrd (rerun.mode = save) so its cost is in the figures")
 
 
 # ------------------------------------------------------------------ child processes (flight side)
@@ -145,7 +147,7 @@ def _cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def _config(tmp: Path, link_url: str, *, identify: bool, hop_s: float = 0.25) -> Any:
+def _config(tmp: Path, link_url: str, *, identify: bool, hop_s: float = 0.25, rerun: bool = False) -> Any:
     from groundstation.config import ServiceConfig
     from groundstation.sinks.zenoh_sink import free_tcp_port
 
@@ -154,6 +156,8 @@ def _config(tmp: Path, link_url: str, *, identify: bool, hop_s: float = 0.25) ->
     cfg = cfg.replace("link", url=link_url)
     cfg = cfg.replace("zenoh", listen_port=free_tcp_port())
     cfg = cfg.replace("live", hop_s=hop_s)
+    if rerun:
+        cfg = cfg.replace("rerun", mode="save", target=str(tmp / "bench.rrd"))
     return cfg.replace("identification", enabled=identify)
 
 
@@ -161,13 +165,13 @@ def _config(tmp: Path, link_url: str, *, identify: bool, hop_s: float = 0.25) ->
 
 
 async def _realtime_and_load(tmp: Path, seconds: float, seed: int, load: bool, realtime: bool,
-                             job_tlog: str | None) -> dict[str, Any]:
+                             job_tlog: str | None, rerun: bool = False) -> dict[str, Any]:
     from groundstation.service import Service
     from groundstation.worker import IdentifyJob
 
     out: dict[str, Any] = {}
     fc = await asyncio.to_thread(_Child, _fc_child, 1.0, seed, {"pause_s": 2.0})
-    service = Service(_config(tmp, f"serial://{fc.port_path}:115200", identify=load), log=lambda m: None)
+    service = Service(_config(tmp, f"serial://{fc.port_path}:115200", identify=load, rerun=rerun), log=lambda m: None)
     task = asyncio.create_task(service.run())
     sub = None
     try:
@@ -200,7 +204,7 @@ async def _realtime_and_load(tmp: Path, seconds: float, seed: int, load: bool, r
     return out
 
 
-async def _maxspeed(tmp: Path, tlog: str) -> dict[str, Any]:
+async def _maxspeed(tmp: Path, tlog: str, rerun: bool = False) -> dict[str, Any]:
     from firmware_interface.readers import load_log
     from groundstation.service import Service
 
@@ -208,7 +212,7 @@ async def _maxspeed(tmp: Path, tlog: str) -> dict[str, Any]:
     att = log.series["ATTITUDE"].t_fc_s
     fc_span_s = float(att[-1] - att[0])
     player = await asyncio.to_thread(_Child, _player_child, tlog)
-    service = Service(_config(tmp, f"serial://{player.port_path}:115200", identify=False), log=lambda m: None)
+    service = Service(_config(tmp, f"serial://{player.port_path}:115200", identify=False, rerun=rerun), log=lambda m: None)
     task = asyncio.create_task(service.run())
     first: float | None = None
     last_change = time.monotonic()
@@ -254,9 +258,10 @@ def run(args: argparse.Namespace) -> int:
                        **({"flight_duration_s": args.replay_flight_s} if args.replay_flight_s else {}))
         if "realtime" not in args.skip or "load" not in args.skip:
             results.update(asyncio.run(_realtime_and_load(
-                tmp / "rt", args.realtime_s, args.seed, "load" not in args.skip, "realtime" not in args.skip, tlog)))
+                tmp / "rt", args.realtime_s, args.seed, "load" not in args.skip, "realtime" not in args.skip, tlog,
+                args.rerun)))
         if "maxspeed" not in args.skip and tlog is not None:
-            results["maxspeed"] = asyncio.run(_maxspeed(tmp / "max", tlog))
+            results["maxspeed"] = asyncio.run(_maxspeed(tmp / "max", tlog, args.rerun))
 
     rt = results.get("realtime")
     if rt:
