@@ -82,6 +82,7 @@ class ZenohSection:
 class RerunSection:
     mode: str = "off"                # off | spawn | connect | save
     target: str = ""                 # URL for connect, PATH.rrd for save
+    raw: bool = False                # also log the raw (unsmoothed) outputs beside the smoothed ones
 
 
 @dataclass(frozen=True)

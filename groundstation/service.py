@@ -143,6 +143,7 @@ class Service:
         self._flight_tlogs: dict[int, str] = {}
         self._rows_buf: list[tuple[np.ndarray, ...]] = []
         self._sm_buf: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._rerun_state = ""
         self.flights_completed = 0
         self.link_drops = 0
         self.live_errors = 0
@@ -190,7 +191,7 @@ class Service:
             from groundstation.sinks.rerun_sink import RerunSink, RerunSinkError
 
             try:
-                self.rerun = RerunSink(self.vehicle, rc.mode, rc.target)
+                self.rerun = RerunSink(self.vehicle, rc.mode, rc.target, raw=rc.raw)
                 self._rerun_calls = BackgroundCalls("rerun-logger", maxsize=256)
                 if rc.mode == "save":
                     self.report.rrd = rc.target
@@ -383,6 +384,7 @@ class Service:
             elif isinstance(ev, FcRebooted):
                 self._rerun_event("flight controller rebooted", "WARN")
         out = self.live.feed(events)
+        self._rerun_flight_state()
         if len(out.t_fc_s):
             self._rows_buf.append((out.t_fc_s, out.t_host_s, out.inputs, out.outputs_raw))
         if len(out.t_smoothed_s):
@@ -413,6 +415,15 @@ class Service:
         self._rows_buf.clear()
         self._sm_buf.clear()
 
+    def _rerun_flight_state(self) -> None:
+        ft = self.live.flights
+        state = "in air" if ft.in_air else "armed" if ft.armed else "on ground"
+        if state != self._rerun_state and self.rerun is not None and self._rerun_calls is not None:
+            self._rerun_state = state
+            newest = self.live.aligner.newest_t_fc_s
+            if math.isfinite(newest):
+                self._rerun_calls.submit(self.rerun.log_flight_state, state, float(newest))
+
     def _rerun_event(self, text: str, level: str) -> None:
         if self.rerun is not None and self._rerun_calls is not None:
             newest = self.live.aligner.newest_t_fc_s
@@ -434,6 +445,9 @@ class Service:
             self.report.flight_tlogs.append(path)
         self.log(f"flight {fe.flight}: disarmed after {fe.duration_s:.1f} s; recorded {path or '(no file)'}")
         self._rerun_event(f"flight {fe.flight} disarmed ({fe.duration_s:.1f} s)", "INFO")
+        if self.rerun is not None and self._rerun_calls is not None:
+            self._flush_rows_to_rerun()
+            self._rerun_calls.submit(self.rerun.flight_ended, fe.flight, fe.t_fc_s - fe.duration_s, fe.t_fc_s)
         if self._executor is not None and path:
             ic = self.config.identification
             tlogs = (tuple(self._flight_tlogs[k] for k in sorted(self._flight_tlogs)) if ic.scope == "all"
@@ -507,6 +521,7 @@ class Service:
                                if exc is not None else fut.result())
         flight = res.get("flight")
         overlay = res.pop("overlay", None)
+        pictures = res.pop("gap_pictures", None)      # arrays for Rerun only, not for the report
         self.report.results.append(res)
         if "error" in res:
             self.ident.failed += 1
@@ -531,14 +546,8 @@ class Service:
                 self.log(f"flight {flight}: gap report {res.get('gap_path')} verdict {res['gap'].get('verdict')}")
             if res.get("gap_error"):
                 self._warn(res["gap_error"])
-            if self.rerun is not None and self._rerun_calls is not None:
-                has_overlay = overlay is not None and len(overlay["t_fc_s"]) > 0
-                if has_overlay:
-                    self._rerun_calls.submit(self.rerun.log_model_overlay, overlay["t_fc_s"], overlay["model"])
-                gap = res.get("gap") or {}
-                t_end = float(overlay["t_fc_s"][-1]) if has_overlay else 0.0
-                self._rerun_calls.submit(self.rerun.log_gap, int(flight or 0), match, str(gap.get("verdict", "")),
-                                         _gap_text(gap), t_end)
+        if self.rerun is not None and self._rerun_calls is not None:
+            self._rerun_calls.submit(self.rerun.log_result, res, overlay, pictures)
         self._check_exit()
 
     def _check_exit(self) -> None:
@@ -665,11 +674,3 @@ def _worker_init() -> None:
     except ImportError:
         pass
 
-
-def _gap_text(gap: dict[str, Any]) -> str:
-    effects = gap.get("effects") or []
-    if not effects:
-        return "no effect candidates"
-    e = effects[0]
-    where = e.get("input") or e.get("output") or ""
-    return f"best: {e.get('effect')} {where} (shrink {e.get('shrink_pct', 0):.0f}%)"

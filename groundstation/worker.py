@@ -112,16 +112,20 @@ def run_job(job: IdentifyJob) -> dict[str, Any]:
             res["png"] = [str(png)]
         # numpy arrays pickle fast back to the service (lists would cost the live loop a spike)
         res["overlay"] = {"t_fc_s": np.asarray(overlay["t_fc_s"], dtype=float),
-                          "model": np.asarray(overlay["model"], dtype=float)}
+                          "model": np.asarray(overlay["model"], dtype=float),
+                          "measured": np.asarray(overlay["measured"], dtype=float)}
         res["identify_s"] = time.perf_counter() - t0
         if cfg.identification.diagnose:
             try:
-                from groundstation.gap.diagnose import diagnose
+                from groundstation.gap.diagnose import run_diagnosis
+                from groundstation.gap.pictures import gap_pictures
             except ImportError:
-                diagnose = None  # type: ignore[assignment]
-            if diagnose is not None:
+                run_diagnosis = None  # type: ignore[assignment]
+            if run_diagnosis is not None:
                 try:
-                    gap = diagnose(model, prepared, seed=cfg.identification.seed, config=cfg.diagnose)
+                    diag = run_diagnosis(model, prepared, seed=cfg.identification.seed, config=cfg.diagnose)
+                    gap = diag.report
+                    pictures = gap_pictures(diag)
                 except Exception as exc:  # the model stands on its own: a failed diagnosis is reported
                     res["gap_error"] = f"flight {job.flight}: diagnosis: {type(exc).__name__}: {exc}".splitlines()[0]
                 else:
@@ -129,6 +133,7 @@ def run_job(job: IdentifyJob) -> dict[str, Any]:
                     gap_path.write_text(json.dumps(gap, indent=1, default=float))
                     res["gap"] = gap
                     res["gap_path"] = str(gap_path)
+                    res["gap_pictures"] = pictures     # arrays for the live plots (service pops them)
         res["seconds"] = time.perf_counter() - t0
         return res
     except Exception as exc:  # reported to the service as one line; the service keeps running

@@ -1,4 +1,4 @@
-"""RerunSink writes a real .rrd that reads back with the expected entities, timelines and values."""
+"""RerunSink writes a real .rrd that reads back with the expected entities, values, blueprint and chunking."""
 
 from __future__ import annotations
 
@@ -6,47 +6,116 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
-from groundstation.sinks.rerun_sink import INPUTS, OUTPUTS, RerunSink, RerunSinkError, _check_reachable
+from groundstation.gap.pictures import EffectPicture, GapPictures
+from groundstation.sinks.rerun_inspect import chunk_check, read_layout
+from groundstation.sinks.rerun_layout import OUTPUTS, UNITS
+from groundstation.sinks.rerun_sink import INPUTS, RerunSink, RerunSinkError, _check_reachable
 from groundstation.sinks.zenoh_sink import free_tcp_port
 
-
-def _chunks(path):
-    r = RrdReader(path)
-    return r, r.stream().to_chunks()
+DT = 0.02
 
 
-def test_rrd_has_entities_timelines_and_blueprint(tmp_path):
+def _scalars(chunks, path):
+    vals = []
+    for c in chunks:
+        if c.entity_path == path and not c.is_static:
+            rb = c.to_record_batch()
+            col = next(n for n in rb.schema.names if n.startswith("Scalars"))
+            vals.append(np.concatenate([np.asarray(v, dtype=float) for v in rb.column(col).to_pylist()]))
+    return np.concatenate(vals) if vals else np.zeros(0)
+
+
+def _result(flight, t, y):
+    """A worker result as the service hands it over: fit, gap report and the diagnosis pictures."""
+    f_hz = np.linspace(0.0, 25.0, 101)
+    psd = np.ones((101, 8))
+    psd[48, :] = 30.0                                    # a line at 12 Hz
+    pic = GapPictures(t_s=t, residual=0.1 * y, channels=("u", "q"), flagged_s=((t[10], t[60]),), f_hz=f_hz,
+                      psd=psd, floor=np.ones((101, 8)), lines_hz=(12.0,),
+                      effects=(EffectPicture("input_delay lon", True, t[::50], np.full((len(t[::50]), 8), 30.0),
+                                             np.full((len(t[::50]), 8), 20.0), ("q",)),))
+    gap = {"verdict": "input_delay", "method": {"alpha": 0.01},
+           "gap": {"channels": {"u": {"match": 80.0}, "q": {"match": 70.0}}, "windows_s": [[t[10], t[60]]],
+                   "significant": True, "gap_to_noise_ratio": {"u": 1.1, "q": 3.2}},
+           "effects": [{"effect": "input_delay", "input": "lon", "estimate": {"delay_s": 0.11}, "score": 41.0,
+                        "p_value": 1e-4, "shrink_pct": 58.0, "shrink_interval": [40.0, 70.0],
+                        "evidence": "residual/input cross-correlation peak at +110 ms"}]}
+    return {"flight": flight, "validation": {"channels": {c: {"match": 90.0 + k} for k, c in enumerate(OUTPUTS)}},
+            "held_out": {"channels": {c: {"match": 80.0 + k} for k, c in enumerate(OUTPUTS)}},
+            "gap": gap, "seconds": 12.0}, pic
+
+
+def test_session_reads_back_with_units_flight_tabs_and_gap_pictures(tmp_path):
     path = tmp_path / "run.rrd"
-    sink = RerunSink("heli", "save", str(path))
-    t = np.arange(100) * 0.02
-    inputs = np.column_stack([np.sin(t + k) for k in range(4)])
+    sink = RerunSink("heli", "save", str(path), raw=True, flush_rows=512)
+    t = np.arange(3000) * DT                           # 60 s: flight 1 from 10 s to 50 s
+    inputs = 0.2 * np.column_stack([np.sin(t + k) for k in range(4)])
     outputs = np.column_stack([np.cos(t + k) for k in range(8)])
-    sink.log_rows(t, 1.7e9 + t, inputs, outputs, kind="raw")
-    sink.log_rows(t[:98], 1.7e9 + t[:98], None, outputs[:98], kind="smoothed")
-    sink.log_model_overlay(t, outputs * 0.9)
-    sink.log_gap(1, {"u": 91.0, "q": 80.5}, "input_delay", "lon delayed 0.1 s", t_fc_s=2.0)
-    sink.log_event("flight 1 ended", 2.0)
+    sink.log_flight_state("on ground", 0.0)
+    for i in range(0, len(t), 25):                     # the service's per-window batches
+        s = slice(i, i + 25)
+        sink.log_rows(t[s], 1.7e9 + t[s], inputs[s], outputs[s], "raw")
+        sink.log_rows(t[s], 1.7e9 + t[s], None, outputs[s], "smoothed")
+        if i == 500:
+            sink.log_flight_state("armed", t[i])
+        if i == 2500:
+            sink.log_flight_state("on ground", t[i])
+            sink.flight_ended(1, 10.0, 50.0)
+    m = (t >= 12.0) & (t <= 48.0)
+    res, pic = _result(1, t[m], outputs[m])
+    sink.log_result(res, {"t_fc_s": t[m], "model": 0.9 * outputs[m], "measured": outputs[m]}, pic)
     sink.close()
 
-    reader, chunks = _chunks(path)
-    assert len(reader.blueprints()) == 1
-    by_entity: dict[str, int] = {}
-    for c in chunks:
-        if not c.is_static:
-            by_entity[c.entity_path] = by_entity.get(c.entity_path, 0) + c.num_rows
-    for c in INPUTS:
-        assert by_entity[f"/heli/inputs/{c}"] == 100
-    for c in OUTPUTS:
-        assert by_entity[f"/heli/outputs/{c}/raw"] == 100
-        assert by_entity[f"/heli/outputs/{c}/smoothed"] == 98
-        assert by_entity[f"/heli/outputs/{c}/model"] == 100
-    assert {"/heli/gap/match/u", "/heli/gap/match/q", "/heli/gap/verdict", "/heli/status"} <= set(by_entity)
-    lat = next(c for c in chunks if c.entity_path == "/heli/inputs/lat" and not c.is_static)
-    assert {"fc_time", "host_time"} <= set(lat.timeline_names)
-    rb = lat.to_record_batch()
-    col = next(n for n in rb.schema.names if n.startswith("Scalars"))
-    vals = np.concatenate([np.asarray(v, dtype=float) for v in rb.column(col).to_pylist()])
-    np.testing.assert_allclose(vals, inputs[:, 0])
+    chunks = RrdReader(path).stream().to_chunks()
+    np.testing.assert_allclose(_scalars(chunks, "/heli/inputs/lat"), 100.0 * inputs[:, 0])      # % of travel
+    np.testing.assert_allclose(_scalars(chunks, "/heli/outputs/q/smoothed"), outputs[:, 4])
+    np.testing.assert_allclose(_scalars(chunks, "/heli/outputs/q/residual"), 0.1 * outputs[m, 4], atol=1e-12)
+    lay = read_layout(path)
+    for e in ("/heli/flight/state", "/heli/gap/flagged", "/heli/gap/residual/q/flagged", "/heli/flights/1/verdict",
+              "/heli/flights/1/spectrum/q/psd", "/heli/flights/1/spectrum/q/lines", "/heli/flights/1/fit",
+              "/heli/flights/1/effects/input_delay_lon/q/after", "/__properties/aircraft", "/__properties/flights"):
+        assert e in lay.entities, e
+    # the recording opens on flight 1, every plot of it on the flight's span
+    tab = lay.opening_tab()
+    assert lay.name(tab).startswith("flight 1")
+    views = lay.views_under(tab)
+    plots = [v for v in views if v.kind in ("TimeSeries", "StateTimeline")]
+    assert plots and all(v.fc_range_s is not None and v.fc_range_s[0] <= 10.0 and v.fc_range_s[1] >= 50.0
+                         and v.fc_range_s[1] - v.fc_range_s[0] < 45.0 for v in plots)
+    for v in views:
+        if v.kind in ("TimeSeries", "BarChart"):
+            assert "[" in v.name and "]" in v.name, v.name          # a unit in every plot's title
+    q = next(v for v in views if v.origin == "/heli/outputs/q")
+    assert f"[{UNITS['q']}]" in q.name and "fit 94%" in q.name and "held-out 84%" in q.name
+    assert any(v.origin == "/heli/gap/residual/q" for v in views)
+    assert any(v.origin.endswith("/spectrum/q") and v.kind == "BarChart" for v in views)
+
+
+def test_rows_are_sent_in_few_chunks(tmp_path):
+    path = tmp_path / "batched.rrd"
+    sink = RerunSink("heli", "save", str(path), flush_rows=4096)
+    t = np.arange(18000) * DT                          # 6 minutes at 50 Hz in 720 small batches
+    y = np.column_stack([np.sin(t + k) for k in range(8)])
+    for i in range(0, len(t), 25):
+        sink.log_rows(t[i:i + 25], 1.7e9 + t[i:i + 25], y[i:i + 25, :4], y[i:i + 25], "smoothed")
+    sink.close()
+    chunks = RrdReader(path).stream().to_chunks()
+    per_entity = [c for c in chunks if c.entity_path == "/heli/outputs/u/smoothed" and not c.is_static]
+    assert sum(c.num_rows for c in per_entity) == len(t)
+    assert len(per_entity) <= int(np.ceil(len(t) / 4096))
+    check = chunk_check(path)
+    assert check.factor <= 10.0, check
+
+
+def test_raw_outputs_only_on_request(tmp_path):
+    path = tmp_path / "noraw.rrd"
+    sink = RerunSink("heli", "save", str(path))
+    t = np.arange(50) * DT
+    sink.log_rows(t, 1.7e9 + t, np.zeros((50, 4)), np.zeros((50, 8)), "raw")
+    sink.close()
+    ents = {c.entity_path for c in RrdReader(path).stream().to_chunks() if not c.is_static}
+    assert {f"/heli/inputs/{c}" for c in INPUTS} <= ents
+    assert not any(e.endswith("/raw") for e in ents)
 
 
 def test_unwritable_rrd_and_unreachable_viewer_are_one_line(tmp_path):
