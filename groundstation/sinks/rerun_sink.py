@@ -117,7 +117,7 @@ class RerunSink:
                     pass
             except OSError as exc:
                 raise RerunSinkError(f"{path}: cannot write .rrd ({exc.strerror or exc})") from None
-            self.stream.save(str(path), default_blueprint=bp)
+            self.stream.save(str(path))      # the blueprint goes in once, at close, with every flight in it
         elif mode == "connect":
             url = target or "rerun+http://127.0.0.1:9876/proxy"
             _check_reachable(url)
@@ -152,8 +152,9 @@ class RerunSink:
             s.log(f"{v}/inputs/{c}", rr.SeriesLines(names=[f"{c} {INPUT_MEANING[c]}"]), static=True)
         s.log(f"{v}/flight/state", rr.StateConfiguration(values=list(STATE_LANES), labels=list(STATE_LANES),
                                                          colors=np.array([_STATE_COLORS[k] for k in STATE_LANES], dtype=np.uint32)), static=True)
-        s.log(f"{v}/gap/flagged", rr.StateConfiguration(values=["flagged", "not flagged"], labels=["flagged window", ""],
-                                                        colors=np.array([0xFF7F0EFF, 0x00000000], dtype=np.uint32)), static=True)
+        s.log(f"{v}/gap/flagged", rr.StateConfiguration(values=["flagged", "not flagged"], labels=["flagged", ""],
+                                                        colors=np.array([0xFF7F0EFF, 0xFFFFFF00], dtype=np.uint32),
+                                                        visible=[True, False]), static=True)
 
     # ------------------------------------------------------------------ live
 
@@ -242,7 +243,11 @@ class RerunSink:
             end_fc_s=[self.flights[k].t_end_s for k in sorted(self.flights)]))
         self._send_blueprint()
 
-    def _send_blueprint(self) -> None:
+    def _send_blueprint(self, final: bool = False) -> None:
+        """To a live viewer at every change; into a file once, at close (a viewer opening a file keeps the
+        first blueprint it finds there and shows no data under a later one)."""
+        if self.mode == "save" and not final:
+            return
         self.stream.send_blueprint(blueprint(self.vehicle, list(self.flights.values())), make_active=True,
                                    make_default=True)
 
@@ -386,6 +391,8 @@ class RerunSink:
     def close(self) -> None:
         try:
             self.flush()
+            if self.mode == "save":
+                self._send_blueprint(final=True)
             self.stream.flush()
         finally:
             self.stream.disconnect()

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
 
 from rerun.chunk import RrdReader
+
+from groundstation.sinks.rerun_inspect import chunk_check, read_layout
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -32,4 +35,36 @@ def test_demo_records_identifies_publishes_and_prints_the_match_table(tmp_path):
     assert table[1].startswith("flight 1") and table[2].startswith("flight 2")
     assert len(table[1].split()) == 10
     ents = {c.entity_path for c in RrdReader(out / "demo.rrd").stream().to_chunks() if not c.is_static}
-    assert {"/heli/inputs/lat", "/heli/outputs/q/raw", "/heli/outputs/q/smoothed", "/heli/outputs/q/model"} <= ents
+    assert {"/heli/inputs/lat", "/heli/outputs/q/smoothed", "/heli/outputs/q/model", "/heli/outputs/q/residual"} <= ents
+    _check_demo_recording(out / "demo.rrd", rec)
+
+
+def _check_demo_recording(rrd: Path, rec: Path) -> None:
+    """The recording as the viewer opens it: the latest flight's tab, units, the flight's span, gap pictures."""
+    lay = read_layout(rrd)
+    tabs = [lay.name(c) for c in lay.children(lay.root)]
+    assert tabs[0].startswith("flight 2") and tabs[1].startswith("flight 1") and tabs[-1].startswith("session")
+    opening = lay.opening_tab()
+    assert lay.name(opening).startswith("flight 2")
+    views = [v for c in lay.children(lay.root) for v in lay.views_under(c)]
+    for v in views:
+        if v.kind in ("TimeSeries", "BarChart"):
+            assert re.search(r"\[[^\]]+\]", v.name), f"no unit in view title {v.name!r}"
+    spans = {}
+    for v in lay.views_under(opening):
+        if v.kind == "TimeSeries":
+            assert v.fc_range_s is not None, v.name
+            spans[v.fc_range_s] = v.name
+    assert len(spans) == 1                      # every plot of the tab shows the same window: the whole flight
+    (t0, t1), = spans
+    assert 25.0 < t1 - t0 < 40.0                # the 30 s flight (padded), not a 60 s window at t = 0
+    for n in (1, 2):
+        gap = json.loads((rec / f"gap-flight{n:02d}.json").read_text()) if (rec / f"gap-flight{n:02d}.json").exists() else None
+        if gap is None:
+            continue
+        for c in gap["gap"]["channels"]:
+            assert lay.rows.get(f"/heli/gap/residual/{c}/residual", 0) > 0 and f"/heli/flights/{n}/spectrum/{c}/psd" in lay.entities
+        assert f"/heli/flights/{n}/verdict" in lay.entities
+        assert lay.rows.get("/heli/gap/flagged", 0) > 0 or not gap["gap"]["windows_s"]
+    check = chunk_check(rrd)
+    assert check.factor <= 10.0, check

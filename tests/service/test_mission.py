@@ -87,13 +87,19 @@ def test_two_simulated_flights_identified_published_and_logged(tmp_path, subscri
                 assert d["schema"] == "heli-gap-report/1"
     assert late_replies and late_replies[0]["schema"] == "heli-hover-model/1"
 
-    # Rerun: live entities, model overlay, gap plots
+    # Rerun: live entities, model overlay and residual, flight states, per-flight fit and gap pictures
     chunks = RrdReader(rrd).stream().to_chunks()
-    ents = {c.entity_path for c in chunks if not c.is_static}
+    ents = {c.entity_path for c in chunks}
     v = f"/{service.vehicle}"
     for c in ("u", "q", "theta"):
-        assert {f"{v}/outputs/{c}/raw", f"{v}/outputs/{c}/smoothed", f"{v}/outputs/{c}/model"} <= ents
-    assert f"{v}/gap/verdict" in ents and any(e.startswith(f"{v}/gap/match/") for e in ents)
+        assert {f"{v}/outputs/{c}/smoothed", f"{v}/outputs/{c}/model", f"{v}/outputs/{c}/residual"} <= ents
+    assert f"{v}/flight/state" in ents
+    for r in report.results:
+        if r.get("gap") is not None:
+            n = r["flight"]
+            assert {f"{v}/flights/{n}/fit", f"{v}/flights/{n}/verdict"} <= ents
+            for c in r["gap"]["gap"]["channels"]:
+                assert {f"{v}/gap/residual/{c}/residual", f"{v}/flights/{n}/spectrum/{c}/psd"} <= ents
 
 
 def _blocks_on_flight_1(fifo: str, job):

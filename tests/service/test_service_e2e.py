@@ -27,7 +27,7 @@ def _run(service: Service, subscriber_factory=None, timeout_s: float = 60.0):
 def test_two_scripted_flights_recorded_streamed_and_logged(tmp_path, subscriber_factory):
     rrd = tmp_path / "run.rrd"
     cfg = service_config(tmp_path, service={"exit_after_flights": 2}, sim={"speed": 4.0},
-                         identification={"enabled": False}, rerun={"mode": "save", "target": str(rrd)})
+                         identification={"enabled": False}, rerun={"mode": "save", "target": str(rrd), "raw": True})
     heli = ScriptedHelicopter(flights=2, flight_s=4.0, pause_s=2.0)
     service = Service(cfg, frame_source=heli, log=lambda m: None)
     report, sub = _run(service, subscriber_factory)
