@@ -52,6 +52,17 @@ _COLORS = {"raw": (170, 170, 170), "smoothed": (31, 119, 180), "model": (214, 39
 _STATE_COLORS = {"on ground": 0x9E9E9EFF, "armed": 0xFFB300FF, "in air": 0x43A047FF}
 
 
+def freq_pairs(v: Any) -> list[dict[str, Any]]:
+    """The pairs of a :class:`groundstation.freq.verify.FreqVerification` as :meth:`RerunSink.log_frequency_response`
+    takes them (data, model and coherence per scored input-output pair); ``[]`` for anything else."""
+    if v is None or not hasattr(v, "responses") or not hasattr(v, "pairs"):
+        return []
+    scored = {(s.input, s.output) for s in v.pairs}
+    return [{"input": p.input, "output": p.output, "f_hz": p.f_hz, "data": p.response, "coherence": p.coherence,
+             "model": v.model[:, OUTPUTS.index(p.output), INPUTS.index(p.input)]}
+            for p in v.responses.with_response if (p.input, p.output) in scored]
+
+
 class RerunSinkError(GroundstationError):
     """The Rerun target cannot be used (one line)."""
 
@@ -279,7 +290,7 @@ class RerunSink:
         pictures = pictures if pictures is not None else _get(result, "gap_pictures")
         if pictures is not None:
             fv = replace(fv, effects=self.log_gap_pictures(flight, pictures))
-        freq = _get(result, "freq_pairs")
+        freq = _get(result, "freq_pairs") or freq_pairs(_get(result, "freq"))
         if freq:
             fv = replace(fv, bode_pairs=self.log_frequency_response(flight, freq))
         self.flights[flight] = fv
