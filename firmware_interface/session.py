@@ -30,8 +30,9 @@ What it does:
   frames that fail verification are still emitted as RawPacket (``signature_ok=False``, so they
   are recorded) but not decoded and not trusted for link health; outgoing bytes are signed;
 * a read-only allowlist on everything sent (:func:`check_outgoing`): HEARTBEAT (as a GCS),
-  REQUEST_DATA_STREAM, and COMMAND_LONG with MAV_CMD_SET_MESSAGE_INTERVAL or MAV_CMD_REQUEST_MESSAGE
-  only; anything else raises :class:`~firmware_interface.errors.LocalProtocolError`.
+  REQUEST_DATA_STREAM, COMMAND_LONG with MAV_CMD_SET_MESSAGE_INTERVAL or MAV_CMD_REQUEST_MESSAGE
+  only, and the log-download requests LOG_REQUEST_LIST, LOG_REQUEST_DATA, LOG_REQUEST_END (never
+  LOG_ERASE); anything else raises :class:`~firmware_interface.errors.LocalProtocolError`.
 
 Leaves to others: the bytes' transport (:mod:`firmware_interface.transports`), the driver loop
 (:mod:`firmware_interface.link`), recording (:mod:`firmware_interface.recorder`). No IO, no clock.
@@ -108,7 +109,10 @@ STREAM_GROUP_OF: dict[str, int] = {
 
 ALLOWED_MESSAGES: frozenset[int] = frozenset(
     {mavlink2.MAVLINK_MSG_ID_HEARTBEAT, mavlink2.MAVLINK_MSG_ID_COMMAND_LONG,
-     mavlink2.MAVLINK_MSG_ID_REQUEST_DATA_STREAM}
+     mavlink2.MAVLINK_MSG_ID_REQUEST_DATA_STREAM,
+     # onboard log download (firmware_interface.logdownload): read the FC's logs, never erase them
+     mavlink2.MAVLINK_MSG_ID_LOG_REQUEST_LIST, mavlink2.MAVLINK_MSG_ID_LOG_REQUEST_DATA,
+     mavlink2.MAVLINK_MSG_ID_LOG_REQUEST_END}
 )
 ALLOWED_COMMANDS: frozenset[int] = frozenset(
     {mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink2.MAV_CMD_REQUEST_MESSAGE}

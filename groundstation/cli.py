@@ -21,6 +21,7 @@ COMMANDS: dict[str, str] = {
     "demo": "demo",
     "record": "record",
     "log-info": "log_info",
+    "logs": "logs",
     "replay": "replay",
     "simulate": "simulate",
     "identify": "identify",

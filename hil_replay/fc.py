@@ -17,6 +17,9 @@ clock with ``t_boot_s``, ``armed``, ``available`` (message names with fresh data
   (never faster than the source provides it);
 * link packet loss (seeded), applied after encoding so the MAVLink ``seq`` shows the gap, and
   optional line noise (``corrupt_rate``: bit flips per byte, seeded);
+* the onboard-log protocol as ArduPilot answers it (LOG_REQUEST_LIST -> LOG_ENTRY, LOG_REQUEST_DATA ->
+  LOG_DATA, LOG_REQUEST_END; every log message ignored while armed), serving the dataflash log it
+  writes of each flight (``record_dataflash``) and any log given with :meth:`FcProtocol.add_log`;
 * an FC reboot on demand (:meth:`FcProtocol.reboot`): silence, boot clock and ``seq`` restart,
   streams off until requested again; a cable pull on demand (:meth:`SimulatedFCThread.unplug`).
 
@@ -104,7 +107,11 @@ class FcConfig:
     ``seed``). ``corrupt_rate`` is the probability per byte sent of one flipped bit (line noise;
     the packet then fails its CRC at the ground station). ``refuse_message_interval`` answers
     SET_MESSAGE_INTERVAL with UNSUPPORTED. ``idle_after_end`` keeps sending (disarmed) heartbeats
-    after the frame source ends.
+    after the frame source ends. ``record_dataflash`` writes an onboard dataflash log of each flight
+    (:mod:`hil_replay.dataflash`, from arming to disarming) that the log protocol serves;
+    ``log_bytes_per_s`` is the LOG_DATA throughput (FC-clock bytes of payload per second; about
+    what ArduPilot reaches over USB) and ``log_burst_packets`` how many LOG_DATA packets answer a
+    LOG_REQUEST_DATA at once, as ArduPilot's handler sends before returning.
     """
 
     sysid: int = 1
@@ -115,6 +122,9 @@ class FcConfig:
     heartbeat_rate_hz: float = 1.0
     idle_after_end: bool = True
     corrupt_rate: float = 0.0
+    record_dataflash: bool = False
+    log_bytes_per_s: float = 250_000.0
+    log_burst_packets: int = 10
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.packet_loss < 1.0:
@@ -123,6 +133,8 @@ class FcConfig:
             raise ValueError(f"corrupt_rate: {self.corrupt_rate} not in [0, 1)")
         if not self.heartbeat_rate_hz > 0:
             raise ValueError(f"heartbeat_rate_hz: {self.heartbeat_rate_hz} must be > 0")
+        if not self.log_bytes_per_s > 0 or self.log_burst_packets < 1:
+            raise ValueError("log_bytes_per_s must be > 0 and log_burst_packets >= 1")
 
 
 @dataclass
@@ -138,6 +150,9 @@ class FcStats:
     bytes_sent: int = 0
     gcs_messages: int = 0
     commands: int = 0
+    log_requests: int = 0
+    log_data_sent: int = 0
+    log_erases: int = 0
     acks: int = 0
     last_t_boot_s: float = 0.0     # the frame source's clock (not reset by reboots)
     reboots: int = 0
@@ -181,6 +196,15 @@ class FcProtocol:
         self._silent = False
         self._boot_offset_s = 0.0
         self.stats = FcStats()
+        # onboard logs (ArduPilot's log protocol): finished logs, the one being written, what to send
+        self.logs: list[bytes] = []
+        self.log_writer_factory: Callable[[], Any] | None = None
+        self._writer: Any = None
+        self.armed = False
+        self._log_list: list[int] = []            # LOG_ENTRY ids still to send
+        self._log_burst: list[tuple[int, int, int]] = []   # (id, ofs, count) answered at once
+        self._log_stream: tuple[int, int, int] | None = None   # (id, next ofs, bytes left)
+        self._log_credit = 0.0
 
     # ------------------------------------------------------------------ ground station -> FC
 
@@ -206,6 +230,87 @@ class FcProtocol:
         elif kind == "REQUEST_DATA_STREAM":
             if self._for_me(msg.target_system, msg.target_component):
                 self._request_data_stream(msg.req_stream_id, msg.req_message_rate, msg.start_stop)
+        elif kind.startswith("LOG_") and self._for_me(msg.target_system, msg.target_component):
+            self.stats.log_requests += 1
+            if not self.armed:   # ArduPilot ignores every log message while armed
+                self._log_message(kind, msg)
+
+    # ------------------------------------------------------------------ onboard logs
+
+    def add_log(self, data: bytes) -> int:
+        """Store a finished onboard log; returns its log id (1-based, as ArduPilot numbers them)."""
+        self.logs.append(bytes(data))
+        return len(self.logs)
+
+    def _log_message(self, kind: str, msg: Any) -> None:
+        if kind == "LOG_REQUEST_LIST":
+            n = len(self.logs)
+            first = max(1, int(msg.start))
+            last = min(n, int(msg.end))
+            self._log_list = list(range(first, last + 1)) if n else [0]
+        elif kind == "LOG_REQUEST_DATA":
+            lid = int(msg.id)
+            size = len(self.logs[lid - 1]) if 1 <= lid <= len(self.logs) else 0
+            ofs = min(int(msg.ofs), size)
+            count = min(int(msg.count), size - ofs)
+            burst = min(count, 90 * self.config.log_burst_packets)
+            self._log_burst.append((lid, ofs, burst if count > 0 else 0))
+            self._log_stream = (lid, ofs + burst, count - burst) if count > burst else None
+        elif kind == "LOG_REQUEST_END":
+            self._log_stream = None
+            self._log_burst.clear()
+        elif kind == "LOG_ERASE":
+            self.stats.log_erases += 1
+            self.logs.clear()
+
+    def _log_data(self, lid: int, ofs: int, count: int, out: list[bytes]) -> int:
+        """LOG_DATA packets for ``count`` bytes from ``ofs`` (one empty packet at the end of file)."""
+        data = self.logs[lid - 1] if 1 <= lid <= len(self.logs) else b""
+        sent = 0
+        while True:
+            n = min(90, count - sent, max(0, len(data) - ofs - sent))
+            chunk = data[ofs + sent:ofs + sent + n]
+            self._encode(self.mav.log_data_encode(lid, ofs + sent, n, chunk + bytes(90 - n)), out)
+            self.stats.log_data_sent += 1
+            sent += n
+            if n == 0 or sent >= count:
+                return sent
+
+    def _send_logs(self, out: list[bytes]) -> None:
+        if self._log_list:
+            n = len(self.logs)
+            for lid in self._log_list:
+                size = len(self.logs[lid - 1]) if lid else 0
+                self._encode(self.mav.log_entry_encode(lid, n, n, 0, size), out)
+            self._log_list = []
+        budget = self.config.log_bytes_per_s / _FRAME_RATE_HZ
+        for lid, ofs, count in self._log_burst:
+            budget -= self._log_data(lid, ofs, count, out)
+        self._log_burst.clear()
+        if self._log_stream is None:
+            self._log_credit = 0.0
+            return
+        self._log_credit = min(self._log_credit + budget, 4 * self.config.log_bytes_per_s / _FRAME_RATE_HZ)
+        lid, ofs, left = self._log_stream
+        n = min(left, int(self._log_credit // 90) * 90)
+        if n > 0:
+            sent = self._log_data(lid, ofs, n, out)
+            self._log_credit -= sent
+            ofs, left = ofs + sent, left - sent
+        self._log_stream = (lid, ofs, left) if left > 0 else None
+
+    def _record(self, frame: Frame) -> None:
+        """The onboard dataflash log: opened at arming, closed (and listed) at disarming."""
+        armed = bool(frame.armed)
+        if self.log_writer_factory is not None:
+            if armed and self._writer is None:
+                self._writer = self.log_writer_factory()
+            if self._writer is not None:
+                self._writer.add(frame)
+                if not armed:
+                    self.add_log(self._writer.getvalue())
+                    self._writer = None
+        self.armed = armed
 
     def _command(self, msg: Any) -> int:
         if msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
@@ -321,6 +426,7 @@ class FcProtocol:
         t_sim = float(frame.t_boot_s)
         self.stats.frames += 1
         self.stats.last_t_boot_s = t_sim
+        self._record(frame)
         if self._reboot_pending is not None:
             self._do_reboot(t_sim, self._reboot_pending)
         self._silent = t_sim < self._silent_until_s
@@ -360,6 +466,8 @@ class FcProtocol:
             if due:
                 msg = frame.build(name, self.mav)
                 self._encode(self._shift_clock(msg) if self._boot_offset_s else msg, out)
+        if not self.armed:
+            self._send_logs(out)
         self.stats.packets_sent += len(out)
         return out
 
@@ -405,6 +513,17 @@ class SimulatedFlightController:
         self.port.unplug()
         loop.call_later(duration_s, self.port.replug)
 
+    def _frames(self) -> Iterable[Any]:
+        """The session's frames; with ``record_dataflash`` the 200 Hz ones and a log writer per flight."""
+        if not self.protocol.config.record_dataflash:
+            return self.session.frames()
+        from hil_replay.dataflash import DataflashWriter, chirp_plan, rotor_rpm
+
+        sess: Any = self.session
+        rpm, chirps = rotor_rpm(sess), chirp_plan(sess)
+        self.protocol.log_writer_factory = lambda: DataflashWriter(rpm, chirps)
+        return sess.frames(fast_gyro=True)
+
     async def _read_loop(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
             try:
@@ -436,7 +555,7 @@ class SimulatedFlightController:
             wall0: float | None = None
             t0 = 0.0
             last_t = 0.0
-            frames: Iterator[Any] = iter(self.session.frames())
+            frames: Iterator[Any] = iter(self._frames())
             idle = False
             while not stop.is_set():
                 try:

@@ -1,7 +1,9 @@
-"""``groundstation simulate``: write a simulated flight .tlog (+ truth sidecar) or serve a simulated FC.
+"""``groundstation simulate``: write a simulated flight .tlog or onboard .bin (+ truth sidecar), or serve a simulated FC.
 
 ``--out FILE.tlog`` flies :class:`hil_replay.sim.SimulatedSession` and writes ``FILE.tlog`` and
-``FILE.truth.json`` (via :func:`hil_replay.sim.write_tlog`), then prints what it wrote. ``--serve``
+``FILE.truth.json`` (via :func:`hil_replay.sim.write_tlog`), then prints what it wrote; ``--out
+FILE.bin`` (or ``--bin``) writes the autopilot's onboard dataflash log instead
+(:func:`hil_replay.dataflash.write_bin`). ``--serve``
 starts the REPLAY engineer's simulated flight controller (``hil_replay.fc.serve_simulated_fc``) on a
 virtual serial port, prints the port path (one line, flushed) and serves until Ctrl-C.
 Bad input (unknown effect, key or value out of range, malformed aircraft file) raises ``ValueError``
@@ -19,7 +21,11 @@ HELP = "write a simulated helicopter flight (.tlog + .truth.json), or serve a si
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", type=Path, default=None, help="output .tlog (truth goes to FILE.truth.json)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="output .tlog, or .bin for the autopilot's onboard dataflash log (200 Hz IMU, ATT, "
+                             "RATE, RCOU, HELI; the card's sweeps as SYSID chirps); truth goes to FILE.truth.json")
+    parser.add_argument("--bin", action="store_true", help="write the onboard dataflash log (same as --out FILE.bin)")
+    parser.add_argument("--no-sysid", action="store_true", help=".bin: do not log the sweeps as SYSID chirps")
     parser.add_argument("--serve", action="store_true", help="serve a simulated FC on a virtual serial port")
     parser.add_argument("--effect", action="append", default=[], metavar="NAME[:key=value,...]",
                         help="unmodelled effect to inject (repeatable), e.g. input_delay:input=lon,delay_s=0.1")
@@ -56,8 +62,10 @@ def run(args: argparse.Namespace) -> int:
     from hil_replay.sim import write_tlog
 
     out: Path = args.out
+    if args.bin or out.suffix.lower() == ".bin":
+        return _write_bin(args, effects, aircraft)
     if out.suffix != ".tlog":
-        raise ValueError(f"--out {out}: the file name must end in .tlog")
+        raise ValueError(f"--out {out}: the file name must end in .tlog or .bin")
     rates: dict[str, float] = {}
     for item in args.rate:
         name, eq, hz = item.partition("=")
@@ -93,6 +101,23 @@ def run(args: argparse.Namespace) -> int:
             print(f"  effect {e['effect']} on {ch}: {params}")
     else:
         print("  effects: none (sensor noise, packet loss and timestamp jitter only)")
+    return 0
+
+
+def _write_bin(args: argparse.Namespace, effects: tuple, aircraft: object) -> int:
+    from hil_replay.dataflash import write_bin
+
+    out: Path = args.out
+    if out.suffix.lower() != ".bin":
+        raise ValueError(f"--out {out}: with --bin the file name must end in .bin")
+    if args.rate:
+        raise ValueError("--rate applies to .tlog output only (the .bin logs at the autopilot's own rates)")
+    truth = write_bin(out, seed=args.seed, flights=args.flights, effects=effects, aircraft=aircraft,
+                      flight_duration_s=args.duration_s, pause_s=args.pause_s, sysid=not args.no_sysid)
+    df = truth["dataflash"]
+    print(f"wrote {out} ({out.stat().st_size} bytes, {df['records']} records at {df['sample_rate_hz']:g} Hz, "
+          f"{df['sysid_chirps']} SYSID chirps)")
+    print(f"wrote {out.with_suffix('.truth.json')}")
     return 0
 
 

@@ -163,8 +163,12 @@ class SimulatedSession:
         }
 
     # ------------------------------------------------------------------------------------------
-    def frames(self) -> Iterator[TelemetryFrame]:
-        """Fly the session; one frame per 50 Hz tick from FC time 0 to the end."""
+    def frames(self, fast_gyro: bool = False) -> Iterator[TelemetryFrame]:
+        """Fly the session; one frame per 50 Hz tick from FC time 0 to the end.
+
+        ``fast_gyro``: each frame also carries ``fast_before``, the gyro and attitude
+        (t_s, p, q, r, roll, pitch, yaw; rad/s, rad) measured at the three 200 Hz sub-steps since the
+        previous tick (with the frame's own: 200 Hz), as an autopilot's onboard log holds them."""
         ac = self.aircraft
         dt = 1.0 / FRAME_RATE_HZ
         h = dt / SUBSTEPS
@@ -230,6 +234,9 @@ class SimulatedSession:
         dcmd = [0.0, 0.0, col_low, 0.0]
         g = G_M_S2
         throttle = 1000
+        # high-rate gyro (200 Hz) only when asked: its own noise stream, so the 50 Hz telemetry is unchanged
+        fast_rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(6,))) if fast_gyro else None
+        fast_before: tuple[tuple[float, ...], ...] = ()
         for k in range(n_ticks):
             t = k * dt
             fi = None
@@ -342,30 +349,47 @@ class SimulatedSession:
             else:
                 avail = avail_all
             da0 = [dcmd[i] if chains[i] is None else chains[i](dcmd[i]) for i in range(4)]  # type: ignore[misc]
-            yield TelemetryFrame(meas, fi, avail, tuple(x), tuple(dcmd), tuple(da0), tuple(wind))
+            yield TelemetryFrame(meas, fi, avail, tuple(x), tuple(dcmd), tuple(da0), tuple(wind), fast_before)
 
             # ---------------- integrate to t + dt ----------------
             wn, we, wd = wind
+            fast: list[tuple[float, ...]] = []
             for sub in range(SUBSTEPS):
                 if sub == 0:
                     da = da0
                 else:
                     da = [dcmd[i] if chains[i] is None else chains[i](dcmd[i]) for i in range(4)]  # type: ignore[misc]
+                moves = True
                 if landed:
-                    if not armed or seg_kind == "ground":
-                        continue
                     thrust = g - Z_col * da[2] - Z_ped * da[3]
                     if ge_gain:
                         thrust *= 1.0 + ge_gain * ground_effect_excess(0.0, ac.rotor_radius_m, ac.hub_height_m)
-                    if thrust <= g:
-                        continue
-                    landed = False
-                    air.append([round(t + (sub + 1) * h, 4), None])
-                x = step(x, h, da[0], da[1], da[2], da[3], wn, we, wd)
-                if x[14] > 0.0:  # touchdown: skids on the ground, level, at rest
-                    landed = True
-                    air[-1][1] = round(t + (sub + 1) * h, 4)
-                    x = [0.0] * 6 + [0.0, 0.0, x[8], 0.0, 0.0, 0.0, x[12], x[13], 0.0]
+                    if not armed or seg_kind == "ground" or thrust <= g:
+                        moves = False
+                    else:
+                        landed = False
+                        air.append([round(t + (sub + 1) * h, 4), None])
+                if moves:
+                    x = step(x, h, da[0], da[1], da[2], da[3], wn, we, wd)
+                    if x[14] > 0.0:  # touchdown: skids on the ground, level, at rest
+                        landed = True
+                        air[-1][1] = round(t + (sub + 1) * h, 4)
+                        x = [0.0] * 6 + [0.0, 0.0, x[8], 0.0, 0.0, 0.0, x[12], x[13], 0.0]
+                if fast_rng is not None and sub < SUBSTEPS - 1:  # the 200 Hz gyro between two ticks
+                    ts = t + (sub + 1) * h
+                    gz = fast_rng.standard_normal(6).tolist()
+                    gy = [x[3 + i] + bias[i] + nz.gyro_rad_s * gz[i] for i in range(3)]
+                    att = [x[6] + nz.attitude_rad * gz[3], x[7] + nz.attitude_rad * gz[4],
+                           _wrap(x[8] + nz.yaw_rad * gz[5])]
+                    if vib_amp and spinning:
+                        for i in range(3):
+                            vb = vib_amp * vib_axis[i] * (math.sin(vib_w * ts + vib_phase[i])
+                                                          + 0.5 * math.sin(2 * vib_w * ts + vib_phase[3 + i]))
+                            gy[i] += vb
+                            if i < 2:
+                                att[i] += 0.1 * vb
+                    fast.append((ts, gy[0], gy[1], gy[2], att[0], att[1], att[2]))
+            fast_before = tuple(fast)
             if gust is not None:
                 gust.step()
 

@@ -85,15 +85,17 @@ class TelemetryFrame:
     For tests and truth checks a frame also carries what no sensor sees: ``state`` (the true
     15-element state, see ``dynamics.STATE_NAMES``), ``command`` (normalised inputs as sent to the
     servos, i.e. what SERVO_OUTPUT_RAW shows), ``actuator`` (normalised inputs acting on the rotor
-    after the input effects, at the first 200 Hz sub-step after this tick) and ``wind_ned`` (m/s).
+    after the input effects, at the first 200 Hz sub-step after this tick) and ``wind_ned`` (m/s);
+    ``fast_before`` holds the 200 Hz gyro samples since the previous tick when the session was asked for them.
     """
 
     __slots__ = ("t_boot_s", "armed", "flight_index", "available", "m", "state", "command", "actuator",
-                 "wind_ned")
+                 "wind_ned", "fast_before")
 
     def __init__(self, m: Measurement, flight_index: int | None, available: tuple[str, ...],
                  state: tuple[float, ...] = (), command: tuple[float, ...] = (), actuator: tuple[float, ...] = (),
-                 wind_ned: tuple[float, ...] = (0.0, 0.0, 0.0)) -> None:
+                 wind_ned: tuple[float, ...] = (0.0, 0.0, 0.0),
+                 fast_before: tuple[tuple[float, ...], ...] = ()) -> None:
         self.t_boot_s = m.t_boot_s
         self.armed = m.armed
         self.flight_index = flight_index
@@ -103,6 +105,7 @@ class TelemetryFrame:
         self.command = command
         self.actuator = actuator
         self.wind_ned = wind_ned
+        self.fast_before = fast_before  # (t_s, p, q, r, roll, pitch, yaw) at the 200 Hz sub-steps before it
 
     def __repr__(self) -> str:
         return (f"TelemetryFrame(t_boot_s={self.t_boot_s:.3f}, armed={self.armed}, "

@@ -248,7 +248,23 @@ def test_forbidden_messages_cannot_be_sent(make, fc):
 
 
 _ALLOWED_IDS = {mavlink2.MAVLINK_MSG_ID_HEARTBEAT, mavlink2.MAVLINK_MSG_ID_COMMAND_LONG,
-                mavlink2.MAVLINK_MSG_ID_REQUEST_DATA_STREAM}
+                mavlink2.MAVLINK_MSG_ID_REQUEST_DATA_STREAM,
+                # log download: list, read, end -- and nothing else of the LOG_* family
+                mavlink2.MAVLINK_MSG_ID_LOG_REQUEST_LIST, mavlink2.MAVLINK_MSG_ID_LOG_REQUEST_DATA,
+                mavlink2.MAVLINK_MSG_ID_LOG_REQUEST_END}
+
+
+def test_allowlist_grew_by_exactly_the_log_download_requests():
+    from firmware_interface.session import ALLOWED_MESSAGES
+
+    assert set(ALLOWED_MESSAGES) == _ALLOWED_IDS
+    mav = mavlink2.MAVLink(None, 255, 190)
+    for msg in (mav.log_erase_encode(1, 1), mav.log_request_data_encode(1, 1, 1, 0, 90)):
+        if msg.get_type() == "LOG_ERASE":
+            with pytest.raises(LocalProtocolError, match="LOG_ERASE"):
+                check_outgoing(msg)
+        else:
+            check_outgoing(msg)
 
 
 @settings(max_examples=200, deadline=None)
