@@ -21,9 +21,10 @@ How a log comes down:
   every LOG_DATA fills its 90-byte blocks in a received-block bitmap (duplicates counted, never
   written twice);
 * when that stream reaches the end of the file, or stalls for ``stall_s``, the missing runs are
-  re-requested: runs of at most ``fill_run_bytes`` as single requests (at most ``max_in_flight``
-  outstanding, at most ``max_requests_per_s`` sent, each retried after ``retry_s``), and the first
-  longer run as a new stream after them (the FC answers each request at once and keeps streaming
+  re-requested: spans of at most ``fill_run_bytes`` as single requests (at most ``max_in_flight``
+  outstanding, at most ``max_requests_per_s`` sent, each retried after ``retry_s`` unless a later
+  answer shows it was answered), and the first run longer than ``stream_run_bytes`` (the tail after
+  a lost link) as a new stream after them (the FC answers each request at once and keeps streaming
   the last) — so the last few per cent cost a few round trips, not a timeout each;
 * a lost link pauses the download; when it is back the stream restarts at the first missing byte
   (nothing received is asked for again as a stream's start);
@@ -58,12 +59,13 @@ class DownloadConfig:
     list_timeout_s: float = 1.5
     list_retries: int = 3
     stall_s: float = 1.0
-    retry_s: float = 0.6
+    retry_s: float = 0.3
     give_up_s: float = 8.0
     link_lost_give_up_s: float = 60.0
-    max_in_flight: int = 16
-    max_requests_per_s: float = 200.0
+    max_in_flight: int = 24
+    max_requests_per_s: float = 400.0
     fill_run_bytes: int = 10 * BLOCK_BYTES
+    stream_run_bytes: int = 64 * BLOCK_BYTES
     progress_interval_s: float = 0.1
 
     def __post_init__(self) -> None:
@@ -214,6 +216,8 @@ class LogDownloader(_Requests):
         self.duplicate_blocks = 0
         self.state = "idle"  # idle, stream, fill, paused, done
         self._last_rx = -math.inf
+        self._stream_t = -math.inf
+        self._stream_end = self.n_blocks
         self._paused_at = -math.inf
         self._armed = False
         self._in_flight: dict[tuple[int, int], float] = {}  # (first block, n blocks) -> sent at
@@ -248,6 +252,25 @@ class LogDownloader(_Requests):
             out.append((k, end - k))
             k = self._first_missing(end)
         return out
+
+    def gap_spans(self, limit: int) -> list[tuple[int, int]]:
+        """Up to ``limit`` spans to re-request: nearby short runs merged into spans of at most
+        ``fill_run_bytes`` (a few received blocks inside are cheaper than another request); a run
+        longer than that stays whole."""
+        cap = self.config.fill_run_bytes // BLOCK_BYTES
+        whole = self.config.stream_run_bytes // BLOCK_BYTES
+        spans: list[tuple[int, int]] = []
+        for k, n in self.missing_runs(limit * cap):
+            if spans and n <= cap and spans[-1][1] <= cap and k + n - spans[-1][0] <= cap:
+                spans[-1] = (spans[-1][0], k + n - spans[-1][0])
+                continue
+            if n > whole:
+                spans.append((k, n))
+            else:
+                spans.extend((a, min(cap, k + n - a)) for a in range(k, k + n, cap))
+            if len(spans) >= limit:
+                break
+        return spans[:limit]
 
     # ------------------------------------------------------------------ inputs
 
@@ -301,11 +324,24 @@ class LogDownloader(_Requests):
         if self.complete:
             self._succeed(now)
             return
-        if self.state == "stream" and k == self.n_blocks - 1:
-            self._enter_fill(now)
+        if self.state == "stream" and k >= self._stream_end - 1:
+            self._enter_fill(now)  # the stream's last block: what is still missing is a gap
         elif self.state == "fill":
+            self._resolve(k)
             self._check_in_flight(now)
         self._progress(now)
+
+    def _resolve(self, k: int) -> None:
+        """The FC answers requests in order: block ``k`` arriving means every gap request sent before
+        the one holding ``k`` is answered (what is still missing there was lost), and so is that one
+        when ``k`` is its last block."""
+        keys = list(self._in_flight)
+        hit = next((i for i, (a, n) in enumerate(keys) if a <= k < a + n), None)
+        if hit is None:
+            return
+        a, n = keys[hit]
+        for key in keys[:hit + 1 if k == a + n - 1 else hit]:
+            del self._in_flight[key]
 
     def handle_timer(self, now: float) -> None:
         if self.state == "paused":
@@ -318,7 +354,7 @@ class LogDownloader(_Requests):
             why = _ARMED_REASON if self._armed else f"the FC stopped answering for {self.config.give_up_s:g} s"
             self._fail(self._stopped(why), now)
             return
-        if self.state == "stream" and now - self._last_rx > self.config.stall_s:
+        if self.state == "stream" and now - max(self._last_rx, self._stream_t) > self.config.stall_s:
             self._enter_fill(now)
         elif self.state == "fill":
             self._check_in_flight(now)
@@ -332,9 +368,10 @@ class LogDownloader(_Requests):
 
     def _stream(self, now: float) -> None:
         self.state = "stream"
-        self._last_rx = now
+        self._last_rx = self._stream_t = now  # give-up and stall are counted from here
         self._in_flight.clear()
         ofs = self._first_missing() * BLOCK_BYTES
+        self._stream_end = self.n_blocks
         self._request(ofs, self.size - ofs, now)
 
     def _enter_fill(self, now: float) -> None:
@@ -356,7 +393,7 @@ class LogDownloader(_Requests):
         if free <= 0 or self._tokens < 1.0:
             return
         cap = cfg.fill_run_bytes // BLOCK_BYTES
-        for k, n in self.missing_runs(cfg.max_in_flight + len(self._in_flight)):
+        for k, n in self.gap_spans(cfg.max_in_flight + len(self._in_flight)):
             if free <= 0 or self._tokens < 1.0:
                 break
             if any(a <= k < a + m for a, m in self._in_flight):
@@ -368,7 +405,8 @@ class LogDownloader(_Requests):
                 # a long run (the stream was cut): stream it; the FC answers the gap requests sent
                 # before this one at once and carries on with this one
                 self.state = "stream"
-                self._last_rx = max(self._last_rx, now)
+                self._stream_t = now
+                self._stream_end = k + n
                 self._in_flight.clear()
                 self._request(ofs, min(n * BLOCK_BYTES, self.size - ofs), now)
                 return

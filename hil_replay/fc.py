@@ -111,7 +111,9 @@ class FcConfig:
     (:mod:`hil_replay.dataflash`, from arming to disarming) that the log protocol serves;
     ``log_bytes_per_s`` is the LOG_DATA throughput (FC-clock bytes of payload per second; about
     what ArduPilot reaches over USB) and ``log_burst_packets`` how many LOG_DATA packets answer a
-    LOG_REQUEST_DATA at once, as ArduPilot's handler sends before returning.
+    LOG_REQUEST_DATA at once, as ArduPilot's handler sends before returning;
+    ``log_stop_after_packets`` makes the FC stop answering log requests after sending that many
+    LOG_DATA packets (a fault to inject).
     """
 
     sysid: int = 1
@@ -125,6 +127,7 @@ class FcConfig:
     record_dataflash: bool = False
     log_bytes_per_s: float = 250_000.0
     log_burst_packets: int = 10
+    log_stop_after_packets: int | None = None
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.packet_loss < 1.0:
@@ -232,8 +235,9 @@ class FcProtocol:
                 self._request_data_stream(msg.req_stream_id, msg.req_message_rate, msg.start_stop)
         elif kind.startswith("LOG_") and self._for_me(msg.target_system, msg.target_component):
             self.stats.log_requests += 1
-            if not self.armed:   # ArduPilot ignores every log message while armed
-                self._log_message(kind, msg)
+            stop = self.config.log_stop_after_packets
+            if not self.armed and (stop is None or self.stats.log_data_sent < stop):
+                self._log_message(kind, msg)   # ArduPilot ignores every log message while armed
 
     # ------------------------------------------------------------------ onboard logs
 
@@ -293,6 +297,9 @@ class FcProtocol:
         self._log_credit = min(self._log_credit + budget, 4 * self.config.log_bytes_per_s / _FRAME_RATE_HZ)
         lid, ofs, left = self._log_stream
         n = min(left, int(self._log_credit // 90) * 90)
+        stop = self.config.log_stop_after_packets
+        if stop is not None:
+            n = min(n, max(0, stop - self.stats.log_data_sent) * 90)
         if n > 0:
             sent = self._log_data(lid, ofs, n, out)
             self._log_credit -= sent

@@ -27,6 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("."), help="directory for the downloaded log (default .)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--give-up-s", type=float, default=8.0,
+                   help="fail (keeping what arrived) when the FC sends nothing for this long (default 8 s)")
 
 
 def log_path(out_dir: Path, number: int, head: bytes = b"") -> Path:
@@ -40,12 +42,15 @@ def run(args: argparse.Namespace) -> int:
 
 
 async def _main(args: argparse.Namespace) -> int:
+    from firmware_interface.logdownload import DownloadConfig
     from firmware_interface.logtransfer import LogTransfer
     from firmware_interface.transports import open_link
 
+    if not args.give_up_s > 0:
+        raise ValueError(f"--give-up-s: {args.give_up_s} must be > 0")
     link = await open_link(args.link)
     try:
-        async with LogTransfer(link, url=args.link) as tr:
+        async with LogTransfer(link, url=args.link, config=DownloadConfig(give_up_s=args.give_up_s)) as tr:
             entries = await tr.list_logs()
             if args.action == "list":
                 _print_list(entries, args.json)
@@ -128,7 +133,7 @@ class _Progress:
 
             self._p = Progress(TextColumn(f"log {self.entry.log_id}"), BarColumn(), DownloadColumn(),
                                TransferSpeedColumn(), TimeRemainingColumn(), console=Console(stderr=True),
-                               transient=False)
+                               transient=True)
             self._p.start()
             self._task = self._p.add_task("download", total=self.entry.size_bytes)
         return self
