@@ -112,7 +112,7 @@ def run_freq(args: argparse.Namespace, model, cfg) -> int:
     from groundstation.pipeline import load_logs
 
     fcfg = load_freq_config(args.freq_config, cfg)
-    prepared = prepare_native(load_logs(args.logs), cfg.prepare, grid_only=args.grid_rate)
+    prepared = prepare_native(load_logs(args.logs, args.segments), cfg.prepare, grid_only=args.grid_rate)
     v = verify(model.theta, estimate_responses(prepared, fcfg), delays_from_augmentations(model.augmentations))
     names = ", ".join(p.name for p in args.logs)
     if args.bode is not None:
