@@ -107,3 +107,105 @@ def verification_json(v: Any, **extra: Any) -> str:
     doc = v.to_json()
     doc.update(extra)
     return json.dumps(doc, indent=1, allow_nan=False)
+
+
+def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
+    """``identify --domain frequency|both``.
+
+    ``frequency``: the frequency-domain fit (minimum Tischler J) is written to ``--out``.
+    ``both``: the time-domain fit to ``--out`` and the frequency-domain fit to ``<out>_freq.json``;
+    each model is scored both ways (time: mean match degree on the training windows; frequency:
+    J_avg) and a table prints the four figures.
+    """
+    import time
+
+    from rich.console import Console
+
+    from groundstation.commands.identify import print_model, write_json
+    from groundstation.dsp.prepare import prepare
+    from groundstation.freq.identify import FreqIdentifyConfig, identify_frequency
+    from groundstation.freq.model_response import delays_from_augmentations
+    from groundstation.freq.spectra import estimate_responses
+    from groundstation.freq.verify import verify
+    from groundstation.sysid.validate import validate
+
+    con = Console(stderr=True, quiet=args.quiet)
+    prepared = prepare(logs, cfg.prepare)
+    fast = prepare_native(logs, cfg.prepare, grid_only=args.grid_rate)
+    rs = estimate_responses(fast, load_freq_config(args.freq_config, cfg))
+    ic = cfg.identification
+    bounds = dict(cfg.bounds)
+    fcfg = FreqIdentifyConfig(fit_delays=args.fit_delays, refine=ic.refine,
+                              **({"maxiter": args.maxiter} if args.maxiter else {}))
+    models = {}
+    t0 = time.perf_counter()
+    with con.status("frequency-domain identification"):
+        fm = identify_frequency(rs, prepared, algorithm=ic.algorithm, seed=ic.seed, bounds=bounds or None,
+                                config=fcfg)
+    fm.fit["seconds"] = round(time.perf_counter() - t0, 3)
+    models["frequency"] = fm
+    if args.domain == "both":
+        from groundstation.pipeline import identify_prepared
+
+        t0 = time.perf_counter()
+        with con.status("time-domain identification"):
+            tm = identify_prepared(prepared, cfg)
+        tm.fit["seconds"] = round(time.perf_counter() - t0, 3)
+        models["time"] = tm
+    scores = {}
+    for name, m in models.items():
+        v = verify(m.theta, rs, delays_from_augmentations(m.augmentations))
+        t = validate(m, prepared)
+        scores[name] = {"J_avg": v.J_avg, "J_avg_good": v.good, "mean_match": t["mean_match"],
+                        "J": {f"{p.input}->{p.output}": p.J for p in v.pairs}}
+        m.fit["scores"] = {"frequency": {k: scores[name][k] for k in ("J_avg", "J_avg_good", "J")},
+                           "time": {"mean_match": t["mean_match"]}}
+        m.source["logs"] = [str(p) for p in args.logs]
+    outs = {"frequency": args.out} if args.domain == "frequency" else {
+        "time": args.out, "frequency": args.out.with_name(args.out.stem + "_freq.json")}
+    for name, path in outs.items():
+        write_json(path, models[name].to_json())
+    if not args.quiet:
+        out = Console()
+        for name, m in models.items():
+            out.print(f"[bold]{name}-domain fit[/] -> {outs[name]}")
+            if name == "frequency":
+                _print_freq_fit(m, out)
+            else:
+                print_model(m, out)
+        from rich.table import Table
+
+        tab = Table(title="each fit scored both ways (J_avg: Tischler, <= 100 good; match: eq. 19 mean, %)")
+        for c in ("fit", "J_avg", "mean match %", "written to"):
+            tab.add_column(c, justify="right")
+        for name, sc in scores.items():
+            ja = sc["J_avg"]
+            tab.add_row(name, "-" if ja is None else f"{ja:.1f}", f"{sc['mean_match']:.1f}", str(outs[name]))
+        out.print(tab)
+        for p in rs.without_response:
+            out.print(f"no response {p.input}->{p.output}: {p.reason}")
+    return 0
+
+
+def _print_freq_fit(model: Any, con: Any) -> None:
+    from rich.table import Table
+
+    from groundstation.sysid.model import PARAM_NAMES
+
+    fit = model.fit
+    con.print(f"{fit['algorithm'].upper()} on J: J by subsystem "
+              + ", ".join(f"{k} {v:.1f}" for k, v in fit["J_by_subsystem"].items())
+              + f"; {fit['evaluations']} evaluations, {fit['seconds']} s; "
+              f"{fit['frequency_hz'][0]:.2f}-{fit['frequency_hz'][1]:.2f} Hz, windows {fit['windows_s']} s")
+    p = Table(title="parameters (frequency-domain fit)")
+    for c in ("name", "value", "std error", "note"):
+        p.add_column(c, justify="right")
+    for n in PARAM_NAMES:
+        s = model.parameter_std.get(n)
+        note = "fixed" if n in fit.get("fixed", []) else ("PINNED at bound" if n in model.pinned else "")
+        p.add_row(n, f"{model.params[n]:.4g}", "-" if s is None else f"{s:.3g}", note)
+    con.print(p)
+    for a in model.augmentations:
+        con.print(f"input delay {a['input']}: {a['delay_s'] * 1000:.0f} ms")
+    for r in fit.get("fixed_reasons", []):
+        con.print(f"note: {r}")

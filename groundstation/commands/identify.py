@@ -36,6 +36,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rrd", type=Path, default=None, help="also write measured vs model to a Rerun .rrd file")
     parser.add_argument("--segments", choices=("flights", "sysid"), default="flights", help=SEGMENTS_HELP)
     parser.add_argument("--quiet", action="store_true")
+    parser.add_argument("--domain", choices=("time", "frequency", "both"), default="time",
+                        help="time: the paper's output-error fit (default); frequency: minimise Tischler's J over the "
+                             "flight's frequency responses; both: fit both ways, score each both ways")
+    parser.add_argument("--fit-delays", action="store_true", help="frequency domain: also fit one delay per input")
+    from groundstation.commands.freq_support import add_freq_arguments
+
+    add_freq_arguments(parser)
 
 
 def config_from_args(args: argparse.Namespace):
@@ -82,6 +89,11 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = config_from_args(args)
     algorithm = cfg.identification.algorithm
+    if args.domain != "time":
+        from groundstation.commands.freq_support import identify_domain
+        from groundstation.pipeline import load_logs
+
+        return identify_domain(args, load_logs(args.logs, args.segments), cfg)
     prepared = prepare_logs(args.logs, cfg, args.segments)
     con = Console(stderr=True, quiet=args.quiet)
     t0 = time.perf_counter()
