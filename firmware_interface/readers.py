@@ -5,7 +5,8 @@
 path scans records tolerantly (:mod:`firmware_interface.tlogread`) and decodes them through the same
 :class:`~firmware_interface.session.MavlinkSession` as the live link (passive: nothing is sent), so
 units, clock unwrapping and reboot handling are identical offline and live. Dataflash logs go
-through pymavlink's ``DFReader`` and are mapped onto the same MAVLink-named series.
+through pymavlink's ``DFReader`` and are mapped onto the same MAVLink-named series (pilot inputs:
+ArduPilot RCIN and PX4 sdlog2 RC as RC_CHANNELS; PX4's normalised -1..1 sticks as ``1500 + 500 v`` us).
 
 Messages without an FC time field (HEARTBEAT, SYS_STATUS, EXTENDED_SYS_STATE) get ``t_fc_s`` from
 the lower envelope of ``host - fc`` over the timed messages, interpolated at their host time.
@@ -403,6 +404,11 @@ def restrict_to_chirps(log: LogData) -> LogData:
     return replace(log, flights=flights)
 
 
+def _px4_rc_us(v: Any) -> float:
+    """PX4 sdlog2 RC value (normalised -1..1) as RC_CHANNELS microseconds, 1500 + 500 v (NaN if absent)."""
+    return math.nan if v is None else 1500.0 + 500.0 * float(v)
+
+
 def _read_df(log: Any, add: Any, counts: dict[str, int], gyro: list, rate: list, sids: list) -> None:
     """Walk a DFReader log, mapping records onto MAVLink-named series through ``add``."""
     t0: float | None = None
@@ -469,6 +475,8 @@ def _read_df(log: Any, add: Any, counts: dict[str, int], gyro: list, rate: list,
             add("SYSID", t_fc, t_host, (g("Time", math.nan), g("Targ", math.nan), g("F", math.nan)))
         elif typ == "RCOU":
             add("SERVO_OUTPUT_RAW", t_fc, t_host, tuple(float(g(f"C{k}", 0) or 0) for k in range(1, 17)))
+        elif typ == "RC" and g("C0") is not None:  # PX4 sdlog2 pilot sticks, normalised -1..1
+            add("RC_CHANNELS", t_fc, t_host, tuple(_px4_rc_us(g(f"C{k}")) for k in range(18)))
         elif typ == "OUT0":
             add("SERVO_OUTPUT_RAW", t_fc, t_host, tuple(float(g(f"Out{k}", 0) or 0) for k in range(16)))
         elif typ == "GPS" and inst == 0:

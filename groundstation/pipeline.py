@@ -10,6 +10,7 @@ of them runs it. Reading files is here; the numbers are :mod:`groundstation.dsp`
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -32,18 +33,39 @@ def load_logs(paths: Sequence[str | os.PathLike[str]], segments: str = "flights"
     return logs
 
 
-def prepare_logs(paths: Sequence[str | os.PathLike[str]], cfg: ServiceConfig, segments: str = "flights") -> Any:
-    """Read the logs and prepare them with ``cfg.prepare`` (a :class:`groundstation.dsp.prepare.PreparedData`)."""
+def load_aircraft(path: str | os.PathLike[str] | None) -> Any:
+    """The aircraft file (:class:`groundstation.aircraft.Aircraft`), or None without one."""
+    if path is None or str(path) == "":
+        return None
+    from groundstation.aircraft import load_aircraft as _load
+
+    return _load(path)
+
+
+def with_aircraft(cfg: ServiceConfig, aircraft: Any) -> ServiceConfig:
+    """``cfg`` with the aircraft file's input source, channel map, units, trims and outputs in ``[prepare]``."""
+    if aircraft is None:
+        return cfg
+    return dataclasses.replace(cfg, prepare=aircraft.prep_config(cfg.prepare))
+
+
+def prepare_logs(paths: Sequence[str | os.PathLike[str]], cfg: ServiceConfig, segments: str = "flights",
+                 aircraft: Any = None) -> Any:
+    """Read the logs and prepare them with ``cfg.prepare`` (a :class:`groundstation.dsp.prepare.PreparedData`),
+    the aircraft file's channel map and outputs applied when one is given."""
     from groundstation.dsp.prepare import prepare
 
-    return prepare(load_logs(paths, segments), cfg.prepare)
+    return prepare(load_logs(paths, segments), with_aircraft(cfg, aircraft).prepare)
 
 
-def identify_prepared(prepared: Any, cfg: ServiceConfig, *, callback: Callable[[dict], Any] | None = None) -> Any:
+def identify_prepared(prepared: Any, cfg: ServiceConfig, *, callback: Callable[[dict], Any] | None = None,
+                      aircraft: Any = None) -> Any:
     """The hover model of ``prepared`` (a :class:`groundstation.sysid.model.HoverModel`) identified with
-    ``cfg.identify``, ``cfg.bounds`` and ``cfg.identification``'s algorithm, seed and refine."""
+    ``cfg.identify``, ``cfg.bounds`` and ``cfg.identification``'s algorithm, seed and refine, and the
+    aircraft file's prior model (output error with a priori weighting) when one is given."""
     from groundstation.sysid.identify import identify
 
     ic = cfg.identification
     return identify(prepared, algorithm=ic.algorithm, seed=ic.seed, refine=ic.refine, callback=callback,
-                    bounds=dict(cfg.bounds) or None, config=cfg.identify)
+                    bounds=dict(cfg.bounds) or None, config=cfg.identify,
+                    prior=aircraft.prior if aircraft is not None else None)

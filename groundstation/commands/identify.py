@@ -32,6 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "lowest refined cost wins (default: [identify] search_restarts, 2)")
     parser.add_argument("--config", type=Path, default=None,
                         help="configuration TOML ([prepare] channel map and trims, [identify], [bounds], ...)")
+    parser.add_argument("--aircraft", type=Path, default=None,
+                        help="aircraft TOML: input source and channel map, measured outputs, prior model")
     parser.add_argument("--no-plot", action="store_true", help="do not write the PNG")
     parser.add_argument("--rrd", type=Path, default=None, help="also write measured vs model to a Rerun .rrd file")
     parser.add_argument("--segments", choices=("flights", "sysid"), default="flights", help=SEGMENTS_HELP)
@@ -85,16 +87,17 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from groundstation.pipeline import identify_prepared, prepare_logs
+    from groundstation.pipeline import identify_prepared, load_aircraft, prepare_logs
 
     cfg = config_from_args(args)
     algorithm = cfg.identification.algorithm
+    aircraft = load_aircraft(args.aircraft)
     if args.domain != "time":
         from groundstation.commands.freq_support import identify_domain
-        from groundstation.pipeline import load_logs
+        from groundstation.pipeline import load_logs, with_aircraft
 
-        return identify_domain(args, load_logs(args.logs, args.segments), cfg)
-    prepared = prepare_logs(args.logs, cfg, args.segments)
+        return identify_domain(args, load_logs(args.logs, args.segments), with_aircraft(cfg, aircraft))
+    prepared = prepare_logs(args.logs, cfg, args.segments, aircraft)
     con = Console(stderr=True, quiet=args.quiet)
     t0 = time.perf_counter()
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
@@ -107,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
                         info=f"F={info['fun']:.4g} evals={info['nfev']}")
             return False
 
-        model = identify_prepared(prepared, cfg, callback=cb)
+        model = identify_prepared(prepared, cfg, callback=cb, aircraft=aircraft)
     model.fit["seconds"] = round(time.perf_counter() - t0, 3)
     model.source["logs"] = [str(p) for p in args.logs]
     write_json(args.out, model.to_json())

@@ -28,6 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--window-s", type=float, default=None, help="window length (default: the model's)")
     parser.add_argument("--config", type=Path, default=None, help="configuration TOML (its [prepare] channel map and trims are used)")
     parser.add_argument("--rrd", type=Path, default=None, help="write measured vs model to a Rerun .rrd file")
+    parser.add_argument("--aircraft", type=Path, default=None, help="aircraft TOML (input source, channel map, outputs)")
     parser.add_argument("--freq", action="store_true",
                         help="frequency-domain check: J per input-output pair (JSON with --json: J_avg and pairs)")
     parser.add_argument("--bode", type=Path, default=None, help="with --freq: Bode PNGs, one per input (PATH_<input>.png)")
@@ -55,10 +56,11 @@ def load_model(path: Path):
 
 def run(args: argparse.Namespace) -> int:
     from groundstation.config import load_config
-    from groundstation.pipeline import prepare_logs
+    from groundstation.pipeline import load_aircraft, prepare_logs, with_aircraft
     from groundstation.sysid.validate import validate
 
-    cfg = load_config(args.config)
+    aircraft = load_aircraft(args.aircraft)
+    cfg = with_aircraft(load_config(args.config), aircraft)
     model = load_model(args.model)
     if args.freq:
         return run_freq(args, model, cfg)

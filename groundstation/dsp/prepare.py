@@ -73,6 +73,16 @@ class PrepConfig:
     ground_ref_s: float = 1.0  # time on the ground after arming / before disarming that gives the ground level
     ground_mismatch_m: float = 1.0  # ground levels before and after further apart than this: no trim
     velocity_source: str = "auto"  # "auto", "local", "global", "none"
+    #: positions (deg around the swashplate, 0 = front) of the three swashplate servos given as the first
+    #: three ``input_channels``; empty = the channels carry lat lon col directly (no unmix)
+    swash_phase_deg: tuple[float, ...] = ()
+    #: output channels the aircraft logs; the others are treated as not measured
+    measured_outputs: tuple[str, ...] = OUTPUTS
+    #: airborne evidence: an in-air interval counts only where the rotor shakes the accelerometers
+    #: (high-passed specific-force std above ``airborne_vibration_m_s2``) or the body rates move
+    #: (std above ``airborne_rate_rad_s``); a ground run with the rotor stopped shows neither
+    airborne_vibration_m_s2: float = 0.3
+    airborne_rate_rad_s: float = 0.03
 
     def __post_init__(self) -> None:
         if self.rate_hz <= 0:
@@ -87,6 +97,11 @@ class PrepConfig:
             raise ValueError(f"prepare.velocity_source must be auto|local|global|none, got {self.velocity_source!r}")
         if len(self.input_channels) != 4:
             raise ValueError("prepare.input_channels needs 4 channel numbers (lat lon col ped)")
+        if self.swash_phase_deg and len(self.swash_phase_deg) != 3:
+            raise ValueError(f"prepare.swash_phase_deg needs 3 angles, got {self.swash_phase_deg}")
+        bad = [c for c in self.measured_outputs if c not in OUTPUTS]
+        if bad:
+            raise ValueError(f"prepare.measured_outputs: unknown channel(s) {bad} (allowed: {', '.join(OUTPUTS)})")
 
 
 @dataclass(frozen=True, eq=False)
@@ -270,6 +285,91 @@ def _altitude(log: Any, a: float, b: float) -> tuple[np.ndarray | None, np.ndarr
     return None, np.zeros(0)
 
 
+def _channel_values(series: Any, col: str, pwm_units: bool) -> np.ndarray:
+    v = np.asarray(series[col], dtype=float).copy()
+    if pwm_units:
+        v[(v <= 0) | (v >= 65535)] = np.nan  # 0 / 65535 mean "not set"
+    return v
+
+
+def _input_pwm(log: Any, cfg: PrepConfig) -> np.ndarray:
+    """(n, 4) lat lon col ped in the source's units on the source's clock (the swashplate unmixed).
+
+    A channel the source message does not carry (a column missing or never set) raises naming it.
+    Swashplate: servo i at angle phi_i moves ``col + lon cos(phi_i) + lat sin(phi_i)`` about its
+    centre, so the three servos give col, lon, lat by one 3 x 3 solve (about the servos' mean centre).
+    """
+    src = log.source
+    servo = log.series[cfg.input_source]
+    pwm_units = abs(cfg.pwm_per_unit) > 2.0
+    cols = []
+    for c in cfg.input_channels:
+        col = f"pwm_us_{c}"
+        if col not in servo.columns:
+            raise ValueError(f"{src}: {cfg.input_source} has no channel {c} (input channel map)")
+        v = _channel_values(servo, col, pwm_units)
+        if not np.isfinite(v).any():
+            raise ValueError(f"{src}: {cfg.input_source} channel {c} is never set in this log (input channel map)")
+        cols.append(v)
+    pwm = np.stack(cols, axis=1)
+    if cfg.swash_phase_deg:
+        ph = np.radians(np.asarray(cfg.swash_phase_deg, dtype=float))
+        M = np.stack([np.ones(3), np.cos(ph), np.sin(ph)], axis=1)  # servo = M @ (col, lon, lat)
+        centre = np.nanmedian(pwm[:, :3])
+        col_lon_lat = np.linalg.solve(M, (pwm[:, :3] - centre).T).T
+        pwm = np.stack([centre + col_lon_lat[:, 2], centre + col_lon_lat[:, 1], centre + col_lon_lat[:, 0],
+                        pwm[:, 3]], axis=1)
+    return pwm
+
+
+def moving_channels(log: Any, min_std: float) -> list[str]:
+    """Servo-output and RC channels of ``log`` whose values move (std above ``min_std``), as "MSG n"."""
+    out = []
+    for msg in ("SERVO_OUTPUT_RAW", "RC_CHANNELS"):
+        if not log.has(msg):
+            continue
+        s = log.series[msg]
+        for c in sorted(s.columns, key=lambda k: int(k.rsplit("_", 1)[-1])):
+            v = np.asarray(s[c], dtype=float)
+            v = v[np.isfinite(v) & (v != 0) & (v < 65535)]
+            if v.size > 10 and float(np.std(v)) > min_std:
+                out.append(f"{msg} {c.rsplit('_', 1)[-1]}")
+    return out
+
+
+def airborne_evidence(log: Any, a: float, b: float, cfg: PrepConfig) -> tuple[bool, str]:
+    """Whether the aircraft flew in [a, b] by evidence other than height: rotor vibration on the
+    accelerometers (std of the specific force after removing a 0.5-s running mean, above
+    ``airborne_vibration_m_s2``) or body motion (std of the body rates above ``airborne_rate_rad_s``).
+    Returns (flying, one-line evidence). Without IMU and rates the answer is yes (nothing to contradict)."""
+    parts = []
+    flying = False
+    known = False
+    if log.has("IMU"):
+        s = log.series["IMU"]
+        sel = (s.t_fc_s >= a) & (s.t_fc_s <= b)
+        if sel.sum() > 20:
+            known = True
+            acc = np.stack([np.asarray(s[c], dtype=float)[sel] for c in ("ax_m_s2", "ay_m_s2", "az_m_s2")], axis=1)
+            if np.isfinite(acc).all():
+                k = max(3, int(0.5 / max(median_interval_s(s.t_fc_s[sel]), 1e-3)))
+                kern = np.ones(k) / k
+                hp = np.stack([acc[:, j] - np.convolve(acc[:, j], kern, mode="same") for j in range(acc.shape[1])], axis=1)
+                vib = float(np.nanmax(np.nanstd(hp[k:-k] if hp.shape[0] > 2 * k + 2 else hp, axis=0)))
+                flying |= vib > cfg.airborne_vibration_m_s2
+                parts.append(f"accelerometer vibration std {vib:.3f} m/s^2")
+    if log.has("ATTITUDE"):
+        s = log.series["ATTITUDE"]
+        sel = (s.t_fc_s >= a) & (s.t_fc_s <= b)
+        rates = np.stack([np.asarray(s[c], dtype=float)[sel] for c in ("p_rad_s", "q_rad_s", "r_rad_s")], axis=1)
+        if np.isfinite(rates).sum() > 20:
+            known = True
+            rs = float(np.nanmax(np.nanstd(rates, axis=0)))
+            flying |= rs > cfg.airborne_rate_rad_s
+            parts.append(f"body-rate std {rs:.3f} rad/s")
+    return flying or not known, ", ".join(parts)
+
+
 def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str]) -> list[_Raw]:
     src = log.source
     if not log.has(cfg.input_source):
@@ -288,13 +388,7 @@ def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str]) -> list[_Raw]:
         notes.append(f"{src}: no HEARTBEAT, whole log treated as one flight")
     servo = log.series[cfg.input_source]
     att = log.series["ATTITUDE"]
-    pwm_cols = [f"pwm_us_{c}" for c in cfg.input_channels]
-    for c in pwm_cols:
-        if c not in servo.columns:
-            raise ValueError(f"{src}: {cfg.input_source} has no column {c}")
-    pwm_src = np.stack([np.asarray(servo[c], dtype=float) for c in pwm_cols], axis=1)
-    pwm_src[pwm_src <= 0] = np.nan  # 0 / 65535 mean "not set"
-    pwm_src[pwm_src >= 65535] = np.nan
+    pwm_src = _input_pwm(log, cfg)
     att_cols = ("roll_rad", "pitch_rad", "yaw_rad", "p_rad_s", "q_rad_s", "r_rad_s")
     att_src = np.stack([np.asarray(att[c], dtype=float) for c in att_cols], axis=1)
     yaw_unwrapped = np.unwrap(np.nan_to_num(att_src[:, 2]))
@@ -313,70 +407,112 @@ def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str]) -> list[_Raw]:
     native_s = np.array([median_interval_s(servo.t_fc_s)] * 4 + [max(vel_dt, att_dt)] * 3 + [att_dt] * 5)
     out: list[_Raw] = []
     n_air = 0
+    ground: list[str] = []
     for fl in flights:
         intervals = _trim_ground_contact(log, fl, _in_air_intervals(log, fl, cfg), cfg, notes)
         for a, b in intervals:
             a2, b2 = a + cfg.edge_trim_s, b - cfg.edge_trim_s
             if b2 - a2 < cfg.min_segment_s:
                 continue
+            flying, evidence = airborne_evidence(log, a2, b2, cfg)
+            if not flying:
+                ground.append(f"{a2:.0f}-{b2:.0f} s ({evidence})")
+                continue
             n_air += 1
             t = uniform_grid(a2, b2, cfg.rate_hz)
             pwm, pwm_ok = interpolate_onto(servo.t_fc_s, pwm_src, t, _series_gap(cfg, servo.t_fc_s))
             at, at_ok = interpolate_onto(att.t_fc_s, att_src, t, _series_gap(cfg, att.t_fc_s))
             req = np.asarray(pwm_ok.all(axis=1) & at_ok.all(axis=1), dtype=bool)
-            vel = np.full((t.size, 3), np.nan)
-            vel_ok = np.zeros(t.size, dtype=bool)
-            if vel_series is not None:
-                vs = vel_series[1]
-                vsrc = np.stack([np.asarray(vs[c], dtype=float) for c in ("vx_m_s", "vy_m_s", "vz_m_s")], axis=1)
-                vel, vok = interpolate_onto(vs.t_fc_s, vsrc, t, _series_gap(cfg, vs.t_fc_s))
-                vel_ok = np.asarray(vok.all(axis=1), dtype=bool)
+            vel, hor_ok, ver_ok = _velocities(vel_series, t, cfg)
             alt_t, alt = _altitude(log, float(fl.start_fc_s), float(fl.end_fc_s))
             if alt_t is not None:
                 alt_g, _ = interpolate_onto(alt_t, alt, t, _series_gap(cfg, alt_t))
             else:
                 alt_g = np.full(t.size, np.nan)
-            max_hole = max(1, int(round(cfg.max_gap_s * cfg.rate_hz)))
-            vel_ok = fill_short_holes(vel_ok, max_hole) & req
-            min_n = int(np.ceil(cfg.min_segment_s * cfg.rate_hz))
-            # label: 0 unusable, 1 inputs+attitude, 2 with velocities
-            label = np.where(req, np.where(vel_ok, 2, 1), 0)
-            for i, j in runs(label == 2):
-                if j - i < min_n:
-                    label[i:j] = 1
-            for i, j in runs(req):
-                if j - i < min_n:
-                    continue
-                sub = label[i:j]
-                # split at label changes
-                edges = np.flatnonzero(np.diff(sub)) + 1
-                bounds = np.concatenate([[0], edges, [j - i]])
-                for p0, p1 in zip(bounds[:-1], bounds[1:], strict=True):
-                    if p1 - p0 < min_n:
-                        continue
-                    sl = slice(i + p0, i + p1)
-                    lab = int(sub[p0])
-                    outputs = np.full((p1 - p0, 8), np.nan)
-                    avail = np.zeros(8, dtype=bool)
-                    roll, pitch, yaw = at[sl, 0], at[sl, 1], at[sl, 2]
-                    outputs[:, 3] = at[sl, 3]
-                    outputs[:, 4] = at[sl, 4]
-                    outputs[:, 5] = at[sl, 5]
-                    outputs[:, 6] = pitch
-                    outputs[:, 7] = roll
-                    avail[3:] = True
-                    if lab == 2:
-                        v = interpolate_holes(vel[sl], np.isfinite(vel[sl]))
-                        outputs[:, 0:3] = ned_to_body(v, roll, pitch, yaw)
-                        avail[0:3] = True
-                    out.append(_Raw(t_s=t[sl], pwm=pwm[sl], outputs=outputs, alt_m=alt_g[sl], available=avail,
-                                    flight=int(fl.index), source=src, native_s=native_s))
+            for sl, lab in _labelled_runs(req, hor_ok & req, ver_ok & hor_ok & req, cfg):
+                outputs, avail = _segment_outputs(at[sl], vel[sl], lab, cfg)
+                out.append(_Raw(t_s=t[sl], pwm=pwm[sl], outputs=outputs, alt_m=alt_g[sl], available=avail,
+                                flight=int(fl.index), source=src, native_s=native_s))
+    if n_air == 0 and ground:
+        raise ValueError(f"{src}: the aircraft never left the ground, nothing to identify: in-air time by the "
+                         f"land detector or height, but no rotor vibration and no body motion: {'; '.join(ground)}")
+    for g in ground:
+        notes.append(f"{src}: {g}: on the ground by rotor and motion evidence, left out")
     if n_air == 0:
         raise ValueError(
             f"{src}: never in the air for at least {cfg.min_segment_s:g} s "
             f"(no in-air segment from EXTENDED_SYS_STATE landed_state or altitude within the armed flights)"
         )
     return out
+
+
+def _velocities(vel_series: Any, t: np.ndarray, cfg: PrepConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """NED velocities (n, 3) on the grid and where the horizontal pair and the vertical one are valid
+    (short holes filled)."""
+    vel = np.full((t.size, 3), np.nan)
+    if vel_series is None:
+        return vel, np.zeros(t.size, dtype=bool), np.zeros(t.size, dtype=bool)
+    vs = vel_series[1]
+    vsrc = np.stack([np.asarray(vs[c], dtype=float) for c in ("vx_m_s", "vy_m_s", "vz_m_s")], axis=1)
+    vel, vok = interpolate_onto(vs.t_fc_s, vsrc, t, _series_gap(cfg, vs.t_fc_s))
+    max_hole = max(1, int(round(cfg.max_gap_s * cfg.rate_hz)))
+    hor = fill_short_holes(np.asarray(vok[:, :2].all(axis=1), dtype=bool), max_hole)
+    ver = fill_short_holes(np.asarray(vok[:, 2], dtype=bool), max_hole)
+    return vel, hor, ver
+
+
+def _labelled_runs(req: np.ndarray, hor: np.ndarray, ver: np.ndarray, cfg: PrepConfig) -> list[tuple[slice, int]]:
+    """Contiguous stretches of at least ``min_segment_s`` with one label: 1 inputs and attitude,
+    2 also horizontal velocities, 3 also the vertical one (a label's runs shorter than a segment
+    fall back to the label below)."""
+    min_n = int(np.ceil(cfg.min_segment_s * cfg.rate_hz))
+    label = np.where(req, 1 + hor.astype(int) + (hor & ver).astype(int), 0)
+    for lev in (3, 2):
+        for i, j in runs(label >= lev):
+            if j - i < min_n:
+                label[i:j] = np.minimum(label[i:j], lev - 1)
+    out = []
+    for i, j in runs(req):
+        if j - i < min_n:
+            continue
+        sub = label[i:j]
+        edges = np.concatenate([[0], np.flatnonzero(np.diff(sub)) + 1, [j - i]])
+        out += [(slice(i + p0, i + p1), int(sub[p0])) for p0, p1 in zip(edges[:-1], edges[1:], strict=True)
+                if p1 - p0 >= min_n]
+    return out
+
+
+def _segment_outputs(at: np.ndarray, vel: np.ndarray, label: int, cfg: PrepConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Outputs (n, 8) and availability (8,) of one stretch. Without the vertical velocity, u and v
+    come from the horizontal pair with the vertical one taken as zero: its share in body u, v is
+    its product with the sine of the attitude (a few per cent at hover attitudes)."""
+    outputs = np.full((at.shape[0], 8), np.nan)
+    avail = np.zeros(8, dtype=bool)
+    roll, pitch, yaw = at[:, 0], at[:, 1], at[:, 2]
+    outputs[:, 3:6] = at[:, 3:6]
+    outputs[:, 6] = pitch
+    outputs[:, 7] = roll
+    avail[3:] = True
+    if label >= 2:
+        v = vel.copy()
+        if label == 2:
+            v[:, 2] = 0.0
+        v = interpolate_holes(v, np.isfinite(v))
+        outputs[:, 0:3] = ned_to_body(v, roll, pitch, yaw)
+        avail[0:2] = True
+        avail[2] = label == 3
+    keep = np.array([c in cfg.measured_outputs for c in OUTPUTS])
+    avail &= keep
+    outputs[:, ~avail] = np.nan
+    return outputs, avail
+
+
+def _still_inputs_message(logs: list[Any], cfg: PrepConfig) -> str:
+    chans = ", ".join(str(c) for c in cfg.input_channels)
+    moving = sorted({m for log in logs for m in moving_channels(log, 1e-3 * max(abs(cfg.pwm_per_unit), 1.0))})
+    where = f"channels that move in the log: {', '.join(moving)}" if moving else "no servo or RC channel moves in the log"
+    return (f"{', '.join(log.source for log in logs)}: the configured inputs ({cfg.input_source} {chans}) never move "
+            f"in the air; {where} (set [inputs] source and channels in the aircraft file)")
 
 
 def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
@@ -409,9 +545,12 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
         col = col[np.isfinite(col)]
         if col.size:
             out_trim[j] = float(np.median(col))
+    still = [np.nanstd(pwm_all[:, k]) < 1e-6 * max(abs(cfg.pwm_per_unit), 1.0) for k in range(4)]
     for k, name in enumerate(INPUTS):
-        if np.nanstd(pwm_all[:, k]) < 1e-6 * max(abs(cfg.pwm_per_unit), 1.0):
+        if still[k]:
             notes.append(f"input {name} never moves (held at {trim_pwm[k]:g} us): its parameters are not identifiable")
+    if all(still):
+        raise ValueError(_still_inputs_message(logs, cfg))
     avail_any = np.any([r.available for r in raws], axis=0)
     for j, name in enumerate(OUTPUTS):
         if not avail_any[j]:

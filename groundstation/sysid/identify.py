@@ -32,7 +32,7 @@ while identifying: the batched products are small and threads only contend on a 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -103,6 +103,9 @@ class IdentifyConfig:
     #: with less collective excitation); u and v terms did not help (they bias X_u: the rotor terms
     #: ``T sin a_s`` they would need are not measured).
     kinematic_forcing: str = "w"
+    #: residual weighting of the refinement per channel: "noise" (the residual RMS, maximum likelihood)
+    #: or "signal" (the signal's spread, the paper's eq. 11); see :func:`groundstation.sysid.refine.refine`
+    channel_weighting: str = "noise"
 
 
 #: Input channels (indices into lat lon col ped) of each subsystem.
@@ -151,12 +154,41 @@ def _starts(opt: Any, k: int, span: np.ndarray, min_dist: float = 0.2) -> list[n
     return out or [np.asarray(opt.x, dtype=float)]
 
 
-def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: bool = True,
-             maxiter: int | None = None, callback: Callable[[dict], Any] | None = None,
-             bounds: dict[str, tuple[float, float]] | None = None,
-             config: IdentifyConfig | None = None) -> HoverModel:
-    """Identify the hover model; see the module docstring. Raises ValueError for unusable data."""
-    cfg = config or IdentifyConfig()
+@dataclass
+class _Run:
+    """What the subsystem identifications accumulate (internal)."""
+
+    theta: np.ndarray
+    std: np.ndarray = field(default_factory=lambda: np.full(N_PARAMS, np.nan))
+    share: np.ndarray = field(default_factory=lambda: np.full(N_PARAMS, np.nan))
+    sigma: np.ndarray = field(default_factory=lambda: np.full(8, np.nan))
+    delta: np.ndarray = field(default_factory=lambda: np.zeros(4))  # input trim corrections, lat lon col ped
+    F_total: float = 0.0
+    F_search: float = 0.0
+    nfev: int = 0
+    nit: int = 0
+    histories: dict[str, list[float]] = field(default_factory=dict)
+    histories_nfev: dict[str, list[int]] = field(default_factory=dict)
+    search_by_sub: dict[str, float] = field(default_factory=dict)
+    search_alg: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, eq=False)
+class _Plan:
+    """Windows, forcing, free parameters, bounds and prior of one identification (internal)."""
+
+    win: Any
+    win_s: Any
+    forcing: np.ndarray | None
+    forcing_s: np.ndarray | None
+    free: np.ndarray
+    reasons: list[str]
+    bounds: np.ndarray
+    prior: tuple[np.ndarray, np.ndarray] | None
+    kf: list[str]
+
+
+def _check(cfg: IdentifyConfig, algorithm: str, prepared: Any) -> None:
     if algorithm not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {algorithm!r}; choose one of {sorted(ALGORITHMS)}")
     if cfg.restart_algorithm and cfg.restart_algorithm not in ALGORITHMS:
@@ -165,166 +197,247 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
         raise ValueError(f"search_restarts: {cfg.search_restarts} must be >= 1")
     if not prepared.segments:
         raise ValueError("no in-air segments to identify from")
-    b_all = bounds_array(bounds)
+
+
+def _prior_arrays(prior: Any) -> tuple[np.ndarray, np.ndarray] | None:
+    """(nominal (31,), std (31,)) of a prior (an object with ``mean_array``/``std_array``, or a pair)."""
+    if prior is None:
+        return None
+    if hasattr(prior, "mean_array"):
+        return np.asarray(prior.mean_array, dtype=float), np.asarray(prior.std_array, dtype=float)
+    m, sd = prior
+    return np.asarray(m, dtype=float), np.asarray(sd, dtype=float)
+
+
+def _plan(prepared: Any, cfg: IdentifyConfig, refine: bool, bounds: dict | None, prior: Any) -> _Plan:
+    win = make_windows(prepared.segments, prepared.dt_s, cfg.window_s)
+    win_s = make_windows(prepared.segments, prepared.dt_s, cfg.search_window_s)
+    if cfg.search_stride > 1 and win_s.count >= 2 * cfg.search_stride:
+        win_s = subset_windows(win_s, np.arange(0, win_s.count, cfg.search_stride))
+    free, reasons = free_mask(prepared)
+    kf = [c.strip() for c in cfg.kinematic_forcing.split(",") if c.strip()]
+    if any(c not in ("u", "v", "w") for c in kf):
+        raise ValueError(f"kinematic_forcing: channels must be among u, v, w, got {cfg.kinematic_forcing!r}")
+    forcing = forcing_s = None
+    if kf and refine:
+        trim_vec = np.array([float(prepared.output_trim.get(c, 0.0)) for c in OUTPUTS])
+        off = [j for j, c in enumerate(("u", "v", "w")) if c not in kf]
+        forcing = kinematic_forcing(win.outputs, trim_vec)
+        forcing_s = kinematic_forcing(win_s.outputs, trim_vec)
+        forcing[..., off] = 0.0
+        forcing_s[..., off] = 0.0
+    return _Plan(win, win_s, forcing, forcing_s, free, reasons, bounds_array(bounds), _prior_arrays(prior),
+                 kf if refine else [])
+
+
+def _costs(plan: _Plan, cfg: IdentifyConfig, sub: int, sub_free: np.ndarray, theta: np.ndarray,
+           trim: bool) -> tuple[WindowedCost, WindowedCost, WindowedCost]:
+    """(refinement cost, screening cost, search cost with B by variable projection) of one subsystem."""
+    kw = dict(estimate_all_initial=cfg.estimate_all_initial, subsystems=(sub,))
+    cost = WindowedCost(plan.win, sub_free, theta, estimate_trim=trim, forcing=plan.forcing, **kw)  # type: ignore[arg-type]
+    cost_s = WindowedCost(plan.win_s, sub_free, theta, estimate_trim=trim, forcing=plan.forcing_s, **kw)  # type: ignore[arg-type]
+    cost_v = WindowedCost(plan.win_s, sub_free, theta, varpro=cfg.varpro, **kw)  # type: ignore[arg-type]
+    return cost, cost_s, cost_v
+
+
+def _progress(callback: Callable[[dict], Any] | None, stage: str, fun: float, nfev: int) -> None:
+    if callback is not None:
+        callback({"stage": stage, "nit": 0, "maxiter": 1, "fun": fun, "nfev": nfev})
+
+
+def _search_once(alg: str, it: int, label: str, costs: tuple, plan: _Plan, cfg: IdentifyConfig, sub_free: np.ndarray,
+                 refine: bool, rng: np.random.Generator, cb: Callable, callback: Callable | None,
+                 sub_name: str) -> tuple[float, np.ndarray, Any, Any]:
+    """One search, then (with ``refine``) successive-halving screening of its best distinct points (and
+    the prior's nominal) on the search windows and a full refinement of the winner: (F, x, opt, refinement).
+    With a prior, F is the refinement's MAP cost (data misfit plus prior penalty)."""
+    cost, cost_s, cost_v = costs
+    bfree = plan.bounds[sub_free]
+    prior = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
+
+    def to_free(xv: np.ndarray) -> np.ndarray:
+        th = cost_v.complete(np.asarray(xv, dtype=float)[None])[0]
+        return np.clip(th[sub_free], bfree[:, 0], bfree[:, 1])
+
+    opt = ALGORITHMS[alg](cost_v, plan.bounds[cost_v.free], rng=rng, maxiter=it, maxfev=cfg.maxfev, callback=cb)
+    if not refine:
+        xr = to_free(opt.x)
+        return float(cost(xr[None])[0]), xr, opt, None
+    vb = plan.bounds[cost_v.free]
+    starts = [to_free(xv) for xv in _starts(opt, cfg.refine_starts, vb[:, 1] - vb[:, 0])]
+    if prior is not None:
+        span = bfree[:, 1] - bfree[:, 0]
+        starts.append(np.clip(prior[0], bfree[:, 0] + 1e-6 * span, bfree[:, 1] - 1e-6 * span))
+    nfev_round = cfg.screen_max_nfev
+    screen_f = float("nan")
+    while len(starts) > 1:   # short refinements of many starts, longer ones of the best few
+        _progress(callback, f"screen {sub_name} ({len(starts)} starts)", float(opt.fun), cost_s.nfev + cost.nfev)
+        rs = [refine_ls(cost_s, x0, bfree, passes=1, max_nfev=nfev_round, with_std=False, prior=prior,
+                        weighting=cfg.channel_weighting) for x0 in starts]
+        scored = sorted(((float(r.map_cost if prior is not None else r.fun), r.x) for r in rs), key=lambda t: t[0])
+        starts = [sx for _, sx in scored[: max(1, len(scored) // 3)]]
+        screen_f = scored[0][0]
+        nfev_round *= 2
+    _progress(callback, f"refine {sub_name}{label}", screen_f, cost_s.nfev + cost.nfev)
+    ref = refine_ls(cost, starts[0], bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev, prior=prior,
+                    weighting=cfg.channel_weighting)
+    return float(ref.map_cost if prior is not None else ref.fun), ref.x, opt, ref
+
+
+def _identify_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], plan: _Plan, cfg: IdentifyConfig,
+                        run: _Run, *, algorithm: str, iters: int, maxiter: int | None, refine: bool,
+                        rng: np.random.Generator, callback: Callable[[dict], Any] | None) -> None:
+    """Search (with restarts), screen and refine one subsystem; results go into ``run``."""
+    idx = np.array([PARAM_INDEX[p] for p in sub_params])
+    sub_free = np.zeros(N_PARAMS, dtype=bool)
+    sub_free[idx] = plan.free[idx]
+    trim = cfg.estimate_trim and refine
+    costs = _costs(plan, cfg, sub, sub_free, run.theta, trim)
+    cost = costs[0]
+    if not cost.used.any():
+        plan.reasons.append(f"{sub_name} subsystem: no measured output, not identified")
+        return
+
+    def cb(res: Any) -> bool:
+        if callback is not None:
+            return bool(callback({"stage": f"search {sub_name}", "nit": res.nit, "maxiter": iters,
+                                  "fun": float(res.fun), "nfev": res.nfev}))
+        return False
+
+    # the vertical/yaw search has fewer dimensions and costs a fraction: give it more iterations
+    sub_iters = iters if sub == 0 else int(iters * cfg.vertical_iter_factor)
+    best: tuple[float, np.ndarray, Any, Any, str] | None = None   # (F, x, opt, refinement, algorithm)
+    for restart in range(max(1, cfg.search_restarts if refine else 1)):
+        alg = algorithm if restart == 0 or not cfg.restart_algorithm else cfg.restart_algorithm
+        it = sub_iters
+        if alg != algorithm and not (maxiter or cfg.maxiter):
+            it = DEFAULT_MAXITER[alg] if sub == 0 else int(DEFAULT_MAXITER[alg] * cfg.vertical_iter_factor)
+        F, xr, opt, ref = _search_once(alg, it, f" (search {restart + 1})" if restart else "", costs, plan, cfg,
+                                       sub_free, refine, rng, cb, callback, sub_name)
+        run.nit += int(opt.nit)
+        if best is None or F < best[0]:
+            best = (F, xr, opt, ref, alg)
+    assert best is not None
+    F, x, opt, ref, won = best
+    run.search_alg[sub_name] = won
+    run.F_search += float(opt.fun)
+    run.search_by_sub[sub_name] = float(opt.fun)
+    run.histories[sub_name] = [float(h) for h in opt.history]
+    run.histories_nfev[sub_name] = [int(h) for h in opt.history_nfev]
+    if ref is not None:
+        run.std[np.flatnonzero(sub_free)] = ref.std
+        run.share[np.flatnonzero(sub_free)] = ref.prior_share if plan.prior is not None else 0.0
+        run.sigma[cost.used] = ref.sigma[cost.used]
+    run.theta = cost.full(x)[0]
+    if trim:
+        run.delta[list(_SUBS_INPUTS[sub])] = cost.sim.solve_trim(run.theta[None])[sub][0]
+    run.F_total += float(cost(x[None])[0])
+    run.nfev += sum(c.nfev for c in costs)
+
+
+def _in_sample_match(plan: _Plan, cfg: IdentifyConfig, theta: np.ndarray, trim: bool) -> tuple[dict[str, float], np.ndarray]:
+    """Eq. 19 match per used channel on the training windows, and the used-channel mask (8,)."""
+    full_cost = WindowedCost(plan.win, np.zeros(N_PARAMS, dtype=bool), theta, estimate_all_initial=cfg.estimate_all_initial,
+                             estimate_trim=trim, forcing=plan.forcing)
+    errs = full_cost.sim.errors(theta[None])[0]
+    y = full_cost.sim.outputs
+    match = {}
+    for j, ch in enumerate(OUTPUTS):
+        if full_cost.used[j]:
+            m = full_cost.sim.mask[:, j]
+            num = np.sqrt((errs[m, :, j] ** 2).sum())
+            den = np.sqrt((y[m, :, j] ** 2).sum())
+            match[ch] = float((1 - num / den) * 100) if den > 0 else float("nan")
+    return match, full_cost.used
+
+
+def _pinned(theta: np.ndarray, free: np.ndarray, b: np.ndarray) -> dict[str, str]:
+    """Free parameters within 0.1 % of a search bound, with the reason the report gives."""
+    span = b[:, 1] - b[:, 0]
+    out = {}
+    for i in range(N_PARAMS):
+        for side, edge in (("lower", 0), ("upper", 1)):
+            if free[i] and abs(theta[i] - b[i, edge]) < 1e-3 * span[i]:
+                out[PARAM_NAMES[i]] = (f"ended on its {side} search bound {b[i, edge]:g}: the data pull it further than "
+                                       f"the bounds allow (a correlated parameter or model-structure error takes up "
+                                       f"what eq. 8 cannot explain); the value is not an estimate")
+    return out
+
+
+def _prior_report(plan: _Plan, run: _Run, prior: Any) -> dict[str, Any]:
+    """Which free parameters the flight determines and which stay at their prior (share > 0.5)."""
+    if plan.prior is None:
+        return {}
+    det: list[str] = []
+    undet: list[str] = []
+    for i, n in enumerate(PARAM_NAMES):
+        if plan.free[i] and np.isfinite(run.share[i]):
+            (undet if run.share[i] > 0.5 else det).append(n)
+    return {"source": str(getattr(prior, "source", "given")), "determined": det, "prior_dominated": undet,
+            "prior_share": {n: float(run.share[i]) for i, n in enumerate(PARAM_NAMES) if np.isfinite(run.share[i])},
+            "nominal": {n: float(plan.prior[0][i]) for i, n in enumerate(PARAM_NAMES)},
+            "std": {n: float(plan.prior[1][i]) for i, n in enumerate(PARAM_NAMES)}}
+
+
+def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: bool = True,
+             maxiter: int | None = None, callback: Callable[[dict], Any] | None = None,
+             bounds: dict[str, tuple[float, float]] | None = None,
+             config: IdentifyConfig | None = None, prior: Any = None) -> HoverModel:
+    """Identify the hover model; see the module docstring. Raises ValueError for unusable data.
+
+    ``prior``: a prior model (:class:`groundstation.aircraft.Prior` or ``(nominal (31,), std (31,))``)
+    for output error with a priori weighting; None = plain output error.
+    """
+    cfg = config or IdentifyConfig()
+    _check(cfg, algorithm, prepared)
     iters = maxiter or cfg.maxiter or DEFAULT_MAXITER[algorithm]
     rng = np.random.default_rng(seed)
+    trim = cfg.estimate_trim and refine
     with threadpool_limits(1):
-        win = make_windows(prepared.segments, prepared.dt_s, cfg.window_s)
-        win_s = make_windows(prepared.segments, prepared.dt_s, cfg.search_window_s)
-        if cfg.search_stride > 1 and win_s.count >= 2 * cfg.search_stride:
-            win_s = subset_windows(win_s, np.arange(0, win_s.count, cfg.search_stride))
-        free, reasons = free_mask(prepared)
-        forcing = forcing_s = None
-        kf = [c.strip() for c in cfg.kinematic_forcing.split(",") if c.strip()]
-        if any(c not in ("u", "v", "w") for c in kf):
-            raise ValueError(f"kinematic_forcing: channels must be among u, v, w, got {cfg.kinematic_forcing!r}")
-        if kf and refine:
-            trim_vec = np.array([float(prepared.output_trim.get(c, 0.0)) for c in OUTPUTS])
-            off = [j for j, c in enumerate(("u", "v", "w")) if c not in kf]
-            forcing = kinematic_forcing(win.outputs, trim_vec)
-            forcing_s = kinematic_forcing(win_s.outputs, trim_vec)
-            forcing[..., off] = 0.0
-            forcing_s[..., off] = 0.0
-        theta = np.clip(np.zeros(N_PARAMS), b_all[:, 0], b_all[:, 1])
-        std_all = np.full(N_PARAMS, np.nan)
-        sigma_all = np.full(8, np.nan)
-        F_total, F_search, nfev, nit = 0.0, 0.0, 0, 0
-        histories: dict[str, list[float]] = {}
-        search_by_sub: dict[str, float] = {}
-        search_alg: dict[str, str] = {}
-        histories_nfev: dict[str, list[int]] = {}
-        delta = np.zeros(4)  # input trim corrections (normalised units), lat lon col ped
+        plan = _plan(prepared, cfg, refine, bounds, prior)
+        run = _Run(theta=np.clip(np.zeros(N_PARAMS), plan.bounds[:, 0], plan.bounds[:, 1]))
         for sub, sub_name, sub_params in ((0, "horizontal", HOR_PARAMS), (1, "vertical", VER_PARAMS)):
-            idx = np.array([PARAM_INDEX[p] for p in sub_params])
-            sub_free = np.zeros(N_PARAMS, dtype=bool)
-            sub_free[idx] = free[idx]
-            trim = cfg.estimate_trim and refine
-            cost = WindowedCost(win, sub_free, theta, estimate_all_initial=cfg.estimate_all_initial,
-                                subsystems=(sub,), estimate_trim=trim, forcing=forcing)
-            cost_s = WindowedCost(win_s, sub_free, theta, estimate_all_initial=cfg.estimate_all_initial,
-                                  subsystems=(sub,), estimate_trim=trim, forcing=forcing_s)
-            cost_v = WindowedCost(win_s, sub_free, theta, estimate_all_initial=cfg.estimate_all_initial,
-                                  subsystems=(sub,), varpro=cfg.varpro)
-            if not cost.used.any():
-                reasons.append(f"{sub_name} subsystem: no measured output, not identified")
-                continue
-            bfree = b_all[sub_free]
+            _identify_subsystem(sub, sub_name, sub_params, plan, cfg, run, algorithm=algorithm, iters=iters,
+                                maxiter=maxiter, refine=refine, rng=rng, callback=callback)
+        match, used = _in_sample_match(plan, cfg, run.theta, trim)
+    return _model(prepared, plan, cfg, run, match, used, algorithm=algorithm, seed=seed, refine=refine, prior=prior)
 
-            def cb(res, sub_name=sub_name) -> bool:
-                if callback is not None:
-                    return bool(callback({"stage": f"search {sub_name}", "nit": res.nit, "maxiter": iters,
-                                          "fun": float(res.fun), "nfev": res.nfev}))
-                return False
 
-            # the vertical/yaw search has fewer dimensions and costs a fraction: give it more iterations
-            sub_iters = iters if sub == 0 else int(iters * cfg.vertical_iter_factor)
+def _model(prepared: Any, plan: _Plan, cfg: IdentifyConfig, run: _Run, match: dict[str, float], used: np.ndarray, *,
+           algorithm: str, seed: int, refine: bool, prior: Any) -> HoverModel:
+    from groundstation.sysid.heldout import unstable_modes
 
-            def to_free(xv: np.ndarray, cost_v=cost_v, sub_free=sub_free, bfree=bfree) -> np.ndarray:
-                th = cost_v.complete(np.asarray(xv, dtype=float)[None])[0]
-                return np.clip(th[sub_free], bfree[:, 0], bfree[:, 1])
-
-            def search_once(alg: str, it: int, label: str, cost_v=cost_v, cost_s=cost_s, cost=cost,
-                            bfree=bfree, to_free=to_free, sub_name=sub_name, cb=cb) -> tuple[float, np.ndarray, Any, Any]:
-                """One search, then (with ``refine``) successive-halving screening of its best distinct
-                points on the search windows and a full refinement of the winner: (F, x, opt, refinement)."""
-                opt = ALGORITHMS[alg](cost_v, b_all[cost_v.free], rng=rng, maxiter=it, maxfev=cfg.maxfev, callback=cb)
-                if not refine:
-                    xr = to_free(opt.x)
-                    return float(cost(xr[None])[0]), xr, opt, None
-                vb = b_all[cost_v.free]
-                starts = [to_free(xv) for xv in _starts(opt, cfg.refine_starts, vb[:, 1] - vb[:, 0])]
-                nfev_round = cfg.screen_max_nfev
-                screen_f = float("nan")
-                while len(starts) > 1:   # short refinements of many starts, longer ones of the best few
-                    if callback is not None:
-                        callback({"stage": f"screen {sub_name} ({len(starts)} starts)", "nit": 0, "maxiter": 1,
-                                  "fun": float(opt.fun), "nfev": cost_s.nfev + cost.nfev})
-                    scored = [(float(r.fun), r.x) for r in
-                              (refine_ls(cost_s, x0, bfree, passes=1, max_nfev=nfev_round, with_std=False)
-                               for x0 in starts)]
-                    scored.sort(key=lambda t: t[0])
-                    starts = [sx for _, sx in scored[: max(1, len(scored) // 3)]]
-                    screen_f = scored[0][0]
-                    nfev_round *= 2
-                if callback is not None:
-                    callback({"stage": f"refine {sub_name}{label}", "nit": 0, "maxiter": 1, "fun": screen_f,
-                              "nfev": cost_s.nfev + cost.nfev})
-                ref = refine_ls(cost, starts[0], bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev)
-                return float(ref.fun), ref.x, opt, ref
-
-            best: tuple[float, np.ndarray, Any, Any, str] | None = None   # (F, x, opt, refinement, algorithm)
-            for restart in range(max(1, cfg.search_restarts if refine else 1)):
-                alg = algorithm if restart == 0 or not cfg.restart_algorithm else cfg.restart_algorithm
-                it = sub_iters
-                if alg != algorithm and not (maxiter or cfg.maxiter):
-                    it = DEFAULT_MAXITER[alg] if sub == 0 else int(DEFAULT_MAXITER[alg] * cfg.vertical_iter_factor)
-                F, xr, opt, ref = search_once(alg, it, f" (search {restart + 1})" if restart else "")
-                nit += int(opt.nit)
-                if best is None or F < best[0]:
-                    best = (F, xr, opt, ref, alg)
-            assert best is not None
-            F, x, opt, ref, won = best
-            search_alg[sub_name] = won
-            F_search += float(opt.fun)
-            search_by_sub[sub_name] = float(opt.fun)
-            histories[sub_name] = [float(h) for h in opt.history]
-            histories_nfev[sub_name] = [int(h) for h in opt.history_nfev]
-            if ref is not None:
-                std_all[np.flatnonzero(sub_free)] = ref.std
-                sigma_all[cost.used] = ref.sigma[cost.used]
-            theta = cost.full(x)[0]
-            if trim:
-                delta[list(_SUBS_INPUTS[sub])] = cost.sim.solve_trim(theta[None])[sub][0]
-            F_total += F
-            nfev += cost.nfev + cost_s.nfev + cost_v.nfev
-        full_cost = WindowedCost(win, np.zeros(N_PARAMS, dtype=bool), theta,
-                                 estimate_all_initial=cfg.estimate_all_initial,
-                                 estimate_trim=cfg.estimate_trim and refine, forcing=forcing)
-        errs = full_cost.sim.errors(theta[None])[0]
-        y = full_cost.sim.outputs
-        match = {}
-        for j, ch in enumerate(OUTPUTS):
-            if full_cost.used[j]:
-                m = full_cost.sim.mask[:, j]
-                num = np.sqrt((errs[m, :, j] ** 2).sum())
-                den = np.sqrt((y[m, :, j] ** 2).sum())
-                match[ch] = float((1 - num / den) * 100) if den > 0 else float("nan")
-        used = full_cost.used
-    span = b_all[:, 1] - b_all[:, 0]
-    pinned = [PARAM_NAMES[i] for i in range(N_PARAMS)
-              if free[i] and (theta[i] - b_all[i, 0] < 1e-3 * span[i] or b_all[i, 1] - theta[i] < 1e-3 * span[i])]
-    std: dict[str, float | None] = {n: (float(std_all[i]) if np.isfinite(std_all[i]) else None)
+    theta = run.theta
+    pinned = _pinned(theta, plan.free, plan.bounds)
+    std: dict[str, float | None] = {n: (float(run.std[i]) if np.isfinite(run.std[i]) else None)
                                     for i, n in enumerate(PARAM_NAMES)}
     segs = prepared.segments
     fit: dict[str, Any] = {
-        "algorithm": algorithm, "seed": int(seed), "fitness": float(1.0 / (1.0 + F_total)), "cost": float(F_total),
-        "search_cost": float(F_search), "search_window_s": float(cfg.search_window_s),
-        "search_cost_by_subsystem": search_by_sub, "search_restarts": int(cfg.search_restarts if refine else 1),
-        "search_algorithm_by_subsystem": search_alg, "refined": bool(refine), "match_degree": match,
-        "evaluations": int(nfev), "iterations": int(nit), "seconds": None,
-        "window_s": float(cfg.window_s), "windows": int(win.count), "estimate_all_initial": cfg.estimate_all_initial,
+        "algorithm": algorithm, "seed": int(seed), "fitness": float(1.0 / (1.0 + run.F_total)), "cost": float(run.F_total),
+        "search_cost": float(run.F_search), "search_window_s": float(cfg.search_window_s),
+        "search_cost_by_subsystem": run.search_by_sub, "search_restarts": int(cfg.search_restarts if refine else 1),
+        "search_algorithm_by_subsystem": run.search_alg, "refined": bool(refine), "match_degree": match,
+        "evaluations": int(run.nfev), "iterations": int(run.nit), "seconds": None,
+        "window_s": float(cfg.window_s), "windows": int(plan.win.count), "estimate_all_initial": cfg.estimate_all_initial,
         "channels": [OUTPUTS[j] for j in range(8) if used[j]],
-        "fixed": [PARAM_NAMES[i] for i in range(N_PARAMS) if not free[i]], "fixed_reasons": reasons,
-        "noise_sigma": {OUTPUTS[j]: float(sigma_all[j]) for j in range(8) if np.isfinite(sigma_all[j])},
-        "history": histories,
-        "history_nfev": histories_nfev,
-        "notes": list(prepared.notes),
-        "trim_estimated": bool(cfg.estimate_trim and refine),
-        "kinematic_forcing": kf if refine else [],
-        "input_trim_correction_pwm": {k: float(delta[j]) * float(prepared.pwm_per_unit)
+        "fixed": [PARAM_NAMES[i] for i in range(N_PARAMS) if not plan.free[i]], "fixed_reasons": plan.reasons,
+        "noise_sigma": {OUTPUTS[j]: float(run.sigma[j]) for j in range(8) if np.isfinite(run.sigma[j])},
+        "history": run.histories, "history_nfev": run.histories_nfev, "notes": list(prepared.notes),
+        "trim_estimated": bool(cfg.estimate_trim and refine), "kinematic_forcing": plan.kf,
+        "input_trim_correction_pwm": {k: float(run.delta[j]) * float(prepared.pwm_per_unit)
                                       for j, k in enumerate(prepared.input_trim_pwm)},
+        "pinned_reasons": pinned,
+        "unstable_modes": [m.describe() for m in unstable_modes(theta)],
+        "prior": _prior_report(plan, run, prior),
     }
     return HoverModel(
         params={n: float(v) for n, v in zip(PARAM_NAMES, theta, strict=True)},
         sample_rate_hz=float(1.0 / prepared.dt_s),
-        input_trim_pwm={k: float(v) + float(delta[j]) * float(prepared.pwm_per_unit)
+        input_trim_pwm={k: float(v) + float(run.delta[j]) * float(prepared.pwm_per_unit)
                         for j, (k, v) in enumerate(prepared.input_trim_pwm.items())},
-        pwm_per_unit=float(prepared.pwm_per_unit),
-        output_trim=dict(prepared.output_trim),
-        parameter_std=std,
-        fit=fit,
+        pwm_per_unit=float(prepared.pwm_per_unit), output_trim=dict(prepared.output_trim), parameter_std=std, fit=fit,
         source={"logs": sorted({s.source for s in segs}),
                 "window_s": [float(min(s.t_s[0] for s in segs)), float(max(s.t_s[-1] for s in segs))],
                 "segments": [[s.source, int(s.flight), float(s.t_s[0]), float(s.t_s[-1])] for s in segs]},
-        pinned=pinned,
+        pinned=list(pinned),
     )

@@ -1,4 +1,6 @@
-"""Population optimisers with one interface: CABC (the paper), plain ABC, a real-coded GA, and DE.
+"""Population optimisers with one interface: CABC (the paper), plain ABC, a real-coded GA, and DE;
+and a multi-start least-squares minimiser (:func:`minimize_lsq`, the same shape plus a residual
+function: the plain output-error reference fit of the held-out benchmark).
 
 ``minimize_X(fun, bounds, *, rng, maxiter, maxfev=None, callback=None, **opts) -> OptimizeResult``
 
@@ -293,6 +295,38 @@ def minimize_de(fun: Fun, bounds, *, rng=None, maxiter: int = 100, maxfev: int |
     out = tr.result(str(res.message))
     out.x = tr.best_x if tr.best_x is not None else res.x
     return out
+
+
+def minimize_lsq(fun: Fun, bounds, *, rng=None, maxiter: int = 100, maxfev: int | None = None, callback=None,
+                 residuals: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], np.ndarray] | None = None,
+                 x0: list[np.ndarray] | None = None, starts: int = 4, start_scale: float = 0.1) -> OptimizeResult:
+    """Multi-start trust-region least squares (scipy ``least_squares``, ``trf``) under the same interface.
+
+    ``residuals(x (D,)) -> (n,)`` is minimised from each start: the given ``x0`` points, then random
+    points uniform in the box of ``start_scale`` times the bounds around their centre, ``starts`` in
+    all; ``jac(x) -> (n, D)`` if given (else 2-point differences). ``maxiter`` bounds the residual
+    evaluations of each start. ``fun`` scores the final point of each start (batch (C, D) -> (C,));
+    the lowest wins. ``history`` is the winner's score after each start.
+    """
+    from scipy.optimize import least_squares
+
+    rng = _rng(rng)
+    b = np.asarray(bounds, dtype=float)
+    lo, hi = b[:, 0], b[:, 1]
+    span = hi - lo
+    pts = [np.asarray(x, dtype=float) for x in (x0 or [])]
+    centre = (lo + hi) / 2
+    while len(pts) < starts:
+        pts.append(centre + (rng.random(lo.size) - 0.5) * span * start_scale)
+    tr = _Tracker(fun, maxfev, callback)
+    for x in pts[:max(starts, len(pts))]:
+        x = np.clip(x, lo + 1e-9 * span, hi - 1e-9 * span)
+        res = least_squares(residuals, x, jac=jac if jac is not None else "2-point", bounds=(lo, hi), method="trf",
+                            x_scale="jac", max_nfev=maxiter)
+        tr(res.x[None])
+        if tr.end_iteration():
+            break
+    return tr.result("stopped by callback" if tr.stopped else "all starts refined")
 
 
 ALGORITHMS: dict[str, Callable[..., OptimizeResult]] = {

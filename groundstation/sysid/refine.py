@@ -30,8 +30,23 @@ def _fd_step(x: np.ndarray, span: np.ndarray) -> np.ndarray:
 
 
 def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: int = 2, max_nfev: int = 60,
-           with_std: bool = True) -> OptimizeResult:
+           with_std: bool = True, prior: tuple[np.ndarray, np.ndarray] | None = None,
+           weighting: str = "noise") -> OptimizeResult:
     """Levenberg-Marquardt-like trust-region refinement from ``x0`` (free parameters, (D,)).
+
+    ``prior`` = (nominal (D,), std (D,)): output error with a priori weighting (Morelli & Klein
+    ch. 7, a MAP fit): the residual vector gains the rows ``(x - nominal) / std``, and each channel's
+    data rows are weighted by its noise AND its residual colour (``sigma_ch sqrt(tau_ch)``,
+    ``tau_ch`` the integrated autocorrelation of the residual in samples), so that a flight counts
+    as many independent samples as it holds, not as many as were logged - otherwise ten thousand
+    correlated samples would swamp any prior. The reported ``std`` is then the posterior one,
+    ``(I_data + diag(1/std^2))^-1`` with ``I_data`` the inverse of the colour-corrected data
+    covariance, and ``prior_share`` (D,) how much of the parameter's information is the prior's.
+
+    ``weighting``: "noise" weights each channel by its residual RMS (maximum likelihood when the residual
+    is measurement noise); "signal" by the spread of the measured signal (the paper's eq. 11), with one
+    common level from the residuals: when model error, not noise, makes the residual, ML weighting
+    gives up the channels the model fits worst, and those are then not predicted at all.
 
     Returns an OptimizeResult with ``x``, ``fun`` (eq. 11 cost), ``sigma`` (8,) channel noise
     scales, ``std`` (D,) standard errors, ``nfev`` (candidate evaluations) and ``jac`` (n_res, D).
@@ -41,13 +56,15 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
     span = hi - lo
     x = np.clip(np.asarray(x0, dtype=float), lo + 1e-9 * span, hi - 1e-9 * span)
     nfev0 = cost.nfev
-    sigma = _sigma(cost, x)
+    sigma = _sigma(cost, x, weighting)
+    pm, ps = (None, None) if prior is None else (np.asarray(prior[0], dtype=float), np.asarray(prior[1], dtype=float))
     res = None
     for _ in range(passes):
-        sig = sigma
+        sig = sigma if prior is None else sigma * np.sqrt(residual_tau(cost.residuals(x[None], sigma)[0], cost.used))
 
         def fun(xx: np.ndarray, sig=sig) -> np.ndarray:
-            return cost.residuals(xx[None], sig)[0].ravel()
+            r = cost.residuals(xx[None], sig)[0].ravel()
+            return r if pm is None else np.concatenate([r, (xx - pm) / ps])
 
         def jac(xx: np.ndarray, sig=sig) -> np.ndarray:
             h = _fd_step(xx, span)
@@ -55,30 +72,76 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
             h = np.where(xx + h > hi, -h, h)
             X = np.vstack([xx[None], xx[None] + np.diag(h)])
             R = cost.residuals(X, sig).reshape(X.shape[0], -1)
-            return ((R[1:] - R[0]) / h[:, None]).T
+            J = ((R[1:] - R[0]) / h[:, None]).T
+            return J if ps is None else np.vstack([J, np.diag(1.0 / ps)])
 
         res = least_squares(fun, x, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac", max_nfev=max_nfev,
                             ftol=1e-10, xtol=1e-10, gtol=1e-10)
         x = res.x
-        sigma = _sigma(cost, x)
+        sigma = _sigma(cost, x, weighting)
     assert res is not None
     J = None
     std = np.full(x.size, np.nan)
+    share = np.zeros(x.size)
     if with_std:
         J = jac_final(cost, x, sigma, span, hi)
         r = cost.residuals(x[None], sigma)[0]
-        std = coloured_std(J, r)
+        if ps is None:
+            std = coloured_std(J, r)
+        else:
+            std, share = posterior_std(coloured_cov(J, r), ps)
     F = float(cost(x[None])[0])
+    map_cost = float(res.cost)
     return OptimizeResult(x=x, fun=F, sigma=sigma, std=std, nfev=cost.nfev - nfev0, jac=J, success=bool(res.success),
-                          message=str(res.message), nit=int(res.nfev))
+                          message=str(res.message), nit=int(res.nfev), prior_share=share, map_cost=map_cost)
 
 
-def _sigma(cost: WindowedCost, x: np.ndarray) -> np.ndarray:
-    """Per-channel RMS of the output error over used samples (8,); unused channels 1."""
+def residual_tau(r: np.ndarray, used: np.ndarray, max_lag: int = 60) -> np.ndarray:
+    """Integrated autocorrelation time (samples, >= 1) of each channel's residual within windows, (8,).
+
+    r (W, L, n_used) residuals; channels not used get 1. Bartlett-tapered sum of the
+    autocorrelation over lags 1..max_lag: the number of logged samples one independent sample is worth.
+    """
+    W, L, nch = r.shape
+    K = min(max_lag, L - 1)
+    r0 = (r * r).sum(axis=(0, 1))
+    acc = np.zeros(nch)
+    for k in range(1, K + 1):
+        acc += (1.0 - k / (K + 1)) * (r[:, : L - k] * r[:, k:]).sum(axis=(0, 1))
+    tau_used = np.clip(1.0 + 2.0 * acc / np.maximum(r0, 1e-300), 1.0, float(L))
+    tau = np.ones(8)
+    tau[np.flatnonzero(used)] = tau_used
+    return tau
+
+
+def posterior_std(cov_data: np.ndarray, prior_std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior standard errors and the prior's share of the information per parameter.
+
+    ``cov_data`` (D, D) the data-only covariance, ``prior_std`` (D,). Share = prior information /
+    posterior information on the diagonal (0: the flight determines it, 1: only the prior does).
+    """
+    info_data = np.linalg.pinv(cov_data)
+    info_prior = np.diag(1.0 / np.asarray(prior_std, dtype=float) ** 2)
+    cov = np.linalg.pinv(info_data + info_prior)
+    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    share = np.clip(std ** 2 / np.asarray(prior_std, dtype=float) ** 2, 0.0, 1.0)
+    return std, share
+
+
+def _sigma(cost: WindowedCost, x: np.ndarray, weighting: str = "noise") -> np.ndarray:
+    """Per-channel residual scale (8,); unused channels 1. "noise": the RMS of the output error over
+    used samples; "signal": the channel's signal spread (eq. 11) times one common factor that makes
+    the weighted residual RMS one."""
     sse = cost.sim.sse(cost.full(x[None]))[0]
     n = cost.sim.mask.sum(axis=0) * cost.sim.L
-    s = np.sqrt(sse / np.maximum(n, 1))
-    return np.where((n > 0) & (s > 0), s, 1.0)
+    ok = n > 0
+    if weighting == "signal":
+        rel = cost.sim.scales / np.sqrt(np.maximum(n, 1))  # RMS of each channel's signal about its mean
+        level = np.sqrt(np.sum(sse[ok] / rel[ok] ** 2) / max(float(n[ok].sum()), 1.0)) if ok.any() else 1.0
+        s = rel * level
+    else:
+        s = np.sqrt(sse / np.maximum(n, 1))
+    return np.where(ok & (s > 0), s, 1.0)
 
 
 def jac_final(cost: WindowedCost, x: np.ndarray, sigma: np.ndarray, span: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -90,8 +153,21 @@ def jac_final(cost: WindowedCost, x: np.ndarray, sigma: np.ndarray, span: np.nda
     return ((R[:D] - R[D:]) / (2 * h[:, None])).T
 
 
+def coloured_cov(J: np.ndarray, r: np.ndarray, max_lag: int = 60) -> np.ndarray:
+    """Data covariance (D, D): the residual-colour-corrected sandwich with its diagonal raised to the
+    window-clustered one where that is larger (the standard errors of :func:`coloured_std`)."""
+    cov, s_col, s_max = _sandwiches(J, r, max_lag)
+    scale = np.where(s_col > 0, s_max / np.maximum(s_col, 1e-300), 1.0)
+    return cov * scale[:, None] * scale[None, :]
+
+
 def coloured_std(J: np.ndarray, r: np.ndarray, max_lag: int = 60) -> np.ndarray:
-    """Standard errors: max of the residual-colour-corrected and the window-clustered sandwich.
+    """Standard errors: max of the residual-colour-corrected and the window-clustered sandwich."""
+    return _sandwiches(J, r, max_lag)[2]
+
+
+def _sandwiches(J: np.ndarray, r: np.ndarray, max_lag: int = 60) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(colour-corrected covariance, its standard errors, max of those and the clustered ones).
 
     Parameters
     ----------
@@ -122,4 +198,4 @@ def coloured_std(J: np.ndarray, r: np.ndarray, max_lag: int = 60) -> np.ndarray:
     g = np.einsum("wkd,wk->wd", J.reshape(W, L * nch, D), r.reshape(W, L * nch))
     Mc = g.T @ g * W / max(W - 1, 1)
     s_cluster = np.sqrt(np.maximum(np.diag(Hinv @ Mc @ Hinv), 0.0))
-    return np.maximum(s_coloured, s_cluster)
+    return cov, s_coloured, np.maximum(s_coloured, s_cluster)

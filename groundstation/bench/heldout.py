@@ -1,0 +1,162 @@
+"""``groundstation bench heldout LOG... [--aircraft FILE] [--folds 5] [--train-first-s 60]``.
+
+Held-out prediction on a real flight, the figure that says whether a model predicts the aircraft:
+
+* ``--folds k`` contiguous blocks of the in-air time (train on k-1 blocks, predict the left-out
+  one), and a "train on the first ``--train-first-s`` seconds, predict the rest" split;
+* for each split, (a) the project's identification (``identify`` with the aircraft file's prior)
+  and (b) the plain output-error reference (multi-start least squares of the same structure, no
+  prior, :mod:`groundstation.sysid.reference`): the floor to beat;
+* scored by eq. 19 on ``--window-s`` windows started from the measured states (unmeasured states
+  by least squares over the window, inputs against the model's trim: :mod:`groundstation.sysid.heldout`),
+  per channel and the mean over the channels measured in the held-out part, with any unstable
+  mode of either model.
+
+Prints a table per split and the overall figures (mean over folds); ``--json`` writes them too.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+HELP = "held-out prediction on real flights: project identification vs a plain least-squares reference, k-fold"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("logs", nargs="+", type=Path, help="flight logs (.tlog / .bin / .px4log)")
+    parser.add_argument("--aircraft", type=Path, default=None, help="aircraft TOML (channel map, outputs, prior)")
+    parser.add_argument("--folds", type=int, default=5, help="contiguous blocks of the in-air time (0 = none)")
+    parser.add_argument("--train-first-s", type=float, default=60.0, help="also train on the first S s (0 = no)")
+    parser.add_argument("--window-s", type=float, default=5.0, help="prediction window, s")
+    parser.add_argument("--reference-starts", type=int, default=4, help="starts of the least-squares reference")
+    parser.add_argument("--no-reference", action="store_true", help="score only the project's identification")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", type=Path, default=None, help="write the figures here")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override an IdentifyConfig field of the project's identification (repeatable)")
+
+
+def _identify_config(pairs: list[str]) -> Any:
+    import dataclasses
+
+    from groundstation.sysid.identify import IdentifyConfig
+
+    kw: dict[str, Any] = {}
+    fields = {f.name: f for f in dataclasses.fields(IdentifyConfig)}
+    for p in pairs:
+        k, _, v = p.partition("=")
+        if k not in fields:
+            raise ValueError(f"--set {p}: unknown IdentifyConfig field {k!r}")
+        kw[k] = json.loads(v) if v not in ("", "none") else None
+    return IdentifyConfig(**kw)
+
+
+def _splits(prepared: Any, args: argparse.Namespace) -> list[tuple[str, Any, Any]]:
+    from groundstation.dsp.split import contiguous_kfold, train_first
+
+    out = []
+    if args.train_first_s > 0:
+        tr, va = train_first(prepared, args.train_first_s)
+        out.append((f"first {args.train_first_s:g} s", tr, va))
+    if args.folds >= 2:
+        out += [(f"fold {f + 1}/{args.folds}", tr, va) for f, (tr, va) in enumerate(contiguous_kfold(prepared, args.folds))]
+    return out
+
+
+def _score(model: Any, val: Any, window_s: float) -> dict[str, Any]:
+    from groundstation.sysid.heldout import predict, runaway_channels, unstable_modes
+
+    p = predict(model, val, window_s=window_s)
+    return {"match": p.match, "mean": p.mean_match, "runaway": runaway_channels(p),
+            "unstable": [m.describe() for m in unstable_modes(model.theta)]}
+
+
+def run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from groundstation.config import ServiceConfig
+    from groundstation.pipeline import load_aircraft, prepare_logs
+    from groundstation.sysid.identify import identify
+    from groundstation.sysid.reference import fit_reference
+
+    con = Console()
+    aircraft = load_aircraft(args.aircraft)
+    id_cfg = _identify_config(args.set)
+    prepared = prepare_logs(args.logs, ServiceConfig(), aircraft=aircraft)
+    results: list[dict[str, Any]] = []
+    for name, train, val in _splits(prepared, args):
+        row: dict[str, Any] = {"split": name, "train_s": train.duration_s, "val_s": val.duration_s}
+        t0 = time.perf_counter()
+        model = identify(train, seed=args.seed, prior=aircraft.prior if aircraft else None, config=id_cfg)
+        row["project"] = _score(model, val, args.window_s) | {"seconds": time.perf_counter() - t0}
+        if not args.no_reference:
+            t0 = time.perf_counter()
+            ref = fit_reference(train, starts=args.reference_starts, seed=args.seed, window_s=args.window_s)
+            row["reference"] = _score(ref, val, args.window_s) | {"seconds": time.perf_counter() - t0}
+        results.append(row)
+        _print_split(con, row)
+    summary = _summary(results)
+    _print_summary(con, summary)
+    if args.json is not None:
+        args.json.write_text(json.dumps({"splits": results, "summary": summary}, indent=1, default=float))
+    return 0
+
+
+def _print_split(con: Any, row: dict[str, Any]) -> None:
+    from rich.table import Table
+
+    kinds = [k for k in ("project", "reference") if k in row]
+    chans = list(row["project"]["match"])
+    t = Table(title=f"{row['split']}: train {row['train_s']:.0f} s, predict {row['val_s']:.0f} s (match %, eq. 19)")
+    t.add_column("model")
+    for c in chans + ["mean", "s"]:
+        t.add_column(c, justify="right")
+    for k in kinds:
+        r = row[k]
+        t.add_row(k, *[f"{r['match'].get(c, float('nan')):.1f}" for c in chans], f"{r['mean']:.1f}", f"{r['seconds']:.0f}")
+    con.print(t)
+    for k in kinds:
+        for u in row[k]["unstable"]:
+            con.print(f"  {k}: {u}")
+        if row[k]["runaway"]:
+            con.print(f"  {k}: prediction runs away on {', '.join(row[k]['runaway'])}")
+
+
+def _summary(results: list[dict[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    folds = [r for r in results if r["split"].startswith("fold")]
+    for k in ("project", "reference"):
+        if not results or k not in results[0]:
+            continue
+        s: dict[str, Any] = {}
+        if folds:
+            s["folds_mean"] = float(np.mean([r[k]["mean"] for r in folds]))
+            chans = sorted({c for r in folds for c in r[k]["match"]})
+            s["folds_channel_mean"] = {c: float(np.mean([r[k]["match"][c] for r in folds if c in r[k]["match"]]))
+                                       for c in chans}
+            s["folds_min_channel"] = float(min(min(r[k]["match"].values()) for r in folds))
+        first = [r for r in results if r["split"].startswith("first")]
+        if first:
+            s["train_first_mean"] = first[0][k]["mean"]
+        s["unstable_splits"] = sum(bool(r[k]["unstable"]) for r in results)
+        out[k] = s
+    return out
+
+
+def _print_summary(con: Any, summary: dict[str, Any]) -> None:
+    for k, s in summary.items():
+        parts = []
+        if "folds_mean" in s:
+            chan = ", ".join(f"{c} {v:.1f}" for c, v in s["folds_channel_mean"].items())
+            parts.append(f"k-fold held-out mean match {s['folds_mean']:.1f} % (per channel: {chan}; "
+                         f"lowest channel in any fold {s['folds_min_channel']:.1f} %)")
+        if "train_first_mean" in s:
+            parts.append(f"train-first split {s['train_first_mean']:.1f} %")
+        parts.append(f"splits with an unstable mode: {s['unstable_splits']}")
+        con.print(f"[bold]{k}[/]: " + "; ".join(parts))
