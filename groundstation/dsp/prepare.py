@@ -5,13 +5,20 @@ What it does, per log (:class:`firmware_interface.samples.LogData`):
 1. flights = armed intervals (``LogData.flights``); in-air from EXTENDED_SYS_STATE landed_state,
    else altitude above the take-off point; the first/last ``edge_trim_s`` of each in-air interval
    are dropped (take-off and landing transients are not hover);
+   where only height says "in the air", rotor vibration (accelerometers) or body motion (rates) must
+   agree (:func:`airborne_evidence`): a barometer drifts, and a ground run with the rotor stopped is
+   reported as one ("never left the ground") and nothing is identified from it;
 2. every needed series is interpolated linearly onto a uniform grid at ``rate_hz`` on the FC clock;
    gaps no longer than ``max(max_gap_s, gap_factor * native interval)`` are bridged, longer gaps
    split the segment; segments shorter than ``min_segment_s`` are dropped;
 3. body velocities u v w from LOCAL_POSITION_NED vx vy vz rotated by roll/pitch/yaw
    (GLOBAL_POSITION_INT as fallback); where velocities are missing for long stretches the
    segment is split into a part with and a part without velocity channels (``available``);
-4. inputs ``delta = (pwm - trim) / pwm_per_unit`` (trim = median in-air PWM unless configured);
+   horizontal velocities without the vertical one still give u and v (w unmeasured);
+   ``measured_outputs`` (the aircraft file's) drops channels the aircraft does not log;
+4. inputs ``delta = (pwm - trim) / pwm_per_unit`` (trim = median in-air PWM unless configured) from
+   servo outputs or RC inputs, or unmixed from three swashplate servos (``swash_phase_deg``); when
+   none of the configured inputs moves, the error names the channels of the log that do;
    output trims: theta, phi and u v w = in-air median (attitude and velocity sensors carry offsets:
    the real TREX 550 log reads 4.5 m/s down velocity on the ground), p q r = 0 (a steady hover has
    zero body rates; a gyro offset is an unmodelled effect for the diagnosis, not a trim);
@@ -337,8 +344,18 @@ def moving_channels(log: Any, min_std: float) -> list[str]:
     return out
 
 
+def _land_detector(log: Any, flight: Any) -> bool:
+    """The FC's land detector (EXTENDED_SYS_STATE landed_state) speaks for this flight."""
+    if not log.has("EXTENDED_SYS_STATE"):
+        return False
+    s = log.series["EXTENDED_SYS_STATE"]
+    sel = (s.t_fc_s >= float(flight.start_fc_s)) & (s.t_fc_s <= float(flight.end_fc_s))
+    return bool(np.any(np.asarray(s["landed_state"])[sel] > 0))
+
+
 def airborne_evidence(log: Any, a: float, b: float, cfg: PrepConfig) -> tuple[bool, str]:
-    """Whether the aircraft flew in [a, b] by evidence other than height: rotor vibration on the
+    """Whether the aircraft flew in [a, b] by evidence other than height (asked where no land detector
+    speaks, i.e. the in-air time comes from height alone): rotor vibration on the
     accelerometers (std of the specific force after removing a 0.5-s running mean, above
     ``airborne_vibration_m_s2``) or body motion (std of the body rates above ``airborne_rate_rad_s``).
     Returns (flying, one-line evidence). Without IMU and rates the answer is yes (nothing to contradict)."""
@@ -414,7 +431,7 @@ def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str]) -> list[_Raw]:
             a2, b2 = a + cfg.edge_trim_s, b - cfg.edge_trim_s
             if b2 - a2 < cfg.min_segment_s:
                 continue
-            flying, evidence = airborne_evidence(log, a2, b2, cfg)
+            flying, evidence = (True, "") if _land_detector(log, fl) else airborne_evidence(log, a2, b2, cfg)
             if not flying:
                 ground.append(f"{a2:.0f}-{b2:.0f} s ({evidence})")
                 continue
@@ -434,8 +451,8 @@ def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str]) -> list[_Raw]:
                 out.append(_Raw(t_s=t[sl], pwm=pwm[sl], outputs=outputs, alt_m=alt_g[sl], available=avail,
                                 flight=int(fl.index), source=src, native_s=native_s))
     if n_air == 0 and ground:
-        raise ValueError(f"{src}: the aircraft never left the ground, nothing to identify: in-air time by the "
-                         f"land detector or height, but no rotor vibration and no body motion: {'; '.join(ground)}")
+        raise ValueError(f"{src}: the aircraft never left the ground, nothing to identify: in-air time from "
+                         f"height alone, but no rotor vibration and no body motion: {'; '.join(ground)}")
     for g in ground:
         notes.append(f"{src}: {g}: on the ground by rotor and motion evidence, left out")
     if n_air == 0:

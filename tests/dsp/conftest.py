@@ -34,7 +34,8 @@ def make_log(duration_s: float = 60.0, *, seed: int = 0, servo_rate_hz: float = 
         series["ATTITUDE"] = make_series(
             "ATTITUDE", ta, roll_rad=0.02 + 0.01 * np.sin(ta), pitch_rad=-0.03 + 0.01 * np.cos(ta),
             yaw_rad=np.full(ta.size, yaw_rad), p_rad_s=0.01 * np.cos(ta), q_rad_s=-0.01 * np.sin(ta),
-            r_rad_s=np.zeros(ta.size))
+            r_rad_s=0.06 * np.sin(2.3 * ta))  # yaw corrections: a flying aircraft moves (prepare asks for
+        # body motion or rotor vibration where only height says "in the air")
     tp = np.arange(0.0, duration_s, 1 / pos_rate_hz) + 0.005
     vx = np.full(tp.size, vel_ned[0])
     vy = np.full(tp.size, vel_ned[1])
