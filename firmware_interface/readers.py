@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from firmware_interface.dfcolumns import dataflash_series, open_indexed, parsed_end
 from firmware_interface.errors import LogError
 from firmware_interface.samples import (
     SERIES_FIELDS,
@@ -307,16 +308,52 @@ def _in_air(series: dict[str, Series], lo: float, hi: float, height_m: float
 
 
 def load_dataflash(path: str | os.PathLike[str]) -> LogData:
-    """ArduPilot .bin / PX4 sdlog2 .px4log through pymavlink's DFReader, mapped to MAVLink series."""
-    from pymavlink import DFReader
+    """ArduPilot .bin / PX4 sdlog2 .px4log through pymavlink's DFReader, mapped to MAVLink series.
 
+    DFReader indexes the file and reads its formats; an ArduPilot log (TimeUS on every record) is
+    then decoded a whole record type at a time (:mod:`firmware_interface.dfcolumns`), anything else
+    one DFReader message at a time."""
     p = Path(path)
     noise = io.StringIO()  # DFReader prints damaged records to stdout; keep stdout clean (JSON)
     try:
         with contextlib.redirect_stdout(noise):
-            log = DFReader.DFReader_binary(str(p), zero_time_base=False)
+            log = open_indexed(str(p))
     except Exception as exc:  # DFReader raises bare exceptions on malformed files
         raise LogError(f"{p}: not a readable dataflash log ({type(exc).__name__}: {exc})") from None
+    with contextlib.redirect_stdout(noise):
+        fast = dataflash_series(log)
+    if fast is not None:  # ArduPilot log: every record of a type at once
+        series = {name: Series(tt, tt.copy(), dict(zip(SERIES_FIELDS[name], vals, strict=True)))
+                  for name, (tt, vals) in fast["series"].items() if len(tt)}
+        counts = {log.id_to_name.get(k, str(k)) if k != 0x80 else "FMT": len(o)
+                  for k, o in enumerate(log.offsets) if len(o)}
+        rates = fast["rates"]
+        sids = fast["sids"]
+        tail = max(0, int(log.data_len) - parsed_end(log))
+        px4 = False
+    else:
+        series, counts, rates, sids, px4 = _read_df_records(log, noise)
+        tail = _dataflash_tail_bytes(log)
+    if "ATTITUDE" in series and not px4 and rates is not None and len(rates[0]):
+        att = series["ATTITUDE"]
+        for k, c in enumerate(("p_rad_s", "q_rad_s", "r_rad_s")):
+            att.columns[c][:] = np.interp(att.t_fc_s, rates[0], rates[k + 1])
+    if not series:
+        raise LogError(f"{p}: dataflash log holds none of ATT, RCOU, IMU, GPS, XKF1/NKF1, POS, OUT0, LPOS")
+    stats = LinkStats(packets=sum(counts.values()))
+    stats.truncated_tail_bytes = tail
+    out = _finish(str(p), series, counts, stats)
+    if tail:
+        out.notes.append(f"{p}: the log ends inside a record (last {tail} bytes not a whole record); "
+                         "everything before it was read")
+    out.chirps.extend(chirp_segments(sids, series.get("SYSID")))
+    return out
+
+
+def _read_df_records(log: Any, noise: io.StringIO) -> tuple[dict[str, Series], dict[str, int], Any, list, bool]:
+    """The per-record path (PX4 sdlog2 logs timed by TIME records): one DFReader message at a time."""
+    with contextlib.redirect_stdout(noise):
+        log.ensure_clock()
     cols: dict[str, list[tuple[float, ...]]] = {}
     tms: dict[str, list[tuple[float, float]]] = {}
     counts: dict[str, int] = {}
@@ -340,24 +377,9 @@ def load_dataflash(path: str | os.PathLike[str]) -> LogData:
         vals = np.asarray(rows, dtype=float)
         tt = np.asarray(tms[name], dtype=float)
         series[name] = Series(tt[:, 0], tt[:, 1], {f: vals[:, k] for k, f in enumerate(SERIES_FIELDS[name])})
-    if "ATTITUDE" in series and not px4:
-        src = rate or gyro
-        att = series["ATTITUDE"]
-        if src:
-            r = np.asarray(src, dtype=float)
-            for k, c in enumerate(("p_rad_s", "q_rad_s", "r_rad_s")):
-                att.columns[c][:] = np.interp(att.t_fc_s, r[:, 0], r[:, k + 1])
-    if not series:
-        raise LogError(f"{p}: dataflash log holds none of ATT, RCOU, IMU, GPS, XKF1/NKF1, POS, OUT0, LPOS")
-    stats = LinkStats(packets=sum(counts.values()))
-    tail = _dataflash_tail_bytes(log)
-    stats.truncated_tail_bytes = tail
-    out = _finish(str(p), series, counts, stats)
-    if tail:
-        out.notes.append(f"{p}: the log ends inside a record (last {tail} bytes not a whole record); "
-                         "everything before it was read")
-    out.chirps.extend(chirp_segments(sids, series.get("SYSID")))
-    return out
+    src = rate or gyro
+    rates = tuple(np.asarray(src, dtype=float).T) if src else None
+    return series, counts, rates, sids, px4
 
 
 def _dataflash_tail_bytes(log: Any) -> int:
