@@ -1,0 +1,152 @@
+"""``groundstation bench freq [--seeds 3] [--duration-s 150] [--source linear|sim|both] [--skip-identify]``.
+
+Frequency-domain figures on simulated flights with known truth:
+
+1. the measured responses against the TRUE model's analytic ones: the share of coherent points
+   inside their 95 % random-error bound, and the true model's J_avg (per flight, and the median);
+2. the CPU time of the whole analysis (composite spectra of every excited pair with the three
+   window lengths, the truth's J, delays and bandwidths), median of repeats, BLAS on one thread;
+3. a 100 ms transport delay on the lon input after the log: the delay recovered from the phase
+   slope of the data against the delay-free truth;
+4. frequency-domain identification (CABC + refinement): the 8 key parameters' errors against truth.
+
+Flights: ``linear`` = the eq.-8 model under a state-feedback pilot (:mod:`groundstation.sysid.synthetic`;
+the delay is a shift of the logged input), ``sim`` = the team's nonlinear simulator
+(``hil_replay.sim.write_tlog``, read back through the ordinary .tlog reader; the delay is its
+``input_delay`` effect).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+HELP = "frequency-domain benchmark: responses vs truth, true-model J, delay from phase slope, speed, identification"
+
+KEY = ("M_a", "L_b", "inv_tau_s", "A_lat", "B_lon", "Z_col", "N_ped", "N_r")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--seeds", type=int, default=3, help="flights per source")
+    parser.add_argument("--duration-s", type=float, default=150.0)
+    parser.add_argument("--source", choices=("linear", "sim", "both"), default="both")
+    parser.add_argument("--repeats", type=int, default=5, help="timing repeats")
+    parser.add_argument("--skip-identify", action="store_true")
+    parser.add_argument("--algorithm", default="cabc")
+
+
+def _linear(seed: int, duration_s: float, delay_s: float = 0.0) -> tuple[Any, dict[str, float]]:
+    from groundstation.dsp.prepare import prepared_from_arrays
+    from groundstation.sysid.model import theta_from_dict
+    from groundstation.sysid.synthetic import EXAMPLE_TRUTH, simulate_flight
+
+    dt = 0.02
+    d = int(round(delay_s / dt))
+    n = int(round(duration_s / dt))
+    u, _, ym = simulate_flight(theta_from_dict(EXAMPLE_TRUTH), duration_s + (d + 1) * dt, dt, seed=seed)
+    logged = u.copy()
+    if d:
+        logged[: u.shape[0] - d, 1] = u[d:, 1]  # the aircraft receives lon d samples after the log
+    return prepared_from_arrays(logged[:n], ym[:n], dt, source=f"linear seed {seed}"), dict(EXAMPLE_TRUTH)
+
+
+def _sim(seed: int, duration_s: float, tmp: Path, delay_s: float = 0.0) -> tuple[Any, dict[str, float]]:
+    from firmware_interface.readers import load_log
+    from groundstation.commands.freq_support import prepare_native
+    from groundstation.dsp.prepare import PrepConfig
+    from hil_replay.sim import write_tlog
+
+    path = tmp / f"sim{seed}_{int(delay_s * 1000)}.tlog"
+    effects = (f"input_delay:input=lon,delay_s={delay_s}",) if delay_s else ()
+    truth = write_tlog(path, seed=seed, flights=1, effects=effects, aircraft=None, flight_duration_s=duration_s)
+    if truth is None:
+        truth = json.loads(path.with_suffix(".truth.json").read_text())
+    return prepare_native([load_log(path)], PrepConfig()), dict(truth["parameters"])
+
+
+def _agreement(rs: Any, theta: np.ndarray) -> tuple[float, int]:
+    from groundstation.freq.metrics import Z95_COMPLEX
+    from groundstation.freq.model_response import model_response
+    from groundstation.sysid.model import INPUTS, OUTPUTS
+
+    G = model_response(theta, rs.f_hz, dt_s=rs.dt_s)
+    inside = total = 0
+    for p in rs.with_response:
+        g = G[:, OUTPUTS.index(p.output), INPUTS.index(p.input)]
+        if not np.any(g != 0):
+            continue
+        z = np.abs(g - p.response) / (p.random_error * np.abs(p.response))
+        inside += int((z[p.coherent] <= Z95_COMPLEX).sum())
+        total += p.coherent_points
+    return inside / max(total, 1), total
+
+
+def _timing(prepared: Any, theta: np.ndarray, repeats: int) -> float:
+    from threadpoolctl import threadpool_limits
+
+    from groundstation.freq.spectra import estimate_responses
+    from groundstation.freq.verify import verify
+
+    cpu = []
+    with threadpool_limits(1):
+        for _ in range(repeats):
+            c0 = time.process_time()
+            verify(theta, estimate_responses(prepared))
+            cpu.append(time.process_time() - c0)
+    return float(np.median(cpu))
+
+
+def run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from groundstation.freq.identify import identify_frequency
+    from groundstation.freq.spectra import estimate_responses
+    from groundstation.freq.verify import verify
+    from groundstation.sysid.model import theta_from_dict
+
+    con = Console()
+    sources = ("linear", "sim") if args.source == "both" else (args.source,)
+    with tempfile.TemporaryDirectory() as td:
+        tmp = Path(td)
+        for src in sources:
+            con.print(f"[bold]{src} flights[/], {args.duration_s:g} s, seeds 1..{args.seeds}")
+            inside, J_true, delays, key_ok, worst = [], [], [], [], []
+            for seed in range(1, args.seeds + 1):
+                prep, truth = _linear(seed, args.duration_s) if src == "linear" else _sim(seed, args.duration_s, tmp)
+                th = theta_from_dict(truth)
+                rs = estimate_responses(prep)
+                frac, n = _agreement(rs, th)
+                v = verify(th, rs)
+                inside.append(frac)
+                J_true.append(v.J_avg if v.J_avg is not None else np.nan)
+                line = (f"  seed {seed}: {1 / rs.dt_s:.0f} Hz, {len(v.pairs)} pairs, {n} coherent points, "
+                        f"{100 * frac:.1f} % inside the 95 % bound, true-model J_avg {J_true[-1]:.1f}")
+                if seed == 1:
+                    line += f", analysis {_timing(prep, th, args.repeats):.2f} s CPU (median of {args.repeats})"
+                con.print(line)
+                dprep, _ = (_linear(seed, args.duration_s, 0.1) if src == "linear"
+                            else _sim(seed, args.duration_s, tmp, 0.1))
+                dv = verify(th, estimate_responses(dprep))
+                d = dv.input_delays.get("lon")
+                delays.append(np.nan if d is None else d.delay_s)
+                con.print(f"    100 ms lon delay: {1000 * delays[-1]:.1f} ms from the phase slope")
+                if not args.skip_identify:
+                    m = identify_frequency(rs, prep, algorithm=args.algorithm, seed=seed)
+                    err = {k: 100 * (m.params[k] - truth[k]) / abs(truth[k]) for k in KEY}
+                    key_ok.append(sum(abs(e) <= 10 for e in err.values()))
+                    w = max(err, key=lambda k: abs(err[k]))
+                    worst.append(f"{w} {err[w]:+.1f} %")
+                    con.print(f"    frequency-domain identification: {key_ok[-1]}/8 key parameters within 10 % "
+                              f"(worst {worst[-1]}), J_avg {verify(m.theta, rs).J_avg:.1f}")
+            con.print(f"  median: {100 * np.median(inside):.1f} % inside the bound (min {100 * np.min(inside):.1f} %), "
+                      f"true-model J_avg {np.nanmedian(J_true):.1f} (max {np.nanmax(J_true):.1f}), "
+                      f"delay error {1000 * np.nanmedian(np.abs(np.array(delays) - 0.1)):.1f} ms "
+                      f"(max {1000 * np.nanmax(np.abs(np.array(delays) - 0.1)):.1f} ms)"
+                      + (f", key parameters within 10 %: {', '.join(f'{k}/8' for k in key_ok)}" if key_ok else ""))
+    return 0
