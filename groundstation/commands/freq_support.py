@@ -44,11 +44,12 @@ def j_table(v: Any, title: str):
     from rich.table import Table
 
     t = Table(title=title)
-    for c in ("input", "output", "J", "", "coherent pts", "band Hz", "delay ms", "outside 95 % bound"):
+    for c in ("input", "output", "J", "", "coherent pts", "band Hz", "delay ms", "model outside the 95 % bound"):
         t.add_column(c, justify="right")
     for p in v.pairs:
-        dev = ", ".join(f"{b.f_lo_hz:.2g}-{b.f_hi_hz:.2g} Hz ({b.magnitude_db:+.1f} dB, {b.phase_deg:+.0f} deg)"
-                        for b in p.deviations[:3])
+        worst = max(p.deviations, key=lambda b: b.max_ratio, default=None)
+        dev = "" if worst is None else (f"{len(p.deviations)} band(s); worst {worst.f_lo_hz:.2g}-{worst.f_hi_hz:.2g} Hz "
+                                        f"{worst.magnitude_db:+.1f} dB {worst.phase_deg:+.0f} deg")
         t.add_row(p.input, p.output, f"{p.J:.1f}", "pass" if p.passed else "[red]FAIL[/]", str(p.coherent_points),
                   f"{p.f_lo_hz:.2g}-{p.f_hi_hz:.2g}", "-" if p.delay_s is None else f"{p.delay_s * 1000:+.0f}", dev)
     ja = v.J_avg
