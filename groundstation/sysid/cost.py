@@ -4,7 +4,8 @@
 a window are dropped). :class:`WindowedCost` maps a batch of free-parameter vectors ``(C, D)`` onto
 full 31-parameter vectors (fixed parameters keep their value), simulates all windows
 (:class:`~groundstation.sysid.simulate.WindowSimulator`) and returns the paper's eq. 11 cost (C,),
-counting evaluations. ``residuals`` gives the per-channel normalised residual vector used by the
+counting evaluations; candidates are simulated in batches of bounded memory, so the cost of a
+colony grows with the windows and nothing else. ``residuals`` gives the per-channel normalised residual vector used by the
 local refinement. Which parameters are free is decided in :mod:`groundstation.sysid.identify`.
 """
 
@@ -24,6 +25,9 @@ LINEAR_B: dict[str, tuple[int, int, int]] = {
     "L_lat": (0, 5, 0), "L_lon": (0, 5, 1), "A_lat": (0, 6, 0), "B_lon": (0, 7, 1),
     "Z_col": (1, 0, 0), "Z_ped": (1, 0, 1), "N_col": (1, 1, 0),
 }
+
+#: simulator work memory per batch of candidates (see :attr:`WindowedCost.chunk`)
+CANDIDATE_CHUNK_BYTES = 64e6
 
 
 @dataclass(frozen=True, eq=False)
@@ -130,19 +134,30 @@ class WindowedCost:
         th[:, self.free] = xx
         return th
 
+    @property
+    def chunk(self) -> int:
+        """Candidates simulated per batch: about :data:`CANDIDATE_CHUNK_BYTES` of the simulator's lifted
+        work arrays (~600 bytes per candidate per window sample), so memory stays bounded however
+        many windows the data hold and a batch still amortises the per-call overhead."""
+        return max(1, int(CANDIDATE_CHUNK_BYTES // (600 * self.sim.W * self.sim.L)))
+
     def complete(self, x: np.ndarray) -> np.ndarray:
         """Full parameter vectors (C, 31) including the least-squares B entries (varpro)."""
         th = self.full(x)
         if self.linear_idx:
-            beta = self.sim.solve_linear(th)
-            for sub, idx in self.linear_idx.items():
-                th[:, idx] = beta[sub]
+            for c0 in range(0, th.shape[0], self.chunk):
+                beta = self.sim.solve_linear(th[c0:c0 + self.chunk])
+                for sub, idx in self.linear_idx.items():
+                    th[c0:c0 + self.chunk, idx] = beta[sub]
         return th
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         th = self.full(x)
         self.nfev += th.shape[0]
-        return objective_from_sse(self.sim, th)
+        if th.shape[0] <= self.chunk:
+            return objective_from_sse(self.sim, th)
+        return np.concatenate([objective_from_sse(self.sim, th[c0:c0 + self.chunk])
+                               for c0 in range(0, th.shape[0], self.chunk)])
 
     def simulate(self, x: np.ndarray) -> np.ndarray:
         return self.sim.simulate(self.full(x))

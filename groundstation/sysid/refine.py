@@ -24,6 +24,9 @@ from scipy.optimize import OptimizeResult, least_squares
 
 from groundstation.sysid.cost import WindowedCost
 
+#: residual bytes simulated per batch of perturbed candidates in the finite-difference Jacobians
+JAC_CHUNK_BYTES = 16e6
+
 
 def _fd_step(x: np.ndarray, span: np.ndarray) -> np.ndarray:
     return 1e-6 * np.maximum(np.abs(x), 1e-2 * span)
@@ -70,9 +73,7 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
             h = _fd_step(xx, span)
             # step away from the bound we are close to
             h = np.where(xx + h > hi, -h, h)
-            X = np.vstack([xx[None], xx[None] + np.diag(h)])
-            R = cost.residuals(X, sig).reshape(X.shape[0], -1)
-            J = ((R[1:] - R[0]) / h[:, None]).T
+            J = _fd_jacobian(cost, xx, h, sig, central=False)
             return J if ps is None else np.vstack([J, np.diag(1.0 / ps)])
 
         res = least_squares(fun, x, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac", max_nfev=max_nfev,
@@ -146,11 +147,34 @@ def _sigma(cost: WindowedCost, x: np.ndarray, weighting: str = "noise") -> np.nd
 
 def jac_final(cost: WindowedCost, x: np.ndarray, sigma: np.ndarray, span: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Central-difference Jacobian (n_res, D) of the weighted residuals at ``x``."""
-    h = _fd_step(x, span) * 10.0
-    X = np.vstack([x[None] + np.diag(h), x[None] - np.diag(h)])
-    R = cost.residuals(X, sigma).reshape(X.shape[0], -1)
+    return _fd_jacobian(cost, x, _fd_step(x, span) * 10.0, sigma, central=True)
+
+
+def _fd_jacobian(cost: WindowedCost, x: np.ndarray, h: np.ndarray, sigma: np.ndarray, *,
+                 central: bool) -> np.ndarray:
+    """Finite-difference Jacobian (n_res, D) of the weighted residuals, steps ``h`` (D,).
+
+    The perturbed candidates are simulated a few at a time (about :data:`JAC_CHUNK_BYTES` of
+    residuals per batch), so the temporaries of the simulation stay bounded however many windows
+    the data hold: only the Jacobian itself grows with the data. Rows in the order of
+    :meth:`WindowedCost.residuals` (window, sample, channel); the same numbers as one batch.
+    """
     D = x.size
-    return ((R[:D] - R[D:]) / (2 * h[:, None])).T
+    r0 = None if central else cost.residuals(x[None], sigma).reshape(-1)
+    n_res = cost.sim.W * cost.sim.L * int(cost.used.sum())
+    J = np.empty((D, n_res))
+    step = max(1, int(JAC_CHUNK_BYTES // (8 * n_res * (2 if central else 1))))
+    for d0 in range(0, D, step):
+        d1 = min(D, d0 + step)
+        Xp = x[None] + np.diag(h)[d0:d1]
+        if central:
+            X = np.vstack([Xp, x[None] - np.diag(h)[d0:d1]])
+            R = cost.residuals(X, sigma).reshape(X.shape[0], -1)
+            J[d0:d1] = (R[: d1 - d0] - R[d1 - d0:]) / (2 * h[d0:d1, None])
+        else:
+            R = cost.residuals(Xp, sigma).reshape(d1 - d0, -1)
+            J[d0:d1] = (R - r0) / h[d0:d1, None]
+    return J.T
 
 
 def coloured_cov(J: np.ndarray, r: np.ndarray, max_lag: int = 60) -> np.ndarray:
@@ -176,8 +200,9 @@ def _sandwiches(J: np.ndarray, r: np.ndarray, max_lag: int = 60) -> tuple[np.nda
     """
     W, L, nch = r.shape
     D = J.shape[1]
-    J4 = J.reshape(W, L, nch, D)
-    H = J.T @ J
+    Jt = np.ascontiguousarray(J.T)  # (D, n_res): a view when J came from _fd_jacobian
+    Jt4 = Jt.reshape(D, W, L, nch)
+    H = Jt @ Jt.T
     Hinv = np.linalg.pinv(H)
     K = min(max_lag, L - 1)
     # per-channel autocovariance of residuals within windows, lags 0..K
@@ -185,17 +210,20 @@ def _sandwiches(J: np.ndarray, r: np.ndarray, max_lag: int = 60) -> tuple[np.nda
     for k in range(K + 1):
         R[k] = (r[:, : L - k] * r[:, k:]).sum(axis=(0, 1)) / (W * L)
     M = np.zeros((D, D))
-    for k in range(K + 1):
-        wk = R[k] * (1.0 - k / (K + 1))  # Bartlett taper keeps M positive semi-definite
-        A = (J4[:, : L - k] * wk[None, None, :, None]).reshape(-1, D)
-        B = J4[:, k:].reshape(-1, D)
-        P = A.T @ B
-        M += P if k == 0 else P + P.T
+    # windows in chunks of about JAC_CHUNK_BYTES of Jacobian: the lagged products' temporaries stay bounded
+    wstep = max(1, int(JAC_CHUNK_BYTES // (8 * L * nch * D)))
+    for w0 in range(0, W, wstep):
+        Jc = Jt4[:, w0:w0 + wstep]
+        for k in range(K + 1):
+            wk = R[k] * (1.0 - k / (K + 1))  # Bartlett taper keeps M positive semi-definite
+            A = (Jc[:, :, : L - k] * wk).reshape(D, -1)
+            P = A @ Jc[:, :, k:].reshape(D, -1).T
+            M += P if k == 0 else P + P.T
     cov = Hinv @ M @ Hinv
     s_coloured = np.sqrt(np.maximum(np.diag(cov), 0.0))
     # window-clustered sandwich: per-window scores g_w = J_w^T r_w; windows that disagree (model
     # error that differs between flight conditions) widen it where the stationary colour model cannot
-    g = np.einsum("wkd,wk->wd", J.reshape(W, L * nch, D), r.reshape(W, L * nch))
+    g = np.einsum("dwk,wk->wd", Jt.reshape(D, W, L * nch), r.reshape(W, L * nch))
     Mc = g.T @ g * W / max(W - 1, 1)
     s_cluster = np.sqrt(np.maximum(np.diag(Hinv @ Mc @ Hinv), 0.0))
     return cov, s_coloured, np.maximum(s_coloured, s_cluster)

@@ -1,0 +1,217 @@
+"""One log of a campaign analysed into table rows (one row per flight in the log).
+
+:func:`analyse` is the picklable unit of work (a process pool or a Dask worker runs it): it reads
+the log, prepares it, and for each flight (armed interval) in it identifies the hover model,
+diagnoses the gap (held-out, k-fold), scores the model on a reference flight (the campaign's
+previous log: the cross-flight fit) and returns plain JSON-able rows. A failure becomes a row with
+``error`` set (one line) and never stops the campaign. Memory is one log's at a time per worker.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import struct
+import time
+import traceback
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: bumped when the rows' meaning changes: a new version re-analyses everything
+ROW_SCHEMA = "heli-campaign-row/1"
+LOG_SUFFIXES = (".tlog", ".bin", ".ulg", ".px4log")
+
+
+@dataclass(frozen=True)
+class Settings:
+    """How every flight is analysed; part of the skip key (changed settings re-analyse)."""
+
+    algorithm: str = "cabc"
+    seed: int = 0
+    maxiter: int | None = None
+    restarts: int | None = None
+    diagnose: bool = True
+    #: the configuration objects (PrepConfig, IdentifyConfig, bounds) as loaded by the CLI
+    prep: Any = None
+    identify: Any = None
+    bounds: dict = field(default_factory=dict)
+    #: aircraft file content (TOML text), "" when none
+    aircraft_text: str = ""
+
+    def key(self) -> str:
+        """Short hash of everything that changes a result."""
+        doc = json.dumps([ROW_SCHEMA, self.algorithm, self.seed, self.maxiter, self.restarts, self.diagnose,
+                          repr(self.prep), repr(self.identify), sorted(self.bounds.items()), self.aircraft_text],
+                         default=str)
+        return hashlib.sha256(doc.encode()).hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class FlightJob:
+    """One log to analyse; ``reference_log`` is the flight the model is cross-checked on (or None)."""
+
+    log: str
+    sha256: str
+    aircraft: str
+    settings: Settings
+    reference_log: str | None = None
+
+
+def file_sha256(path: str | Path) -> str:
+    """Content hash of a log (what makes a re-run skip it)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def log_date_utc(path: str | Path) -> tuple[str, str]:
+    """(ISO date-time UTC, where it came from): a .tlog's first record timestamp, else the file's mtime."""
+    p = Path(path)
+    if p.suffix.lower() == ".tlog":
+        with open(p, "rb") as f:
+            head = f.read(8)
+        if len(head) == 8:
+            us = struct.unpack(">Q", head)[0]
+            if 946684800e6 < us < 4102444800e6:  # 2000..2100
+                return datetime.fromtimestamp(us / 1e6, UTC).isoformat(timespec="seconds"), "tlog timestamp"
+    return datetime.fromtimestamp(p.stat().st_mtime, UTC).isoformat(timespec="seconds"), "file mtime"
+
+
+def find_logs(paths: list[Path]) -> list[Path]:
+    """Every log file under the given directories (recursively) or given directly, sorted, unique."""
+    out: set[Path] = set()
+    for p in paths:
+        if p.is_dir():
+            out.update(q for q in p.rglob("*") if q.is_file() and q.suffix.lower() in LOG_SUFFIXES)
+        elif p.is_file():
+            out.add(p)
+        else:
+            raise OSError(f"{p}: no such file or directory")
+    return sorted(out)
+
+
+def _identify(prepared: Any, s: Settings) -> Any:
+    from dataclasses import replace
+
+    from groundstation.sysid.identify import IdentifyConfig, identify
+
+    cfg = s.identify or IdentifyConfig()
+    if s.restarts is not None:
+        cfg = replace(cfg, search_restarts=s.restarts)
+    return identify(prepared, algorithm=s.algorithm, seed=s.seed, maxiter=s.maxiter, bounds=s.bounds or None,
+                    config=cfg)
+
+
+def _conditions(prepared: Any) -> dict[str, float | None]:
+    """Flight conditions of the in-air data: duration, mean horizontal speed, input activity."""
+    from groundstation.sysid.model import INPUTS
+
+    out = np.concatenate([s.outputs for s in prepared.segments])
+    inp = np.concatenate([s.inputs for s in prepared.segments])
+    speed = np.hypot(out[:, 0] + prepared.output_trim.get("u", 0.0), out[:, 1] + prepared.output_trim.get("v", 0.0))
+    row: dict[str, float | None] = {"in_air_s": float(prepared.duration_s),
+           "mean_speed_m_s": float(np.nanmean(speed)) if np.isfinite(speed).any() else None}
+    for j, name in enumerate(INPUTS):
+        row[f"input_rms_{name}"] = float(np.std(inp[:, j]))
+    return row
+
+
+def effect_values(report: dict) -> dict[str, float]:
+    """``{"deadband[lon].half_width": 0.03, ...}``: every estimate of every scored effect, significant or not."""
+    vals: dict[str, float] = {}
+    for e in list(report.get("effects", [])) + list(report.get("candidates", [])):
+        ch = e.get("input") or e.get("output") or ""
+        for k, v in (e.get("estimate") or {}).items():
+            key = f"{e['effect']}[{ch}].{k}" if ch else f"{e['effect']}.{k}"
+            if v is not None and key not in vals:
+                vals[key] = float(v)
+    return vals
+
+
+def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[str, Any]:
+    from groundstation.sysid.model import PARAM_NAMES
+    from groundstation.sysid.validate import validate
+
+    t0 = time.perf_counter()
+    row: dict[str, Any] = {"flight_index": flight, **_conditions(prepared)}
+    model = _identify(prepared, job.settings)
+    fit = model.fit
+    row.update({"cost": fit.get("cost"), "windows": fit.get("windows"),
+                "fixed": json.dumps(fit.get("fixed", [])), "pinned": json.dumps(list(model.pinned))})
+    for n in PARAM_NAMES:
+        row[f"p_{n}"] = float(model.params[n])
+        se = model.parameter_std.get(n)
+        row[f"se_{n}"] = None if se is None or not np.isfinite(se) else float(se)
+    row["train_match_pct"] = _mean(fit.get("match_degree", {}))
+    row["cross_log"] = None
+    row["cross_match_pct"] = None
+    if ref is not None:
+        try:
+            row["cross_match_pct"] = float(validate(model, ref)["mean_match"])
+            row["cross_log"] = Path(job.reference_log or "").name
+        except ValueError as exc:  # the reference holds no usable window: reported, not fatal
+            row["cross_log"] = f"{Path(job.reference_log or '').name}: {exc}"
+    row.update({"verdict": None, "heldout_match_pct": None, "effects": "[]", "effect_values": "{}",
+                "gap_significant": None, "conditions": None})
+    if job.settings.diagnose:
+        from groundstation.gap.diagnose import diagnose
+
+        rep = diagnose(model, prepared, seed=job.settings.seed)
+        ch = rep["gap"]["channels"]
+        row.update({"verdict": rep["verdict"], "heldout_match_pct": _mean({k: v["match"] for k, v in ch.items()}),
+                    "effects": json.dumps(rep["effects"]), "effect_values": json.dumps(effect_values(rep)),
+                    "gap_significant": bool(rep["gap"].get("significant")), "conditions": rep["gap"].get("conditions")})
+    row["model"] = json.dumps(model.to_json(), default=float)
+    row["seconds"] = round(time.perf_counter() - t0, 3)
+    return row
+
+
+def _mean(d: dict) -> float | None:
+    v = [float(x) for x in d.values() if x is not None and np.isfinite(x)]
+    return float(np.mean(v)) if v else None
+
+
+def analyse(job: FlightJob) -> list[dict[str, Any]]:
+    """Rows (one per flight of the log) for the campaign table; errors as rows with ``error`` set."""
+    from threadpoolctl import threadpool_limits
+
+    date, date_src = log_date_utc(job.log)
+    base = {"aircraft": job.aircraft, "log": job.log, "log_name": Path(job.log).name, "sha256": job.sha256,
+            "settings_key": job.settings.key(), "date_utc": date, "date_source": date_src, "error": None}
+    t0 = time.perf_counter()
+    try:
+        from firmware_interface.readers import load_log
+        from groundstation.dsp.prepare import prepare
+
+        with threadpool_limits(1):  # one core per job: the pool or the cluster provides the parallelism
+            prepared = prepare([load_log(job.log)], job.settings.prep)
+            if not prepared.segments:
+                raise ValueError(f"nothing to identify ({'; '.join(prepared.notes) or 'no in-air data'})")
+            ref = None
+            if job.reference_log:
+                try:
+                    ref = prepare([load_log(job.reference_log)], job.settings.prep)
+                except Exception:  # noqa: BLE001 - a bad reference only loses the cross-flight fit
+                    ref = None
+            rows = []
+            for flight in sorted({s.flight for s in prepared.segments}):
+                sub = prepared.subset([i for i, s in enumerate(prepared.segments) if s.flight == flight])
+                try:
+                    rows.append({**base, **_flight_row(job, sub, flight, ref)})
+                except Exception as exc:  # noqa: BLE001 - one flight's failure is its row
+                    rows.append({**base, "flight_index": flight, "error": _one_line(job, exc)})
+            return rows
+    except Exception as exc:  # noqa: BLE001 - reported as a row, the campaign goes on
+        return [{**base, "flight_index": 0, "error": _one_line(job, exc), "seconds": round(time.perf_counter() - t0, 3)}]
+
+
+def _one_line(job: FlightJob, exc: BaseException) -> str:
+    last = traceback.extract_tb(exc.__traceback__)[-1] if exc.__traceback__ else None
+    where = f" ({Path(last.filename).name}:{last.lineno})" if last else ""
+    return f"{Path(job.log).name}: {type(exc).__name__}: {exc}{where}".splitlines()[0]

@@ -1,0 +1,177 @@
+"""``groundstation campaign DIR_OR_LOG... --db campaign.sqlite [--parquet DIR] [--jobs N] [--scheduler local|tcp://host:8786]``.
+
+Finds every log (.tlog, .bin, .ulg, .px4log) under the given directories, skips those already in
+the table with the same content hash and settings, identifies and diagnoses the others - one task
+per log on a local process pool (``--jobs``, default all cores but one) or on a Dask cluster
+(``--scheduler``) - stores one row per flight in the aircraft's table, then runs the trend test over
+all of the aircraft's flights and writes ``trends.json``, ``trends.png`` and ``trends.rrd`` next to
+the table (or where ``--trends-dir`` says).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import tomllib
+from pathlib import Path
+from typing import Any
+
+HELP = "identify and diagnose every flight of a set of logs into one table per aircraft, with trends"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("paths", nargs="+", type=Path, help="directories (searched recursively) or log files")
+    parser.add_argument("--db", type=Path, default=Path("campaign.sqlite"), help="SQLite file of the table(s)")
+    parser.add_argument("--parquet", type=Path, default=None, help="also write DIR/<aircraft>.parquet")
+    parser.add_argument("--aircraft", type=Path, default=None,
+                        help="aircraft TOML file (its name keys the table; default table: 'aircraft')")
+    parser.add_argument("--vehicle", default=None, help="aircraft name for the table (default: from --aircraft)")
+    parser.add_argument("--config", type=Path, default=None, help="TOML with [prepare], [identify], [bounds]")
+    parser.add_argument("--jobs", type=int, default=None, help="worker processes (default: all cores but one)")
+    parser.add_argument("--scheduler", default=None,
+                        help="run on Dask distributed: tcp://host:8786, or 'local' for a LocalCluster on loopback")
+    parser.add_argument("--algorithm", choices=("cabc", "abc", "ga", "de"), default="cabc")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--maxiter", type=int, default=None, help="search iterations per subsystem")
+    parser.add_argument("--restarts", type=int, default=None, help="independent searches per subsystem")
+    parser.add_argument("--no-diagnose", action="store_true", help="identify only (no gap verdicts or effects)")
+    parser.add_argument("--no-cross", action="store_true", help="do not score each model on the previous flight")
+    parser.add_argument("--trends-dir", type=Path, default=None, help="where trends.json/png/rrd go (default: --db's dir)")
+    parser.add_argument("--alpha", type=float, default=0.05, help="family-wise false-alarm level of the trend test")
+    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True, help="progress bar")
+    parser.add_argument("--quiet", action="store_true")
+
+
+def _aircraft(args: argparse.Namespace) -> tuple[str, str]:
+    """(name, file text) of the aircraft."""
+    if args.aircraft is None:
+        return args.vehicle or "aircraft", ""
+    try:
+        text = args.aircraft.read_text()
+    except OSError as exc:
+        raise OSError(f"--aircraft {args.aircraft}: cannot read ({exc.strerror or exc})") from None
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"--aircraft {args.aircraft}: not valid TOML ({exc})") from None
+    name = args.vehicle or doc.get("name") or doc.get("aircraft", {}).get("name") or args.aircraft.stem
+    return str(name), text
+
+
+def build_jobs(args: argparse.Namespace, store: Any) -> tuple[list, list[Path], Any]:
+    """(jobs to run, logs skipped as done, settings)."""
+    from groundstation.campaign.job import FlightJob, Settings, file_sha256, find_logs, log_date_utc
+    from groundstation.commands.identify import load_configs
+
+    prep, idc, bounds = load_configs(args.config)
+    name, text = _aircraft(args)
+    s = Settings(algorithm=args.algorithm, seed=args.seed, maxiter=args.maxiter, restarts=args.restarts,
+                 diagnose=not args.no_diagnose, prep=prep, identify=idc, bounds=dict(bounds or {}), aircraft_text=text)
+    logs = find_logs(args.paths)
+    if not logs:
+        raise ValueError(f"no .tlog/.bin/.ulg/.px4log file in {', '.join(map(str, args.paths))}")
+    logs.sort(key=lambda p: (log_date_utc(p)[0], p.name))
+    jobs, skipped = [], []
+    key = s.key()
+    for k, p in enumerate(logs):
+        h = file_sha256(p)
+        if store.done(name, h, key):
+            skipped.append(p)
+            continue
+        ref = None if args.no_cross or k == 0 else str(logs[k - 1])
+        jobs.append(FlightJob(str(p), h, name, s, ref))
+    return jobs, skipped, s
+
+
+def run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from groundstation.campaign import runner
+    from groundstation.campaign.store import CampaignStore
+
+    con = Console(stderr=True, quiet=args.quiet)
+    workers = args.jobs if args.jobs is not None else runner.default_workers()
+    if workers < 1:
+        raise ValueError(f"--jobs: {workers} must be >= 1")
+    store = CampaignStore(args.db)
+    try:
+        jobs, skipped, settings = build_jobs(args, store)
+        name = _aircraft(args)[0]
+        con.print(f"{len(jobs) + len(skipped)} log(s): {len(skipped)} already done, {len(jobs)} to analyse on "
+                  f"{'Dask ' + args.scheduler if args.scheduler else f'{workers} process(es)'}")
+        t0 = time.perf_counter()
+        with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
+                      TimeElapsedColumn(), console=con, transient=True, disable=not args.progress) as prog:
+            task = prog.add_task("campaign", total=len(jobs), info="")
+
+            def on_result(job, rows) -> None:
+                store.put(rows)
+                last = rows[-1]
+                info = last["error"] or f"verdict {last.get('verdict')}, held-out {_fmt(last.get('heldout_match_pct'))} %"
+                prog.update(task, advance=1, info=f"{last['log_name']}: {info}"[:80])
+
+            runner.run(jobs, workers=workers, scheduler=args.scheduler, on_result=on_result)
+        wall = time.perf_counter() - t0
+        for e in store.errors(name):
+            con.print(f"[red]error[/]: {e['error']}")
+        if args.parquet is not None:
+            out = store.write_parquet(name, args.parquet / f"{name}.parquet")
+            con.print(f"wrote {out}")
+        summary = write_trends(store, name, settings.key(), args)
+        if not args.quiet:
+            _print(store.rows(name, settings.key()), summary, con)
+        con.print(f"{len(jobs)} log(s) analysed in {wall:.1f} s; table {args.db} ({name})")
+    finally:
+        store.close()
+    return 0
+
+
+def _fmt(v: Any) -> str:
+    return "-" if v is None else f"{float(v):.1f}"
+
+
+def write_trends(store: Any, aircraft: str, settings_key: str, args: argparse.Namespace) -> dict:
+    """Trend test over the aircraft's flights; trends.json / .png / .rrd; returns the summary."""
+    from groundstation.campaign.plots import plot_trends, write_trends_rrd
+    from groundstation.campaign.store import series
+    from groundstation.trends.change import TrendConfig, assess_all
+
+    rows = store.rows(aircraft, settings_key)
+    out_dir = args.trends_dir or args.db.parent
+    labels = [f"{r['log_name']}#{int(r['flight_index'])}" for r in rows]
+    trends = assess_all(series(rows), TrendConfig(alpha=args.alpha))
+    summary = trend_summary(aircraft, labels, trends)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "trends.json").write_text(json.dumps(summary, indent=1, allow_nan=False))
+    if len(rows) >= 2:
+        plot_trends(trends, labels, out_dir / "trends.png", title=f"{aircraft}: trends over {len(rows)} flights")
+        write_trends_rrd(trends, labels, out_dir / "trends.rrd")
+    return summary
+
+
+def trend_summary(aircraft: str, labels: list[str], trends: dict) -> dict:
+    """The JSON document of a campaign's trends (what the service publishes on ``heli/{vehicle}/trends``)."""
+    return {"schema": "heli-trends/1", "aircraft": aircraft, "flights": labels,
+            "changed": [t.summary() for t in trends.values() if t.changed],
+            "series": {k: t.summary() for k, t in trends.items()}}
+
+
+def _print(rows: list[dict], summary: dict, con: Any) -> None:
+    from rich.table import Table
+
+    t = Table(title=f"{summary['aircraft']}: {len(rows)} flight(s)")
+    for c in ("flight", "date (UTC)", "in air s", "held-out %", "cross %", "verdict", "s"):
+        t.add_column(c)
+    for r in rows:
+        t.add_row(f"{r['log_name']}#{int(r['flight_index'])}", r["date_utc"], _fmt(r.get("in_air_s")),
+                  _fmt(r.get("heldout_match_pct")), _fmt(r.get("cross_match_pct")), str(r.get("verdict")),
+                  _fmt(r.get("seconds")))
+    con.print(t)
+    if summary["changed"]:
+        for c in summary["changed"]:
+            con.print(f"[bold]changed[/]: {c['name']} ({c['kind']}, {'up' if c['direction'] > 0 else 'down'}) "
+                      f"at {summary['flights'][c['changed_at']]}: {c['first']:.4g} -> {c['latest']:.4g}")
+    else:
+        con.print("no parameter or effect moved beyond its uncertainty")
