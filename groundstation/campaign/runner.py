@@ -64,8 +64,10 @@ def _run_dask(jobs: Sequence[FlightJob], workers: int, scheduler: str, done: Cal
         raise ValueError("--scheduler needs dask distributed (pip install 'distributed>=2024.1')") from None
     cluster = None
     if scheduler == "local":
+        # worker processes talk tcp on loopback; in-process workers (tests) use Dask's inproc comm
+        net = {"host": "127.0.0.1", "scheduler_port": 0} if local_processes else {}
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=local_processes,
-                               host="127.0.0.1", dashboard_address=None, scheduler_port=0)
+                               dashboard_address=None, **net)
         client = Client(cluster)
     elif scheduler.startswith("tcp://"):
         try:

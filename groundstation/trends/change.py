@@ -6,9 +6,9 @@ standard errors ``(n,)`` (NaN where unknown, e.g. effect estimates, which have n
 
 Uncertainty of one flight's value: ``sigma_i^2 = std_i^2 + tau^2``. ``tau`` is the flight-to-flight
 scatter that the reported standard errors do not cover (different weather, excitation, a search in
-another basin), measured from the series itself: the robust spread (MAD) of the successive
-differences about their median, divided by sqrt(2). Taking the differences about their median
-keeps a steady trend out of the scatter; the MAD keeps a single jump out of it. Nothing is fitted
+another basin), measured from the series itself: the spread of the successive differences
+about their median, divided by sqrt(2), the largest one left out when it is an outlier. Taking the differences about
+their median keeps a steady trend out of the scatter; leaving out an outlying one keeps one jump out. Nothing is fitted
 to a simulator: the scale is the data's own.
 
 The test at flight ``k`` (sequential: only flights ``1..k`` are used, as it would have run on the
@@ -17,8 +17,10 @@ day) compares the value with the baseline (the mean of the first ``baseline`` fl
 where ``|z|`` exceeds the critical value on two consecutive flights, or on one flight together with a
 significant weighted linear trend over ``1..k`` (a steadily growing deadband is caught at the flight
 where it leaves the band; a one-off outlier is not called a change). The critical value is
-Bonferroni-corrected over all the series and flights tested (``n_tests``), so a campaign of many
-unchanged parameters raises no false alarm at family-wise level ``alpha``.
+Bonferroni-corrected over the series tested (``n_tests``), a Student t with the degrees of freedom
+of the scatter estimate; the repeated looks at one series are covered by asking for two
+consecutive flights (or a significant trend) beyond it. A campaign of many unchanged parameters
+then raises no false alarm at family-wise level about ``alpha``.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.stats import norm
+from scipy.stats import t as student_t
 
 #: fewest finite flights from which tau (the between-flight scatter) is measured; no flight is tested
 #: before that: standard errors from one flight alone miss how much flights differ (another basin of
@@ -90,24 +93,36 @@ def _f(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
 
 
-def critical_z(alpha: float, n_tests: int) -> float:
-    """Two-sided Bonferroni critical value for ``n_tests`` tests at family-wise level ``alpha``."""
+def critical_z(alpha: float, n_tests: int, dof: int | None = None) -> float:
+    """Two-sided Bonferroni critical value for ``n_tests`` tests at family-wise level ``alpha``;
+    Student t with ``dof`` degrees of freedom when the scale was estimated from that few differences."""
     if not 0 < alpha < 1:
         raise ValueError(f"alpha: {alpha} must be in (0, 1)")
-    return float(norm.isf(alpha / (2 * max(int(n_tests), 1))))
+    p = alpha / (2 * max(int(n_tests), 1))
+    return float(norm.isf(p) if dof is None else student_t.isf(p, max(int(dof), 1)))
 
 
-def between_flight_scatter(values: np.ndarray, std: np.ndarray) -> float:
-    """tau: robust flight-to-flight scatter beyond the reported standard errors (NaN if too few flights)."""
+def between_flight_scatter(values: np.ndarray, std: np.ndarray) -> tuple[float, int]:
+    """(tau, degrees of freedom): flight-to-flight scatter beyond the reported standard errors.
+
+    From the successive differences about their median (a steady drift cancels), the largest one
+    dropped when there are five or more and it lies beyond 4 robust sigmas (one jump, e.g. a
+    repair, does not inflate it): the variance
+    of a difference is twice a flight's. ``(nan, 0)`` with fewer than ``MIN_FLIGHTS_FOR_SCATTER`` values.
+    """
     v = values[np.isfinite(values)]
     if v.size < MIN_FLIGHTS_FOR_SCATTER:
-        return float("nan")
+        return float("nan"), 0
     d = np.diff(v)
-    mad = 1.4826 * np.median(np.abs(d - np.median(d)))
-    total2 = (mad / np.sqrt(2.0)) ** 2
+    d = d - np.median(d)
+    if d.size >= 5:  # one outlying difference (a jump) is left out; dropping any other would bias tau low
+        mad = 1.4826 * float(np.median(np.abs(d)))
+        if np.abs(d).max() > 4.0 * mad:
+            d = np.delete(d, np.argmax(np.abs(d)))
+    total2 = float(np.mean(d ** 2)) / 2.0
     s = std[np.isfinite(values) & np.isfinite(std)]
     reported2 = float(np.median(s ** 2)) if s.size else 0.0
-    return float(np.sqrt(max(total2 - reported2, 0.0)))
+    return float(np.sqrt(max(total2 - reported2, 0.0))), int(d.size - 1)
 
 
 def _slope(v: np.ndarray, sig: np.ndarray) -> tuple[float, float]:
@@ -124,13 +139,13 @@ def _slope(v: np.ndarray, sig: np.ndarray) -> tuple[float, float]:
     return float(b), float(b * np.sqrt(sxx))
 
 
-def _sigma(values: np.ndarray, std: np.ndarray, upto: int) -> tuple[np.ndarray, float]:
-    """Per-flight sigma over flights ``0..upto`` and tau, from those flights only."""
+def _sigma(values: np.ndarray, std: np.ndarray, upto: int) -> tuple[np.ndarray, float, int]:
+    """Per-flight sigma over flights ``0..upto``, tau and its degrees of freedom, from those flights only."""
     v, s = values[: upto + 1], std[: upto + 1]
-    tau = between_flight_scatter(v, s)
+    tau, dof = between_flight_scatter(v, s)
     s0 = np.where(np.isfinite(s), s, 0.0)
     t2 = tau ** 2 if np.isfinite(tau) else 0.0
-    return np.sqrt(s0 ** 2 + t2), tau
+    return np.sqrt(s0 ** 2 + t2), tau, dof
 
 
 def assess(name: str, values, std=None, *, n_tests: int = 1, config: TrendConfig | None = None) -> Trend:
@@ -140,18 +155,19 @@ def assess(name: str, values, std=None, *, n_tests: int = 1, config: TrendConfig
     s = np.full(v.shape, np.nan) if std is None else np.asarray(std, dtype=float)
     if v.ndim != 1 or s.shape != v.shape:
         raise ValueError(f"{name}: values and std must be 1-D of the same length, got {v.shape} and {s.shape}")
-    z_crit = critical_z(cfg.alpha, n_tests)
     n = v.size
     z = np.full(n, np.nan)
     fin = np.flatnonzero(np.isfinite(v))
     base_idx = fin[: cfg.baseline]
-    sig_all, tau = _sigma(v, s, n - 1)
+    sig_all, tau, dof_all = _sigma(v, s, n - 1)
+    z_crit = critical_z(cfg.alpha, n_tests, dof_all if np.isfinite(tau) else None)
     if fin.size < 2 or fin.size <= cfg.baseline:
         return Trend(name, v, s, sig_all, z, z_crit, tau, float("nan"), 0.0, tested=False,
                      reason=f"{fin.size} flight(s) with a value")
     changed_at, kind, direction, above_prev = None, "", 0, False
     for k in fin[cfg.baseline:]:
-        sig, tau_k = _sigma(v, s, k)
+        sig, tau_k, dof = _sigma(v, s, k)
+        crit = critical_z(cfg.alpha, n_tests, dof)
         if not np.isfinite(tau_k):
             continue  # the flight-to-flight scatter is not measurable yet: reported errors alone are too optimistic
         ref = float(v[base_idx].mean())
@@ -160,11 +176,11 @@ def assess(name: str, values, std=None, *, n_tests: int = 1, config: TrendConfig
         if not den > 0:
             continue
         z[k] = (v[k] - ref) / den
-        above = abs(z[k]) > z_crit
+        above = abs(z[k]) > crit
         if above and changed_at is None:
             idx = fin[fin <= k]
             _, bz = _slope(v[idx], np.maximum(sig[idx], 1e-300))
-            if above_prev or abs(bz) > z_crit:
+            if above_prev or abs(bz) > crit:
                 changed_at, direction = int(k), int(np.sign(z[k]))
                 kind = "trend" if _steady(v[idx]) else "step"
         above_prev = above
@@ -186,6 +202,6 @@ def _steady(v: np.ndarray) -> bool:
 
 def assess_all(series: dict[str, tuple[np.ndarray, np.ndarray | None]],
                config: TrendConfig | None = None) -> dict[str, Trend]:
-    """:func:`assess` for every series, the critical value corrected for all of them and all flights."""
-    n_tests = sum(int(np.isfinite(np.asarray(v, dtype=float)).sum()) for v, _ in series.values())
+    """:func:`assess` for every series, the critical value corrected for the number of series."""
+    n_tests = sum(bool(np.isfinite(np.asarray(v, dtype=float)).any()) for v, _ in series.values())
     return {k: assess(k, v, s, n_tests=max(n_tests, 1), config=config) for k, (v, s) in series.items()}

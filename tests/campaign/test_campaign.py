@@ -1,0 +1,98 @@
+"""``groundstation campaign`` end to end on short simulated flights: table, skip by content hash,
+Parquet, trends files, a bad log as an error row, and the same rows from a Dask cluster on loopback."""
+
+import json
+import shutil
+import sqlite3
+
+import numpy as np
+import pytest
+
+from groundstation.campaign.store import CampaignStore, table_name
+from groundstation.cli import main
+from hil_replay.sim import write_tlog
+
+FAST = ["--maxiter", "4", "--no-diagnose", "--no-progress", "--quiet", "--jobs", "1"]
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("campaign_logs")
+    for k in range(2):
+        write_tlog(d / f"flight{k}.tlog", seed=40 + k, flights=1, flight_duration_s=30.0)
+    return d
+
+
+def _rows(db, aircraft="aircraft"):
+    con = sqlite3.connect(db)
+    con.row_factory = sqlite3.Row
+    rows = [dict(r) for r in con.execute(f'SELECT * FROM "{table_name(aircraft)}" ORDER BY log_name')]
+    con.close()
+    return rows
+
+
+def test_campaign_table_skip_parquet_and_trends(logs, tmp_path, capsys):
+    db = tmp_path / "c.sqlite"
+    assert main(["campaign", str(logs), "--db", str(db), "--parquet", str(tmp_path / "pq"), *FAST]) == 0
+    rows = _rows(db)
+    assert [r["log_name"] for r in rows] == ["flight0.tlog", "flight1.tlog"]
+    for r in rows:
+        assert r["error"] is None
+        assert r["date_utc"].startswith("20") and r["date_source"] == "tlog timestamp"
+        assert np.isfinite(r["p_Z_w"]) and r["se_Z_w"] > 0
+        assert r["in_air_s"] > 20
+    # the second flight's model is scored on the first (cross-flight fit); the first has no reference
+    assert rows[0]["cross_match_pct"] is None and rows[1]["cross_log"] == "flight0.tlog"
+    assert np.isfinite(rows[1]["cross_match_pct"])
+    import pyarrow.parquet as pq
+
+    t = pq.read_table(tmp_path / "pq" / "aircraft.parquet")
+    assert t.num_rows == 2 and t.column("p_Z_w").to_pylist() == [r["p_Z_w"] for r in rows]
+    trends = json.loads((tmp_path / "trends.json").read_text())
+    assert trends["schema"] == "heli-trends/1" and len(trends["flights"]) == 2
+    assert (tmp_path / "trends.png").stat().st_size > 0 and (tmp_path / "trends.rrd").stat().st_size > 0
+
+    # nothing changed: a re-run skips both logs by content hash and leaves the rows as they were
+    capsys.readouterr()
+    assert main(["campaign", str(logs), "--db", str(db), "--no-progress", "--jobs", "1", "--maxiter", "4",
+                 "--no-diagnose"]) == 0
+    assert "2 already done, 0 to analyse" in capsys.readouterr().err
+    assert _rows(db) == rows
+
+
+def test_bad_log_is_an_error_row_and_the_rest_is_kept(logs, tmp_path):
+    d = tmp_path / "logs"
+    shutil.copytree(logs, d)
+    (d / "broken.tlog").write_bytes(b"\x00" * 300)
+    db = tmp_path / "c.sqlite"
+    assert main(["campaign", str(d), "--db", str(db), *FAST]) == 0
+    rows = _rows(db)
+    bad = [r for r in rows if r["log_name"] == "broken.tlog"]
+    assert len(bad) == 1 and "broken.tlog" in bad[0]["error"]
+    assert sum(r["error"] is None for r in rows) == 2
+    store = CampaignStore(db)
+    assert not store.done("aircraft", bad[0]["sha256"], bad[0]["settings_key"])  # retried next time
+    store.close()
+
+
+def test_dask_local_cluster_gives_the_same_rows(logs, tmp_path):
+    pytest.importorskip("distributed")
+    from groundstation.campaign import runner
+    from groundstation.campaign.job import FlightJob, Settings, file_sha256, find_logs
+
+    s = Settings(maxiter=4, diagnose=False)
+    jobs = [FlightJob(str(p), file_sha256(p), "aircraft", s, None) for p in find_logs([logs])]
+    serial = runner.run(jobs, workers=1)
+    dask = runner.run(jobs, workers=1, scheduler="local", local_processes=False)
+    for a, b in zip(serial, dask, strict=True):
+        assert [r["p_X_u"] for r in a] == [r["p_X_u"] for r in b]
+        assert [r["model"] for r in a] == [r["model"] for r in b]
+
+
+def test_bad_scheduler_and_jobs_are_one_line(logs, tmp_path, capsys):
+    assert main(["campaign", str(logs), "--db", str(tmp_path / "c.sqlite"), "--scheduler", "udp://x", *FAST]) == 2
+    assert "--scheduler 'udp://x'" in capsys.readouterr().err
+    assert main(["campaign", str(logs), "--db", str(tmp_path / "c.sqlite"), *FAST[:-2], "--jobs", "0"]) == 2
+    assert "--jobs: 0" in capsys.readouterr().err
+    assert main(["campaign", str(tmp_path / "nothing"), "--db", str(tmp_path / "c.sqlite"), *FAST]) == 2
+    assert "nothing: no such file or directory" in capsys.readouterr().err
