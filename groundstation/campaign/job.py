@@ -14,7 +14,7 @@ import json
 import struct
 import time
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -30,23 +30,21 @@ LOG_SUFFIXES = (".tlog", ".bin", ".ulg", ".px4log")
 class Settings:
     """How every flight is analysed; part of the skip key (changed settings re-analyse)."""
 
-    algorithm: str = "cabc"
-    seed: int = 0
-    maxiter: int | None = None
-    restarts: int | None = None
+    #: the configuration (:class:`groundstation.config.ServiceConfig`; default when None) with the
+    #: command's options applied: [prepare], [identify], [bounds], [identification], [diagnose]
+    config: Any = None
     diagnose: bool = True
-    #: the configuration objects (PrepConfig, IdentifyConfig, bounds) as loaded by the CLI
-    prep: Any = None
-    identify: Any = None
-    bounds: dict = field(default_factory=dict)
     #: aircraft file content (TOML text), "" when none
     aircraft_text: str = ""
 
+    def service_config(self) -> Any:
+        from groundstation.config import ServiceConfig
+
+        return self.config if self.config is not None else ServiceConfig()
+
     def key(self) -> str:
         """Short hash of everything that changes a result."""
-        doc = json.dumps([ROW_SCHEMA, self.algorithm, self.seed, self.maxiter, self.restarts, self.diagnose,
-                          repr(self.prep), repr(self.identify), sorted(self.bounds.items()), self.aircraft_text],
-                         default=str)
+        doc = json.dumps([ROW_SCHEMA, repr(self.service_config()), self.diagnose, self.aircraft_text], default=str)
         return hashlib.sha256(doc.encode()).hexdigest()[:16]
 
 
@@ -96,18 +94,6 @@ def find_logs(paths: list[Path]) -> list[Path]:
     return sorted(out)
 
 
-def _identify(prepared: Any, s: Settings) -> Any:
-    from dataclasses import replace
-
-    from groundstation.sysid.identify import IdentifyConfig, identify
-
-    cfg = s.identify or IdentifyConfig()
-    if s.restarts is not None:
-        cfg = replace(cfg, search_restarts=s.restarts)
-    return identify(prepared, algorithm=s.algorithm, seed=s.seed, maxiter=s.maxiter, bounds=s.bounds or None,
-                    config=cfg)
-
-
 def _conditions(prepared: Any) -> dict[str, float | None]:
     """Flight conditions of the in-air data: duration, mean horizontal speed, input activity."""
     from groundstation.sysid.model import INPUTS
@@ -140,7 +126,10 @@ def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[st
 
     t0 = time.perf_counter()
     row: dict[str, Any] = {"flight_index": flight, **_conditions(prepared)}
-    model = _identify(prepared, job.settings)
+    from groundstation.pipeline import identify_prepared
+
+    cfg = job.settings.service_config()
+    model = identify_prepared(prepared, cfg)
     fit = model.fit
     row.update({"cost": fit.get("cost"), "windows": fit.get("windows"),
                 "fixed": json.dumps(fit.get("fixed", [])), "pinned": json.dumps(list(model.pinned))})
@@ -162,7 +151,7 @@ def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[st
     if job.settings.diagnose:
         from groundstation.gap.diagnose import diagnose
 
-        rep = diagnose(model, prepared, seed=job.settings.seed)
+        rep = diagnose(model, prepared, seed=cfg.identification.seed, config=cfg.diagnose)
         ch = rep["gap"]["channels"]
         row.update({"verdict": rep["verdict"], "heldout_match_pct": _mean({k: v["match"] for k, v in ch.items()}),
                     "effects": json.dumps(rep["effects"]), "effect_values": json.dumps(effect_values(rep)),
@@ -186,17 +175,17 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
             "settings_key": job.settings.key(), "date_utc": date, "date_source": date_src, "error": None}
     t0 = time.perf_counter()
     try:
-        from firmware_interface.readers import load_log
-        from groundstation.dsp.prepare import prepare
+        from groundstation.pipeline import prepare_logs
 
+        cfg = job.settings.service_config()
         with threadpool_limits(1):  # one core per job: the pool or the cluster provides the parallelism
-            prepared = prepare([load_log(job.log)], job.settings.prep)
+            prepared = prepare_logs([job.log], cfg)
             if not prepared.segments:
                 raise ValueError(f"nothing to identify ({'; '.join(prepared.notes) or 'no in-air data'})")
             ref = None
             if job.reference_log:
                 try:
-                    ref = prepare([load_log(job.reference_log)], job.settings.prep)
+                    ref = prepare_logs([job.reference_log], cfg)
                 except Exception:  # noqa: BLE001 - a bad reference only loses the cross-flight fit
                     ref = None
             rows = []

@@ -27,12 +27,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--aircraft", type=Path, default=None,
                         help="aircraft TOML file (its name keys the table; default table: 'aircraft')")
     parser.add_argument("--vehicle", default=None, help="aircraft name for the table (default: from --aircraft)")
-    parser.add_argument("--config", type=Path, default=None, help="TOML with [prepare], [identify], [bounds]")
+    parser.add_argument("--config", type=Path, default=None,
+                        help="configuration TOML ([prepare], [identify], [bounds], [identification], [diagnose])")
     parser.add_argument("--jobs", type=int, default=None, help="worker processes (default: all cores but one)")
     parser.add_argument("--scheduler", default=None,
                         help="run on Dask distributed: tcp://host:8786, or 'local' for a LocalCluster on loopback")
-    parser.add_argument("--algorithm", choices=("cabc", "abc", "ga", "de"), default="cabc")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--algorithm", choices=("cabc", "abc", "ga", "de"), default=None,
+                        help="search algorithm (default: [identification] algorithm, cabc)")
+    parser.add_argument("--seed", type=int, default=None, help="random seed (default: [identification] seed, 0)")
     parser.add_argument("--maxiter", type=int, default=None, help="search iterations per subsystem")
     parser.add_argument("--restarts", type=int, default=None, help="independent searches per subsystem")
     parser.add_argument("--no-diagnose", action="store_true", help="identify only (no gap verdicts or effects)")
@@ -62,12 +64,10 @@ def _aircraft(args: argparse.Namespace) -> tuple[str, str]:
 def build_jobs(args: argparse.Namespace, store: Any) -> tuple[list, list[Path], Any]:
     """(jobs to run, logs skipped as done, settings)."""
     from groundstation.campaign.job import FlightJob, Settings, file_sha256, find_logs, log_date_utc
-    from groundstation.commands.identify import load_configs
+    from groundstation.commands.identify import config_from_args
 
-    prep, idc, bounds = load_configs(args.config)
     name, text = _aircraft(args)
-    s = Settings(algorithm=args.algorithm, seed=args.seed, maxiter=args.maxiter, restarts=args.restarts,
-                 diagnose=not args.no_diagnose, prep=prep, identify=idc, bounds=dict(bounds or {}), aircraft_text=text)
+    s = Settings(config=config_from_args(args), diagnose=not args.no_diagnose, aircraft_text=text)
     logs = find_logs(args.paths)
     if not logs:
         raise ValueError(f"no .tlog/.bin/.ulg/.px4log file in {', '.join(map(str, args.paths))}")

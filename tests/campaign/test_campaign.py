@@ -12,7 +12,7 @@ from groundstation.campaign.store import CampaignStore, table_name
 from groundstation.cli import main
 from hil_replay.sim import write_tlog
 
-FAST = ["--maxiter", "4", "--no-diagnose", "--no-progress", "--quiet", "--jobs", "1"]
+FAST = ["--maxiter", "4", "--restarts", "1", "--no-diagnose", "--no-progress", "--quiet", "--jobs", "1"]
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +55,7 @@ def test_campaign_table_skip_parquet_and_trends(logs, tmp_path, capsys):
     # nothing changed: a re-run skips both logs by content hash and leaves the rows as they were
     capsys.readouterr()
     assert main(["campaign", str(logs), "--db", str(db), "--no-progress", "--jobs", "1", "--maxiter", "4",
-                 "--no-diagnose"]) == 0
+                 "--restarts", "1", "--no-diagnose"]) == 0
     assert "2 already done, 0 to analyse" in capsys.readouterr().err
     assert _rows(db) == rows
 
@@ -76,11 +76,11 @@ def test_bad_log_is_an_error_row_and_the_rest_is_kept(logs, tmp_path):
 
 
 def test_dask_local_cluster_gives_the_same_rows(logs, tmp_path):
-    pytest.importorskip("distributed")
     from groundstation.campaign import runner
     from groundstation.campaign.job import FlightJob, Settings, file_sha256, find_logs
+    from groundstation.config import ServiceConfig
 
-    s = Settings(maxiter=4, diagnose=False)
+    s = Settings(config=ServiceConfig().replace("identify", maxiter=4, search_restarts=1), diagnose=False)
     jobs = [FlightJob(str(p), file_sha256(p), "aircraft", s, None) for p in find_logs([logs])]
     serial = runner.run(jobs, workers=1)
     dask = runner.run(jobs, workers=1, scheduler="local", local_processes=False)
