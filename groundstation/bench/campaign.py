@@ -1,0 +1,176 @@
+"""``groundstation bench campaign [--flights 16] [--duration-s 60] [--speedup-flights 8]``.
+
+N simulated flights of one aircraft (``hil_replay.sim.write_tlog``, one log each, seeds 1..N). Every
+flight carries a deadband on one input that widens linearly from ``--grow-from`` to ``--grow-to``
+(normalised units; servo wear); nothing else changes from flight to flight except the weather of
+the seed. Prints:
+
+1. time per flight and peak memory against N (1, 2, 4, ... N) from one in-process campaign over all
+   flights (identify + diagnose + cross-flight fit per flight; the cumulative time after N flights
+   over N, and the process's peak RSS after N flights). Targets: time per flight constant within
+   20 %, peak memory for 16 flights <= 2x one;
+2. speed-up on the first ``--speedup-flights`` flights (identification only, to keep the bench
+   short): one process, a process pool of every core, and a local Dask cluster of every core.
+   Targets: two cores >= 1.7x one; Dask within 10 % of the pool. On a shared machine these
+   figures are depressed by the other load (the CPU time beside the wall time says how much);
+3. the trend test over the campaign: whether the growing deadband is flagged by the flight where
+   its estimate exceeds twice its first estimate, and whether anything else is flagged.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+HELP = "campaign of simulated flights: time per flight vs N, speed-up 1 core / all cores / Dask, trend test"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--flights", type=int, default=16, help="flights in the campaign")
+    parser.add_argument("--duration-s", type=float, default=60.0, help="armed time per simulated flight (>= 30)")
+    parser.add_argument("--speedup-flights", type=int, default=8, help="flights of the speed-up runs (0: skip)")
+    parser.add_argument("--input", default="lon", choices=("lat", "lon", "col", "ped"), help="input with the deadband")
+    parser.add_argument("--grow-from", type=float, default=0.02, help="deadband half-width on the first flight")
+    parser.add_argument("--grow-to", type=float, default=0.08, help="deadband half-width on the last flight")
+    parser.add_argument("--restarts", type=int, default=1, help="identification searches per subsystem")
+    parser.add_argument("--keep", type=Path, default=None, help="keep the logs and the table in this directory")
+
+
+def _simulate(d: Path, args: argparse.Namespace) -> tuple[list[Path], np.ndarray]:
+    from hil_replay.sim import parse_effect, write_tlog
+
+    widths = np.linspace(args.grow_from, args.grow_to, args.flights)
+    paths = []
+    for k, hw in enumerate(widths):
+        p = d / f"flight{k + 1:02d}.tlog"
+        if not p.exists():
+            eff = parse_effect(f"deadband:input={args.input},half_width={hw:.5f}")
+            write_tlog(p, seed=k + 1, flights=1, effects=(eff,), flight_duration_s=args.duration_s)
+        paths.append(p)
+    return paths, widths
+
+
+def _jobs(paths: list[Path], settings: Any, cross: bool = True) -> list:
+    from groundstation.campaign.job import FlightJob, file_sha256
+
+    return [FlightJob(str(p), file_sha256(p), "bench", settings, str(paths[k - 1]) if cross and k else None)
+            for k, p in enumerate(paths)]
+
+
+def _scaling(paths: list[Path], settings: Any) -> tuple[list[dict], list[dict]]:
+    """One in-process campaign; (rows, per-N figures)."""
+    from groundstation.campaign import runner
+
+    marks: list[dict] = []
+    rows: list[dict] = []
+    t0, c0 = time.perf_counter(), time.process_time()
+
+    def on_result(job, r) -> None:
+        rows.extend(r)
+        n = len(rows)
+        marks.append({"n": n, "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
+                      "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3})
+        print(f"  flight {n}: {r[-1].get('seconds', float('nan')):.1f} s, verdict {r[-1].get('verdict')}, "
+              f"{r[-1].get('error') or ''}", flush=True)
+
+    runner.run(_jobs(paths, settings), workers=1, on_result=on_result)
+    return rows, marks
+
+
+def _speedup(paths: list[Path], settings: Any) -> dict[str, tuple[float, float]]:
+    """Wall and parent+children CPU seconds of identification-only campaigns: 1 process, pool, Dask."""
+    from groundstation.campaign import runner
+
+    cores = os.cpu_count() or 1
+    out = {}
+    for label, kw in (("1 process", {"workers": 1}), (f"pool of {cores}", {"workers": cores}),
+                      (f"Dask LocalCluster of {cores}", {"workers": cores, "scheduler": "local"})):
+        jobs = _jobs(paths, settings, cross=False)
+        c0 = _cpu()
+        t0 = time.perf_counter()
+        runner.run(jobs, **kw)
+        out[label] = (time.perf_counter() - t0, _cpu() - c0)
+        print(f"  {label}: {out[label][0]:.1f} s wall", flush=True)
+    return out
+
+
+def _cpu() -> float:
+    s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
+
+
+def run(args: argparse.Namespace) -> int:
+    from groundstation.campaign.job import Settings
+    from groundstation.campaign.store import series
+    from groundstation.config import ServiceConfig
+    from groundstation.trends.change import assess_all
+
+    if args.flights < 2 or args.duration_s < 30:
+        raise ValueError("--flights must be >= 2 and --duration-s >= 30")
+    cfg = ServiceConfig().replace("identify", search_restarts=args.restarts)
+    with tempfile.TemporaryDirectory() as td:
+        d = args.keep or Path(td)
+        d.mkdir(parents=True, exist_ok=True)
+        t0 = time.perf_counter()
+        paths, widths = _simulate(d, args)
+        print(f"simulated {len(paths)} flights of {args.duration_s:g} s in {time.perf_counter() - t0:.0f} s; deadband on "
+              f"{args.input} widening {args.grow_from:g} -> {args.grow_to:g} (normalised units)", flush=True)
+        print("1. campaign in one process (identify + diagnose + cross-flight fit per flight):", flush=True)
+        rows, marks = _scaling(paths, Settings(config=cfg, diagnose=True))
+        _print_scaling(marks)
+        if args.speedup_flights > 0:
+            k = min(args.speedup_flights, len(paths))
+            print(f"2. speed-up on {k} flights (identification only), {os.cpu_count()} cores:", flush=True)
+            sp = _speedup(paths[:k], Settings(config=cfg, diagnose=False))
+            _print_speedup(sp)
+        print("3. trend test over the campaign:")
+        _print_trends(assess_all(series([r for r in rows if not r.get("error")])), widths, args.input)
+    return 0
+
+
+def _print_scaling(marks: list[dict]) -> None:
+    one = marks[0]
+    ns = [m for m in marks if m["n"] & (m["n"] - 1) == 0 or m is marks[-1]]
+    print(f"  {'N':>3} {'wall s/flight':>14} {'CPU s/flight':>13} {'peak RSS MB':>12}")
+    for m in ns:
+        print(f"  {m['n']:>3} {m['wall_s'] / m['n']:>14.1f} {m['cpu_s'] / m['n']:>13.1f} {m['rss_mb']:>12.0f}")
+    last = marks[-1]
+    per = [m["cpu_s"] / m["n"] for m in ns]
+    spread = (max(per) - min(per)) / min(per) * 100
+    print(f"  CPU time per flight spread {spread:.0f} % (target within 20 %): {'PASS' if spread <= 20 else 'FAIL'}")
+    ratio = last["rss_mb"] / one["rss_mb"]
+    print(f"  peak memory {last['n']} flights / 1 flight = {ratio:.2f} (target <= 2): {'PASS' if ratio <= 2 else 'FAIL'}")
+
+
+def _print_speedup(sp: dict[str, tuple[float, float]]) -> None:
+    (l1, (w1, c1)), (lp, (wp, cp)), (ld, (wd, cd)) = sp.items()
+    print(f"  {l1}: {w1:.1f} s wall ({c1:.1f} s CPU); {lp}: {wp:.1f} s ({cp:.1f} s CPU); {ld}: {wd:.1f} s ({cd:.1f} s CPU)")
+    print(f"  speed-up pool {w1 / wp:.2f}x (target >= 1.7x on two cores): {'PASS' if w1 / wp >= 1.7 else 'FAIL'}; "
+          f"Dask / pool wall {wd / wp:.2f} (target <= 1.10): {'PASS' if wd / wp <= 1.10 else 'FAIL'}")
+    print(f"  load average now {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (other work depresses the speed-up)")
+
+
+def _print_trends(trends: dict, widths: np.ndarray, inp: str) -> None:
+    key = f"effect:deadband[{inp}].half_width"
+    t = trends.get(key)
+    others = [k for k, tr in trends.items() if tr.changed and k != key]
+    if t is None:
+        print(f"  {key}: never estimated (the diagnosis did not score a deadband on {inp}): FAIL")
+    else:
+        v = t.values
+        fin = np.flatnonzero(np.isfinite(v))
+        dbl = next((int(i) for i in fin if v[i] > 2 * v[fin[0]]), None)
+        print(f"  {key}: estimates {np.round(v, 4).tolist()} (truth {np.round(widths, 4).tolist()})")
+        print(f"  exceeds twice its first estimate at flight {None if dbl is None else dbl + 1}; flagged at flight "
+              f"{None if t.changed_at is None else t.changed_at + 1} ({t.kind or 'no change'}): "
+              f"{'PASS' if t.changed and (dbl is None or t.changed_at <= dbl) else 'FAIL'}")
+    tested = sum(tr.tested for tr in trends.values())
+    print(f"  other series flagged: {others or 'none'} of {tested - (t is not None)} tested: "
+          f"{'PASS' if not others else 'FAIL'}")
