@@ -43,10 +43,9 @@ def write_dataflash(path: Path, size_bytes: int, seed: int = 0) -> int:
     ids = {name: typ for typ, name, _, _ in _FORMATS}
     names = ("IMU", "ATT", "RATE", "RCOU", "HELI")
     parts = []
-    for n in names:
-        st = _PACK[n]
-        parts.append((f"h_{n}", "S3"))
-        parts.append((f"b_{n}", f"S{st.size}"))
+    for nm in names:
+        parts.append((f"h_{nm}", "S3"))
+        parts.append((f"b_{nm}", f"S{_PACK[nm].size}"))
     tick = np.dtype(parts)
     per_tick = tick.itemsize
     xkf = _PACK["XKF1"]
