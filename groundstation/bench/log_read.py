@@ -23,6 +23,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -149,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
     con = Console()
     bindir = Path(sys.executable).parent
     tmp = Path(tempfile.mkdtemp(prefix="bench-log-read-"))
-    rows = []
+    rows: list[dict[str, Any]] = []
     try:
         binp, ulg = tmp / "big.bin", tmp / "big.ulg"
         t0 = time.perf_counter()
@@ -157,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
         ulog_size = write_ulog(ulg, int(args.ulog_mb * 1e6))
         con.print(f"generated {bin_size / 1e6:.1f} MB .bin and {ulog_size / 1e6:.1f} MB .ulg in "
                   f"{time.perf_counter() - t0:.1f} s")
-        todo = [("dataflash .bin", binp, bin_size, "groundstation load_log", None),
+        todo: list[tuple[str, Path, int, str, list[str] | None]] = [("dataflash .bin", binp, bin_size, "groundstation load_log", None),
                 ("ULog .ulg", ulg, ulog_size, "groundstation load_log", None)]
         if not args.no_tools:
             todo.insert(1, ("dataflash .bin", binp, bin_size, "mavlogdump.py --quiet",
