@@ -35,17 +35,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from groundstation.commands.validate import load_model
     from groundstation.config import load_config
+    from groundstation.dsp.prepare import prepare
     from groundstation.gap.diagnose import run_diagnosis
-    from groundstation.pipeline import prepare_logs
+    from groundstation.pipeline import load_logs
 
     cfg = load_config(args.config)
     if args.window_s is not None:
         cfg = cfg.replace("diagnose", window_s=args.window_s)
     seed = cfg.identification.seed if args.seed is None else args.seed
     model = load_model(args.model) if args.model else None
-    prepared = prepare_logs(args.logs, cfg, args.segments)
+    logs = load_logs(args.logs, args.segments)
+    prepared = prepare(logs, cfg.prepare)
     diag = run_diagnosis(model, prepared, seed=seed, config=cfg.diagnose)
     report = diag.report
+    native = native_vibration(logs, cfg.prepare.rate_hz)
+    if native is not None:
+        unfold_rotor_line(report, native, cfg.prepare.rate_hz)
     report["source"] = {"logs": [str(p) for p in args.logs], "model": str(args.model) if args.model else None}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     tmp = args.out.with_suffix(args.out.suffix + ".tmp")
@@ -60,6 +65,57 @@ def run(args: argparse.Namespace) -> int:
     if not args.quiet:
         print_summary(report)
     return 0
+
+
+def native_vibration(logs: list, grid_rate_hz: float) -> dict | None:
+    """Vibration lines in the logs' own high-rate gyro (dataflash IMU/GYR faster than twice the grid),
+    over the armed flights; None when no log has one. Adds the logged rotor speed when there is one."""
+    import numpy as np
+
+    from groundstation.gap.fingerprints import native_rate_lines
+
+    for log in logs:
+        for name in ("GYRO_FAST", "IMU"):
+            s = log.series.get(name)
+            if s is None or len(s) < 100:
+                continue
+            dt = float(np.median(np.diff(s.t_fc_s)))
+            if not 0 < dt < 1.0 / (2.0 * grid_rate_hz):
+                continue
+            sel = np.zeros(len(s), bool)
+            for fl in log.flights:
+                sel |= (s.t_fc_s >= fl.start_fc_s) & (s.t_fc_s <= fl.end_fc_s)
+            g = np.stack([s["gx_rad_s"], s["gy_rad_s"], s["gz_rad_s"]], axis=1)[sel]
+            lines = native_rate_lines(g[np.isfinite(g).all(axis=1)], dt)
+            rotor = log.series.get("ROTOR")
+            rpm = None
+            if rotor is not None and len(rotor):
+                r = rotor["rotor_speed_rpm"][np.isfinite(rotor["rotor_speed_rpm"])]
+                spinning = r[r > 0.8 * r.max()] if r.size and r.max() > 0 else r[:0]
+                rpm = float(np.median(spinning)) if spinning.size else None
+            return {"source": f"{name} at {1 / dt:.0f} Hz in {log.source}",
+                    "lines": [{"frequency_hz": round(ln.frequency_hz, 3), "channels": ln.channels,
+                               "log10_p": round(ln.log10_p, 1), "amplitude_rad_s": ln.amplitude} for ln in lines],
+                    "rotor_speed_hz": None if rpm is None else round(rpm / 60.0, 3)}
+    return None
+
+
+def unfold_rotor_line(report: dict, native: dict, grid_rate_hz: float) -> None:
+    """Put the native lines in the report; a rotor_vibration effect found on the grid gets the true
+    frequency of the native line that folds onto its own (its grid frequency is kept beside it)."""
+    report["vibration_native"] = native
+    for eff in report.get("effects", []):
+        if eff.get("effect") != "rotor_vibration":
+            continue
+        f_grid = float(eff["estimate"].get("frequency_hz", float("nan")))
+        for ln in native["lines"]:
+            f = ln["frequency_hz"] % grid_rate_hz
+            if abs(min(f, grid_rate_hz - f) - f_grid) < 0.3:
+                eff["estimate"]["frequency_hz_on_grid"] = f_grid
+                eff["estimate"]["frequency_hz"] = ln["frequency_hz"]
+                eff["evidence"] = (eff.get("evidence", "") + f"; at {ln['frequency_hz']:.2f} Hz in the "
+                                   f"autopilot's own log ({native['source'].split(' in ')[0]})")
+                break
 
 
 def print_summary(report: dict) -> None:
@@ -82,6 +138,11 @@ def print_summary(report: dict) -> None:
     for r in rows["effects"]:
         t2.add_row(*r)
     con.print(t2)
+    nat = report.get("vibration_native")
+    if nat:
+        lines = ", ".join(f"{ln['frequency_hz']:.2f} Hz ({'/'.join(ln['channels'])})" for ln in nat["lines"]) or "none"
+        rot = f"; logged rotor speed {nat['rotor_speed_hz']:.2f} Hz" if nat.get("rotor_speed_hz") else ""
+        con.print(f"vibration lines in {nat['source']}: {lines}{rot}")
     g = report["gap"]
     con.print(f"worst channels {g['worst_channels']}, band {g['band_hz']} Hz, condition: {g['conditions']}, "
               f"flagged windows {g['windows_s'][:6]}")

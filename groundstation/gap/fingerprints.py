@@ -216,3 +216,52 @@ def kinematic_rate_offsets(Y: np.ndarray, dt_s: float, available: np.ndarray,
         logp = float(stats.t.logsf(abs(t), n - 1) / np.log(10) + np.log10(2))
         out[name] = RateOffset(name, mu, float(t), logp, n)
     return out
+
+
+def native_rate_lines(gyro_rad_s: np.ndarray, dt_s: float, *, window_s: float = 2.0, min_hz: float = 10.0,
+                      alpha: float = 1e-3) -> list[Line]:
+    """Narrow lines in body rates sampled faster than the identification grid (the autopilot's own log).
+
+    A rotor-frequency vibration sits at its true frequency here (below this rate's Nyquist) rather
+    than folded onto the 50 Hz grid. Same statistics as :func:`spectral_lines`: the window-averaged
+    periodogram against the median of neighbouring bins, significant by the chi-square law of the
+    average (Bonferroni over bins and axes) and present in the median over windows too; bins below
+    ``min_hz`` (the flown motion) are not tested.
+
+    Parameters
+    ----------
+    gyro_rad_s : array (n, 3), body rates p q r (rad/s) at a uniform rate
+    dt_s : float, their sample period (s)
+
+    Returns
+    -------
+    list of Line (channels named p, q, r), strongest first; empty when too short for 4 windows
+    """
+    L = int(round(window_s / dt_s))
+    W = gyro_rad_s.shape[0] // max(L, 1)
+    if W < 4 or L < 16:
+        return []
+    x = np.asarray(gyro_rad_s[: W * L], dtype=float).reshape(W, L, 3)
+    f, Pw = window_periodograms(x, dt_s)
+    ratio, logp = _line_stats(Pw.mean(axis=0), W, nyquist_real=L % 2 == 0)
+    ratio_med, _ = _line_stats(np.median(Pw, axis=0), W, nyquist_real=L % 2 == 0)
+    z_med = (ratio_med - 1.0) * np.log(2.0) * np.sqrt(W)
+    lo = max(3, int(np.ceil(min_hz / (f[1] - f[0]))))
+    n_tests = max((len(f) - lo) * 3, 1)
+    thr = np.log10(alpha / n_tests)
+    sig = (logp < thr) & (z_med > stats.norm.isf(alpha / n_tests))
+    sig[:lo] = False
+    names = ("p", "q", "r")
+    lines: list[Line] = []
+    used = np.zeros(len(f), bool)
+    for k in np.argsort(np.where(sig, logp, 0).min(axis=1)):
+        if not sig[k].any() or used[max(0, k - 2):k + 3].any():
+            continue
+        used[k] = True
+        fk = refine_frequency(x, dt_s, f[k], f[1] - f[0])
+        chans = np.flatnonzero(sig[k])
+        cmax = int(np.argmin(np.where(sig[k], logp[k], 0)))
+        lines.append(Line(frequency_hz=float(fk), channels=[names[c] for c in chans], ratio=float(ratio[k, cmax]),
+                          log10_p=float(logp[k, cmax] - thr + np.log10(alpha)),
+                          amplitude={names[c]: sinusoid_amplitude(x[..., c], dt_s, fk) for c in chans}))
+    return lines
