@@ -2,8 +2,8 @@
 
 :func:`analyse` is the picklable unit of work (a process pool or a Dask worker runs it): it reads
 the log, prepares it, and for each flight (armed interval) in it identifies the hover model,
-diagnoses the gap (held-out, k-fold), scores the model on a reference flight (the campaign's
-previous log: the cross-flight fit) and returns plain JSON-able rows. A failure becomes a row with
+diagnoses the gap (held-out, k-fold), predicts a reference flight with the model (the campaign's
+previous log: the cross-flight fit, :func:`groundstation.sysid.heldout.predict`) and returns plain JSON-able rows. A failure becomes a row with
 ``error`` set (one line) and never stops the campaign. Memory is one log's at a time per worker.
 """
 
@@ -34,8 +34,10 @@ class Settings:
     #: command's options applied: [prepare], [identify], [bounds], [identification], [diagnose]
     config: Any = None
     diagnose: bool = True
-    #: aircraft file content (TOML text), "" when none
+    #: aircraft file content (TOML text), "" when none; ``aircraft`` the loaded file
+    #: (:class:`groundstation.aircraft.Aircraft`: channel map, outputs, prior model) or None
     aircraft_text: str = ""
+    aircraft: Any = None
 
     def service_config(self) -> Any:
         from groundstation.config import ServiceConfig
@@ -121,15 +123,15 @@ def effect_values(report: dict) -> dict[str, float]:
 
 
 def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[str, Any]:
+    from groundstation.sysid.heldout import predict
     from groundstation.sysid.model import PARAM_NAMES
-    from groundstation.sysid.validate import validate
 
     t0 = time.perf_counter()
     row: dict[str, Any] = {"flight_index": flight, **_conditions(prepared)}
     from groundstation.pipeline import identify_prepared
 
     cfg = job.settings.service_config()
-    model = identify_prepared(prepared, cfg)
+    model = identify_prepared(prepared, cfg, aircraft=job.settings.aircraft)
     fit = model.fit
     row.update({"cost": fit.get("cost"), "windows": fit.get("windows"),
                 "fixed": json.dumps(fit.get("fixed", [])), "pinned": json.dumps(list(model.pinned))})
@@ -142,7 +144,7 @@ def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[st
     row["cross_match_pct"] = None
     if ref is not None:
         try:
-            row["cross_match_pct"] = float(validate(model, ref)["mean_match"])
+            row["cross_match_pct"] = float(predict(model, ref).mean_match)
             row["cross_log"] = Path(job.reference_log or "").name
         except ValueError as exc:  # the reference holds no usable window: reported, not fatal
             row["cross_log"] = f"{Path(job.reference_log or '').name}: {exc}"
@@ -179,13 +181,13 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
 
         cfg = job.settings.service_config()
         with threadpool_limits(1):  # one core per job: the pool or the cluster provides the parallelism
-            prepared = prepare_logs([job.log], cfg)
+            prepared = prepare_logs([job.log], cfg, aircraft=job.settings.aircraft)
             if not prepared.segments:
                 raise ValueError(f"nothing to identify ({'; '.join(prepared.notes) or 'no in-air data'})")
             ref = None
             if job.reference_log:
                 try:
-                    ref = prepare_logs([job.reference_log], cfg)
+                    ref = prepare_logs([job.reference_log], cfg, aircraft=job.settings.aircraft)
                 except Exception:  # noqa: BLE001 - a bad reference only loses the cross-flight fit
                     ref = None
             rows = []

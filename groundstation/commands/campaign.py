@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import json
 import time
-import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--db", type=Path, default=Path("campaign.sqlite"), help="SQLite file of the table(s)")
     parser.add_argument("--parquet", type=Path, default=None, help="also write DIR/<aircraft>.parquet")
     parser.add_argument("--aircraft", type=Path, default=None,
-                        help="aircraft TOML file (its name keys the table; default table: 'aircraft')")
+                        help="aircraft TOML: channel map, measured outputs, prior model; its name keys the table")
     parser.add_argument("--vehicle", default=None, help="aircraft name for the table (default: from --aircraft)")
     parser.add_argument("--config", type=Path, default=None,
                         help="configuration TOML ([prepare], [identify], [bounds], [identification], [diagnose])")
@@ -45,20 +44,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true")
 
 
-def _aircraft(args: argparse.Namespace) -> tuple[str, str]:
-    """(name, file text) of the aircraft."""
+def _aircraft(args: argparse.Namespace) -> tuple[str, str, Any]:
+    """(name, file text, loaded aircraft file or None)."""
     if args.aircraft is None:
-        return args.vehicle or "aircraft", ""
-    try:
-        text = args.aircraft.read_text()
-    except OSError as exc:
-        raise OSError(f"--aircraft {args.aircraft}: cannot read ({exc.strerror or exc})") from None
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"--aircraft {args.aircraft}: not valid TOML ({exc})") from None
-    name = args.vehicle or doc.get("name") or doc.get("aircraft", {}).get("name") or args.aircraft.stem
-    return str(name), text
+        return args.vehicle or "aircraft", "", None
+    from groundstation.pipeline import load_aircraft
+
+    aircraft = load_aircraft(args.aircraft)
+    name = args.vehicle or (aircraft.name if aircraft.name != "aircraft" else args.aircraft.stem)
+    return str(name), args.aircraft.read_text(), aircraft
 
 
 def build_jobs(args: argparse.Namespace, store: Any) -> tuple[list, list[Path], Any]:
@@ -66,8 +60,8 @@ def build_jobs(args: argparse.Namespace, store: Any) -> tuple[list, list[Path], 
     from groundstation.campaign.job import FlightJob, Settings, file_sha256, find_logs, log_date_utc
     from groundstation.commands.identify import config_from_args
 
-    name, text = _aircraft(args)
-    s = Settings(config=config_from_args(args), diagnose=not args.no_diagnose, aircraft_text=text)
+    name, text, aircraft = _aircraft(args)
+    s = Settings(config=config_from_args(args), diagnose=not args.no_diagnose, aircraft_text=text, aircraft=aircraft)
     logs = find_logs(args.paths)
     if not logs:
         raise ValueError(f"no .tlog/.bin/.ulg/.px4log file in {', '.join(map(str, args.paths))}")
@@ -98,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     store = CampaignStore(args.db)
     try:
         jobs, skipped, settings = build_jobs(args, store)
-        name = _aircraft(args)[0]
+        name = jobs[0].aircraft if jobs else _aircraft(args)[0]
         con.print(f"{len(jobs) + len(skipped)} log(s): {len(skipped)} already done, {len(jobs)} to analyse on "
                   f"{'Dask ' + args.scheduler if args.scheduler else f'{workers} process(es)'}")
         t0 = time.perf_counter()
