@@ -129,3 +129,25 @@ def test_unwritable_rrd_and_unreachable_viewer_are_one_line(tmp_path):
         _check_reachable(url)
     with pytest.raises(RerunSinkError, match="not reachable"):
         RerunSink("heli", "connect", url)
+
+
+def test_frequency_verification_is_drawn_as_bode_per_scored_pair(tmp_path):
+    from groundstation.freq.spectra import estimate_responses
+    from groundstation.freq.verify import verify
+    from groundstation.sysid.model import theta_from_dict
+    from groundstation.sysid.synthetic import EXAMPLE_TRUTH
+    from tests.freq.conftest import flight
+
+    v = verify(theta_from_dict(EXAMPLE_TRUTH), estimate_responses(flight(60.0, seed=3)))
+    assert v.pairs
+    path = tmp_path / "bode.rrd"
+    sink = RerunSink("heli", "save", str(path))
+    sink.flight_ended(1, 0.0, 60.0)
+    sink.log_result({"flight": 1, "freq": v})
+    sink.close()
+    lay = read_layout(path)
+    for p in v.pairs:
+        for k in ("magnitude/data", "magnitude/model", "phase/data", "phase/model", "coherence/data"):
+            assert f"/heli/flights/1/bode/{p.input}_{p.output}/{k}" in lay.entities
+    bode = [v for v in lay.views_under(lay.opening_tab()) if "/bode/" in v.origin]
+    assert len(bode) == 3 * len(v.pairs) and all(v.kind == "BarChart" and "[Hz]" in v.name for v in bode)
