@@ -138,17 +138,22 @@ def _flight_tab(v: str, fv: FlightViews) -> rrb.Container:
     return rrb.Tabs(*tabs, name=f"flight {fv.flight} ({fv.t_end_s - fv.t_start_s:.0f} s)")
 
 
-def _session_tab(v: str) -> rrb.Container:
-    top = rrb.Horizontal(_lanes(v, None, False), _inputs(v, None),
+def _session_tab(v: str, span: FlightViews | None) -> rrb.Container:
+    top = rrb.Horizontal(_lanes(v, span, False), _inputs(v, span),
                          rrb.TextLogView(origin=f"{v}/events", name="events"), column_shares=[1, 2, 1])
-    grid = rrb.Grid(*[_channel(v, c, None) for c in OUTPUTS], grid_columns=4)
-    return rrb.Vertical(top, grid, row_shares=[1, 3], name="session (live)")
+    grid = rrb.Grid(*[_channel(v, c, span) for c in OUTPUTS], grid_columns=4)
+    return rrb.Vertical(top, grid, row_shares=[1, 3], name="session" if span is not None else "session (live)")
 
 
-def blueprint(vehicle: str, flights: Sequence[FlightViews] = ()) -> rrb.Blueprint:
-    """One tab per finished flight, latest first and active, then the whole session."""
+def blueprint(vehicle: str, flights: Sequence[FlightViews] = (), session: tuple[float, float] | None = None
+              ) -> rrb.Blueprint:
+    """One tab per finished flight, latest first and active, then the whole session.
+
+    ``session``: the session's FC-time span for a saved file (its tab then shows all of it); None
+    for a live viewer (the plots follow the newest data).
+    """
     v = f"/{vehicle}"
     tabs = [_flight_tab(v, fv) for fv in sorted(flights, key=lambda f: -f.flight)]
-    tabs.append(_session_tab(v))
+    tabs.append(_session_tab(v, FlightViews(0, session[0], session[1]) if session else None))
     return rrb.Blueprint(rrb.Tabs(*tabs, active_tab=0), rrb.TimePanel(timeline="fc_time", state="collapsed"),
                          rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"))

@@ -114,6 +114,7 @@ class RerunSink:
         self._buf_rows: dict[str, int] = {}
         self._last_flush = time.monotonic()
         self._state = ""
+        self._t_first, self._t_last = np.inf, -np.inf      # FC-time span of the rows seen
         self.rows = 0
         self._properties(aircraft)
         self._style()
@@ -185,6 +186,7 @@ class RerunSink:
         if n == 0:
             return
         t, th = np.asarray(t_fc_s, dtype=float), np.asarray(t_host_s, dtype=float)
+        self._t_first, self._t_last = min(self._t_first, float(t[0])), max(self._t_last, float(t[-1]))
         if inputs is not None:
             self._add("inputs", t, th, 100.0 * np.asarray(inputs, dtype=float))
         if outputs is not None and (kind != "raw" or self.raw):
@@ -259,7 +261,8 @@ class RerunSink:
         first blueprint it finds there and shows no data under a later one)."""
         if self.mode == "save" and not final:
             return
-        self.stream.send_blueprint(blueprint(self.vehicle, list(self.flights.values())), make_active=True,
+        span = (self._t_first, self._t_last) if final and self._t_first <= self._t_last else None
+        self.stream.send_blueprint(blueprint(self.vehicle, list(self.flights.values()), span), make_active=True,
                                    make_default=True)
 
     def log_result(self, result: Any, overlay: Mapping[str, np.ndarray] | None = None, pictures: Any = None) -> None:
