@@ -22,8 +22,10 @@ Units are in every view name. Leaves the logging to :mod:`groundstation.sinks.re
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import rerun.blueprint as rrb
 
@@ -55,6 +57,19 @@ class FlightViews:
     gap_channels: tuple[str, ...] = ()
     effects: tuple[str, ...] = ()                          # entity-safe effect labels
     bode_pairs: tuple[str, ...] = ()                       # "lon_q", ...
+
+
+def views_to_json(flights: Sequence[FlightViews], session: tuple[float, float] | None = None) -> str:
+    """What the blueprint was built from, for the recording's properties (rebuilt by :func:`views_from_json`)."""
+    return json.dumps({"flights": [asdict(fv) for fv in flights], "session": list(session) if session else None})
+
+
+def views_from_json(text: str) -> tuple[list[FlightViews], tuple[float, float] | None]:
+    doc = json.loads(text)
+    fields: list[dict[str, Any]] = [{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+                                    for d in doc["flights"]]
+    flights = [FlightViews(**d) for d in fields]
+    return flights, (tuple(doc["session"]) if doc.get("session") else None)  # type: ignore[return-value]
 
 
 def _span(fv: FlightViews | None, pad_s: float = 2.0) -> tuple[rrb.VisibleTimeRange | None, rrb.TimeAxis | None]:
@@ -106,11 +121,12 @@ def _gap_tab(v: str, fv: FlightViews) -> rrb.Container:
     f = f"{v}/flights/{fv.flight}"
     top = rrb.Horizontal(rrb.TextDocumentView(origin=f"{f}/verdict", name="verdict: what, how sure, what next"),
                          _lanes(v, fv, True), column_shares=[2, 1])
-    resid = rrb.Grid(*[_plot(f"{v}/gap/residual/{c}", f"{SYMBOL[c]} held-out residual [{UNITS[c]}] · flagged windows",
-                             fv) for c in fv.gap_channels], grid_columns=4, name="held-out residuals")
-    spec = rrb.Grid(*[rrb.BarChartView(origin=f"{f}/spectrum/{c}", name=f"{SYMBOL[c]} residual spectrum "
-                                       "[dB over noise floor] vs [Hz]", plot_legend=rrb.PlotLegend(visible=False))
-                      for c in fv.gap_channels], grid_columns=4, name="residual spectra")
+    cols = min(4, max(1, len(fv.gap_channels)))
+    resid = rrb.Grid(*[_plot(f"{v}/gap/residual/{c}", f"{SYMBOL[c]} held-out residual [{UNITS[c]}]", fv)
+                       for c in fv.gap_channels], grid_columns=cols, name="held-out residuals")
+    spec = rrb.Grid(*[rrb.BarChartView(origin=f"{f}/spectrum/{c}", name=f"{SYMBOL[c]} residual [dB over noise] vs [Hz]",
+                                       plot_legend=rrb.PlotLegend(visible=False))
+                      for c in fv.gap_channels], grid_columns=cols, name="residual spectra")
     parts: list[rrb.Container | rrb.View] = [top, resid, spec]
     if fv.effects:
         parts.append(rrb.Grid(*[_plot(f"{f}/effects/{e}", f"{e.replace('_', ' ')}: held-out NRMSE per window, "
@@ -129,13 +145,15 @@ def _bode_tab(v: str, fv: FlightViews) -> rrb.Container:
     return rrb.Grid(*cols, name="frequency responses")
 
 
-def _flight_tab(v: str, fv: FlightViews) -> rrb.Container:
+def _flight_tab(v: str, fv: FlightViews, opening: str = "") -> rrb.Container:
     tabs: list[rrb.Container] = [_model_tab(v, fv)]
     if fv.gap_channels:
         tabs.append(_gap_tab(v, fv))
     if fv.bode_pairs:
         tabs.append(_bode_tab(v, fv))
-    return rrb.Tabs(*tabs, name=f"flight {fv.flight} ({fv.t_end_s - fv.t_start_s:.0f} s)")
+    names = [t.name for t in tabs]
+    active = names.index(opening) if opening in names else 0
+    return rrb.Tabs(*tabs, active_tab=active, name=f"flight {fv.flight} ({fv.t_end_s - fv.t_start_s:.0f} s)")
 
 
 def _session_tab(v: str, span: FlightViews | None) -> rrb.Container:
@@ -145,15 +163,17 @@ def _session_tab(v: str, span: FlightViews | None) -> rrb.Container:
     return rrb.Vertical(top, grid, row_shares=[1, 3], name="session" if span is not None else "session (live)")
 
 
-def blueprint(vehicle: str, flights: Sequence[FlightViews] = (), session: tuple[float, float] | None = None
-              ) -> rrb.Blueprint:
+def blueprint(vehicle: str, flights: Sequence[FlightViews] = (), session: tuple[float, float] | None = None,
+              opening: str = "") -> rrb.Blueprint:
     """One tab per finished flight, latest first and active, then the whole session.
 
     ``session``: the session's FC-time span for a saved file (its tab then shows all of it); None
-    for a live viewer (the plots follow the newest data).
+    for a live viewer (the plots follow the newest data). ``opening``: the latest flight's sub-tab
+    to open on (``model vs measured`` by default, ``gap``, ``frequency responses``).
     """
     v = f"/{vehicle}"
-    tabs = [_flight_tab(v, fv) for fv in sorted(flights, key=lambda f: -f.flight)]
+    order = sorted(flights, key=lambda f: -f.flight)
+    tabs = [_flight_tab(v, fv, opening if k == 0 else "") for k, fv in enumerate(order)]
     tabs.append(_session_tab(v, FlightViews(0, session[0], session[1]) if session else None))
     return rrb.Blueprint(rrb.Tabs(*tabs, active_tab=0), rrb.TimePanel(timeline="fc_time", state="collapsed"),
                          rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"))

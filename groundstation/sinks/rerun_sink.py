@@ -41,6 +41,7 @@ from groundstation.sinks.rerun_layout import (
     UNITS,
     FlightViews,
     blueprint,
+    views_to_json,
 )
 from groundstation.sinks.rerun_text import field_of as _get
 from groundstation.sinks.rerun_text import fit_table, fit_text, verdict_text
@@ -153,7 +154,7 @@ class RerunSink:
             for kind in ("raw", "smoothed", "model", "residual"):
                 name = {"raw": f"{SYMBOL[c]} measured (raw)", "smoothed": f"{SYMBOL[c]} measured (smoothed)",
                         "model": f"{SYMBOL[c]} model", "residual": f"{SYMBOL[c]} measured − model"}[kind]
-                width = 1.0 if kind == "raw" else 1.5
+                width = {"raw": 1.0, "smoothed": 1.2, "model": 2.4, "residual": 1.2}[kind]   # model under, wider
                 s.log(f"{v}/outputs/{c}/{kind}", rr.SeriesLines(colors=[_COLORS[kind]], names=[name], widths=[width]),
                       static=True)
             s.log(f"{v}/gap/residual/{c}/residual", rr.SeriesLines(colors=[_COLORS["residual"]],
@@ -262,8 +263,9 @@ class RerunSink:
         if self.mode == "save" and not final:
             return
         span = (self._t_first, self._t_last) if final and self._t_first <= self._t_last else None
-        self.stream.send_blueprint(blueprint(self.vehicle, list(self.flights.values()), span), make_active=True,
-                                   make_default=True)
+        flights = list(self.flights.values())
+        self.stream.send_property("views", rr.AnyValues(json=views_to_json(flights, span)))
+        self.stream.send_blueprint(blueprint(self.vehicle, flights, span), make_active=True, make_default=True)
 
     def log_result(self, result: Any, overlay: Mapping[str, np.ndarray] | None = None, pictures: Any = None) -> None:
         """A worker result (mapping or dataclass): model overlay, residuals, fit, gap, Bode.

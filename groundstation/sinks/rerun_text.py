@@ -121,8 +121,8 @@ def _effect_lines(e: Mapping[str, Any], alpha: Any) -> list[str]:
     if _num(lo) is not None and _num(hi) is not None:
         sure += f"; gap on its channels shrinks {e.get('shrink_pct', 0) or 0:.0f} % (interval {lo:.0f}–{hi:.0f} %)"
     step = NEXT_STEP.get(str(e.get("effect")), "").format(input=e.get("input") or "?", output=e.get("output") or "?")
-    return [f"**Found:** {str(e.get('effect', '')).replace('_', ' ')} {where}" + (f" ({est})" if est else ""),
-            f"*Evidence:* {e.get('evidence') or '–'}", f"**How sure:** {sure}", f"**Next:** {step}", ""]
+    return [f"- **Found:** {str(e.get('effect', '')).replace('_', ' ')} {where}" + (f" ({est})" if est else ""),
+            f"- *Evidence:* {e.get('evidence') or '–'}", f"- **How sure:** {sure}", f"- **Next:** {step}", ""]
 
 
 def verdict_text(flight: int, gap: Mapping[str, Any]) -> str:
@@ -135,13 +135,14 @@ def verdict_text(flight: int, gap: Mapping[str, Any]) -> str:
         lines += _effect_lines(e, alpha)
     if verdict in ("none", "unexplained"):
         sig = "significant" if g.get("significant") else "not significant"
-        lines += [f"**Found:** no catalogue effect beats the base model on held-out data; the remaining gap is {sig}.",
-                  f"**Next:** {NEXT_STEP[verdict]}.", ""]
+        lines += [f"- **Found:** no catalogue effect beats the base model on held-out data; the remaining gap is {sig}.",
+                  f"- **Next:** {NEXT_STEP[verdict]}.", ""]
         best = (gap.get("candidates") or [])[:1]
         if best:
             b = best[0]
-            lines += [f"Best candidate, not significant: {b.get('effect')} {b.get('input') or b.get('output') or ''} "
-                      f"(held-out cost {b.get('score', 0) or 0:+.1f} %, p = {b.get('p_value', float('nan')):.2g}).", ""]
+            lines += [f"- Best candidate, not significant: {b.get('effect')} {b.get('input') or b.get('output') or ''} "
+                      f"(held-out cost down {b.get('score', 0) or 0:.1f} %, p = {b.get('p_value', float('nan')):.2g}).",
+                      ""]
     ratio = g.get("gap_to_noise_ratio") or {}
     if ratio:
         lines += ["| channel | match % | residual / noise |", "|---|---|---|"]
@@ -150,18 +151,19 @@ def verdict_text(flight: int, gap: Mapping[str, Any]) -> str:
             if c in ratio or m is not None:
                 lines.append(f"| {SYMBOL[c]} | {m if m is not None else '–'} | {ratio.get(c, '–')} |")
         lines.append("")
+    lines.append("")
     win = g.get("windows_s") or []
     if win:
         shown = ", ".join(f"{a:.1f}–{b:.1f} s" for a, b in win[:8] if a is not None and b is not None)
-        lines.append(f"**Flagged windows** (FC time, {g.get('conditions') or 'no common condition'}): {shown}"
+        lines.append(f"- **Flagged windows** (FC time, {g.get('conditions') or 'no common condition'}): {shown}"
                      + (f" and {len(win) - 8} more" if len(win) > 8 else ""))
     if g.get("band_hz"):
-        lines.append(f"Worst band: {g['band_hz'][0]:g}–{g['band_hz'][1]:g} Hz.")
+        lines.append(f"- Worst band: {g['band_hz'][0]:g}–{g['band_hz'][1]:g} Hz.")
     poor = [k for k, v in ((gap.get("excitation") or {}).get("inputs") or {}).items() if v != "ok"]
     if poor:
-        lines.append(f"Too little excitation on: {', '.join(poor)} (effects on these inputs cannot be tested).")
+        lines.append(f"- Too little excitation on: {', '.join(poor)} (effects on these inputs cannot be tested).")
     for k, why in (gap.get("untestable") or {}).items():
-        lines.append(f"Untestable: {k.replace('_', ' ')}: {why}.")
+        lines.append(f"- Untestable: {k.replace('_', ' ')}: {why}.")
     for n in (gap.get("notes") or [])[:5]:
-        lines.append(f"Note: {n}")
+        lines.append(f"- Note: {n}")
     return "\n".join(lines)
