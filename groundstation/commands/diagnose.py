@@ -52,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
     if native is not None:
         unfold_rotor_line(report, native, cfg.prepare.rate_hz)
     report["source"] = {"logs": [str(p) for p in args.logs], "model": str(args.model) if args.model else None}
+    report["frequency"] = frequency_report(logs, cfg, model, report)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     tmp = args.out.with_suffix(args.out.suffix + ".tmp")
     tmp.write_text(json.dumps(report, indent=1, allow_nan=False))
@@ -118,6 +119,26 @@ def unfold_rotor_line(report: dict, native: dict, grid_rate_hz: float) -> None:
                 break
 
 
+def frequency_report(logs: list, cfg, model, report: dict) -> dict:
+    """The gap report's frequency section: the base model checked against the flight's frequency
+    responses (at the log's native rate), or ``{"error": ...}`` when the analysis cannot run."""
+    from groundstation.commands.freq_support import prepare_native
+    from groundstation.freq.model_response import delays_from_augmentations
+    from groundstation.freq.spectra import estimate_responses
+    from groundstation.freq.verify import verify
+    from groundstation.gap.report import frequency_section
+    from groundstation.sysid.model import theta_from_dict
+
+    try:
+        theta = theta_from_dict(report["method"]["base_parameters"])
+        prepared = prepare_native(logs, cfg.prepare)
+        v = verify(theta, estimate_responses(prepared, cfg.freq),
+                   delays_from_augmentations(model.augmentations) if model is not None else None)
+    except ValueError as exc:
+        return {"error": str(exc)}
+    return frequency_section(v)
+
+
 def print_summary(report: dict) -> None:
     from rich.console import Console
     from rich.table import Table
@@ -148,6 +169,32 @@ def print_summary(report: dict) -> None:
               f"flagged windows {g['windows_s'][:6]}")
     if report.get("untestable"):
         con.print(f"untestable: {report['untestable']}")
+    print_frequency(report.get("frequency") or {}, con)
+
+
+def print_frequency(fr: dict, con) -> None:
+    from rich.table import Table
+
+    from groundstation.gap.report import frequency_rows
+
+    if "error" in fr:
+        con.print(f"frequency section: {fr['error']}")
+        return
+    ja = fr.get("J_avg")
+    con.print(f"frequency: Tischler J_avg {'-' if ja is None else f'{ja:.1f}'} over {len(fr.get('pairs', []))} pairs "
+              f"({'good' if fr.get('J_avg_good') else 'not good'}); "
+              + ", ".join(f"{p['input']}->{p['output']} {p['J']:.0f}{'' if p['pass'] else ' FAIL'}"
+                          for p in fr.get("pairs", [])))
+    rows = frequency_rows(fr)
+    if rows:
+        t = Table(title="where in frequency the model leaves the flight's 95 % random-error bound (worst first)")
+        for col in ("pair", "band", "model - data dB", "deg", "departure / bound"):
+            t.add_column(col)
+        for r in rows:
+            t.add_row(*r)
+        con.print(t)
+    for u in fr.get("unmodelled", []):
+        con.print(f"{u['input']}->{u['output']}: coherent in the flight ({u['coherent_points']} points), no path in the model")
 
 
 def write_rrd(arrays: dict, report: dict, path: Path) -> None:

@@ -98,3 +98,38 @@ def summary_rows(report: dict[str, Any]) -> dict[str, list[list[str]]]:
         eff_rows.append([e["effect"], e["input"] or e["output"] or "-", sig, f"{e['score']}",
                          f"{e['gap_before']} -> {e['gap_after']}", f"{e['shrink_pct']}", e["evidence"]])
     return {"channels": chan_rows, "effects": eff_rows}
+
+
+def frequency_section(verification: Any) -> dict[str, Any]:
+    """The report's ``frequency`` section from a :class:`groundstation.freq.verify.FreqVerification` of the
+    base model: where in frequency the model departs from the flight.
+
+    ``departures``: every band of adjacent coherent points where the model's response leaves the
+    data's 95 % random-error bound, worst (largest departure over the bound) first, with the mean
+    magnitude (dB) and phase (deg) of model minus data; ``pairs``: Tischler's J per input-output
+    pair with pass/fail and the phase-slope delay; ``unmodelled``: coherent responses the model has no
+    path for; ``no_response``: one reason per pair the flight says nothing about.
+    """
+    doc = verification.to_json()
+    departures = [{"input": p.input, "output": p.output, "f_lo_hz": _r(b.f_lo_hz, 3), "f_hi_hz": _r(b.f_hi_hz, 3),
+                   "points": b.points, "magnitude_db": _r(b.magnitude_db, 2), "phase_deg": _r(b.phase_deg, 1),
+                   "max_ratio": _r(b.max_ratio, 2)}
+                  for p in verification.pairs for b in p.deviations]
+    departures.sort(key=lambda d: -(d["max_ratio"] or 0.0))
+    return {
+        "J_avg": doc["J_avg"], "J_avg_good": doc["J_avg_good"],
+        "pairs": [{k: p[k] for k in ("input", "output", "J", "pass", "coherent_points", "band_hz", "delay_s")}
+                  for p in doc["pairs"]],
+        "departures": departures,
+        "unmodelled": doc["unmodelled"],
+        "no_response": doc["no_response"],
+        "input_delays": doc["input_delays"],
+        "frequency_hz": doc["frequency_hz"], "windows_s": doc["windows_s"],
+        "sample_interval_s": doc["sample_interval_s"],
+    }
+
+
+def frequency_rows(section: dict[str, Any], limit: int = 8) -> list[list[str]]:
+    """Terminal rows of the frequency section's departures (input->output, band, dB, deg, over the bound)."""
+    return [[f"{d['input']}->{d['output']}", f"{d['f_lo_hz']:.2g}-{d['f_hi_hz']:.2g} Hz", f"{d['magnitude_db']:+.1f}",
+             f"{d['phase_deg']:+.0f}", f"{d['max_ratio']:.1f}x"] for d in section.get("departures", [])[:limit]]
