@@ -9,13 +9,16 @@ Public API (import from the modules):
 * :mod:`~firmware_interface.codec` — ``Framer`` (MAVLink 1/2 framing with garbage/CRC accounting),
   ``check_frame``, ``frame_header``.
 * :mod:`~firmware_interface.transports` — ``await open_link(url)`` for ``serial://PATH:BAUD``,
-  ``pty://``, ``udpin://``, ``udpout://``, ``tcp://``; ``LinkDown`` and ``reconnect()``.
-* :mod:`~firmware_interface.link` — ``LinkRunner(link, session, on_events).run()``: the async pump.
+  ``pty://``, ``udpin://``, ``udpout://``, ``tcp://``; the ``Link`` protocol; ``LinkDown``,
+  ``PortMissing``; ``ScriptedLink`` (in-memory link for tests).
+* :mod:`~firmware_interface.link` — ``LinkRunner(opener, session, on_events).run()``: the link driver
+  (waits for a port not plugged in yet, reconnects with backoff; clock and sleep injected).
 * :mod:`~firmware_interface.recorder` — ``Recorder(out_dir).handle(events)``: session .tlog plus
   ``flight-NN.tlog`` per armed interval, crash-safe.
 * :mod:`~firmware_interface.readers` — ``load_log(path) -> LogData`` for .tlog, .bin, .px4log;
   ``build_logdata(events, ...)``, ``find_flights(series)``.
 * :mod:`~firmware_interface.tlogread` — ``scan_tlog(bytes, TlogScan())``: tolerant record scanner.
 * :mod:`~firmware_interface.samples` — the event dataclasses and ``LogData``;
-  :mod:`~firmware_interface.errors` — ``LinkError`` (ValueError) and subclasses, ``TransportError``.
+  :mod:`~firmware_interface.errors` — ``FirmwareInterfaceError``, the base of ``LinkError`` (ValueError)
+  and its subclasses and of ``TransportError`` (OSError).
 """

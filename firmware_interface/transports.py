@@ -8,16 +8,20 @@
 ``tcp://127.0.0.1:5760``                       asyncio stream client
 =============================================  =============================================
 
-Every link has ``await read() -> bytes`` (at least one byte), ``await write(bytes)``,
-``await close()`` and ``await reconnect()``. When the underlying device goes away (USB unplug: EIO,
-empty read, the path vanished; TCP: EOF or reset) ``read``/``write`` raise :class:`LinkDown`;
-``reconnect`` then retries with exponential backoff (``backoff_s`` doubling up to ``backoff_max_s``)
-until the same path/address opens again. UDP has no connection: loss shows only as silence, which the
-session's link timeout reports.
+Every link satisfies the :class:`Link` protocol: ``await read() -> bytes`` (at least one byte),
+``await write(bytes)``, ``await close()``. When the underlying device goes away (USB unplug: EIO,
+empty read, the path vanished; TCP: EOF or reset) ``read``/``write`` raise :class:`LinkDown`; the
+driver (:class:`firmware_interface.link.LinkRunner`) then opens the URL again with backoff. UDP has
+no connection: loss shows only as silence, which the session's link timeout reports.
 
-A URL that cannot be opened at all raises :class:`~firmware_interface.errors.TransportError` with the
-URL in the message. Third-party exceptions (``serial.SerialException``, socket errors) are mapped to
-these two at this edge. Leaves MAVLink to :mod:`firmware_interface.session`.
+A URL that cannot be opened raises :class:`~firmware_interface.errors.TransportError` with the URL
+in the message; a serial port that does not exist (yet) raises its subclass :class:`PortMissing`
+(the driver waits for it), a path that exists but is not a serial device is a plain TransportError.
+Third-party exceptions (``serial.SerialException``, socket errors) are mapped to these at this edge.
+
+:class:`ScriptedLink` is an in-memory link (as httpcore ships its ``MockStream``): scripted chunks
+and link losses, for tests of the logic above the transport without ptys or sleeps.
+Leaves MAVLink to :mod:`firmware_interface.session`.
 """
 
 from __future__ import annotations
@@ -25,18 +29,30 @@ from __future__ import annotations
 import asyncio
 import os
 import socket
+import stat
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 from urllib.parse import urlparse
 
 from firmware_interface.errors import TransportError
 
-__all__ = ["Link", "LinkDown", "LinkUrl", "SerialLink", "TcpLink", "UdpLink", "open_link", "parse_url"]
+__all__ = ["Link", "LinkDown", "LinkUrl", "PortMissing", "ScriptedLink", "SerialLink", "TcpLink", "UdpLink",
+           "open_link", "parse_url"]
 
 DEFAULT_BAUD = 115200
 
 
 class LinkDown(TransportError):
-    """The device or connection went away; call ``reconnect()``."""
+    """The device or connection went away; open the URL again."""
+
+
+class PortMissing(TransportError):
+    """The serial port's path does not exist (yet): the flight controller is not plugged in."""
+
+    def __init__(self, message: str, path: str) -> None:
+        super().__init__(message)
+        self.path = path
 
 
 @dataclass(frozen=True)
@@ -77,39 +93,69 @@ def parse_url(url: str) -> LinkUrl:
     raise TransportError(f"{url}: unknown link scheme {u.scheme!r} (serial://, udpin://, udpout://, tcp://)")
 
 
-class Link:
-    """Base of the transports (see the module docstring)."""
+@runtime_checkable
+class Link(Protocol):
+    """What the driver needs of a transport (see the module docstring)."""
 
     url: str
-    backoff_s: float = 0.1
-    backoff_max_s: float = 2.0
 
-    async def read(self) -> bytes:  # pragma: no cover - interface
-        raise NotImplementedError
+    async def read(self) -> bytes:
+        """At least one byte; raises :class:`LinkDown` when the device or connection is gone."""
+        ...
 
-    async def write(self, data: bytes) -> None:  # pragma: no cover - interface
-        raise NotImplementedError
+    async def write(self, data: bytes) -> None:
+        """All of ``data``; raises :class:`LinkDown` when the device or connection is gone."""
+        ...
 
-    async def close(self) -> None:  # pragma: no cover - interface
-        raise NotImplementedError
-
-    async def _open(self) -> None:  # pragma: no cover - interface
-        raise NotImplementedError
-
-    async def reconnect(self) -> None:
-        """Reopen after :class:`LinkDown`, retrying with exponential backoff until it works."""
-        await self.close()
-        delay = self.backoff_s
-        while True:
-            try:
-                await self._open()
-                return
-            except OSError:
-                await asyncio.sleep(delay)
-                delay = min(2 * delay, self.backoff_max_s)
+    async def close(self) -> None:
+        """Release the device (idempotent)."""
+        ...
 
 
-class SerialLink(Link):
+class ScriptedLink:
+    """An in-memory :class:`Link`: ``read`` returns the scripted chunks in order (an exception in the
+    script, e.g. ``LinkDown``, is raised from ``read`` instead), then waits for :meth:`feed`.
+    ``written`` collects what was sent; ``closed`` tells whether :meth:`close` was called."""
+
+    def __init__(self, script: Iterable[bytes | BaseException] = (), url: str = "script://") -> None:
+        self.url = url
+        self._script: list[bytes | BaseException] = list(script)
+        self._wake = asyncio.Event()
+        self.written = bytearray()
+        self.closed = False
+
+    def feed(self, *items: bytes | BaseException) -> None:
+        """Append chunks (or an exception to raise) to the script; wakes a waiting ``read``."""
+        self._script.extend(items)
+        self._wake.set()
+
+    @property
+    def pending(self) -> int:
+        """Script items not read yet."""
+        return len(self._script)
+
+    async def read(self) -> bytes:
+        while not self._script:
+            if self.closed:
+                raise LinkDown(f"{self.url}: closed")
+            self._wake.clear()
+            await self._wake.wait()
+        item = self._script.pop(0)
+        if isinstance(item, BaseException):
+            raise item
+        return item
+
+    async def write(self, data: bytes) -> None:
+        if self.closed:
+            raise LinkDown(f"{self.url}: closed")
+        self.written += data
+
+    async def close(self) -> None:
+        self.closed = True
+        self._wake.set()
+
+
+class SerialLink:
     """A serial port through pyserial, read without blocking the event loop (``add_reader``)."""
 
     def __init__(self, path: str, baud: int = DEFAULT_BAUD, url: str = "") -> None:
@@ -126,8 +172,14 @@ class SerialLink(Link):
     async def _open(self) -> None:
         import serial
 
-        if not os.path.exists(self.path):
-            raise TransportError(f"{self.url}: no such port {self.path}")
+        try:
+            mode = os.stat(self.path).st_mode
+        except FileNotFoundError:
+            raise PortMissing(f"{self.url}: no such port {self.path}", self.path) from None
+        except OSError as exc:
+            raise TransportError(f"{self.url}: cannot open {self.path} ({exc.strerror or exc})") from None
+        if not stat.S_ISCHR(mode):
+            raise TransportError(f"{self.url}: {self.path} is not a serial device")
         try:
             ser = serial.Serial(self.path, self.baud, timeout=0, write_timeout=0, exclusive=True)
         except serial.SerialException as exc:
@@ -226,7 +278,7 @@ class _Datagram(asyncio.DatagramProtocol):
         pass
 
 
-class UdpLink(Link):
+class UdpLink:
     """``udpin`` binds and answers the last sender; ``udpout`` sends to a fixed address."""
 
     def __init__(self, mode: str, host: str, port: int, url: str = "") -> None:
@@ -282,7 +334,7 @@ class UdpLink(Link):
             self._wake.set()
 
 
-class TcpLink(Link):
+class TcpLink:
     """TCP client (e.g. SITL on port 5760)."""
 
     def __init__(self, host: str, port: int, url: str = "") -> None:
@@ -331,7 +383,7 @@ class TcpLink(Link):
 async def open_link(url: str) -> Link:
     """Open a transport from its URL (raises TransportError naming the URL on failure)."""
     u = parse_url(url)
-    link: Link
+    link: SerialLink | UdpLink | TcpLink
     if u.scheme == "serial":
         link = SerialLink(u.path, u.baud, url)
     elif u.scheme in ("udpin", "udpout"):

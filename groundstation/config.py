@@ -55,7 +55,6 @@ class ServiceSection:
     vehicle: str = "heli"
     record_dir: str = "recordings"
     status_rate_hz: float = 1.0
-    queue_size: int = 256            # bounded queues between link reader, processing and sinks
     exit_after_flights: int = 0      # 0 = run until stopped
 
 
@@ -167,7 +166,6 @@ def validate(cfg: ServiceConfig, where: str = "config") -> None:
         (bool(cfg.service.vehicle) and not any(c in cfg.service.vehicle for c in "/*$?#"), "service.vehicle",
          cfg.service.vehicle, "must be a non-empty zenoh key chunk (no / * $ ? #)"),
         (cfg.service.status_rate_hz > 0, "service.status_rate_hz", cfg.service.status_rate_hz, "must be > 0"),
-        (cfg.service.queue_size >= 1, "service.queue_size", cfg.service.queue_size, "must be >= 1"),
         (cfg.rerun.mode in ("off", "spawn", "connect", "save"), "rerun.mode", cfg.rerun.mode,
          "must be off, spawn, connect or save"),
         (cfg.rerun.mode != "save" or bool(cfg.rerun.target), "rerun.target", cfg.rerun.target, "save needs a PATH.rrd"),

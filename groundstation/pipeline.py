@@ -39,7 +39,7 @@ def load_aircraft(path: str | os.PathLike[str] | None) -> Any:
         return None
     from groundstation.aircraft import load_aircraft as _load
 
-    return _load(path)
+    return _load(Path(path))
 
 
 def with_aircraft(cfg: ServiceConfig, aircraft: Any) -> ServiceConfig:

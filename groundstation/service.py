@@ -2,22 +2,24 @@
 
 One :class:`Service` per run, one ``asyncio.TaskGroup``:
 
-* ``reader``    -- ``await link.read()`` into a bounded queue (back-pressure onto the link, nothing
-  dropped); on a link error the link is closed, the session told (``link_down``) and the URL reopened
-  every ``reconnect_s`` (a USB cable pulled and plugged back);
-* ``processor`` -- bytes -> :class:`firmware_interface.session.MavlinkSession` -> events; RawPacket and
-  Heartbeat to the :class:`firmware_interface.recorder.Recorder` first (recording never depends on
-  anything after it), then :class:`groundstation.dsp.live.LivePipeline`; windows to zenoh, rows to
-  Rerun (both through their own threads: the loop never blocks on a sink);
-* ``timer``     -- session timers and the bytes it wants to send (heartbeats, stream requests),
-  recorder flushes, the status record at ``status_rate_hz``;
+* ``link``      -- the link driver :class:`firmware_interface.link.LinkRunner` (the same one
+  ``groundstation record`` runs): reads the link, feeds the
+  :class:`firmware_interface.session.MavlinkSession`, sends what it wants to send (heartbeats, stream
+  requests), reopens a lost link with backoff (a USB cable pulled and plugged back). Each batch of
+  events goes to the :class:`firmware_interface.recorder.Recorder` first (recording never depends on
+  anything after it), then to :class:`groundstation.dsp.live.LivePipeline`; windows to zenoh, rows to
+  Rerun (both through their own threads: the loop never blocks on a sink). Reading waits while a
+  batch is processed: back-pressure onto the link, nothing dropped;
+* ``timer``     -- recorder flushes, the status record at ``status_rate_hz``;
 * ``stopper``   -- waits for Ctrl-C/SIGTERM, ``exit_after_flights`` or :meth:`Service.request_stop`.
 
 On disarm (a flight ends) the flight's .tlog is handed to :func:`groundstation.worker.run_job` in a
 ``ProcessPoolExecutor(max_workers=1)`` with the spawn context, one job at a time (later flights wait
 in the service's queue, so a worker that dies loses only the job it was running); its result (model,
-gap report) is published on zenoh and logged to Rerun when it comes back. Shutdown closes the recorder first, then
-kills the worker, then closes the sinks and the link: well within 2 s.
+gap report) is published on zenoh and logged to Rerun when it comes back. A serial port that is not
+there yet is waited for before all this starts ("waiting for /dev/ttyUSB0"; Ctrl-C ends the wait).
+Shutdown closes the recorder first, then kills the worker, then closes the sinks and the link: well
+within 2 s.
 
 The numbers are computed elsewhere (``dsp``, ``sysid``, ``gap``); this module only wires.
 """
@@ -27,15 +29,15 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import concurrent.futures.process
+import dataclasses
 import functools
-import inspect
 import math
 import multiprocessing
 import os
 import signal
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,11 +53,15 @@ from firmware_interface.samples import (
 from groundstation.config import ServiceConfig
 from groundstation.dsp.live import FlightEnded, FlightStarted, LivePipeline, RateMeter, Window
 from groundstation.sinks.background import BackgroundCalls
-from groundstation.worker import IdentifyJob, run_job
+from groundstation.worker import IdentifyJob, JobResult, run_job
 
 
 class _Stop(Exception):
     """Raised inside the TaskGroup to end the run cleanly."""
+
+
+class _Stopped(Exception):
+    """Stopped before the link ever opened (Ctrl-C while waiting for the port)."""
 
 
 @dataclass
@@ -76,7 +82,7 @@ class RunReport:
     record_dir: str
     session_tlog: str | None = None
     flight_tlogs: list[str] = field(default_factory=list)
-    results: list[dict[str, Any]] = field(default_factory=list)
+    results: list[JobResult] = field(default_factory=list)
     rrd: str | None = None
     zenoh_endpoint: str = ""
     packets: int = 0
@@ -89,10 +95,6 @@ class RunReport:
     stopped_by: str = ""
 
 
-async def _maybe_await(x: Any) -> Any:
-    return await x if inspect.isawaitable(x) else x
-
-
 class Service:
     """The live service.
 
@@ -103,14 +105,19 @@ class Service:
     sim_options : extra keyword arguments for the built-in simulator's ``SimulatedSession``
     fc_config : :class:`hil_replay.fc.FcConfig` for the built-in simulator (faults in tests)
     frame_source : replaces the built-in simulator's helicopter (anything with ``frames()``)
+    link_opener : ``async () -> Link`` instead of opening ``link.url`` (tests: a
+        :class:`firmware_interface.transports.ScriptedLink`)
     job_fn : the picklable function the worker process runs per job (default
         :func:`groundstation.worker.run_job`; tests give one that blocks until killed)
     """
 
     def __init__(self, config: ServiceConfig, *, log: Callable[[str], None] = print,
                  sim_options: dict[str, Any] | None = None, fc_config: Any = None,
-                 frame_source: Any = None, job_fn: Callable[[IdentifyJob], Any] = run_job) -> None:
+                 frame_source: Any = None, job_fn: Callable[[IdentifyJob], Any] = run_job,
+                 link_opener: Callable[[], Awaitable[Any]] | None = None) -> None:
         self.frame_source = frame_source
+        self.link_opener = link_opener
+        self.runner: Any = None              # firmware_interface.link.LinkRunner
         self.job_fn = job_fn
         self.config = config
         self.log = log
@@ -135,7 +142,6 @@ class Service:
         self.rates = RateMeter(2.0)
         self._stop = asyncio.Event()
         self._stop_reason = ""
-        self._bytes_q: asyncio.Queue[tuple[bytes, float]] = asyncio.Queue(config.service.queue_size)
         self._executor: concurrent.futures.ProcessPoolExecutor | None = None
         self._pending: set[asyncio.Future[Any]] = set()        # submitted jobs without a result yet
         self._queue: deque[tuple[IdentifyJob, asyncio.Future[Any]]] = deque()   # waiting for the worker
@@ -157,6 +163,8 @@ class Service:
         if not self._stop.is_set():
             self._stop_reason = reason
             self._stop.set()
+        if self.runner is not None:
+            self.runner.stop()
 
     # ------------------------------------------------------------------ setup
 
@@ -208,10 +216,13 @@ class Service:
         self.sim.start()
         return f"serial://{self.sim.port_path}:{self.config.link.baud}"
 
-    async def _open_link(self) -> Any:
+    def _make_runner(self) -> Any:
+        from firmware_interface.link import LinkRunner
         from firmware_interface.transports import open_link
 
-        return await _maybe_await(open_link(self.link_url))
+        opener = self.link_opener or functools.partial(open_link, self.link_url)
+        return LinkRunner(opener, self.session, self._on_events, tick_s=0.05, backoff_s=0.1, backoff_max_s=1.0,
+                          log=self.log, on_link_up=self._on_link_up, on_link_down=self._on_link_down)
 
     def _warn(self, msg: str) -> None:
         self.report.warnings.append(msg)
@@ -239,22 +250,23 @@ class Service:
                 self._open_sinks(loop)
                 if self.config.identification.enabled:
                     self._executor = self._new_executor()
-                if not self.link_url:
+                if not self.link_url and self.link_opener is None:
                     self.link_url = self._start_builtin_sim()
                     self.log(f"built-in simulated flight controller on {self.sim.port_path} "
                              f"(speed {self.config.sim.speed:g}x, {self.config.sim.flights} flight(s))")
-                self.link = await self._open_link()
-                self.link_up = True
-                self.log(f"link {self.link_url} open; recording to {self.record_dir}")
-                self.ready.set()
+                self.runner = self._make_runner()
+                # a port not plugged in yet is waited for ("waiting for PATH"); Ctrl-C ends the wait
+                if await self.runner.connect() is None:
+                    raise _Stopped
                 try:
                     async with asyncio.TaskGroup() as tg:
-                        tg.create_task(self._reader(), name="reader")
-                        tg.create_task(self._processor(), name="processor")
+                        tg.create_task(self._run_link(), name="link")
                         tg.create_task(self._timer(), name="timer")
                         tg.create_task(self._stopper(), name="stopper")
                 except* _Stop:
                     pass
+            except _Stopped:
+                pass
             finally:
                 await self._shutdown()
         finally:
@@ -284,60 +296,32 @@ class Service:
 
     # ------------------------------------------------------------------ link
 
-    async def _reader(self) -> None:
-        reconnect_s = 0.25
-        # Loops also check the stop flag: on Python 3.11 a cancellation can be swallowed by a
-        # transport's asyncio.wait_for racing its own timeout; the flag still ends the task.
-        while not self._stop.is_set():
-            if self.link is None:
-                try:
-                    self.link = await self._open_link()
-                    self.link_up = True
-                    self.log(f"link {self.link_url} reopened")
-                except OSError:
-                    await asyncio.sleep(reconnect_s)
-                    continue
-            try:
-                data = await self.link.read()
-            except (OSError, EOFError) as exc:
-                data = None
-                reason = f"{type(exc).__name__}: {exc}"
-            else:
-                reason = "end of stream"
-            if not data:
-                await self._drop_link(reason)
-                continue
-            await self._bytes_q.put((data, time.time()))
+    def _on_link_up(self, link: Any) -> None:
+        self.link, self.link_up = link, True
+        self.link_url = getattr(link, "url", self.link_url)
+        if not self.ready.is_set():
+            self.log(f"link {self.link_url} open; recording to {self.record_dir}")
+            self.ready.set()
+        else:
+            self.log(f"link {self.link_url} reopened")
 
-    async def _drop_link(self, reason: str) -> None:
-        link, self.link = self.link, None
-        if link is None:          # the other task already dropped it
-            return
+    def _on_link_down(self, reason: str) -> None:
+        self.link = None
         self.link_drops += 1
-        if self.link_up:
-            self.log(f"link lost ({reason}); reconnecting")
         self.link_up = False
-        self.session.link_down(time.time(), reason[:200])
-        try:
-            await _maybe_await(link.close())
-        except OSError:
-            pass
-        await asyncio.sleep(0.05)
+        self.log(f"link lost ({reason[:200]}); reconnecting")
+
+    async def _run_link(self) -> None:
+        assert self.runner is not None
+        await self.runner.run()
+        if not self._stop.is_set():             # the runner only returns when stopped
+            self.request_stop("link driver ended")
 
     async def _timer(self) -> None:
-        period = 0.02
+        period = 0.05
         status_every = 1.0 / self.config.service.status_rate_hz
         next_status = time.monotonic()
         while not self._stop.is_set():
-            now = time.time()
-            self.session.handle_timer(now)
-            out = self.session.data_to_send(now)
-            if out and self.link is not None:
-                try:
-                    await self.link.write(out)
-                except OSError as exc:
-                    await self._drop_link(f"write: {exc}")
-            self._drain_session(now)
             tick = getattr(self.recorder, "tick", None)
             if tick is not None:
                 tick()
@@ -350,21 +334,11 @@ class Service:
 
     # ------------------------------------------------------------------ processing
 
-    async def _processor(self) -> None:
-        while not self._stop.is_set():
-            data, t_host = await self._bytes_q.get()
-            self.session.receive_data(data, t_host)
-            self._drain_session(t_host)
-            # let the other tasks run between chunks even when the queue is full
-            await asyncio.sleep(0)
-
-    def _drain_session(self, now: float) -> None:
-        events = self.session.events()
-        if not events:
-            return
+    def _on_events(self, events: list[Any]) -> None:
+        """A batch of session events from the link driver (on the loop)."""
         self.recorder.handle(events)          # recording first, before anything that could fail
         try:
-            self._live(events, now)
+            self._live(events, time.time())
         except Exception as exc:  # a live-path bug must never stop the recording: count, warn once
             self.live_errors += 1
             if self.live_errors == 1:
@@ -456,13 +430,14 @@ class Service:
                                                    config=self.config))
         self._check_exit()
 
-    def submit_identification(self, job: IdentifyJob) -> asyncio.Future[Any]:
+    def submit_identification(self, job: IdentifyJob) -> asyncio.Future[JobResult]:
         """Queue ``job`` for the worker process (call on the loop); the result is published when done.
 
-        The worker runs one job at a time; the returned future resolves to the job's result."""
+        The worker runs one job at a time; the returned future resolves to the job's
+        :class:`JobResult` (a worker that died is a result with ``error``, never an exception)."""
         if self._executor is None:
             raise RuntimeError("identification is disabled in this service")
-        fut: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        fut: asyncio.Future[JobResult] = asyncio.get_running_loop().create_future()
         self._pending.add(fut)
         self._queue.append((job, fut))
         self.ident.queued += 1
@@ -486,15 +461,16 @@ class Service:
             cfut = self._executor.submit(self.job_fn, job)
         self.ident.flight = job.flight
         self._running = asyncio.wrap_future(cfut)
-        self._running.add_done_callback(functools.partial(self._job_done, fut))
+        self._running.add_done_callback(functools.partial(self._job_done, job, fut))
 
-    def _job_done(self, fut: asyncio.Future[Any], inner: asyncio.Future[Any]) -> None:
+    def _job_done(self, job: IdentifyJob, fut: asyncio.Future[JobResult], inner: asyncio.Future[Any]) -> None:
         self._running = None
         if not fut.done():
             if inner.cancelled():
                 fut.cancel()
-            elif (exc := inner.exception()) is not None:
-                fut.set_exception(exc)
+            elif (exc := inner.exception()) is not None:     # the worker died (killed, out of memory)
+                fut.set_result(JobResult(flight=job.flight, tlogs=job.tlogs,
+                                         error=f"flight {job.flight}: worker: {type(exc).__name__}: {exc}".splitlines()[0]))
             else:
                 fut.set_result(inner.result())
         self._dispatch()
@@ -511,44 +487,46 @@ class Service:
                 return str(v)
         return None
 
-    def _on_result(self, fut: asyncio.Future[Any]) -> None:
+    def _on_result(self, fut: asyncio.Future[JobResult]) -> None:
         self._pending.discard(fut)
         self.ident.queued -= 1
         if fut.cancelled():
             return
-        exc = fut.exception()
-        res: dict[str, Any] = ({"error": f"worker: {type(exc).__name__}: {exc}".splitlines()[0]}
-                               if exc is not None else fut.result())
-        flight = res.get("flight")
-        overlay = res.pop("overlay", None)
-        pictures = res.pop("gap_pictures", None)      # arrays for Rerun only, not for the report
-        self.report.results.append(res)
-        if "error" in res:
+        res = fut.result()
+        # the report keeps the outcome; the arrays for the live plots go to Rerun only
+        self.report.results.append(dataclasses.replace(res, overlay=None, gap_pictures=None))
+        if res.error is not None:
             self.ident.failed += 1
             self.ident.state = "failed" if not self._pending else "running"
-            self.ident.last_error = res["error"]
-            self._warn(f"identification: {res['error']}")
+            self.ident.last_error = res.error
+            self._warn(f"identification: {res.error}")
         else:
             self.ident.done += 1
             self.ident.state = "done" if not self._pending else "running"
-            self.ident.last_seconds = res.get("seconds")
-            match = res.get("match_degree", {})
-            table = " ".join(f"{k}={v:.1f}" for k, v in match.items() if isinstance(v, int | float))
-            self.log(f"flight {flight}: model {res.get('model_path')} ({res.get('seconds', 0):.1f} s); match % {table}")
-            trim = res["model"].get("input_trim_pwm") or {}
-            if self.config.prepare.input_trim_pwm is None and all(k in trim for k in ("lat", "lon", "col", "ped")):
-                self.live.set_trim((float(trim["lat"]), float(trim["lon"]), float(trim["col"]), float(trim["ped"])))
-            if self.zenoh is not None:
-                self.zenoh.publish_model(flight, res["model"])
-                if res.get("gap") is not None:
-                    self.zenoh.publish_gap(flight, res["gap"])
-            if res.get("gap") is not None:
-                self.log(f"flight {flight}: gap report {res.get('gap_path')} verdict {res['gap'].get('verdict')}")
-            if res.get("gap_error"):
-                self._warn(res["gap_error"])
+            self.ident.last_seconds = res.seconds
+            self._publish_result(res)
         if self.rerun is not None and self._rerun_calls is not None:
-            self._rerun_calls.submit(self.rerun.log_result, res, overlay, pictures)
+            overlay = None if res.overlay is None else {
+                "t_fc_s": res.overlay.t_fc_s, "model": res.overlay.model, "measured": res.overlay.measured}
+            self._rerun_calls.submit(self.rerun.log_result, res, overlay, res.gap_pictures)
         self._check_exit()
+
+    def _publish_result(self, res: JobResult) -> None:
+        """A new model (and gap report): log, live trim, zenoh, Rerun."""
+        flight, model, gap = res.flight, res.model or {}, res.gap
+        table = " ".join(f"{k}={v:.1f}" for k, v in res.match_degree.items())
+        self.log(f"flight {flight}: model {res.model_path} ({res.seconds:.1f} s); match % {table}")
+        trim = model.get("input_trim_pwm") or {}
+        if self.config.prepare.input_trim_pwm is None and all(k in trim for k in ("lat", "lon", "col", "ped")):
+            self.live.set_trim((float(trim["lat"]), float(trim["lon"]), float(trim["col"]), float(trim["ped"])))
+        if self.zenoh is not None:
+            self.zenoh.publish_model(flight, model)
+            if gap is not None:
+                self.zenoh.publish_gap(flight, gap)
+        if gap is not None:
+            self.log(f"flight {flight}: gap report {res.gap_path} verdict {gap.get('verdict')}")
+        if res.gap_error:
+            self._warn(res.gap_error)
 
     def _check_exit(self) -> None:
         k = self.config.service.exit_after_flights
@@ -647,9 +625,10 @@ class Service:
         self.report.packets_lost = int(getattr(stats, "packets_lost", 0) or 0)
         self.report.bad_crc = int(getattr(stats, "bad_crc", 0) or 0)
         # 4. link and built-in simulator
-        if self.link is not None:
+        link = self.runner.link if self.runner is not None else None
+        if link is not None:
             try:
-                await asyncio.wait_for(_maybe_await(self.link.close()), 0.5)
+                await asyncio.wait_for(link.close(), 0.5)
             except (OSError, TimeoutError):
                 pass
             self.link = None

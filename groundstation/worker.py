@@ -4,9 +4,8 @@
 ``ProcessPoolExecutor(max_workers=1, mp_context=spawn)``: it reads and prepares the flight's .tlog
 file(s) and identifies the hover model exactly as ``groundstation identify --config`` does
 (:mod:`groundstation.pipeline`, with the service's configuration), validates it, writes
-``model-flightNN.json`` next to the recording, diagnoses the gap when :mod:`groundstation.gap` is there
-(``gap-flightNN.json``), draws a model-vs-measured PNG, and returns a JSON-able dict for the service to
-publish. Errors come back as ``{"error": "one line"}`` so a bad flight never stops the service.
+``model-flightNN.json`` next to the recording, diagnoses the gap (``gap-flightNN.json``), draws a model-vs-measured PNG, and returns a :class:`JobResult` for the service
+to publish. Errors come back as ``JobResult.error`` (one line) so a bad flight never stops the service.
 
 The numerical work is the other packages'; this module only chains them and writes files.
 """
@@ -16,7 +15,7 @@ from __future__ import annotations
 import json
 import time
 import traceback
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +38,40 @@ class IdentifyJob:
     @property
     def vehicle(self) -> str:
         return self.config.service.vehicle
+
+
+@dataclass(frozen=True)
+class Overlay:
+    """The model's outputs over the flight, for the live plot (FC time order)."""
+
+    t_fc_s: np.ndarray              # (n,) s
+    model: np.ndarray               # (n, 8) u v w p q r theta phi, trims added back
+    measured: np.ndarray            # (n, 8) the smoothed measurements, same layout
+
+
+@dataclass(frozen=True)
+class JobResult:
+    """What one job produced: a model (and gap report) or ``error``, one line."""
+
+    flight: int | None
+    tlogs: tuple[str, ...] = ()
+    error: str | None = None
+    model: dict[str, Any] | None = None            # the model file document (docs/model-file.md)
+    model_path: str | None = None
+    match_degree: dict[str, float] = field(default_factory=dict)   # % per output channel
+    validation: dict[str, Any] | None = None
+    png: tuple[str, ...] = ()
+    overlay: Overlay | None = None
+    gap: dict[str, Any] | None = None               # the gap report document (docs/gap-report.md)
+    gap_path: str | None = None
+    gap_error: str | None = None                    # diagnosis failed (the model is still good)
+    gap_pictures: Any = None                        # groundstation.gap.pictures.GapPictures, for Rerun
+    identify_s: float | None = None
+    seconds: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
 
 
 def _warm() -> bool:
@@ -79,65 +112,65 @@ def _plot(overlay: dict[str, Any], path: Path, title: str) -> None:
     plt.close(fig)
 
 
-def run_job(job: IdentifyJob) -> dict[str, Any]:
-    """Identify (and diagnose) one flight; returns a JSON-able result dict (``error`` on failure)."""
+def run_job(job: IdentifyJob) -> JobResult:
+    """Identify (and diagnose) one flight; a failure comes back as ``JobResult.error`` (one line)."""
     t0 = time.perf_counter()
-    out_dir = Path(job.out_dir)
-    res: dict[str, Any] = {"flight": job.flight, "tlogs": list(job.tlogs)}
-    cfg = job.config
     try:
-        from groundstation.pipeline import identify_prepared, prepare_logs
-
-        prepared = prepare_logs(job.tlogs, cfg)
-        if not prepared.segments:
-            notes = "; ".join(prepared.notes) or "no in-air data"
-            return {**res, "error": f"flight {job.flight}: nothing to identify ({notes})"}
-        model = identify_prepared(prepared, cfg)
-        doc = model.to_json()
-        from groundstation.sysid.validate import validate
-
-        val = validate(model, prepared, return_series=True)
-        series = val.pop("series")
-        match = {c: float(v["match"]) for c, v in val["channels"].items()}
-        res["validation"] = val
-        res["match_degree"] = match
-        model_path = out_dir / f"model-flight{job.flight:02d}.json"
-        model_path.write_text(json.dumps(doc, indent=1, default=float))
-        res["model"] = doc
-        res["model_path"] = str(model_path)
-        overlay = _overlay(series, prepared.output_trim)
-        if cfg.identification.plots and len(overlay["t_fc_s"]):
-            png = out_dir / f"model-flight{job.flight:02d}.png"
-            _plot(overlay, png, f"{job.vehicle} flight {job.flight}: model vs measured")
-            res["png"] = [str(png)]
-        # numpy arrays pickle fast back to the service (lists would cost the live loop a spike)
-        res["overlay"] = {"t_fc_s": np.asarray(overlay["t_fc_s"], dtype=float),
-                          "model": np.asarray(overlay["model"], dtype=float),
-                          "measured": np.asarray(overlay["measured"], dtype=float)}
-        res["identify_s"] = time.perf_counter() - t0
-        if cfg.identification.diagnose:
-            try:
-                from groundstation.gap.diagnose import run_diagnosis
-                from groundstation.gap.pictures import gap_pictures
-            except ImportError:
-                run_diagnosis = None  # type: ignore[assignment]
-            if run_diagnosis is not None:
-                try:
-                    diag = run_diagnosis(model, prepared, seed=cfg.identification.seed, config=cfg.diagnose)
-                    gap = diag.report
-                    pictures = gap_pictures(diag)
-                except Exception as exc:  # the model stands on its own: a failed diagnosis is reported
-                    res["gap_error"] = f"flight {job.flight}: diagnosis: {type(exc).__name__}: {exc}".splitlines()[0]
-                else:
-                    gap_path = out_dir / f"gap-flight{job.flight:02d}.json"
-                    gap_path.write_text(json.dumps(gap, indent=1, default=float))
-                    res["gap"] = gap
-                    res["gap_path"] = str(gap_path)
-                    res["gap_pictures"] = pictures     # arrays for the live plots (service pops them)
-        res["seconds"] = time.perf_counter() - t0
-        return res
+        return _identify_flight(job, t0)
     except Exception as exc:  # reported to the service as one line; the service keeps running
         last = traceback.extract_tb(exc.__traceback__)[-1] if exc.__traceback__ else None
         where = f" ({Path(last.filename).name}:{last.lineno})" if last else ""
-        return {**res, "error": f"flight {job.flight}: {type(exc).__name__}: {exc}{where}".splitlines()[0],
-                "seconds": time.perf_counter() - t0}
+        return JobResult(flight=job.flight, tlogs=job.tlogs,
+                         error=f"flight {job.flight}: {type(exc).__name__}: {exc}{where}".splitlines()[0],
+                         seconds=time.perf_counter() - t0)
+
+
+def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
+    from groundstation.pipeline import identify_prepared, prepare_logs
+    from groundstation.sysid.validate import validate
+
+    cfg, out_dir = job.config, Path(job.out_dir)
+    prepared = prepare_logs(job.tlogs, cfg)
+    if not prepared.segments:
+        notes = "; ".join(prepared.notes) or "no in-air data"
+        return JobResult(flight=job.flight, tlogs=job.tlogs, error=f"flight {job.flight}: nothing to identify ({notes})",
+                         seconds=time.perf_counter() - t0)
+    model = identify_prepared(prepared, cfg)
+    doc = model.to_json()
+    val = validate(model, prepared, return_series=True)
+    series = val.pop("series")
+    model_path = out_dir / f"model-flight{job.flight:02d}.json"
+    model_path.write_text(json.dumps(doc, indent=1, default=float))
+    overlay = _overlay(series, prepared.output_trim)
+    png: tuple[str, ...] = ()
+    if cfg.identification.plots and len(overlay["t_fc_s"]):
+        png_path = out_dir / f"model-flight{job.flight:02d}.png"
+        _plot(overlay, png_path, f"{job.vehicle} flight {job.flight}: model vs measured")
+        png = (str(png_path),)
+    identify_s = time.perf_counter() - t0
+    gap, gap_path, gap_error, pictures = (_diagnose(job, model, prepared) if cfg.identification.diagnose
+                                          else (None, None, None, None))
+    return JobResult(
+        flight=job.flight, tlogs=job.tlogs, model=doc, model_path=str(model_path),
+        match_degree={c: float(v["match"]) for c, v in val["channels"].items()}, validation=val, png=png,
+        # numpy arrays pickle fast back to the service (lists would cost the live loop a spike)
+        overlay=Overlay(*(np.asarray(overlay[k], dtype=float) for k in ("t_fc_s", "model", "measured"))),
+        gap=gap, gap_path=gap_path, gap_error=gap_error, gap_pictures=pictures, identify_s=identify_s,
+        seconds=time.perf_counter() - t0)
+
+
+def _diagnose(job: IdentifyJob, model: Any, prepared: Any) -> tuple[Any, Any, Any, Any]:
+    """(gap report, its file, None, pictures for the live plots), or (None, None, one-line error, None):
+    the model stands on its own."""
+    from groundstation.gap.diagnose import run_diagnosis
+    from groundstation.gap.pictures import gap_pictures
+
+    cfg = job.config
+    try:
+        diag = run_diagnosis(model, prepared, seed=cfg.identification.seed, config=cfg.diagnose)
+        pictures = gap_pictures(diag)
+    except Exception as exc:
+        return None, None, f"flight {job.flight}: diagnosis: {type(exc).__name__}: {exc}".splitlines()[0], None
+    gap_path = Path(job.out_dir) / f"gap-flight{job.flight:02d}.json"
+    gap_path.write_text(json.dumps(diag.report, indent=1, default=float))
+    return diag.report, str(gap_path), None, pictures

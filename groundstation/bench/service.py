@@ -192,7 +192,7 @@ async def _realtime_and_load(tmp: Path, seconds: float, seed: int, load: bool, r
             res = await asyncio.wait_for(fut, 600)
             t3 = time.time()
             during = _stats_ms(sub.between(t2 + 1.0, t3))   # skip the worker's spawn second
-            out["load"] = {**during, "job_s": t3 - t2, "job_error": res.get("error"),
+            out["load"] = {**during, "job_s": t3 - t2, "job_error": res.error,
                            "worst_s_ms": sub.worst(t2, t3 + 1.0),
                            "p99_growth_ms": during["p99_ms"] - base["p99_ms"]}
     finally:

@@ -1,8 +1,9 @@
 """``groundstation record --link URL --out DIR``: record the FC link until Ctrl-C / SIGTERM.
 
-Opens the link, runs the MAVLink session (GCS heartbeat, stream requests unless ``--passive``),
-writes ``session-*.tlog`` and ``flight-NN.tlog`` per armed interval, survives port loss (LinkLost,
-reconnect, same files). On exit the files are closed valid; a summary goes to stderr and one JSON
+Opens the link (a serial port not plugged in yet is waited for: ``waiting for /dev/ttyUSB0`` at most
+every 10 s), runs the MAVLink session (GCS heartbeat, stream requests unless ``--passive``) through
+the link driver :class:`firmware_interface.link.LinkRunner`, writes ``session-*.tlog`` and
+``flight-NN.tlog`` per armed interval, survives port loss (LinkLost, reconnect, same files). On exit the files are closed valid; a summary goes to stderr and one JSON
 line to stdout: ``{"session_tlog", "flights", "packets", "corrupt_bytes", "bad_crc",
 "packets_lost", "link_lost", "fc_reboots", "streams"}``.
 
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import functools
 import json
 import signal
 import sys
@@ -59,30 +61,30 @@ async def record(args: argparse.Namespace) -> dict:
     config = SessionConfig(stream_rates_hz=_rates(args.rate), request_streams=not args.passive,
                            send_heartbeat=not args.passive)
     session = MavlinkSession(config)
-    link = await open_link(args.link)
-    try:
-        recorder = Recorder(args.out)
-    except OSError:
-        await link.close()
-        raise
+    recorder: Recorder | None = None
     lost = 0
     error: str | None = None
 
     def on_events(events: list) -> None:
         nonlocal lost
+        assert recorder is not None
         recorder.handle(events)
         for ev in events:
             if type(ev) is LinkLost:
                 lost += 1
                 print(f"record: link lost ({ev.reason}); reconnecting", file=sys.stderr)
 
-    runner = LinkRunner(link, session, on_events)
+    runner = LinkRunner(functools.partial(open_link, args.link), session, on_events,
+                        log=lambda m: print(f"record: {m}", file=sys.stderr))
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, runner.stop)
-    task = asyncio.ensure_future(runner.run())
-    t0 = time.monotonic()
+    task: asyncio.Future[None] | None = None
     try:
+        await runner.connect()           # waits for a port not plugged in yet; Ctrl-C ends the wait
+        recorder = Recorder(args.out)
+        task = asyncio.ensure_future(runner.run())
+        t0 = time.monotonic()
         while not task.done():
             await asyncio.wait({task}, timeout=0.2)
             recorder.tick()
@@ -98,10 +100,15 @@ async def record(args: argparse.Namespace) -> dict:
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
-        if not task.done():
+        if task is not None and not task.done():
             task.cancel()
+        if recorder is not None:
+            recorder.close()
+        if runner.link is not None:
+            await runner.link.close()
+    if recorder is None:
+        recorder = Recorder(args.out)    # stopped while waiting for the port: an empty, valid session file
         recorder.close()
-        await link.close()
     st = session.stats
     summary = {
         "session_tlog": str(recorder.session_path),

@@ -98,26 +98,26 @@ def print_report(report: Any, out=print) -> None:
     for p in report.flight_tlogs:
         out(f"  flight   {p}")
     for r in report.results:
-        if "error" in r:
-            out(f"  flight {r.get('flight')}: identification failed: {r['error']}")
+        if r.error is not None:
+            out(f"  flight {r.flight}: identification failed: {r.error}")
             continue
-        out(f"  model    {r.get('model_path')}")
-        if r.get("gap_path"):
-            out(f"  gap      {r.get('gap_path')} (verdict {r.get('gap', {}).get('verdict')})")
-        for png in r.get("png", []):
+        out(f"  model    {r.model_path}")
+        if r.gap_path:
+            out(f"  gap      {r.gap_path} (verdict {(r.gap or {}).get('verdict')})")
+        for png in r.png:
             out(f"  plot     {png}")
     if report.rrd:
         out(f"rerun: {report.rrd}")
     if report.zenoh_endpoint:
         out(f"zenoh: peer on {report.zenoh_endpoint}")
-    rows = [r for r in report.results if "error" not in r and r.get("match_degree")]
+    rows = [r for r in report.results if r.error is None and r.match_degree]
     if rows:
-        chans = list(rows[0]["match_degree"])
+        chans = list(rows[0].match_degree)
         out("")
         out("match degree (%)  " + " ".join(f"{c:>6}" for c in chans))
         for r in rows:
-            md = r["match_degree"]
-            out(f"flight {r['flight']:<10} " + " ".join(
+            md = r.match_degree
+            out(f"flight {r.flight!s:<10} " + " ".join(
                 f"{md[c]:6.1f}" if isinstance(md.get(c), int | float) else f"{'-':>6}" for c in chans))
     for w in report.warnings:
         out(f"warning: {w}")

@@ -46,10 +46,11 @@ class BarePty:
     ``replug()`` makes a new pty behind the same path.
     """
 
-    def __init__(self, link_path) -> None:
+    def __init__(self, link_path, plugged: bool = True) -> None:
         self.path = str(link_path)
         self.master = -1
-        self.replug()
+        if plugged:
+            self.replug()
 
     def replug(self) -> None:
         import os

@@ -153,13 +153,33 @@ def test_record_command_sigterm_exits_0_with_summary_json(bare_pty, tmp_path):
     assert "record: session" in stderr
 
 
-def test_record_nonexistent_port_one_line_exit_2(tmp_path):
+def test_record_waits_for_a_port_not_plugged_in_and_ctrl_c_exits_0(tmp_path):
     url = f"serial://{tmp_path}/ttyGONE:57600"
+    proc = _start_record(url, tmp_path / "o")
+    try:
+        line = proc.stderr.readline()                       # the process says it waits
+        assert line.strip() == f"record: waiting for {tmp_path}/ttyGONE"
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    assert proc.returncode == 0, stderr
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert summary["packets"] == 0 and summary["flights"] == []
+
+
+def test_record_path_that_is_not_a_serial_port_one_line_exit_2(tmp_path):
+    f = tmp_path / "notes.txt"
+    f.write_text("not a tty")
+    url = f"serial://{f}:57600"
     r = subprocess.run([sys.executable, "-m", "groundstation.cli", "record", "--link", url, "--out",
                         str(tmp_path / "o")], capture_output=True, text=True, cwd=REPO, timeout=60)
     assert r.returncode == 2
     lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and url in lines[0] and "no such port" in lines[0]
+    assert len(lines) == 1 and url in lines[0] and "not a serial device" in lines[0]
+    assert not (tmp_path / "o").exists()                    # nothing created for a wrong path
 
 
 def test_record_noise_at_wrong_baud_is_an_error_and_keeps_the_file(bare_pty, tmp_path):

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import socket
-import time
 
 import pytest
 
@@ -14,7 +13,7 @@ from firmware_interface.recorder import Recorder
 from firmware_interface.samples import Attitude, LinkLost, LinkRestored, RawPacket
 from firmware_interface.session import MavlinkSession, SessionConfig
 from firmware_interface.tlogread import scan_tlog
-from firmware_interface.transports import LinkDown, open_link, parse_url
+from firmware_interface.transports import LinkDown, PortMissing, open_link, parse_url
 
 from .conftest import FakeFc
 
@@ -36,46 +35,63 @@ def test_parse_url_forms_and_errors():
 
 def test_nonexistent_serial_port_names_the_port(tmp_path):
     url = f"serial://{tmp_path}/ttyNOPE:115200"
-    with pytest.raises(TransportError, match="no such port") as ei:
+    with pytest.raises(PortMissing, match="no such port") as ei:
         asyncio.run(open_link(url))
-    assert url in str(ei.value)
+    assert url in str(ei.value) and ei.value.path == f"{tmp_path}/ttyNOPE"
 
 
-async def _read_until(link, n: int, timeout_s: float = 3.0) -> bytes:
+def test_a_path_that_is_not_a_serial_device_is_an_error(tmp_path):
+    f = tmp_path / "notes.txt"
+    f.write_text("hello")
+    url = f"serial://{f}:115200"
+    with pytest.raises(TransportError, match="is not a serial device") as ei:
+        asyncio.run(open_link(url))
+    assert not isinstance(ei.value, PortMissing) and url in str(ei.value)
+    runner = LinkRunner(lambda: open_link(url), MavlinkSession(), lambda evs: None)
+    with pytest.raises(TransportError, match="is not a serial device"):     # the driver does not wait for it
+        asyncio.run(runner.connect())
+
+
+async def _read_until(link, n: int, timeout_s: float = 10.0) -> bytes:
     out = b""
-    deadline = time.monotonic() + timeout_s
-    while len(out) < n and time.monotonic() < deadline:
-        out += await asyncio.wait_for(link.read(), deadline - time.monotonic())
+    async with asyncio.timeout(timeout_s):
+        while len(out) < n:
+            out += await link.read()
     return out
 
 
-def test_serial_over_pty_reads_writes_and_survives_unplug(bare_pty):
+async def _pty_output(port, n: int, timeout_s: float = 10.0) -> bytes:
+    """What the link wrote to the pty, once ``n`` bytes are there (polled: the pty has no event)."""
+    out = b""
+    async with asyncio.timeout(timeout_s):
+        while len(out) < n:
+            out += port.read_available()
+            await asyncio.sleep(0.01)
+    return out
+
+
+def test_serial_over_pty_reads_writes_and_reports_unplug(bare_pty):
     fc = FakeFc()
 
     async def main():
         link = await open_link(f"serial://{bare_pty.path}:921600")
-        link.backoff_s = 0.05
-        await asyncio.sleep(0.05)
         a = fc.heartbeat() + fc.attitude(1000)
         bare_pty.write(a)
         assert await _read_until(link, len(a)) == a
         await link.write(b"\xfdhello")
-        await asyncio.sleep(0.05)
-        assert bare_pty.read_available() == b"\xfdhello"
-        # unplug: the device vanishes
-        bare_pty.unplug()
+        assert await _pty_output(bare_pty, 6) == b"\xfdhello"
+        bare_pty.unplug()                                   # the device vanishes
         with pytest.raises(LinkDown):
-            await asyncio.wait_for(link.read(), 3.0)
-        recon = asyncio.ensure_future(link.reconnect())
-        await asyncio.sleep(0.4)
-        assert not recon.done()  # keeps retrying while the path is gone
+            await asyncio.wait_for(link.read(), 5.0)
+        await link.close()
+        with pytest.raises(PortMissing):
+            await open_link(f"serial://{bare_pty.path}:921600")
         bare_pty.replug()
-        await asyncio.wait_for(recon, 5.0)
-        await asyncio.sleep(0.05)
+        again = await open_link(f"serial://{bare_pty.path}:921600")
         b = fc.attitude(2000)
         bare_pty.write(b)
-        assert await _read_until(link, len(b)) == b
-        await link.close()
+        assert await _read_until(again, len(b)) == b
+        await again.close()
 
     asyncio.run(main())
 
@@ -86,35 +102,39 @@ def test_runner_session_recorder_over_pty_with_unplug(bare_pty, tmp_path):
     after = [fc.attitude(5000 + 20 * k) for k in range(50)] + [fc.heartbeat(armed=False)]
     events: list = []
     rec = Recorder(tmp_path / "out")
+    url = f"serial://{bare_pty.path}:115200"
 
     async def main():
-        link = await open_link(f"serial://{bare_pty.path}:115200")
-        link.backoff_s = 0.05
+        seen = asyncio.Event()
+        lost = asyncio.Event()
+        up = asyncio.Event()
         session = MavlinkSession(SessionConfig(stream_rates_hz=(("ATTITUDE", 50.0),), link_timeout_s=30))
 
         def on_events(evs):
             events.extend(evs)
             rec.handle(evs)
+            n = sum(isinstance(e, Attitude) for e in events)
+            if n == 50:
+                seen.set()
+            if n == 100 and any(isinstance(e, LinkRestored) for e in events):
+                runner.stop()
 
-        runner = LinkRunner(link, session, on_events, tick_s=0.05)
+        runner = LinkRunner(lambda: open_link(url), session, on_events, tick_s=0.05, backoff_s=0.05,
+                            on_link_up=lambda link: up.set(), on_link_down=lambda reason: lost.set())
         task = asyncio.ensure_future(runner.run())
-        await asyncio.sleep(0.1)
-        bare_pty.write(b"".join(before))
-        await asyncio.sleep(0.3)
-        sent = bare_pty.read_available()  # the GCS side answered the FC heartbeat
-        bare_pty.unplug()
-        await asyncio.sleep(0.5)
-        bare_pty.replug()
-        for _ in range(100):  # wait until the runner has reopened the port
-            await asyncio.sleep(0.05)
-            if runner.reconnects:
-                break
-        await asyncio.sleep(0.1)
-        bare_pty.write(b"".join(after))
-        await asyncio.sleep(0.3)
-        runner.stop()
-        await asyncio.wait_for(task, 5.0)
-        await link.close()
+        async with asyncio.timeout(30):
+            await up.wait()
+            up.clear()
+            bare_pty.write(b"".join(before))
+            await seen.wait()
+            # the GCS side answered the FC heartbeat: heartbeat then a stream request
+            sent = await _pty_output(bare_pty, 21 + 45)      # MAVLink 2 HEARTBEAT + COMMAND_LONG
+            bare_pty.unplug()
+            await lost.wait()
+            bare_pty.replug()
+            await up.wait()                                 # the runner has reopened the port
+            bare_pty.write(b"".join(after))
+            await task
         return sent, runner.reconnects
 
     sent, reconnects = asyncio.run(main())
@@ -134,6 +154,47 @@ def test_runner_session_recorder_over_pty_with_unplug(bare_pty, tmp_path):
     assert len(rec.flight_paths) == 1
     assert [pkt for _, pkt in scan_tlog(rec.flight_paths[0].read_bytes())] == before + after
     assert sum(isinstance(e, RawPacket) for e in events) == len(before) + len(after)
+
+
+def test_runner_waits_for_a_pty_that_appears_later(tmp_path):
+    """The FC is plugged in after the driver started: it says it waits, then opens the port."""
+    from .conftest import BarePty
+
+    port = BarePty(tmp_path / "ttyLATE", plugged=False)
+    fc = FakeFc()
+    lines: list[str] = []
+
+    async def main():
+        waiting = asyncio.Event()
+        got = asyncio.Event()
+        opened = asyncio.Event()
+
+        def log(msg):
+            lines.append(msg)
+            waiting.set()
+
+        def on_events(evs):
+            if any(isinstance(e, Attitude) for e in evs):
+                got.set()
+
+        runner = LinkRunner(lambda: open_link(f"serial://{port.path}:115200"), MavlinkSession(), on_events,
+                            backoff_s=0.05, backoff_max_s=0.2, log=log, on_link_up=lambda link: opened.set())
+        task = asyncio.ensure_future(runner.run())
+        async with asyncio.timeout(30):
+            await waiting.wait()
+            port.replug()                                   # plugged in
+            await opened.wait()
+            port.write(fc.heartbeat() + fc.attitude(1000))
+            await got.wait()
+        runner.stop()
+        await asyncio.wait_for(task, 5)
+        await runner.link.close()
+
+    try:
+        asyncio.run(main())
+    finally:
+        port.close()
+    assert lines == [f"waiting for {port.path}"]
 
 
 def test_udpin_and_udpout_roundtrip():

@@ -51,8 +51,8 @@ def test_service_worker_and_identify_command_give_the_same_model(remapped_flight
     job = IdentifyJob(flight=1, tlogs=(str(log),), out_dir=str(tmp_path / "svc"), config=load_config(cfg_path))
     with concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as ex:
         res = ex.submit(run_job, job).result(timeout=600)
-    assert "error" not in res, res.get("error")
-    svc = res["model"]
+    assert res.ok, res.error
+    svc = res.model
 
     # the configuration reached identification: the scale is the model's, the trims the same
     # (the configured trim plus the offset identification estimates)

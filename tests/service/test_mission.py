@@ -57,21 +57,22 @@ def test_two_simulated_flights_identified_published_and_logged(tmp_path, subscri
 
     report, sub = asyncio.run(main())
     assert report.flights == 2, lines
-    errors = [r["error"] for r in report.results if "error" in r]
+    errors = [r.error for r in report.results if not r.ok]
     assert not errors, errors
-    assert sorted(r["flight"] for r in report.results) == [1, 2]
-    by_flight = {r["flight"]: r for r in report.results}
-    assert by_flight[1]["tlogs"] == report.flight_tlogs[:1]
-    assert by_flight[2]["tlogs"] == report.flight_tlogs            # scope "all": every flight so far
+    assert sorted(r.flight for r in report.results) == [1, 2]
+    by_flight = {r.flight: r for r in report.results}
+    assert list(by_flight[1].tlogs) == report.flight_tlogs[:1]
+    assert list(by_flight[2].tlogs) == report.flight_tlogs            # scope "all": every flight so far
     for r in report.results:
-        model = json.loads(open(r["model_path"]).read())
+        model = json.loads(open(r.model_path).read())
+        assert model == r.model
         assert model["schema"] == "heli-hover-model/1" and len(model["parameters"]) == 31
-        assert set(r["match_degree"]) <= {"u", "v", "w", "p", "q", "r", "theta", "phi"}
+        assert set(r.match_degree) <= {"u", "v", "w", "p", "q", "r", "theta", "phi"}
 
     # zenoh: status, windows, a model (and gap report) per flight
     assert sub.of("/status") and len(sub.of("/telemetry/window")) > 20
     # live input trim follows the latest model (automatic trim)
-    last_model = max(report.results, key=lambda r: r["flight"])["model"]
+    last_model = max(report.results, key=lambda r: r.flight).model
     deadline = time.monotonic() + 30.0         # the final status is published during shutdown
     while (time.monotonic() < deadline
            and sub.of("/status")[-1]["input_trim_pwm"] != pytest.approx(last_model["input_trim_pwm"])):
@@ -80,7 +81,7 @@ def test_two_simulated_flights_identified_published_and_logged(tmp_path, subscri
     models = {k: d for k, d, _ in sub.samples if k.endswith("/model")}
     assert set(models) == {f"heli/{service.vehicle}/flight/1/model", f"heli/{service.vehicle}/flight/2/model"}
     gaps = {k for k, _, _ in sub.samples if k.endswith("/gap")}
-    if any(r.get("gap") is not None for r in report.results):
+    if any(r.gap is not None for r in report.results):
         assert gaps == {f"heli/{service.vehicle}/flight/1/gap", f"heli/{service.vehicle}/flight/2/gap"}
         for k, d, _ in sub.samples:
             if k.endswith("/gap"):
@@ -144,8 +145,8 @@ def test_worker_killed_mid_identification_is_reported_and_replaced(tmp_path):
 
     report = asyncio.run(main())
     assert killed and report.flights == 2
-    by_flight = {r.get("flight"): r for r in report.results}
-    failed = [r for r in report.results if "error" in r]
-    assert len(failed) == 1 and "BrokenProcessPool" in failed[0]["error"]
-    assert "error" not in by_flight[2] and by_flight[2]["model"]["schema"] == "heli-hover-model/1"
+    by_flight = {r.flight: r for r in report.results}
+    assert set(by_flight) == {1, 2}
+    assert not by_flight[1].ok and "BrokenProcessPool" in by_flight[1].error     # the killed job, by flight
+    assert by_flight[2].ok and by_flight[2].model["schema"] == "heli-hover-model/1"
     assert any("worker died" in w for w in report.warnings)
