@@ -96,10 +96,10 @@ def test_two_simulated_flights_identified_published_and_logged(tmp_path, subscri
         assert {f"{v}/outputs/{c}/smoothed", f"{v}/outputs/{c}/model", f"{v}/outputs/{c}/residual"} <= ents
     assert f"{v}/flight/state" in ents
     for r in report.results:
-        if r.get("gap") is not None:
-            n = r["flight"]
+        if r.gap is not None:
+            n = r.flight
             assert {f"{v}/flights/{n}/fit", f"{v}/flights/{n}/verdict"} <= ents
-            for c in r["gap"]["gap"]["channels"]:
+            for c in r.gap["gap"]["channels"]:
                 assert {f"{v}/gap/residual/{c}/residual", f"{v}/flights/{n}/spectrum/{c}/psd"} <= ents
 
 
