@@ -114,3 +114,21 @@ def score(base: np.ndarray, alt: np.ndarray, energy: np.ndarray, channels: tuple
             a1 = np.sqrt(alt[:, c].sum() / e)
             per[c] = float(100.0 * (b1 - a1) / b1)
     return Score(float(sc), p, gb, ga, float(sh), (float(lo), float(hi)), per)
+
+
+def combined_p(base: np.ndarray, alt: np.ndarray, rng: np.random.Generator, n_boot: int, window_alpha: float,
+               base_blocks: np.ndarray | None = None, alt_blocks: np.ndarray | None = None) -> float:
+    """The one p-value combination of the diagnosis: does ``alt`` lower the held-out cost of ``base``?
+
+    ``base``/``alt`` (W,) held-out cost per window; ``base_blocks``/``alt_blocks`` (W, n) the same
+    per ~0.5 s block when the hypothesis has them. Two resampling units: blocks (an effect at the
+    sharpest inputs or near the ground lives in a handful of windows but in many blocks) and whole
+    windows (a coarse check that the gain is not the within-window dependence of the blocks). When
+    the window-level p is below ``window_alpha`` the block-level p decides, else the larger of the
+    two. Without blocks the window-level p.
+    """
+    p_win = paired_bootstrap(base, alt, rng, n_boot)
+    if base_blocks is None or alt_blocks is None:
+        return p_win
+    p_blk = paired_bootstrap(base_blocks.ravel(), alt_blocks.ravel(), rng, n_boot)
+    return p_blk if p_win < window_alpha else max(p_blk, p_win)

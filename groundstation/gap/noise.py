@@ -55,10 +55,10 @@ def _d2_scale(parts: list[np.ndarray], step: int) -> float:
 
 
 @lru_cache(maxsize=64)
-def _calibration(stride_key: float) -> tuple[float, np.ndarray]:
+def _calibration(stride_key: float, seed: int = 12345) -> tuple[float, np.ndarray]:
     """For unit white noise sent every ``stride`` grid steps and linearly interpolated onto the grid
     (grid noise ``g``): ``(d2 estimate / std(g), [(var(S_p g), var(S_p g - g)) / var(g) per pass])``."""
-    rng = np.random.default_rng(12345)
+    rng = np.random.default_rng(seed)
     n = 32768
     if stride_key <= 1.0:
         g = rng.standard_normal(n)
@@ -83,10 +83,12 @@ def _key(stride: float) -> float:
     return 1.0 if not np.isfinite(stride) or stride <= 1.2 else round(float(stride) * 20.0) / 20.0
 
 
-def raw_noise_std(raw: list[np.ndarray], strides: np.ndarray | None = None) -> np.ndarray:
+def raw_noise_std(raw: list[np.ndarray], strides: np.ndarray | None = None,
+                  calibration_seed: int = 12345) -> np.ndarray:
     """Noise standard deviation on the grid per channel, from second differences of raw segments (n, C).
 
-    ``strides`` (C,) source interval / grid step per channel (None: all sent at the grid rate).
+    ``strides`` (C,) source interval / grid step per channel (None: all sent at the grid rate);
+    ``calibration_seed``: seed of the Monte-Carlo calibration for interpolated streams (a constant).
     """
     C = raw[0].shape[1]
     st = np.ones(C) if strides is None else np.asarray(strides, dtype=float)
@@ -95,12 +97,12 @@ def raw_noise_std(raw: list[np.ndarray], strides: np.ndarray | None = None) -> n
         key = _key(st[c])
         step = _step(key)
         parts = [r[:, c] for r in raw if r.shape[0] > 3 * step]
-        out[c] = _d2_scale(parts, step) / _calibration(key)[0] if parts else np.nan
+        out[c] = _d2_scale(parts, step) / _calibration(key, calibration_seed)[0] if parts else np.nan
     return out
 
 
 def smoothing_gain(raw: list[np.ndarray], smoothed: list[np.ndarray], sigma: np.ndarray,
-                   strides: np.ndarray | None = None) -> np.ndarray:
+                   strides: np.ndarray | None = None, calibration_seed: int = 12345) -> np.ndarray:
     """Per channel: fraction of the raw (grid) noise variance left in the smoothed outputs."""
     diff = np.concatenate([s - r for s, r in zip(smoothed, raw, strict=True)])
     v = np.nanvar(diff, axis=0)
@@ -110,7 +112,7 @@ def smoothing_gain(raw: list[np.ndarray], smoothed: list[np.ndarray], sigma: np.
         if not np.isfinite(sigma[c]) or sigma[c] <= 0:
             gains[c] = 1.0
             continue
-        fac = _calibration(_key(st[c]))[1]
+        fac = _calibration(_key(st[c]), calibration_seed)[1]
         ratio = v[c] / sigma[c] ** 2
         p = int(np.argmin(np.abs(fac[:, 1] - ratio)))
         gains[c] = fac[p, 0]
@@ -118,13 +120,13 @@ def smoothing_gain(raw: list[np.ndarray], smoothed: list[np.ndarray], sigma: np.
 
 
 def noise_floor(raw: list[np.ndarray], smoothed: list[np.ndarray],
-                strides: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                strides: np.ndarray | None = None, calibration_seed: int = 12345) -> dict[str, np.ndarray]:
     """Noise figures per channel: ``sigma_raw``, ``sigma_smoothed``, ``nrmse_floor`` (sigma / signal std).
 
-    ``strides``: see :func:`raw_noise_std`.
+    ``strides``, ``calibration_seed``: see :func:`raw_noise_std`.
     """
-    sigma = raw_noise_std(raw, strides)
-    gain = smoothing_gain(raw, smoothed, sigma, strides)
+    sigma = raw_noise_std(raw, strides, calibration_seed)
+    gain = smoothing_gain(raw, smoothed, sigma, strides, calibration_seed)
     sig_s = sigma * np.sqrt(gain)
     y = np.concatenate(smoothed)
     sd = np.nanstd(y, axis=0)

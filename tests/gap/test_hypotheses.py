@@ -63,7 +63,11 @@ def test_air_mass_predicts_velocities_between_its_chunks_and_leaves_rates_alone(
 
 
 def test_air_mass_slower_than_the_velocity_sensors_resolve_is_not_physical():
-    from groundstation.gap.diagnose import _physical
+    from groundstation.gap.candidates import physical
+    from groundstation.gap.config import DiagnoseConfig
+
+    def _physical(h):
+        return physical(h, DiagnoseConfig())
 
     slow = Hypothesis("wind_gust", estimate={"air_velocity_rms_m_s": 0.06}, extra={"resolvable_m_s": 0.13})
     real = Hypothesis("wind_gust", estimate={"air_velocity_rms_m_s": 0.9}, extra={"resolvable_m_s": 0.13})

@@ -1,0 +1,233 @@
+"""Attribute stage helpers: p-values, outer re-fits, encompassing tests, plausibility, evidence text.
+
+Used by :mod:`groundstation.gap.diagnose` on the scanned hypotheses of
+:mod:`groundstation.gap.hypotheses`. Every threshold comes from
+:class:`groundstation.gap.config.DiagnoseConfig`; every random draw from the caller's generator;
+every p-value of a held-out comparison from :func:`groundstation.gap.attribute.combined_p`.
+Pure numpy.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from groundstation.gap import attribute, fingerprints, hypotheses
+from groundstation.gap.config import DiagnoseConfig
+from groundstation.gap.evaluate import Evaluator, SegmentArrays
+from groundstation.sysid.model import OUTPUTS
+
+
+def p_value(h: hypotheses.Hypothesis, ctx: hypotheses.Context | None, base: np.ndarray, rng: np.random.Generator,
+            cfg: DiagnoseConfig) -> float:
+    """One-sided p-value that hypothesis ``h`` (scanned in ``ctx``) does not lower the held-out cost."""
+    assert h.sse is not None
+    blocks = ctx is not None and h.effect in ctx.blocks
+    p = attribute.combined_p(base.sum(1), h.sse.sum(1), rng, cfg.n_boot, cfg.window_alpha,
+                             ctx.base_blocks if blocks and ctx else None,
+                             ctx.blocks[h.effect] if blocks and ctx else None)
+    if h.effect == "wind_gust":
+        # an air-mass motion moves the attitude too (speed-stability moments): demand that of the
+        # attitude angles, which integrate those moments; the body rates also carry the air
+        # velocity's rough part, which no smooth air-velocity model predicts between its knots
+        att = [6, 7]
+        p_att = attribute.paired_bootstrap(base[:, att].sum(1), h.sse[:, att].sum(1), rng, cfg.n_boot)
+        h.extra["p_attitude"] = p_att
+        p = max(p, p_att)
+    return p
+
+
+def p_pair(base: np.ndarray, base_blocks: np.ndarray, alt: np.ndarray, alt_blocks: np.ndarray,
+           rng: np.random.Generator, cfg: DiagnoseConfig) -> float:
+    """The block/window p-value of :func:`p_value` for two held-out costs (W, 8) and blocks (W, n)."""
+    return attribute.combined_p(base.sum(1), alt.sum(1), rng, cfg.n_boot, cfg.window_alpha, base_blocks, alt_blocks)
+
+
+def refit_input_effect(c: attribute.Candidate, ctx: hypotheses.Context, segs: list[SegmentArrays],
+                       rng: np.random.Generator, cfg: DiagnoseConfig, crit: float) -> None:
+    """One more outer iteration of the augmented fit of a significant input effect.
+
+    The base model was identified without the effect and has absorbed part of it (a delay as a
+    slower response, a slew limit as a smaller gain), and one Gauss-Newton step of the base
+    parameters cannot undo that, so the grid value picked around the base is biased towards no
+    effect. The base is re-identified with the selected variant in place (Levenberg-Marquardt on
+    all windows, as the base itself was), and the effect's channel is scanned again around it:
+    same grid, same nested k-fold selection and held-out scoring against the same base cost.
+    Changes ``c`` in place; the refitted base is kept in ``hyp.extra['theta_refit']``.
+    """
+    ev = ctx.ev
+    h = c.hyp
+    segs_a = hypotheses.apply_input_effect(h, segs, ev.dt_s)
+    ev_a = Evaluator(segs_a, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s,
+                     folds=ev.folds, ridge=ev.ridge)
+    ev_a.refine(cfg.refit_iterations)
+    h.extra["theta_refit"] = ev_a.theta0
+    ev_r = Evaluator(segs, ev.dt_s, ev_a.theta0, ev.available, window_s=ev.L * ev.dt_s,
+                     folds=ev.folds, ridge=ev.ridge)
+    ctx_r = hypotheses.Context(ev_r, segs)
+    h2 = hypotheses.rescan_input_effect(ctx_r, h)
+    assert h2.sse is not None
+    s2 = attribute.score(ctx.base_sse, h2.sse, ev.energy, h2.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
+    s2.p_value = attribute.combined_p(ctx.base_sse.sum(1), h2.sse.sum(1), rng, cfg.n_boot, cfg.window_alpha,
+                                      ctx.base_blocks, ctx_r.blocks[h.effect])
+    h2.extra["first_pass"] = h.extra.get("first_pass") or {"estimate": dict(h.estimate),
+                                                            "score_pct": c.score.score_pct}
+    h.estimate, h.sse, h.extra = h2.estimate, h2.sse, {**h.extra, **h2.extra}
+    c.score = s2
+    c.significant = bool(s2.p_value < crit and gain_ok(s2, cfg) and physical(h, cfg))
+
+
+def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: list[SegmentArrays],
+               rng: np.random.Generator, cfg: DiagnoseConfig, crit: float) -> None:
+    """Encompassing tests between an input effect and the effects a closed loop makes look input-linked.
+
+    The pilot's corrective inputs answer the disturbances: an unmeasured air mass (or the ground's
+    extra lift, or drag) is partly cancelled by small inputs, so removing or delaying those inputs
+    in the model (deadband, delay, slew limit) mimics the disturbance, and a per-window air velocity
+    can in turn soak up part of an input effect's error. Each pair is decided by conditional tests,
+    both on held-out data: does the input effect still lower the cost once the other effect is in
+    the model (same channel, same grid, nested selection), and does the other effect still lower it
+    once the input effect is in? An effect that adds nothing given the other is not significant.
+    When both stay (each adds to the other), both are reported, ranked by their own held-out score.
+    Changes ``cands`` in place (``significant``, ``evidence``, ``hyp.extra``: conditional p-values
+    and the share of each gain retained given the other).
+    """
+    ev = ctx.ev
+    by = {c.hyp.effect: c for c in cands}
+    gust = by.get("wind_gust")
+    for a in [c for c in cands if c.hyp.effect in hypotheses.INPUT_EFFECTS and c.significant]:
+        # --- air mass: the four models (base, +A, +air mass, +both) in the air-mass protocol
+        # (within-window chunk cross-validation, where a per-window smooth air velocity cannot
+        # follow the fast, input-linked error of an input effect)
+        if gust is not None and gust.score.score_pct > 0 and "base_sse" in gust.hyp.extra and physical(gust.hyp, cfg):
+            segs_a = hypotheses.apply_input_effect(a.hyp, segs, ev.dt_s)
+            ev_a = Evaluator(segs_a, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s,
+                             folds=ev.folds, ridge=ev.ridge)
+            ev_a.refine(cfg.refit_iterations)
+            hg = hypotheses.scan_wind_gust(hypotheses.Context(ev_a, segs_a))
+            assert hg.sse is not None and gust.hyp.sse is not None
+            m0, mg = gust.hyp.extra["base_sse"], gust.hyp.sse
+            ma, mag = hg.extra["base_sse"], hg.sse
+            p_a = attribute.paired_bootstrap(mg.sum(1), mag.sum(1), rng, cfg.n_boot)
+            p_g = p_value(hg, None, ma, rng, cfg)
+            ret_a = float((mg - mag).sum() / max((m0 - ma).sum(), 1e-300))
+            ret_g = float((ma - mag).sum() / max((m0 - mg).sum(), 1e-300))
+            a.hyp.extra.update(p_given_air_mass=p_a, retained_given_air_mass=ret_a)
+            gust.hyp.extra.update({f"p_given_{a.hyp.effect}": p_g, f"retained_given_{a.hyp.effect}": ret_g})
+            a_ok = p_a < crit and float((mg - mag).sum()) > 0
+            g_ok = p_g < crit and float((ma - mag).sum()) > 0
+            if not a_ok:
+                a.significant = False
+                a.evidence += f"; adds nothing once an air-mass motion is allowed (p={p_a:.2g})"
+                continue
+            if gust.significant and not g_ok:
+                gust.significant = False
+                gust.evidence += f"; adds nothing once the {a.hyp.input} {a.hyp.effect} is in the model (p={p_g:.2g})"
+        # --- effects entering as forcing columns (ground effect, drag)
+        for b in cands:
+            if b.hyp.effect not in ("ground_effect", "quadratic_drag") or not b.significant or not a.significant:
+                continue
+            Xb = b.hyp.extra.get("X")
+            if Xb is None:
+                continue
+            ctx_b = hypotheses.Context(ev, segs, given=Xb)
+            ha = hypotheses.rescan_input_effect(ctx_b, a.hyp)
+            assert ha.sse is not None
+            p = p_value(ha, ctx_b, ctx_b.base_sse, rng, cfg)
+            a.hyp.extra[f"p_given_{b.hyp.effect}"] = p
+            ra = a.hyp.extra["r_best"]
+            s0, _, _ = ev.heldout(ra)
+            b0 = ev.last_blocks.copy()
+            s1, _, _ = ev.heldout(ra, Xb)
+            pb = p_pair(s0, b0, s1, ev.last_blocks, rng, cfg)
+            b.hyp.extra[f"p_given_{a.hyp.effect}"] = pb
+            a_ok = p < crit and float(ctx_b.base_sse.sum() - ha.sse.sum()) > 0
+            b_ok = pb < crit and float(s0.sum() - s1.sum()) > 0
+            if not a_ok and b_ok:
+                a.significant = False
+                a.evidence += f"; adds nothing once {b.hyp.effect} is in the model (p={p:.2g})"
+            elif a_ok and not b_ok:
+                b.significant = False
+                b.evidence += f"; adds nothing once the {a.hyp.input} {a.hyp.effect} is in the model (p={pb:.2g})"
+
+
+def physical(h: hypotheses.Hypothesis, cfg: DiagnoseConfig) -> bool:
+    """Physical plausibility: drag opposes motion (on every axis), ground effect adds lift, a deadband
+    is wider than the input resolution, an air mass moves more than the velocity sensors resolve."""
+    if h.effect == "quadratic_drag":
+        # drag opposes the motion along every axis it is estimated on (a term of either sign on
+        # one axis is model-structure error, e.g. the rigid body's velocity-rate products)
+        vals = [float(v) for v in h.estimate.values()]
+        return bool(vals) and all(v > 0 for v in vals)
+    if h.effect == "ground_effect":
+        return float(h.estimate.get("accel_m_s2", 0.0)) > 0
+    if h.effect == "deadband":
+        # wider than a few steps of the recorded input's resolution, else it is quantisation
+        return float(h.estimate.get("deadband", 0.0)) > cfg.deadband_min_quanta * float(h.extra.get("quantum", 0.0))
+    if h.effect == "wind_gust":
+        # a low-frequency air mass carries the aircraft along: one moving less than the velocity
+        # sensors resolve cannot be what the gap is (the fitted air velocity is then soaking up
+        # slow model-structure error)
+        return float(h.estimate.get("air_velocity_rms_m_s", 0.0)) > float(h.extra.get("resolvable_m_s", 0.0))
+    return True
+
+
+def gain_ok(s: attribute.Score, cfg: DiagnoseConfig) -> bool:
+    """Practically significant: held-out cost down by more than ``min_score_pct`` and the gap on the
+    effect's own channels smaller (see :class:`DiagnoseConfig`)."""
+    return bool(s.score_pct > cfg.min_score_pct and s.shrink_pct > 0)
+
+
+def vibration_candidate(lines: list[fingerprints.Line], resid_raw: np.ndarray, ev: Evaluator,
+                        dt: float, rng: np.random.Generator, cfg: DiagnoseConfig) -> tuple[hypotheses.Hypothesis, attribute.Score]:
+    """Rotor vibration: per-window sinusoid at each line removed from the raw residual (held-out not
+    needed: two parameters per window and line, whose chance share of the energy is subtracted)."""
+    chans = sorted({OUTPUTS.index(c) for ln in lines for c in ln.channels})
+    base = (resid_raw * ev.w8) ** 2
+    after = resid_raw.copy()
+    for ln in lines:
+        for c in chans:
+            after[..., c] -= fingerprints.sinusoid_fit(after[..., c], dt, ln.frequency_hz)
+    alt = (after * ev.w8) ** 2
+    Lw = resid_raw.shape[1]
+    chance = 1.0 - 2.0 * len(lines) / Lw  # expected share left if the "line" were white noise
+    sse_b = base.sum(axis=1)
+    sse_a = alt.sum(axis=1)
+    sse_a[:, chans] /= max(chance, cfg.vibration_chance_floor)  # only where sinusoids were fitted: the others are unchanged
+    energy = ((ev.Yraw[:, ev.start:] - ev.Yraw[:, ev.start:].reshape(-1, 8).mean(0)) * ev.w8) ** 2
+    sc = attribute.score(sse_b, np.minimum(sse_a, sse_b * cfg.vibration_cost_cap), energy.sum(axis=1), tuple(chans),
+                         rng, n_boot=cfg.vibration_n_boot)
+    sc.p_value = 10 ** max(min(ln.log10_p for ln in lines), -300)
+    top = lines[0]
+    h = hypotheses.Hypothesis("rotor_vibration", estimate={"frequency_hz": round(top.frequency_hz, 3),
+                                                            **{f"amplitude_{k}": v for k, v in top.amplitude.items()}},
+                              sse=None, channels=tuple(chans), extra={"lines": lines})
+    return h, sc
+
+
+def evidence(h: hypotheses.Hypothesis, s: attribute.Score, kin: dict, lines: list) -> str:
+    base = f"held-out cost {s.score_pct:+.1f}% (p={s.p_value:.2g})"
+    e = h.effect
+    if e == "input_delay":
+        return f"{h.input} delayed {1000 * h.estimate['delay_s']:.0f} ms fits best; {base}"
+    if e == "rate_limit":
+        return f"{h.input} slew-limited at {h.estimate['rate_limit_per_s']:.2f} /s fits best; {base}"
+    if e == "deadband":
+        return f"{h.input} {h.extra.get('kind', 'deadband')} of +-{h.estimate['deadband']:.4f} fits best; {base}"
+    if e == "velocity_latency":
+        return f"velocities lag attitude by {1000 * h.estimate['latency_s']:.0f} ms; {base}"
+    if e == "gyro_bias":
+        k = kin.get(h.output or "")
+        kt = f"; Euler-kinematics offset {1000 * k.offset_rad_s:.2f} mrad/s (t={k.t_stat:.1f})" if k else ""
+        return f"constant offset on {h.output} of {1000 * h.estimate['bias_rad_s']:.2f} mrad/s{kt}; {base}"
+    if e == "quadratic_drag":
+        return f"-|v|v drag terms {h.estimate}; {base}"
+    if e == "ground_effect":
+        return f"w force decaying with height ({h.estimate.get('decay_height_m')} m); {base}"
+    if e == "wind_gust":
+        return (f"a smooth air velocity (rms {h.estimate.get('air_velocity_rms_m_s', 0):.2f} m/s) fitted on alternate "
+                f"0.5 s chunks predicts the chunks between them, attitude included; {base}")
+    if e == "rotor_vibration":
+        ln = lines[0]
+        return (f"narrow line at {ln.frequency_hz:.2f} Hz in {','.join(ln.channels)} "
+                f"({ln.ratio:.1f}x local median, log10 p={ln.log10_p:.1f})")
+    return base
