@@ -1,13 +1,22 @@
-"""``groundstation bench diagnose --cases N --seed S [--combined M]``: blind test of the diagnosis.
+"""``groundstation bench diagnose --cases N --seed S [--out-of-catalogue K] [--combined M]``: blind test.
 
-Generates N simulated flights with ``hil_replay.sim.write_tlog`` (the independent simulator),
-each with one random catalogue effect (``hil_replay.sim.effects.random_effect``: random channel
-and magnitude) or none, classes taken in turn; hides the label; reads the .tlog back through the
-ordinary reader, prepares it and diagnoses it (identifying the model first unless
-``--model-source truth``). Prints the confusion matrix, top-1 accuracy, false-alarm rate on
-effect-free flights, channel accuracy, the error of the estimated effect parameter, predicted shrink
-and (``--fresh``) the shrink of the same effect measured on a fresh flight, wall time per case,
-and M combined cases with two effects at once (are both found?). Cases run in a process pool.
+Generates simulated flights with ``hil_replay.sim.write_tlog`` (the independent simulator), each
+with one random catalogue effect (``hil_replay.sim.effects.random_effect``: random channel and
+magnitude) or none, classes taken in turn; K flights with an effect OUTSIDE the catalogue
+(``hil_replay.sim.effects.OUT_OF_CATALOGUE``: gyro scale factor, velocity-sensor scale, rotor speed
+sagging with collective, asymmetric input gain) whose right answer is ``unexplained`` or the sensor
+error found by data compatibility; and M flights with two catalogue effects at once. Unless
+``--plain``, every flight is drawn from a varied simulator: aircraft (TREX-600 or R-50) with every
+eq.-8 parameter scattered (log-normal, ``--scatter``), stiff / default / loose pilot, sweep-free
+cards (3-2-1-1 multisteps only) on half the flights, attitude and velocity streams at 10-50 Hz,
+excitation amplitude 0.6-1.3x. Hides the label; reads the .tlog back through the ordinary reader,
+prepares it and diagnoses it (identifying the model first unless ``--model-source truth``).
+
+Prints the confusion matrix, top-1 accuracy, false alarms on effect-free flights, invented second
+effects (a named effect that is not in the flight, beside a right one), the out-of-catalogue
+outcome (``unexplained`` or the right sensor finding; catalogue names with a shrink above 10 %),
+both-found rate on two-effect flights, channel accuracy, parameter errors, wall time per case.
+Cases run in a process pool.
 """
 
 from __future__ import annotations
@@ -29,22 +38,28 @@ CLASSES = ("none", "input_delay", "rate_limit", "deadband", "ground_effect", "wi
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--cases", type=int, default=20)
+    parser.add_argument("--cases", type=int, default=20, help="flights with one catalogue effect or none")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out-of-catalogue", type=int, default=0, dest="out_of_catalogue",
+                        help="extra flights with an effect outside the catalogue")
     parser.add_argument("--combined", type=int, default=0, help="extra cases with two effects at once")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--classes", default=",".join(CLASSES), help="comma-separated classes to draw from")
     parser.add_argument("--model-source", choices=("identify", "truth"), default="identify",
                         help="base model: identified from the flight (blind) or the simulator's truth parameters")
     parser.add_argument("--fresh", action="store_true", help="also measure the shrink on a fresh flight")
-    parser.add_argument("--aircraft", default=None, help="simulator aircraft name (default: the simulator's)")
+    parser.add_argument("--plain", action="store_true",
+                        help="the simulator's default flights (no random aircraft, pilot, card, rates)")
+    parser.add_argument("--scatter", type=float, default=0.25,
+                        help="log-normal sigma of the aircraft parameter scatter on varied flights")
+    parser.add_argument("--aircraft", default=None, help="simulator aircraft name (default: drawn, or the simulator's)")
     parser.add_argument("--rates", default=None,
                         help="telemetry rates of the simulated autopilot, e.g. ATTITUDE=25,LOCAL_POSITION_NED=10 "
-                             "(default: the simulator's); a robustness check against other stream set-ups")
-    parser.add_argument("--pilot", choices=tuple(PILOTS), default="default",
+                             "(default: drawn, or the simulator's); a robustness check against other stream set-ups")
+    parser.add_argument("--pilot", choices=tuple(PILOTS), default=None,
                         help="synthetic pilot: tight (stiffer loops, less input left on the excited axis), "
-                             "loose, or the simulator's default; a robustness check against other pilots")
-    parser.add_argument("--excitation", type=float, default=1.0,
+                             "loose, or the simulator's default (default: drawn)")
+    parser.add_argument("--excitation", type=float, default=None,
                         help="scale of the card's sweep and doublet amplitudes (e.g. 0.5: a cautious pilot)")
     parser.add_argument("--json", type=Path, default=None, help="write every case result to this JSON file")
 
@@ -117,6 +132,67 @@ def _estimate_for(name: str, est: dict[str, float]) -> float | None:
     return None if k is None or est.get(k) is None else float(est[k])
 
 
+_STREAM_HZ = (10.0, 12.5, 16.7, 25.0, 50.0)
+
+
+def draw_flight(rng: np.random.Generator, args: argparse.Namespace) -> dict[str, Any]:
+    """The simulator set-up of one varied flight (what the command line fixes is kept)."""
+    plain = bool(getattr(args, "plain", False))
+    fl: dict[str, Any] = {"aircraft": args.aircraft, "rates": parse_rates(args.rates), "pilot": args.pilot or "default",
+                          "excitation": 1.0 if args.excitation is None else args.excitation, "sweeps": True,
+                          "scatter": 0.0, "scatter_seed": int(rng.integers(2 ** 31))}
+    if plain:
+        return fl
+    fl["scatter"] = float(args.scatter)
+    if args.aircraft is None:
+        fl["aircraft"] = "r50" if rng.random() < 0.3 else "trex600"
+    if args.pilot is None:
+        fl["pilot"] = str(rng.choice(["default", "tight", "loose"]))
+    if args.excitation is None:
+        fl["excitation"] = round(float(rng.uniform(0.6, 1.3)), 3)
+    fl["sweeps"] = bool(rng.random() < 0.5)
+    if args.rates is None:
+        fl["rates"] = {"ATTITUDE": float(rng.choice(_STREAM_HZ)), "LOCAL_POSITION_NED": float(rng.choice(_STREAM_HZ))}
+    return fl
+
+
+def make_aircraft(name: str | None, scatter: float, seed: int) -> Any:
+    """The named aircraft with every eq.-8 parameter scattered (log-normal ``scatter``, signs kept)
+    such that the synthetic pilot can still fly it (redrawn up to 20 times, else unscattered)."""
+    from hil_replay.sim.aircraft import Aircraft, resolve_aircraft
+    from hil_replay.sim.pilot import PilotConfig, design_gains
+
+    base = resolve_aircraft(name)
+    if scatter <= 0:
+        return base
+    rng = np.random.default_rng(seed)
+    kw = {f: getattr(base, f) for f in base.__dataclass_fields__}
+    for _ in range(20):
+        kw["parameters"] = {k: float(v) * float(np.exp(scatter * rng.standard_normal()))
+                            for k, v in base.parameters.items()}
+        try:
+            ac = Aircraft(**kw)
+            design_gains(ac, PilotConfig())
+            return ac
+        except (ValueError, np.linalg.LinAlgError, ArithmeticError):
+            continue
+    return base
+
+
+def _sim_kwargs(job: dict[str, Any]) -> dict[str, Any]:
+    fl = job["flight"]
+    kw: dict[str, Any] = {"aircraft": make_aircraft(fl["aircraft"], fl["scatter"], fl["scatter_seed"])}
+    if fl.get("rates"):
+        kw["rates_hz"] = fl["rates"]
+    if fl.get("pilot", "default") != "default":
+        kw["pilot"] = pilot_config(fl["pilot"])
+    if fl.get("excitation", 1.0) != 1.0:
+        kw["excitation_scale"] = fl["excitation"]
+    if not fl.get("sweeps", True):
+        kw["sweeps"] = False
+    return kw
+
+
 def run_case(job: dict[str, Any]) -> dict[str, Any]:
     """Simulate, read back, prepare, diagnose one case (runs in a worker process)."""
     from firmware_interface.readers import load_log
@@ -128,16 +204,11 @@ def run_case(job: dict[str, Any]) -> dict[str, Any]:
 
     rng = np.random.default_rng(job["seed"])
     effects = [random_effect(n, rng) for n in job["effects"]]
-    out: dict[str, Any] = {"case": job["case"], "truth_effects": job["effects"]}
+    out: dict[str, Any] = {"case": job["case"], "kind": job["kind"], "truth_effects": job["effects"],
+                           "flight": job["flight"]}
     with tempfile.TemporaryDirectory() as td:
         path = Path(td) / f"case{job['case']}.tlog"
-        kw: dict[str, Any] = {} if job.get("aircraft") is None else {"aircraft": job["aircraft"]}
-        if job.get("rates"):
-            kw["rates_hz"] = job["rates"]
-        if job.get("pilot", "default") != "default":
-            kw["pilot"] = pilot_config(job["pilot"])
-        if job.get("excitation", 1.0) != 1.0:
-            kw["excitation_scale"] = job["excitation"]
+        kw = _sim_kwargs(job)
         truth = write_tlog(path, seed=job["seed"], flights=1, effects=effects, **kw)
         out["truth"] = truth.get("effects", [])
         t0 = time.perf_counter()
@@ -145,16 +216,25 @@ def run_case(job: dict[str, Any]) -> dict[str, Any]:
         model = None
         if job["model_source"] == "truth":
             model = HoverModel(params=dict(truth["parameters"]))
-        diag = run_diagnosis(model, prepared, seed=job["seed"])
+        try:
+            diag = run_diagnosis(model, prepared, seed=job["seed"])
+        except ValueError as exc:  # a flight the diagnosis refuses (too little data): counted, not hidden
+            out.update(seconds=time.perf_counter() - t0, flight_s=0.0, verdict="refused", effects=[], sensor_errors=[],
+                       candidates=[], error=str(exc))
+            return out
         out["seconds"] = time.perf_counter() - t0
         out["flight_s"] = float(sum(s.t_s[-1] - s.t_s[0] for s in prepared.segments))
         rep = diag.report
         out["verdict"] = rep["verdict"]
         out["effects"] = [{k: e[k] for k in ("effect", "input", "output", "estimate", "shrink_pct", "score")}
                           for e in rep["effects"]]
+        out["sensor_errors"] = [{k: e.get(k) for k in ("kind", "channel", "estimate", "se", "significant")}
+                                for e in rep.get("data_compatibility", {}).get("findings", [])
+                                if e.get("significant")]
         # every scored hypothesis (significant or not), for inspecting why a case went wrong
         out["candidates"] = [{k: e.get(k) for k in ("effect", "input", "output", "estimate", "score", "p_value",
                                                     "shrink_pct")} for e in rep["effects"] + rep["candidates"]]
+        out["unexplained"] = rep.get("unexplained")
         out["gap_to_noise_ratio"] = rep["gap"].get("gap_to_noise_ratio")
         if job.get("fresh") and job["effects"]:
             path2 = Path(td) / "fresh.tlog"
@@ -168,44 +248,95 @@ def run_case(job: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def make_jobs(args: argparse.Namespace, classes: list[str]) -> list[dict[str, Any]]:
+    """Single-effect (or none), out-of-catalogue and two-effect cases, each with its flight set-up."""
+    from hil_replay.sim.effects import OUT_OF_CATALOGUE
+
+    rng = np.random.default_rng(args.seed)
+    base = {"model_source": args.model_source, "fresh": args.fresh}
+    jobs = []
+    for i in range(args.cases):
+        name = classes[i % len(classes)]
+        jobs.append({**base, "case": i, "kind": "single", "seed": int(args.seed * 1000 + i),
+                     "effects": [] if name == "none" else [name], "flight": draw_flight(rng, args)})
+    for j in range(args.out_of_catalogue):
+        jobs.append({**base, "case": args.cases + j, "kind": "outside", "seed": int(args.seed * 1000 + 300 + j),
+                     "effects": [OUT_OF_CATALOGUE[(j + args.seed) % len(OUT_OF_CATALOGUE)]],
+                     "flight": draw_flight(rng, args), "fresh": False})
+    real = [c for c in CLASSES if c != "none"]
+    for j in range(args.combined):
+        pair = [str(x) for x in rng.choice(real, 2, replace=False)]
+        jobs.append({**base, "case": args.cases + args.out_of_catalogue + j, "kind": "combined",
+                     "seed": int(args.seed * 1000 + 500 + j), "effects": pair, "flight": draw_flight(rng, args),
+                     "fresh": False})
+    return jobs
+
+
 def run(args: argparse.Namespace) -> int:
     classes = [c.strip() for c in args.classes.split(",") if c.strip()]
     unknown = set(classes) - set(CLASSES)
     if unknown:
         raise ValueError(f"--classes: unknown effect name(s) {sorted(unknown)}; allowed {CLASSES}")
-    rates = parse_rates(args.rates)
-    rng = np.random.default_rng(args.seed)
-    jobs = []
-    for i in range(args.cases):
-        name = classes[i % len(classes)]
-        jobs.append({"case": i, "seed": int(args.seed * 1000 + i), "effects": [] if name == "none" else [name],
-                     "model_source": args.model_source, "fresh": args.fresh, "aircraft": args.aircraft,
-                     "rates": rates, "pilot": args.pilot, "excitation": args.excitation})
-    real = [c for c in CLASSES if c != "none"]
-    for j in range(args.combined):
-        pair = [str(x) for x in rng.choice(real, 2, replace=False)]
-        jobs.append({"case": args.cases + j, "seed": int(args.seed * 1000 + 500 + j), "effects": pair,
-                     "model_source": args.model_source, "fresh": False, "aircraft": args.aircraft,
-                     "rates": rates, "pilot": args.pilot, "excitation": args.excitation, "combined": True})
+    parse_rates(args.rates)  # a bad --rates is reported before any flight is simulated
+    jobs = make_jobs(args, classes)
     t0 = time.perf_counter()
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
         results = list(pool.map(run_case, jobs))
     wall = time.perf_counter() - t0
-    singles = [r for r, j in zip(results, jobs, strict=True) if not j.get("combined")]
-    combos = [r for r, j in zip(results, jobs, strict=True) if j.get("combined")]
     if args.json:
         args.json.write_text(json.dumps(results, indent=1, default=str))
-    print_summary(singles, combos, classes, wall)
+    print_summary(results, classes, wall)
     return 0
 
 
-def print_summary(singles: list[dict], combos: list[dict], classes: list[str], wall: float) -> None:
-    labels = list(classes) + [c for c in ("unexplained",) if c not in classes]
+def _named(r: dict[str, Any]) -> list[str]:
+    return [e["effect"] for e in r["effects"]]
+
+
+def _sensor_right(r: dict[str, Any]) -> bool:
+    """An out-of-catalogue sensor error found by data compatibility on the right channel."""
+    t = r["truth"][0] if r.get("truth") else {}
+    ch = t.get("output") or t.get("input")
+    return any(f.get("kind") == t.get("effect") and (ch is None or f.get("channel") == ch)
+               for f in r.get("sensor_errors", []))
+
+
+def print_summary(results: list[dict], classes: list[str], wall: float) -> None:
+    singles = [r for r in results if r["kind"] == "single"]
+    outside = [r for r in results if r["kind"] == "outside"]
+    combos = [r for r in results if r["kind"] == "combined"]
+    for r in results:
+        got = [(e["effect"], e["input"] or e["output"]) for e in r["effects"][:3]]
+        sens = [(f["kind"], f["channel"]) for f in r.get("sensor_errors", [])]
+        tr = [(t["effect"], t.get("input") or t.get("output")) for t in r.get("truth", [])]
+        fl = r["flight"]
+        setup = (f"{fl['aircraft']}/{fl['pilot']}/{'sweeps' if fl['sweeps'] else 'multisteps'}/"
+                 f"{(fl.get('rates') or {}).get('ATTITUDE', 50):g}Hz")
+        print(f"  case {r['case']:3d} [{setup}] truth {tr} -> {r['verdict']} {got}"
+              f"{' sensor ' + str(sens) if sens else ''} ({r['seconds']:.0f} s)")
+    _print_singles(singles, classes)
+    _print_invented(singles + combos)
+    if outside:
+        ok = sum(r["verdict"] == "unexplained" or _sensor_right(r) for r in outside)
+        wrong = [r for r in outside if any((e.get("shrink_pct") or 0) > 10 for e in r["effects"])]
+        print(f"out-of-catalogue flights: unexplained or the right sensor finding {ok}/{len(outside)}; "
+              f"a catalogue name with shrink > 10 %: {len(wrong)}/{len(outside)}")
+    if combos:
+        both = sum(all(t in _named(r) for t in r["truth_effects"]) for r in combos)
+        print(f"two-effect flights with both effects named: {both}/{len(combos)}")
+    secs = [r["seconds"] for r in results]
+    fl = [r["flight_s"] for r in results]
+    if secs:
+        print(f"diagnosis wall per case: median {np.median(secs):.1f} s (max {np.max(secs):.1f} s) for median "
+              f"{np.median(fl):.0f} s of in-air data; total bench wall {wall:.0f} s")
+
+
+def _print_singles(singles: list[dict], classes: list[str]) -> None:
+    labels = list(classes) + [c for c in ("unexplained", "sensor_error", "refused") if c not in classes]
     idx = {c: i for i, c in enumerate(labels)}
     cm = np.zeros((len(classes), len(labels)), int)
     chan_ok = chan_n = 0
     param_err: list[str] = []
-    shrinks: list[str] = []
     for r in singles:
         truth = r["truth_effects"][0] if r["truth_effects"] else "none"
         pred = r["verdict"]
@@ -221,12 +352,9 @@ def print_summary(singles: list[dict], combos: list[dict], classes: list[str], w
             if tp is not None and ev is not None:
                 tv = min(tp[1:], key=lambda v: abs(v - ev))
                 param_err.append(f"{truth}: est {ev:.4g} vs true {tv:.4g} ({tp[0]})")
-            shrinks.append(f"{truth}: predicted {r['effects'][0]['shrink_pct']}% fresh {r.get('fresh_shrink_pct')}%")
-    for r in singles + combos:
-        got = [(e["effect"], e["input"] or e["output"]) for e in r["effects"][:3]]
-        tr = [(t["effect"], t.get("input") or t.get("output")) for t in r.get("truth", [])]
-        print(f"  case {r['case']:3d} truth {tr} -> {r['verdict']} {got} ({r['seconds']:.0f} s)")
     n = len(singles)
+    if not n:
+        return
     correct = int(sum(cm[i, idx[c]] for i, c in enumerate(classes)))
     print("confusion matrix (rows truth, columns verdict):")
     w = max(len(c) for c in labels) + 1
@@ -241,18 +369,16 @@ def print_summary(singles: list[dict], combos: list[dict], classes: list[str], w
     print(f"channel accuracy (correct verdicts with a channel): {chan_ok}/{chan_n}")
     for s in param_err:
         print("  parameter " + s)
-    for s in shrinks:
-        print("  shrink " + s)
-    if combos:
-        both = 0
-        for r in combos:
-            found = {e["effect"] for e in r["effects"]}
-            ok = all(t in found for t in r["truth_effects"])
-            both += int(ok)
-            print(f"  combined {r['truth_effects']} -> found {[e['effect'] for e in r['effects']]}")
-        print(f"combined cases with both effects found: {both}/{len(combos)}")
-    secs = [r["seconds"] for r in singles + combos]
-    fl = [r["flight_s"] for r in singles + combos]
-    if secs:
-        print(f"diagnosis wall per case: median {np.median(secs):.1f} s (max {np.max(secs):.1f} s) for median "
-              f"{np.median(fl):.0f} s of in-air data; total bench wall {wall:.0f} s")
+
+
+def _print_invented(reports: list[dict]) -> None:
+    """Reports naming an effect that is not in the flight, beside a right top verdict (or on none)."""
+    inv = 0
+    for r in reports:
+        truth = set(r["truth_effects"])
+        extra = [e for e in _named(r) if e not in truth]
+        if truth and r["verdict"] in truth and extra:
+            inv += 1
+        elif not truth and len(extra) > 1:
+            inv += 1
+    print(f"reports with an invented second effect: {inv}/{len(reports)}")

@@ -169,9 +169,11 @@ def excitation_gains(ac: Aircraft) -> dict[str, float]:
 
 
 def make_card(ac: Aircraft, rng: np.random.Generator, *, duration_s: float | None = None,
-              heading_rad: float | None = None, excitation_scale: float = 1.0) -> Card:
+              heading_rad: float | None = None, excitation_scale: float = 1.0, sweeps: bool = True) -> Card:
     """Plan one flight. ``duration_s`` (armed time, default ~150-200 s, minimum ~30 s) scales the card;
-    ``excitation_scale`` multiplies the sweep and doublet amplitudes (a bolder or more cautious pilot)."""
+    ``excitation_scale`` multiplies the sweep and doublet amplitudes (a bolder or more cautious pilot);
+    ``sweeps=False``: a sweep-free card (each frequency sweep replaced by a second, slower 3-2-1-1
+    multistep, as many real test cards are)."""
     gains = excitation_gains(ac)
     amp = {a: float(np.clip(_TARGET[a] / max(gains[a], 1e-6), 0.01, 0.3)) * float(excitation_scale) for a in INPUTS}
     heading = float(rng.uniform(-math.pi, math.pi)) if heading_rad is None else float(heading_rad)
@@ -210,6 +212,9 @@ def make_card(ac: Aircraft, rng: np.random.Generator, *, duration_s: float | Non
                       "f1_hz": float(rng.uniform(6.0, 8.0))})
             doublet = ("doublet_" + a, "doublet", a, 7 * pulse + 2.5,
                        {"amplitude": 1.0 * amp[a] * float(rng.uniform(0.75, 1.25)), "pulse_s": pulse})
+            if not sweeps:  # the same draws, a slower multistep in the sweep's place
+                sweep = ("doublet2_" + a, "doublet", a, 7 * 1.6 * pulse + 2.5,
+                         {"amplitude": doublet[4]["amplitude"], "pulse_s": 1.6 * pulse})
             pair = [sweep, doublet] if rng.random() < 0.7 else [doublet, sweep]
             blocks.append([pair[0], ("hover", "hold", None, float(rng.uniform(2.0, 4.0)), {}), pair[1],
                            ("hover", "hold", None, float(rng.uniform(2.0, 4.0)), {})])

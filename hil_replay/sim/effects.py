@@ -19,6 +19,23 @@ rotor_vibration    -                       amplitude_rad_s (0.0005-0.2; 0.004-0.
 velocity_latency   -                       latency_s (0.01-1; 0.05-0.3)
 =================  ======================  =====================================================
 
+Effects OUTSIDE the catalogue (:data:`OUT_OF_CATALOGUE`): physics and sensor errors the diagnosis
+has no name for, to check that it says "unexplained" (or finds the sensor error by data
+compatibility) rather than forcing a catalogue name onto them. They parse and inject like the
+others but are not in :data:`EFFECT_NAMES`:
+
+=================  ======================  =====================================================
+gyro_scale         output p|q|r            scale_error: measured rate = (1 + e) x true
+                                           (+-0.02..0.5; +-0.08..0.2)
+velocity_scale     -                       scale_error: measured NED velocities = (1 + e) x true,
+                                           position unaffected (+-0.05..0.5; +-0.1..0.25)
+rotor_sag          -                       sag_per_unit: rotor speed drops by sag x collective above
+                                           trim; thrust and control power go with speed squared
+                                           (0.02-2; 0.2-0.45)
+input_asymmetry    input                   asymmetry: gain (1 + a) for deflections above trim,
+                                           (1 - a) below (0.02-0.8; 0.25-0.45)
+=================  ======================  =====================================================
+
 ``parse_effect("input_delay:input=lon,delay_s=0.1")`` validates names, keys and ranges and raises
 ``ValueError`` naming the key and what is allowed. Leaves to others: where each effect acts in the
 loop (``session.py``) and in the sensors (``telemetry.py``).
@@ -68,8 +85,18 @@ SPECS: Mapping[str, _EffectSpec] = MappingProxyType({
     "rotor_vibration": _EffectSpec(None, {"amplitude_rad_s": _ParamSpec(0.0005, 0.2, 0.004, 0.015, 0.008),
                                           "rpm": _ParamSpec(300.0, 4000.0, 1200.0, 1900.0, None)}),
     "velocity_latency": _EffectSpec(None, {"latency_s": _ParamSpec(0.01, 1.0, 0.05, 0.3, 0.15)}),
+    # ---- outside the catalogue (see the module docstring)
+    "gyro_scale": _EffectSpec("output", {"scale_error": _ParamSpec(0.02, 0.5, 0.08, 0.2, 0.1, signed=True)}, "q"),
+    "velocity_scale": _EffectSpec(None, {"scale_error": _ParamSpec(0.05, 0.5, 0.1, 0.25, 0.15, signed=True)}),
+    "rotor_sag": _EffectSpec(None, {"sag_per_unit": _ParamSpec(0.02, 2.0, 0.2, 0.45, 0.3)}),
+    "input_asymmetry": _EffectSpec("input", {"asymmetry": _ParamSpec(0.02, 0.8, 0.25, 0.45, 0.35)}, "lon"),
 })
-EFFECT_NAMES: tuple[str, ...] = tuple(SPECS)
+#: effects outside the DESIGN.md catalogue (the diagnosis has no name for them)
+OUT_OF_CATALOGUE: tuple[str, ...] = ("gyro_scale", "velocity_scale", "rotor_sag", "input_asymmetry")
+#: the DESIGN.md catalogue
+EFFECT_NAMES: tuple[str, ...] = tuple(n for n in SPECS if n not in OUT_OF_CATALOGUE)
+#: input-side effects the :class:`InputChain` applies (the others act after it, in the session)
+CHAIN_EFFECTS: tuple[str, ...] = ("input_delay", "rate_limit", "deadband")
 
 
 @dataclass(frozen=True)
@@ -103,7 +130,7 @@ class Effect:
 
 def _validate(e: Effect) -> None:
     if e.name not in SPECS:
-        raise ValueError(f"effect: unknown name {e.name!r}; allowed: {list(EFFECT_NAMES)}")
+        raise ValueError(f"effect: unknown name {e.name!r}; allowed: {list(SPECS)}")
     sp = SPECS[e.name]
     if sp.channel == "input":
         if e.input not in INPUT_CHANNELS:
@@ -139,7 +166,7 @@ def make_effect(name: str, *, input: str | None = None, output: str | None = Non
                 **params: float) -> Effect:
     """Build an effect, filling the default channel and default parameter values."""
     if name not in SPECS:
-        raise ValueError(f"effect: unknown name {name!r}; allowed: {list(EFFECT_NAMES)}")
+        raise ValueError(f"effect: unknown name {name!r}; allowed: {list(SPECS)}")
     sp = SPECS[name]
     if sp.channel == "input" and input is None:
         input = sp.default_channel
@@ -163,7 +190,7 @@ def parse_effect(text: str) -> Effect:
     name, _, rest = s.partition(":")
     name = name.strip()
     if name not in SPECS:
-        raise ValueError(f"--effect {s!r}: unknown effect name {name!r}; allowed: {list(EFFECT_NAMES)}")
+        raise ValueError(f"--effect {s!r}: unknown effect name {name!r}; allowed: {list(SPECS)}")
     kw: dict[str, Any] = {}
     if rest.strip():
         for item in rest.split(","):
@@ -190,7 +217,7 @@ def parse_effect(text: str) -> Effect:
 def random_effect(name: str, rng: np.random.Generator | int | None = None) -> Effect:
     """An effect ``name`` with a random channel and magnitude inside its typical physical range."""
     if name not in SPECS:
-        raise ValueError(f"effect: unknown name {name!r}; allowed: {list(EFFECT_NAMES)}")
+        raise ValueError(f"effect: unknown name {name!r}; allowed: {list(SPECS)}")
     g = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     sp = SPECS[name]
     kw: dict[str, Any] = {}
@@ -277,6 +304,20 @@ class InputChain:
             else:
                 d = 0.0
         return d
+
+
+def rotor_sag(d: list[float], sag_per_unit: float, z_col: float, g_m_s2: float) -> list[float]:
+    """Effective inputs when rotor speed sags with collective above trim (governor droop under load).
+
+    Speed ratio ``k = 1 - sag x`` with ``x`` the collective beyond trim in the thrust-increasing
+    direction (zero below trim: the governor holds an unloaded rotor); thrust and control power
+    scale with ``k^2``. The thrust loss enters as an equivalent collective:
+    ``g - Z_col d_eff = k^2 (g - Z_col d)``.
+    """
+    load = max(-math.copysign(1.0, z_col) * d[2], 0.0)
+    k2 = (1.0 - sag_per_unit * load) ** 2
+    col = k2 * d[2] + g_m_s2 * (1.0 - k2) / z_col
+    return [k2 * d[0], k2 * d[1], col, k2 * d[3]]
 
 
 class GustModel:

@@ -31,7 +31,15 @@ import numpy as np
 from hil_replay.sim.aircraft import INPUTS, PARAM_NAMES, Aircraft, resolve_aircraft
 from hil_replay.sim.card import Card, make_card
 from hil_replay.sim.dynamics import G_M_S2, ground_effect_excess, make_specific_force, make_stepper
-from hil_replay.sim.effects import Effect, GustModel, InputChain, aliased_hz, resolve_effects
+from hil_replay.sim.effects import (
+    CHAIN_EFFECTS,
+    Effect,
+    GustModel,
+    InputChain,
+    aliased_hz,
+    resolve_effects,
+    rotor_sag,
+)
 from hil_replay.sim.pilot import Pilot, PilotConfig, design_gains
 from hil_replay.sim.telemetry import FIELD_ORIGIN, MESSAGE_NAMES, Measurement, TelemetryFrame, heartbeat
 
@@ -83,7 +91,7 @@ class SimulatedSession:
                  aircraft: Aircraft | str | os.PathLike[str] | None = None, pause_s: float = 10.0, *,
                  flight_duration_s: float | None = None, pre_arm_s: float = 3.0, post_s: float = 2.0,
                  noise: NoiseConfig | None = None, pilot: PilotConfig | None = None,
-                 excitation_scale: float = 1.0) -> None:
+                 excitation_scale: float = 1.0, sweeps: bool = True) -> None:
         if int(flights) < 1:
             raise ValueError(f"flights: {flights} must be >= 1")
         if not pause_s >= 0 or not pre_arm_s >= 0 or not post_s >= 0:
@@ -92,6 +100,7 @@ class SimulatedSession:
             raise ValueError(f"excitation_scale: {excitation_scale} not in (0, 4]")
         self.pilot_config = pilot or PilotConfig()
         self.excitation_scale = float(excitation_scale)
+        self.sweeps = bool(sweeps)
         self.seed = int(seed)
         self.n_flights = int(flights)
         base = resolve_aircraft(aircraft)  # type: ignore[arg-type]
@@ -111,6 +120,7 @@ class SimulatedSession:
         for _ in range(self.n_flights):
             # later flights take off facing about where the last one landed
             card = make_card(self.aircraft, plan, duration_s=flight_duration_s, excitation_scale=self.excitation_scale,
+                             sweeps=self.sweeps,
                              heading_rad=None if heading is None else heading + float(plan.uniform(-0.15, 0.15)))
             heading = card.heading_rad
             self.cards.append(card)
@@ -159,6 +169,7 @@ class SimulatedSession:
             "noise": asdict(self.noise),
             "pilot": asdict(self.pilot_config),
             "excitation_scale": self.excitation_scale,
+            "sweeps": self.sweeps,
             "field_origin": {"lat_deg": FIELD_ORIGIN[0], "lon_deg": FIELD_ORIGIN[1], "alt_m": FIELD_ORIGIN[2]},
         }
 
@@ -187,14 +198,23 @@ class SimulatedSession:
         for i, ch in enumerate(INPUTS):
             kw: dict[str, float] = {}
             for e in self.effects:
-                if e.input == ch:
+                if e.input == ch and e.name in CHAIN_EFFECTS:
                     kw.update({k: float(v) for k, v in e.params.items()})
             if kw:
                 chains[i] = InputChain(h, **kw)
         bias = [0.0, 0.0, 0.0]
+        gscale = [1.0, 1.0, 1.0]
+        asym = [0.0, 0.0, 0.0, 0.0]
         for e in self.effects:
             if e.name == "gyro_bias":
                 bias["pqr".index(str(e.output))] += float(e.params["bias_rad_s"])
+            elif e.name == "gyro_scale":
+                gscale["pqr".index(str(e.output))] = 1.0 + float(e.params["scale_error"])
+            elif e.name == "input_asymmetry":
+                asym[INPUTS.index(str(e.input))] = float(e.params["asymmetry"])
+        vscale = 1.0 + float(eff["velocity_scale"].params["scale_error"]) if "velocity_scale" in eff else 1.0
+        sag = float(eff["rotor_sag"].params["sag_per_unit"]) if "rotor_sag" in eff else 0.0
+        post = _PostChain(asym, sag, float(ac.parameters["Z_col"])) if sag or any(asym) else None
         vib_amp, vib_w = 0.0, 0.0
         vib_phase = np.random.default_rng(self._seeds[4]).uniform(0, 2 * math.pi, 6).tolist()
         if "rotor_vibration" in eff:
@@ -286,7 +306,7 @@ class SimulatedSession:
             else:
                 nv = (vn, ve, vd, x[12], x[13], x[14])
             spinning = armed and (seg_kind != "ground" or throttle > 1500)
-            mp, mq, mr = p + bias[0], q + bias[1], r + bias[2]
+            mp, mq, mr = gscale[0] * p + bias[0], gscale[1] * q + bias[1], gscale[2] * r + bias[2]
             mroll, mpitch = ph, th
             if vib_amp and spinning:
                 s1 = [math.sin(vib_w * t + vib_phase[i]) for i in range(3)]
@@ -301,9 +321,9 @@ class SimulatedSession:
             mroll += nz.attitude_rad * z[3]
             mpitch += nz.attitude_rad * z[4]
             myaw = _wrap(ps + nz.yaw_rad * z[5])
-            mvn = nv[0] + nz.vel_m_s * z[6]
-            mve = nv[1] + nz.vel_m_s * z[7]
-            mvd = nv[2] + nz.vel_down_m_s * z[8]
+            mvn = vscale * nv[0] + nz.vel_m_s * z[6]
+            mve = vscale * nv[1] + nz.vel_m_s * z[7]
+            mvd = vscale * nv[2] + nz.vel_down_m_s * z[8]
             mn = nv[3] + nz.pos_m * z[9]
             me = nv[4] + nz.pos_m * z[10]
             md = nv[5] + nz.alt_m * z[11]
@@ -349,6 +369,8 @@ class SimulatedSession:
             else:
                 avail = avail_all
             da0 = [dcmd[i] if chains[i] is None else chains[i](dcmd[i]) for i in range(4)]  # type: ignore[misc]
+            if post is not None:
+                da0 = post(da0)
             yield TelemetryFrame(meas, fi, avail, tuple(x), tuple(dcmd), tuple(da0), tuple(wind), fast_before)
 
             # ---------------- integrate to t + dt ----------------
@@ -359,6 +381,8 @@ class SimulatedSession:
                     da = da0
                 else:
                     da = [dcmd[i] if chains[i] is None else chains[i](dcmd[i]) for i in range(4)]  # type: ignore[misc]
+                    if post is not None:
+                        da = post(da)
                 moves = True
                 if landed:
                     thrust = g - Z_col * da[2] - Z_ped * da[3]
@@ -392,6 +416,20 @@ class SimulatedSession:
             fast_before = tuple(fast)
             if gust is not None:
                 gust.step()
+
+
+class _PostChain:
+    """Input nonlinearities outside the catalogue, after the input chains: per-channel asymmetric
+    gain (``1 + a`` above trim, ``1 - a`` below) and rotor-speed sag with collective."""
+
+    def __init__(self, asymmetry: list[float], sag_per_unit: float, z_col: float) -> None:
+        self.asym = asymmetry
+        self.sag = sag_per_unit
+        self.z_col = z_col
+
+    def __call__(self, d: list[float]) -> list[float]:
+        d = [x * (1.0 + a if x > 0 else 1.0 - a) for x, a in zip(d, self.asym, strict=True)]
+        return rotor_sag(d, self.sag, self.z_col, G_M_S2) if self.sag else d
 
 
 class _Accel:
@@ -437,7 +475,7 @@ def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
                effects: Sequence[Effect | str] = (), aircraft: Aircraft | str | os.PathLike[str] | None = None,
                flight_duration_s: float | None = None, rates_hz: Mapping[str, float] | None = None,
                pause_s: float = 10.0, packet_loss: float = 0.002, pilot: PilotConfig | None = None,
-               excitation_scale: float = 1.0) -> dict[str, Any]:
+               excitation_scale: float = 1.0, sweeps: bool = True) -> dict[str, Any]:
     """Simulate a session and write ``path`` (.tlog) and ``path.with_suffix('.truth.json')``.
 
     MAVLink 2 frames from sysid 1 compid 1 with a proper sequence number; host timestamps are
@@ -461,7 +499,8 @@ def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
         raise ValueError(f"packet_loss: {packet_loss} not in [0, 1)")
     period = {n: max(1, int(round(FRAME_RATE_HZ / r))) for n, r in rates.items() if r > 0}
     sess = SimulatedSession(seed=seed, flights=flights, effects=effects, aircraft=aircraft, pause_s=pause_s,
-                            flight_duration_s=flight_duration_s, pilot=pilot, excitation_scale=excitation_scale)
+                            flight_duration_s=flight_duration_s, pilot=pilot, excitation_scale=excitation_scale,
+                            sweeps=sweeps)
     truth = sess.truth()
     truth["tlog_rates_hz"] = {n: rates[n] for n in MESSAGE_NAMES}
     truth["packet_loss"] = packet_loss

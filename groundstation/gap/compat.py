@@ -1,0 +1,211 @@
+"""Data compatibility (flight-path reconstruction) before blame: are the sensors consistent with each other?
+
+Kinematic consistency checks that need no model of the aircraft, only rigid-body kinematics
+(Klein & Morelli, *Aircraft System Identification*, ch. 10; SIDPAC's compatibility analysis):
+
+* roll and pitch rate gyros against the Euler angles (``phi_dot = p + tan(theta)(q sin(phi) +
+  r cos(phi))``, ``theta_dot = q cos(phi) - r sin(phi)``): per gyro a bias, a scale factor and a time
+  shift between the rate and the attitude samples;
+* the vertical velocity against the height (``h_dot = -v_down``, ``v_down`` from the body velocities
+  and the attitude): a velocity scale factor, a bias and a time shift between height and velocity.
+
+The kinematics are integrated rather than the angles differentiated (differentiation amplifies the
+angle noise and biases the regression): over each window of ``window_s``, the measured angle
+minus the integral of its measured-rate prediction is regressed on the window's own constant,
+elapsed time (bias), the integral of the measured rate (scale factor) and the rate itself (time
+shift). Standard errors are cluster-robust over windows (the integrated gyro noise is a random
+walk inside a window; windows are nearly independent), so every statistic is referred to the noise
+the data themselves show. The yaw gyro and horizontal velocities need heading and horizontal
+position, which the prepared data do not carry: they are reported as not testable.
+
+A scale factor is a *finding* when it is significant (family-wise ``alpha`` over every estimate
+made) and matters: the error it makes on its channel (scale x rms of the channel) is above the
+channel's measured white-noise level. Pure numpy/scipy; no IO.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+from groundstation.gap.evaluate import SegmentArrays
+
+U, V, W, P, Q, R, THETA, PHI = range(8)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One compatibility parameter: value, cluster-robust standard error, two-sided p-value."""
+
+    sensor: str  # "p", "q", "w"
+    parameter: str  # "scale", "bias", "shift_s"
+    value: float
+    se: float
+    p_value: float
+
+
+@dataclass(frozen=True)
+class Finding:
+    """A sensor error the kinematics show, large enough to matter."""
+
+    kind: str  # "gyro_scale" | "velocity_scale"
+    channel: str  # "p", "q", "w"
+    estimate: float  # scale error (measured = (1 + e) x true)
+    se: float
+    p_value: float
+    effect_to_noise: float  # |e| x rms(channel) / measured white noise of the channel
+    evidence: str
+
+
+@dataclass(frozen=True)
+class Compatibility:
+    """Every estimate made, the findings among them, and what could not be tested (and why)."""
+
+    estimates: tuple[Estimate, ...]
+    findings: tuple[Finding, ...]
+    untestable: dict[str, str]
+
+    def scale_corrections(self) -> dict[int, float]:
+        """Output column -> factor that undoes each found scale error (velocity: u, v, w together)."""
+        out: dict[int, float] = {}
+        for f in self.findings:
+            fac = 1.0 / (1.0 + f.estimate)
+            cols = (U, V, W) if f.kind == "velocity_scale" else ("pq".index(f.channel) + P,)
+            for c in cols:
+                out[c] = fac
+        return out
+
+
+def _cumint(x: np.ndarray, dt_s: float) -> np.ndarray:
+    """Trapezoidal running integral from the first sample, same length."""
+    return np.concatenate([[0.0], np.cumsum(0.5 * (x[1:] + x[:-1]) * dt_s)])
+
+
+def _windows(n: int, length: int) -> list[slice]:
+    k = n // length
+    return [slice(i * length, (i + 1) * length) for i in range(k)]
+
+
+def _regress(rows: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, int]:
+    """OLS with one intercept per window; cluster-robust covariance over windows.
+
+    ``rows``: per window (y (n,), X (n, k)). Returns (beta (k,), cov (k, k), number of windows).
+    """
+    ys, Xs = [], []
+    for y, X in rows:
+        ys.append(y - y.mean())
+        Xs.append(X - X.mean(axis=0))
+    Xa, ya = np.concatenate(Xs), np.concatenate(ys)
+    XtX = Xa.T @ Xa
+    inv = np.linalg.pinv(XtX)
+    beta = inv @ Xa.T @ ya
+    meat = np.zeros_like(XtX)
+    for y, X in zip(ys, Xs, strict=True):
+        g = X.T @ (y - X @ beta)
+        meat += np.outer(g, g)
+    G = len(rows)
+    k = Xa.shape[1]
+    # small-sample correction of the cluster-robust (CR1) estimator
+    corr = G / max(G - 1, 1) * (ya.size - 1) / max(ya.size - k - G, 1)
+    return beta, corr * inv @ meat @ inv, G
+
+
+def _estimates(sensor: str, names: tuple[str, ...], beta: np.ndarray, cov: np.ndarray, G: int) -> list[Estimate]:
+    out = []
+    for i, name in enumerate(names):
+        se = float(np.sqrt(max(cov[i, i], 0.0)))
+        t = beta[i] / se if se > 0 else 0.0
+        out.append(Estimate(sensor, name, float(beta[i]), se, float(2 * stats.t.sf(abs(t), max(G - 1, 1)))))
+    return out
+
+
+def _gyro_rows(segs: list[SegmentArrays], trims: np.ndarray, dt_s: float, L: int, axis: str
+               ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per window: angle minus integrated kinematic rate, and the regressors (time, int rate, rate)."""
+    rows = []
+    for s in segs:
+        y = s.outputs_raw + trims
+        p, q, r, th, ph = y[:, P], y[:, Q], y[:, R], y[:, THETA], y[:, PHI]
+        if axis == "p":
+            rate, ang = p, ph
+            f = p + np.tan(th) * (q * np.sin(ph) + r * np.cos(ph))
+        else:
+            rate, ang = q, th
+            f = q * np.cos(ph) - r * np.sin(ph)
+        for w in _windows(len(f), L):
+            t = np.arange(L) * dt_s
+            fi = _cumint(f[w], dt_s)
+            X = np.column_stack([-t, -_cumint(rate[w], dt_s), -f[w]])  # bias, scale, shift
+            rows.append((ang[w] - fi, X))
+    return rows
+
+
+def _vertical_rows(segs: list[SegmentArrays], trims: np.ndarray, dt_s: float, L: int
+                   ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per window: height plus integrated down velocity, and the regressors (time, int v_down, v_down)."""
+    rows = []
+    for s in segs:
+        if not np.isfinite(s.alt_m).all():
+            continue
+        y = s.outputs_raw + trims
+        u, v, w, th, ph = y[:, U], y[:, V], y[:, W], y[:, THETA], y[:, PHI]
+        vd = -np.sin(th) * u + np.sin(ph) * np.cos(th) * v + np.cos(ph) * np.cos(th) * w
+        for sl in _windows(len(vd), L):
+            t = np.arange(L) * dt_s
+            ivd = _cumint(vd[sl], dt_s)
+            # h_m = -int(v_d)/(1+e) - b t + tau v_d  ->  h_m + int(v_d) = e int(v_d) - b t + tau v_d
+            X = np.column_stack([-t, ivd, vd[sl]])
+            rows.append((s.alt_m[sl] + ivd, X))
+    return rows
+
+
+def check(segs: list[SegmentArrays], available: np.ndarray, dt_s: float, sigma_raw: np.ndarray,
+          trims: np.ndarray | None = None, *, window_s: float = 4.0, alpha: float = 0.01,
+          min_windows: int = 6) -> Compatibility:
+    """Kinematic consistency of the gyros and the vertical velocity (see the module docstring).
+
+    ``segs``: in-air segments (raw outputs, trim removed, plus ``trims`` (8,) to make them absolute);
+    ``sigma_raw`` (8,) the measured white-noise level of each output (practical relevance).
+    """
+    tr = np.zeros(8) if trims is None else np.asarray(trims, float)
+    L = int(round(window_s / dt_s))
+    untestable = {"r": "yaw-rate scale needs the heading, which the prepared data do not carry",
+                  "u,v": "horizontal velocity scale needs the horizontal position, which the prepared data do not carry"}
+    fits: list[tuple[str, list[tuple[np.ndarray, np.ndarray]], int]] = []
+    if all(available[c] for c in (P, Q, R, THETA, PHI)):
+        fits += [("p", _gyro_rows(segs, tr, dt_s, L, "p"), P), ("q", _gyro_rows(segs, tr, dt_s, L, "q"), Q)]
+    else:
+        untestable["p,q"] = "needs p, q, r, theta and phi all measured"
+    if all(available[c] for c in (U, V, W, THETA, PHI)) and any(np.isfinite(s.alt_m).all() for s in segs):
+        fits.append(("w", _vertical_rows(segs, tr, dt_s, L), W))
+    else:
+        untestable["w"] = "needs u, v, w, the attitude and the height all measured"
+    ests: list[Estimate] = []
+    scales: list[tuple[str, Estimate, int]] = []
+    for sensor, rows, col in fits:
+        if len(rows) < min_windows:
+            untestable[sensor] = f"fewer than {min_windows} windows of {window_s:g} s"
+            continue
+        beta, cov, G = _regress(rows)
+        e = _estimates(sensor, ("bias", "scale", "shift_s"), beta, cov, G)
+        # the regression measures e' in true = measured (1 - e'); the scale error is e = e' / (1 - e')
+        s = e[1]
+        k = s.value / (1.0 - s.value)
+        e[1] = Estimate(sensor, "scale", k, s.se / (1.0 - s.value) ** 2, s.p_value)
+        ests += e
+        scales.append((sensor, e[1], col))
+    crit = alpha / max(len(ests), 1)
+    findings = []
+    for sensor, e, col in scales:
+        x = np.concatenate([s.outputs_raw[:, col] for s in segs])
+        rms = float(np.sqrt(np.mean((x - x.mean()) ** 2)))
+        etn = abs(e.value) * rms / max(float(sigma_raw[col]), 1e-12)
+        if e.p_value < crit and etn > 1.0:
+            kind = "velocity_scale" if sensor == "w" else "gyro_scale"
+            what = "vertical velocity against the height" if sensor == "w" else f"{sensor} gyro against the Euler angles"
+            findings.append(Finding(kind, sensor, e.value, e.se, e.p_value, etn,
+                                    f"{what}: scale error {100 * e.value:+.1f} % +- {100 * e.se:.1f} % "
+                                    f"(p={e.p_value:.2g}); the error it makes is {etn:.1f}x the channel's noise"))
+    return Compatibility(tuple(ests), tuple(findings), untestable)
