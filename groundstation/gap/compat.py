@@ -189,13 +189,12 @@ def check(segs: list[SegmentArrays], available: np.ndarray, dt_s: float, sigma_r
             untestable[sensor] = f"fewer than {min_windows} windows of {window_s:g} s"
             continue
         beta, cov, G = _regress(rows)
-        e = _estimates(sensor, ("bias", "scale", "shift_s"), beta, cov, G)
+        est3 = _estimates(sensor, ("bias", "scale", "shift_s"), beta, cov, G)
         # the regression measures e' in true = measured (1 - e'); the scale error is e = e' / (1 - e')
-        s = e[1]
-        k = s.value / (1.0 - s.value)
-        e[1] = Estimate(sensor, "scale", k, s.se / (1.0 - s.value) ** 2, s.p_value)
-        ests += e
-        scales.append((sensor, e[1], col))
+        s = est3[1]
+        est3[1] = Estimate(sensor, "scale", s.value / (1.0 - s.value), s.se / (1.0 - s.value) ** 2, s.p_value)
+        ests += est3
+        scales.append((sensor, est3[1], col))
     crit = alpha / max(len(ests), 1)
     findings = []
     for sensor, e, col in scales:
