@@ -9,7 +9,7 @@ once and every command reads the same file (``--config FILE.toml``)::
     [live]                                     dsp.live.LiveConfig: grid, smoothing, windows
     [identify]                                 sysid.identify.IdentifyConfig
     [bounds]                                   search bounds, NAME = [low, high] (paper parameter names)
-    [diagnose]                                 gap.diagnose.DiagnoseConfig
+    [diagnose]                                 gap.config.DiagnoseConfig
     [freq]                                     freq.spectra.FreqConfig (``validate --freq``)
     [identification]                           what the service does between flights (and the
                                                defaults of ``groundstation identify``'s options)
@@ -41,7 +41,7 @@ from groundstation.dsp.live import LiveConfig
 from groundstation.dsp.prepare import PrepConfig
 from groundstation.errors import GroundstationError
 from groundstation.freq.spectra import FreqConfig
-from groundstation.gap.diagnose import DiagnoseConfig
+from groundstation.gap.config import DiagnoseConfig
 from groundstation.sysid.identify import IdentifyConfig
 from groundstation.sysid.model import PARAM_NAMES
 

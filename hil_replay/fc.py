@@ -601,7 +601,7 @@ class SimulatedFlightController:
 
 def _make_session(seed: int, flights: int, effects: Sequence[Any], aircraft: Any,
                   sim_options: Mapping[str, Any] | None = None) -> FrameSource:
-    from hil_replay.sim import SimulatedSession  # the SIM engineer's package
+    from hil_replay.sim import SimulatedSession
 
     # SimulatedSession takes Effect objects or "name:key=value" strings itself
     return SimulatedSession(seed=seed, flights=flights, effects=tuple(effects), aircraft=aircraft,

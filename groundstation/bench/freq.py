@@ -11,7 +11,7 @@ Frequency-domain figures on simulated flights with known truth:
 4. frequency-domain identification (CABC + refinement): the 8 key parameters' errors against truth.
 
 Flights: ``linear`` = the eq.-8 model under a state-feedback pilot (:mod:`groundstation.sysid.synthetic`;
-the delay is a shift of the logged input), ``sim`` = the team's nonlinear simulator
+the delay is a shift of the logged input), ``sim`` = the nonlinear simulator (hil_replay)
 (``hil_replay.sim.write_tlog``, read back through the ordinary .tlog reader; the delay is its
 ``input_delay`` effect).
 """

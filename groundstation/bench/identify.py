@@ -10,7 +10,7 @@ The paper's comparison and the identification targets on simulated flights with 
    refinement, so the optimisers are compared and not the local polish): a Table-6-style match
    table, final costs, wall time, evaluations, and a Figure-11-style convergence PNG.
 
-Flights come from the SIM engineer's nonlinear simulator (``hil_replay.sim.write_tlog``, read back
+Flights come from the nonlinear simulator (``hil_replay.sim.write_tlog``, read back
 through the ordinary .tlog reader) when available, else from the linear model itself
 (``groundstation.sysid.synthetic``; that only checks the estimator against its own model).
 """

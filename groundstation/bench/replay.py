@@ -1,6 +1,6 @@
 """``groundstation bench replay``: replay throughput through a pty into the recorder.
 
-Makes a 50 Hz full-telemetry flight (the SIM engineer's ``hil_replay.sim.write_tlog`` when present,
+Makes a 50 Hz full-telemetry flight (``hil_replay.sim.write_tlog`` when present,
 else a synthetic one encoded with pymavlink: ATTITUDE, SERVO_OUTPUT_RAW, RAW_IMU,
 LOCAL_POSITION_NED, GLOBAL_POSITION_INT at 50 Hz, GPS_RAW_INT 5 Hz, SYS_STATUS and
 EXTENDED_SYS_STATE 2 Hz, HEARTBEAT 1 Hz), replays it with :class:`hil_replay.player.TlogPlayer`
@@ -10,7 +10,7 @@ median of ``--runs`` runs. ``--fc`` measures the simulated flight controller ins
 MAVLink protocol at maximum speed into the recorder, FC seconds per wall second).
 
 The recorder is ``groundstation record --link serial://PORT --out DIR`` in a subprocess (the
-LINK engineer's command, the real path) when it exists; otherwise an in-process pyserial reader
+record command, the real path) when it exists; otherwise an in-process pyserial reader
 that frames packets with pymavlink and writes them with :class:`firmware_interface.tlog.TlogWriter`
 (``--recorder direct`` forces it). Packets lost = source packets missing from the recorded .tlog.
 The real-time factor is log seconds over wall seconds from the first byte written until the

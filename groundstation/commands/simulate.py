@@ -4,7 +4,7 @@
 ``FILE.truth.json`` (via :func:`hil_replay.sim.write_tlog`), then prints what it wrote; ``--out
 FILE.bin`` (or ``--bin``) writes the autopilot's onboard dataflash log instead
 (:func:`hil_replay.dataflash.write_bin`). ``--serve``
-starts the REPLAY engineer's simulated flight controller (``hil_replay.fc.serve_simulated_fc``) on a
+starts the simulated flight controller (``hil_replay.fc.serve_simulated_fc``) on a
 virtual serial port, prints the port path (one line, flushed) and serves until Ctrl-C.
 Bad input (unknown effect, key or value out of range, malformed aircraft file) raises ``ValueError``
 naming it; the CLI prints one line and exits 2.

@@ -20,7 +20,7 @@ a typed result:
    residual is well above its noise floor and most of the excess sits in flagged windows; else
    ``none``;
 
-then the DESIGN.md ``heli-gap-report/1`` dict (:mod:`groundstation.gap.report`). Every threshold
+then the ``heli-gap-report/1`` dict (docs/gap-report.md) (:mod:`groundstation.gap.report`). Every threshold
 is a documented field of :class:`DiagnoseConfig`; every random draw derives from ``seed``.
 
 What it leaves to others: reading logs and preparing data (``dsp.prepare``), identification

@@ -1,4 +1,4 @@
-"""The hypothesis library: one augmented model per effect of the DESIGN.md catalogue.
+"""The hypothesis library: one augmented model per effect of the catalogue (docs/gap-report.md).
 
 Each ``scan_*`` function builds the variants of one effect (the base model plus the effect, for
 every candidate channel and every value of the effect's nonlinear parameter on a grid referred to

@@ -1,4 +1,4 @@
-"""The ``heli-gap-report/1`` document (DESIGN.md) and the rows of its terminal summary.
+"""The ``heli-gap-report/1`` document (docs/gap-report.md) and the rows of its terminal summary.
 
 :func:`build_report` assembles plain JSON types only (floats rounded, no numpy); the command
 renders :func:`summary_rows` with rich. Pure.

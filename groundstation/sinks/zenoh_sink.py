@@ -1,4 +1,4 @@
-"""zenoh publisher for the live service (eclipse-zenoh 1.x), per the DESIGN.md key space.
+"""zenoh publisher for the live service (eclipse-zenoh 1.x), per the key space of docs/zenoh.md.
 
 Keys (JSON payloads, encoding ``application/json``):
 

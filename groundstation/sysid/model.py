@@ -5,7 +5,7 @@ Array conventions
 * A parameter vector ``theta`` has shape ``(..., N_PARAMS)`` in the order of :data:`PARAM_NAMES`;
   leading dimensions are candidates (a whole colony at once).
 * :func:`build_matrices` returns ``A_hor (..., 8, 8)``, ``B_hor (..., 8, 2)``, ``A_ver (..., 3, 3)``,
-  ``B_ver (..., 3, 2)``, exactly as printed in the paper (see ``shared/paper/NOTES.md``):
+  ``B_ver (..., 3, 2)``, exactly as printed in the paper (see docs/model-file.md):
   entry ``-1/tau_s`` is ``-inv_tau_s``; constraints ``N_fb = -N_ped`` and ``k_fb = -2 N_r`` are applied
   here, so 31 parameters are free.
 * States: horizontal ``u v theta phi q p a_s b_s`` driven by ``lat lon``; vertical ``w r r_fb`` driven
@@ -253,7 +253,7 @@ class HoverModel:
         return build_matrices(self.theta)
 
     def to_json(self) -> dict[str, Any]:
-        """The ``heli-hover-model/1`` document of DESIGN.md."""
+        """The ``heli-hover-model/1`` document (docs/model-file.md)."""
         Ah, Bh, Av, Bv = self.matrices()
         return {
             "schema": "heli-hover-model/1",

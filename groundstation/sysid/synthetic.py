@@ -4,7 +4,7 @@ A stabilising LQR pilot (on the true state, so no noise feedback) plus a flight-
 excites one input after another (frequency sweeps and doublets), simulated exactly (ZOH) and
 measured with white noise. Returns arrays in the conventions of :mod:`groundstation.dsp.prepare`:
 ``inputs (n, 4)``, ``outputs (n, 8)``. This is *our* model, so it only checks the estimator
-against itself; the independent truth is the SIM engineer's nonlinear simulator (``hil_replay.sim``).
+against itself; the independent truth is the nonlinear simulator (``hil_replay.sim``).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 :class:`Aircraft` is a frozen dataclass; :func:`load_aircraft` reads and validates a TOML file (any
 problem raises ``ValueError`` naming the file, the key and what is allowed) and
 :func:`resolve_aircraft` turns ``None`` / a name / a path / an ``Aircraft`` into an ``Aircraft``.
-The parameter names are the paper's (see ``shared/paper/NOTES.md``) and match
+The parameter names are the paper's (listed in docs/model-file.md) and match
 ``groundstation.sysid.model.PARAM_NAMES``; this module does not import that package (the simulator
 is the independent truth) and keeps its own copy of the list.
 

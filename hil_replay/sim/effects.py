@@ -1,4 +1,4 @@
-"""Unmodelled effects the simulator can inject (the DESIGN.md catalogue), parsing and sampling.
+"""Unmodelled effects the simulator can inject (the catalogue of docs/gap-report.md), parsing and sampling.
 
 An :class:`Effect` is a frozen description ``(name, input, output, params)``; the session turns the
 list into runtime pieces (:class:`InputChain` for the input-side effects, :class:`GustModel` for the
@@ -91,9 +91,9 @@ SPECS: Mapping[str, _EffectSpec] = MappingProxyType({
     "rotor_sag": _EffectSpec(None, {"sag_per_unit": _ParamSpec(0.02, 2.0, 0.2, 0.45, 0.3)}),
     "input_asymmetry": _EffectSpec("input", {"asymmetry": _ParamSpec(0.02, 0.8, 0.25, 0.45, 0.35)}, "lon"),
 })
-#: effects outside the DESIGN.md catalogue (the diagnosis has no name for them)
+#: effects outside the catalogue (the diagnosis has no name for them)
 OUT_OF_CATALOGUE: tuple[str, ...] = ("gyro_scale", "velocity_scale", "rotor_sag", "input_asymmetry")
-#: the DESIGN.md catalogue
+#: the catalogue (docs/gap-report.md)
 EFFECT_NAMES: tuple[str, ...] = tuple(n for n in SPECS if n not in OUT_OF_CATALOGUE)
 #: input-side effects the :class:`InputChain` applies (the others act after it, in the session)
 CHAIN_EFFECTS: tuple[str, ...] = ("input_delay", "rate_limit", "deadband")

@@ -1,4 +1,4 @@
-"""validate --freq on a simulated .tlog (the team simulator, known truth): J table, JSON, Bode PNGs,
+"""validate --freq on a simulated .tlog (the hil_replay simulator, known truth): J table, JSON, Bode PNGs,
 a Rerun recording read back; bad input."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Fixtures for the gap tests: a small linear eq.-8 flight generator with injectable effects.
 
-This is a test-only stand-in for the team simulator (which the CLI test uses): the exact linear
+This is a test-only stand-in for the hil_replay simulator (which the CLI test uses): the exact linear
 model of the paper under a state-feedback pilot with channel-by-channel chirps, so that the
 diagnosis statistics can be checked against effects of known size without model-structure error.
 """

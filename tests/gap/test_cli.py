@@ -1,4 +1,4 @@
-"""The diagnose command end to end on a simulated .tlog (team simulator, reader, prepare)."""
+"""The diagnose command end to end on a simulated .tlog (hil_replay simulator, reader, prepare)."""
 
 import json
 

@@ -1,4 +1,4 @@
-"""The simulated FC protocol against the LINK engineer's sans-IO ground-station session.
+"""The simulated FC protocol against the ground station's sans-IO MAVLink session.
 
 No IO: both state machines are stepped on one 50 Hz clock (host time = FC time + offset), bytes
 passed straight across. Checks that the ground station's stream setup and the FC agree, including

@@ -14,7 +14,7 @@ VER = ("w", "r", "r_fb")
 
 
 def paper_eq8(P: dict[str, float]) -> tuple[np.ndarray, ...]:
-    """Eq. 8 as printed in shared/paper/NOTES.md (written here again on purpose)."""
+    """Eq. 8 as printed in the paper (docs/model-file.md; written here again on purpose)."""
     A_hor = np.array([
         [P["X_u"], 0, -G, 0, 0, 0, -G, 0],
         [0, P["Y_v"], 0, G, 0, 0, 0, G],
