@@ -523,6 +523,14 @@ class Service:
             self.zenoh.publish_model(flight, model)
             if gap is not None:
                 self.zenoh.publish_gap(flight, gap)
+            if res.freq is not None:
+                self.zenoh.publish_freq(flight, res.freq)
+        if res.freq is not None:
+            ja = res.freq.get("J_avg")
+            self.log(f"flight {flight}: frequency check {res.freq_path} J_avg "
+                     f"{'-' if ja is None else f'{ja:.1f}'} over {len(res.freq.get('pairs', []))} pairs")
+        if res.freq_error:
+            self._warn(res.freq_error)
         if gap is not None:
             self.log(f"flight {flight}: gap report {res.gap_path} verdict {gap.get('verdict')}")
         if res.gap_error:

@@ -4,7 +4,9 @@
 ``ProcessPoolExecutor(max_workers=1, mp_context=spawn)``: it reads and prepares the flight's .tlog
 file(s) and identifies the hover model exactly as ``groundstation identify --config`` does
 (:mod:`groundstation.pipeline`, with the service's configuration), validates it, writes
-``model-flightNN.json`` next to the recording, diagnoses the gap (``gap-flightNN.json``), draws a model-vs-measured PNG, and returns a :class:`JobResult` for the service
+``model-flightNN.json`` next to the recording, checks the model in the frequency domain
+(``freq-flightNN.json``: Tischler J per input-output pair, published on ``heli/{vehicle}/flight/{n}/freq``),
+diagnoses the gap (``gap-flightNN.json``), draws a model-vs-measured PNG, and returns a :class:`JobResult` for the service
 to publish. Errors come back as ``JobResult.error`` (one line) so a bad flight never stops the service.
 
 The numerical work is the other packages'; this module only chains them and writes files.
@@ -66,6 +68,9 @@ class JobResult:
     gap_path: str | None = None
     gap_error: str | None = None                    # diagnosis failed (the model is still good)
     gap_pictures: Any = None                        # groundstation.gap.pictures.GapPictures, for Rerun
+    freq: dict[str, Any] | None = None              # heli-freq-verification/1: Tischler J per pair
+    freq_path: str | None = None
+    freq_error: str | None = None                   # frequency check failed (the model is still good)
     identify_s: float | None = None
     seconds: float = 0.0
 
@@ -148,6 +153,7 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
         _plot(overlay, png_path, f"{job.vehicle} flight {job.flight}: model vs measured")
         png = (str(png_path),)
     identify_s = time.perf_counter() - t0
+    freq, freq_path, freq_error = _freq_check(job, model)
     gap, gap_path, gap_error, pictures = (_diagnose(job, model, prepared) if cfg.identification.diagnose
                                           else (None, None, None, None))
     return JobResult(
@@ -156,7 +162,29 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
         # numpy arrays pickle fast back to the service (lists would cost the live loop a spike)
         overlay=Overlay(*(np.asarray(overlay[k], dtype=float) for k in ("t_fc_s", "model", "measured"))),
         gap=gap, gap_path=gap_path, gap_error=gap_error, gap_pictures=pictures, identify_s=identify_s,
+        freq=freq, freq_path=freq_path, freq_error=freq_error,
         seconds=time.perf_counter() - t0)
+
+
+def _freq_check(job: IdentifyJob, model: Any) -> tuple[Any, Any, Any]:
+    """(J table document, its file, None) of the model's frequency-domain check on the flight at the
+    log's native rate, or (None, None, one-line error): the model stands on its own."""
+    from groundstation.commands.freq_support import prepare_native
+    from groundstation.freq.model_response import delays_from_augmentations
+    from groundstation.freq.spectra import estimate_responses
+    from groundstation.freq.verify import verify
+    from groundstation.pipeline import load_logs
+
+    try:
+        prepared = prepare_native(load_logs(job.tlogs), job.config.prepare)
+        v = verify(model.theta, estimate_responses(prepared, job.config.freq),
+                   delays_from_augmentations(model.augmentations))
+    except Exception as exc:
+        return None, None, f"flight {job.flight}: frequency check: {type(exc).__name__}: {exc}".splitlines()[0]
+    doc = {**v.to_json(), "vehicle": job.vehicle, "flight": job.flight}
+    path = Path(job.out_dir) / f"freq-flight{job.flight:02d}.json"
+    path.write_text(json.dumps(doc, indent=1, allow_nan=False))
+    return doc, str(path), None
 
 
 def _diagnose(job: IdentifyJob, model: Any, prepared: Any) -> tuple[Any, Any, Any, Any]:

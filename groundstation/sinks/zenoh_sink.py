@@ -6,6 +6,8 @@ Keys (JSON payloads, encoding ``application/json``):
 * ``heli/{vehicle}/telemetry/window``       smoothed windows, a few Hz (DROP)
 * ``heli/{vehicle}/flight/{n}/model``       once per identified flight (BLOCK, reliable)
 * ``heli/{vehicle}/flight/{n}/gap``         once per diagnosed flight (BLOCK, reliable)
+* ``heli/{vehicle}/flight/{n}/freq``        the model's frequency-domain check (Tischler J per
+  input-output pair), once per identified flight (BLOCK, reliable)
 * queryables ``heli/{vehicle}/model/latest`` and ``heli/{vehicle}/gap/latest`` (late subscribers)
 * liveliness token ``heli/{vehicle}/alive``
 
@@ -163,7 +165,7 @@ class ZenohSink:
         self._windows_waiting = 0
         self._lock = threading.Lock()
         self.latest: dict[str, dict | None] = {"model": None, "gap": None}
-        self.sent: dict[str, int] = {"status": 0, "window": 0, "model": 0, "gap": 0}
+        self.sent: dict[str, int] = {"status": 0, "window": 0, "model": 0, "gap": 0, "freq": 0}
         self.windows_dropped = 0
         self.queries_served = 0
         #: (seq, t_host_last_s, t_published_s) of recent windows, for latency measurement
@@ -253,6 +255,10 @@ class ZenohSink:
         self.latest["gap"] = doc
         self._q.put_nowait(("gap", flight, doc))
 
+    def publish_freq(self, flight: int, doc: dict) -> None:
+        """The ``heli-freq-verification/1`` J table of the flight's model (reliable, like the model)."""
+        self._q.put_nowait(("freq", flight, doc))
+
     # ------------------------------------------------------------------ publisher thread
 
     def _run(self) -> None:
@@ -271,7 +277,7 @@ class ZenohSink:
                     self._windows_waiting -= 1
             if self._session is None:
                 if item is not None:
-                    if item[0] in ("model", "gap"):
+                    if item[0] in ("model", "gap", "freq"):
                         backlog.append(item)
                     self._q.task_done()
                 if time.monotonic() >= next_try and not self._closing.is_set():

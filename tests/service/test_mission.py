@@ -87,6 +87,14 @@ def test_two_simulated_flights_identified_published_and_logged(tmp_path, subscri
             if k.endswith("/gap"):
                 assert d["schema"] == "heli-gap-report/1"
     assert late_replies and late_replies[0]["schema"] == "heli-hover-model/1"
+    # the frequency-domain check of each flight's model: a J table on heli/{vehicle}/flight/{n}/freq
+    assert all(r.freq is not None and r.freq_error is None for r in report.results), [r.freq_error for r in report.results]
+    freqs = {k: d for k, d, _ in sub.samples if k.endswith("/freq")}
+    assert set(freqs) == {f"heli/{service.vehicle}/flight/1/freq", f"heli/{service.vehicle}/flight/2/freq"}
+    for d in freqs.values():
+        assert d["schema"] == "heli-freq-verification/1" and "J_avg" in d
+        assert all({"input", "output", "J", "coherent_points", "delay_s"} <= set(p) for p in d["pairs"])
+        assert len(d["pairs"]) + len(d["no_response"]) + len(d["unmodelled"]) == 32
 
     # Rerun: live entities, model overlay and residual, flight states, per-flight fit and gap pictures
     chunks = RrdReader(rrd).stream().to_chunks()
