@@ -56,6 +56,9 @@ class ServiceSection:
     record_dir: str = "recordings"
     status_rate_hz: float = 1.0
     exit_after_flights: int = 0      # 0 = run until stopped
+    #: campaign table (SQLite) in the recording directory: every identified flight is a row and the
+    #: trend summary over the vehicle's flights is published on heli/{vehicle}/trends; "" = off
+    campaign_db: str = "campaign.sqlite"
 
 
 @dataclass(frozen=True)

@@ -525,12 +525,16 @@ class Service:
                 self.zenoh.publish_gap(flight, gap)
             if res.freq is not None:
                 self.zenoh.publish_freq(flight, res.freq)
+            if res.trends is not None:
+                self.zenoh.publish_trends(res.trends)
         if res.freq is not None:
             ja = res.freq.get("J_avg")
             self.log(f"flight {flight}: frequency check {res.freq_path} J_avg "
                      f"{'-' if ja is None else f'{ja:.1f}'} over {len(res.freq.get('pairs', []))} pairs")
         if res.freq_error:
             self._warn(res.freq_error)
+        if res.trends_error:
+            self._warn(res.trends_error)
         if gap is not None:
             self.log(f"flight {flight}: gap report {res.gap_path} verdict {gap.get('verdict')}")
         if res.gap_error:

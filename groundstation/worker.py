@@ -71,6 +71,8 @@ class JobResult:
     freq: dict[str, Any] | None = None              # heli-freq-verification/1: Tischler J per pair
     freq_path: str | None = None
     freq_error: str | None = None                   # frequency check failed (the model is still good)
+    trends: dict[str, Any] | None = None            # heli-trends/1 over the vehicle's flights ([service] campaign_db)
+    trends_error: str | None = None                 # the campaign table failed (the model is still good)
     identify_s: float | None = None
     seconds: float = 0.0
 
@@ -156,14 +158,30 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
     freq, freq_path, freq_error = _freq_check(job, model)
     gap, gap_path, gap_error, pictures = (_diagnose(job, model, prepared) if cfg.identification.diagnose
                                           else (None, None, None, None))
+    trends, trends_error = _trends(job, model, gap, prepared, time.perf_counter() - t0)
     return JobResult(
         flight=job.flight, tlogs=job.tlogs, model=doc, model_path=str(model_path),
         match_degree={c: float(v["match"]) for c, v in val["channels"].items()}, validation=val, png=png,
         # numpy arrays pickle fast back to the service (lists would cost the live loop a spike)
         overlay=Overlay(*(np.asarray(overlay[k], dtype=float) for k in ("t_fc_s", "model", "measured"))),
         gap=gap, gap_path=gap_path, gap_error=gap_error, gap_pictures=pictures, identify_s=identify_s,
-        freq=freq, freq_path=freq_path, freq_error=freq_error,
+        freq=freq, freq_path=freq_path, freq_error=freq_error, trends=trends, trends_error=trends_error,
         seconds=time.perf_counter() - t0)
+
+
+def _trends(job: IdentifyJob, model: Any, gap: Any, prepared: Any, seconds: float) -> tuple[Any, Any]:
+    """(trend summary, None) after putting the flight into ``[service] campaign_db``, (None, None) when
+    that is off or the model is of several flights (scope "all"), or (None, one-line error)."""
+    cfg = job.config
+    if not cfg.service.campaign_db or len(job.tlogs) != 1:
+        return None, None
+    try:
+        from groundstation.campaign.live import record_flight
+
+        return record_flight(Path(job.out_dir) / cfg.service.campaign_db, job.vehicle, job.tlogs[0], job.flight,
+                             model, gap, prepared, cfg, seconds), None
+    except Exception as exc:  # the model and the gap report stand on their own
+        return None, f"flight {job.flight}: trends: {type(exc).__name__}: {exc}".splitlines()[0]
 
 
 def _freq_check(job: IdentifyJob, model: Any) -> tuple[Any, Any, Any]:

@@ -122,43 +122,50 @@ def effect_values(report: dict) -> dict[str, float]:
     return vals
 
 
-def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[str, Any]:
-    from groundstation.sysid.heldout import predict
+def model_row(model: Any, report: dict | None, prepared: Any) -> dict[str, Any]:
+    """The table columns of one identified (and diagnosed) flight: conditions, parameters with
+    standard errors, fits, gap verdict and effect estimates (``report`` None: not diagnosed)."""
     from groundstation.sysid.model import PARAM_NAMES
 
-    t0 = time.perf_counter()
-    row: dict[str, Any] = {"flight_index": flight, **_conditions(prepared)}
-    from groundstation.pipeline import identify_prepared
-
-    cfg = job.settings.service_config()
-    model = identify_prepared(prepared, cfg, aircraft=job.settings.aircraft)
     fit = model.fit
-    row.update({"cost": fit.get("cost"), "windows": fit.get("windows"),
-                "fixed": json.dumps(fit.get("fixed", [])), "pinned": json.dumps(list(model.pinned))})
+    row: dict[str, Any] = {**_conditions(prepared), "cost": fit.get("cost"), "windows": fit.get("windows"),
+                           "fixed": json.dumps(fit.get("fixed", [])), "pinned": json.dumps(list(model.pinned))}
     for n in PARAM_NAMES:
         row[f"p_{n}"] = float(model.params[n])
         se = model.parameter_std.get(n)
         row[f"se_{n}"] = None if se is None or not np.isfinite(se) else float(se)
     row["train_match_pct"] = _mean(fit.get("match_degree", {}))
-    row["cross_log"] = None
-    row["cross_match_pct"] = None
+    row.update({"verdict": None, "heldout_match_pct": None, "effects": "[]", "effect_values": "{}",
+                "gap_significant": None, "conditions": None})
+    if report is not None:
+        ch = report["gap"]["channels"]
+        row.update({"verdict": report["verdict"], "heldout_match_pct": _mean({k: v["match"] for k, v in ch.items()}),
+                    "effects": json.dumps(report["effects"]), "effect_values": json.dumps(effect_values(report)),
+                    "gap_significant": bool(report["gap"].get("significant")),
+                    "conditions": report["gap"].get("conditions")})
+    row["model"] = json.dumps(model.to_json(), default=float)
+    return row
+
+
+def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[str, Any]:
+    from groundstation.pipeline import identify_prepared
+    from groundstation.sysid.heldout import predict
+
+    t0 = time.perf_counter()
+    cfg = job.settings.service_config()
+    model = identify_prepared(prepared, cfg, aircraft=job.settings.aircraft)
+    report = None
+    if job.settings.diagnose:
+        from groundstation.gap.diagnose import diagnose
+
+        report = diagnose(model, prepared, seed=cfg.identification.seed, config=cfg.diagnose)
+    row = {"flight_index": flight, **model_row(model, report, prepared), "cross_log": None, "cross_match_pct": None}
     if ref is not None:
         try:
             row["cross_match_pct"] = float(predict(model, ref).mean_match)
             row["cross_log"] = Path(job.reference_log or "").name
         except ValueError as exc:  # the reference holds no usable window: reported, not fatal
             row["cross_log"] = f"{Path(job.reference_log or '').name}: {exc}"
-    row.update({"verdict": None, "heldout_match_pct": None, "effects": "[]", "effect_values": "{}",
-                "gap_significant": None, "conditions": None})
-    if job.settings.diagnose:
-        from groundstation.gap.diagnose import diagnose
-
-        rep = diagnose(model, prepared, seed=cfg.identification.seed, config=cfg.diagnose)
-        ch = rep["gap"]["channels"]
-        row.update({"verdict": rep["verdict"], "heldout_match_pct": _mean({k: v["match"] for k, v in ch.items()}),
-                    "effects": json.dumps(rep["effects"]), "effect_values": json.dumps(effect_values(rep)),
-                    "gap_significant": bool(rep["gap"].get("significant")), "conditions": rep["gap"].get("conditions")})
-    row["model"] = json.dumps(model.to_json(), default=float)
     row["seconds"] = round(time.perf_counter() - t0, 3)
     return row
 

@@ -130,26 +130,19 @@ def write_trends(store: Any, aircraft: str, settings_key: str, args: argparse.Na
     """Trend test over the aircraft's flights; trends.json / .png / .rrd; returns the summary."""
     from groundstation.campaign.plots import plot_trends, write_trends_rrd
     from groundstation.campaign.store import series
-    from groundstation.trends.change import TrendConfig, assess_all
+    from groundstation.trends.change import TrendConfig, assess_all, campaign_summary
 
     rows = store.rows(aircraft, settings_key)
     out_dir = args.trends_dir or args.db.parent
     labels = [f"{r['log_name']}#{int(r['flight_index'])}" for r in rows]
     trends = assess_all(series(rows), TrendConfig(alpha=args.alpha))
-    summary = trend_summary(aircraft, labels, trends)
+    summary = campaign_summary(aircraft, labels, trends)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "trends.json").write_text(json.dumps(summary, indent=1, allow_nan=False))
     if len(rows) >= 2:
         plot_trends(trends, labels, out_dir / "trends.png", title=f"{aircraft}: trends over {len(rows)} flights")
         write_trends_rrd(trends, labels, out_dir / "trends.rrd")
     return summary
-
-
-def trend_summary(aircraft: str, labels: list[str], trends: dict) -> dict:
-    """The JSON document of a campaign's trends (what the service publishes on ``heli/{vehicle}/trends``)."""
-    return {"schema": "heli-trends/1", "aircraft": aircraft, "flights": labels,
-            "changed": [t.summary() for t in trends.values() if t.changed],
-            "series": {k: t.summary() for k, t in trends.items()}}
 
 
 def _print(rows: list[dict], summary: dict, con: Any) -> None:

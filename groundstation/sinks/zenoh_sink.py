@@ -8,6 +8,7 @@ Keys (JSON payloads, encoding ``application/json``):
 * ``heli/{vehicle}/flight/{n}/gap``         once per diagnosed flight (BLOCK, reliable)
 * ``heli/{vehicle}/flight/{n}/freq``        the model's frequency-domain check (Tischler J per
   input-output pair), once per identified flight (BLOCK, reliable)
+* ``heli/{vehicle}/trends``                 trend summary over the vehicle's flights, after each one (BLOCK, reliable)
 * queryables ``heli/{vehicle}/model/latest`` and ``heli/{vehicle}/gap/latest`` (late subscribers)
 * liveliness token ``heli/{vehicle}/alive``
 
@@ -164,8 +165,8 @@ class ZenohSink:
         self._q: queue.Queue[tuple[str, Any, Any]] = queue.Queue()
         self._windows_waiting = 0
         self._lock = threading.Lock()
-        self.latest: dict[str, dict | None] = {"model": None, "gap": None}
-        self.sent: dict[str, int] = {"status": 0, "window": 0, "model": 0, "gap": 0, "freq": 0}
+        self.latest: dict[str, dict | None] = {"model": None, "gap": None, "trends": None}
+        self.sent: dict[str, int] = {"status": 0, "window": 0, "model": 0, "gap": 0, "freq": 0, "trends": 0}
         self.windows_dropped = 0
         self.queries_served = 0
         #: (seq, t_host_last_s, t_published_s) of recent windows, for latency measurement
@@ -259,6 +260,11 @@ class ZenohSink:
         """The ``heli-freq-verification/1`` J table of the flight's model (reliable, like the model)."""
         self._q.put_nowait(("freq", flight, doc))
 
+    def publish_trends(self, doc: dict) -> None:
+        """The latest trend summary over the vehicle's flights on ``heli/{vehicle}/trends`` (reliable)."""
+        self.latest["trends"] = doc
+        self._q.put_nowait(("trends", None, doc))
+
     # ------------------------------------------------------------------ publisher thread
 
     def _run(self) -> None:
@@ -277,7 +283,7 @@ class ZenohSink:
                     self._windows_waiting -= 1
             if self._session is None:
                 if item is not None:
-                    if item[0] in ("model", "gap", "freq"):
+                    if item[0] in ("model", "gap", "freq", "trends"):
                         backlog.append(item)
                     self._q.task_done()
                 if time.monotonic() >= next_try and not self._closing.is_set():
@@ -303,7 +309,8 @@ class ZenohSink:
                     seq, t_host = extra
                     self.window_latency.append((seq, t_host, time.time()))
             else:
-                self._session.put(f"{self.prefix}/flight/{extra}/{kind}", payload,
+                key = f"{self.prefix}/trends" if kind == "trends" else f"{self.prefix}/flight/{extra}/{kind}"
+                self._session.put(key, payload,
                                   encoding=zenoh.Encoding.APPLICATION_JSON,
                                   congestion_control=zenoh.CongestionControl.BLOCK)
             self.sent[kind] += 1

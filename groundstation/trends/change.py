@@ -205,3 +205,11 @@ def assess_all(series: dict[str, tuple[np.ndarray, np.ndarray | None]],
     """:func:`assess` for every series, the critical value corrected for the number of series."""
     n_tests = sum(bool(np.isfinite(np.asarray(v, dtype=float)).any()) for v, _ in series.values())
     return {k: assess(k, v, s, n_tests=max(n_tests, 1), config=config) for k, (v, s) in series.items()}
+
+
+def campaign_summary(aircraft: str, labels: list[str], trends: dict[str, Trend]) -> dict:
+    """The ``heli-trends/1`` document of a campaign (``trends.json``; the service publishes it on
+    ``heli/{vehicle}/trends``): flight labels, the series that changed, and every series' summary."""
+    return {"schema": "heli-trends/1", "aircraft": aircraft, "flights": labels,
+            "changed": [t.summary() for t in trends.values() if t.changed],
+            "series": {k: t.summary() for k, t in trends.items()}}

@@ -145,3 +145,17 @@ def test_client_to_a_router_that_appears_late(tmp_path, collector_factory):
             router.close()
     finally:
         sink.close()
+
+
+def test_trend_summary_reaches_a_subscriber(collector_factory):
+    sink = ZenohSink("t9")
+    try:
+        col = collector_factory(sink.endpoint)
+        assert _retry(lambda: sink.publish_status({"i": -1})
+                      or col.wait_for(lambda s: any(k == "heli/t9/status" for k, _ in s), 0.2))
+        sink.publish_trends({"schema": "heli-trends/1", "aircraft": "t9", "changed": []})
+        assert col.wait_for(lambda s: any(k == "heli/t9/trends" for k, _ in s))
+        doc = next(d for k, d in col.samples if k == "heli/t9/trends")
+        assert doc["schema"] == "heli-trends/1" and sink.sent["trends"] == 1
+    finally:
+        sink.close()
