@@ -17,6 +17,8 @@
     swash_phase_deg = [0, 120, 240]   # ... and their positions around the swashplate (0 = front)
     [outputs]
     measured = ["u", "v", "w", "p", "q", "r", "theta", "phi"]
+    [identify]                    # optional IdentifyConfig overrides for this aircraft's flights
+    window_s = 5.0
     [prior]
     source = "paper Table 5 scaled"   # free text: where the numbers come from
     L_b = [80.0, 40.0]            # NAME = [nominal, std], the paper's parameter names
@@ -107,6 +109,14 @@ class Aircraft:
     measured: tuple[str, ...] = OUTPUTS
     prior: Prior = field(default_factory=wide_prior)
     path: str = ""
+    #: IdentifyConfig overrides for this aircraft (``[identify]`` table): how its flights are best fitted
+    identify: dict[str, Any] = field(default_factory=dict)
+
+    def identify_config(self, base: Any = None) -> Any:
+        """``base`` (an :class:`groundstation.sysid.identify.IdentifyConfig`) with this file's overrides."""
+        from groundstation.sysid.identify import IdentifyConfig
+
+        return replace(base or IdentifyConfig(), **self.identify)
 
     def prep_config(self, base: Any = None) -> Any:
         """The data-preparation settings (:class:`groundstation.dsp.prepare.PrepConfig`) this file implies."""
@@ -198,8 +208,8 @@ def _parse_prior(t: dict[str, Any], name: str) -> Prior:
 def parse_aircraft(doc: dict[str, Any], name: str) -> Aircraft:
     """An :class:`Aircraft` from a parsed TOML document (``name`` is the file, for messages)."""
     for k in doc:
-        if k not in ("name", "inputs", "outputs", "prior"):
-            raise _err(name, k, doc[k], "unknown key (allowed: name, [inputs], [outputs], [prior])")
+        if k not in ("name", "inputs", "outputs", "prior", "identify"):
+            raise _err(name, k, doc[k], "unknown key (allowed: name, [inputs], [outputs], [prior], [identify])")
     inputs = _parse_inputs(doc.get("inputs", {}), name)
     out_t = doc.get("outputs", {})
     for k in out_t:
@@ -209,7 +219,24 @@ def parse_aircraft(doc: dict[str, Any], name: str) -> Aircraft:
     if not isinstance(measured, list) or any(c not in OUTPUTS for c in measured):
         raise _err(name, "outputs.measured", measured, f"a list of {', '.join(OUTPUTS)}")
     return Aircraft(str(doc.get("name", Path(name).stem)), inputs, tuple(c for c in OUTPUTS if c in measured),
-                    _parse_prior(doc.get("prior", {}), name), name)
+                    _parse_prior(doc.get("prior", {}), name), name, _parse_identify(doc.get("identify", {}), name))
+
+
+def _parse_identify(t: dict[str, Any], name: str) -> dict[str, Any]:
+    """``[identify]`` overrides, checked by building the IdentifyConfig they make."""
+    import dataclasses
+
+    from groundstation.sysid.identify import IdentifyConfig
+
+    allowed = {f.name for f in dataclasses.fields(IdentifyConfig)}
+    for k, v in t.items():
+        if k not in allowed:
+            raise _err(name, f"identify.{k}", v, f"unknown key (allowed: {', '.join(sorted(allowed))})")
+    try:
+        IdentifyConfig(**t)
+    except (TypeError, ValueError) as exc:
+        raise AircraftError(f"{name}: [identify]: {exc}") from None
+    return dict(t)
 
 
 def load_aircraft(path: str | Path) -> Aircraft:

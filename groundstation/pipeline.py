@@ -43,10 +43,12 @@ def load_aircraft(path: str | os.PathLike[str] | None) -> Any:
 
 
 def with_aircraft(cfg: ServiceConfig, aircraft: Any) -> ServiceConfig:
-    """``cfg`` with the aircraft file's input source, channel map, units, trims and outputs in ``[prepare]``."""
+    """``cfg`` with the aircraft file's input source, channel map, units, trims and outputs in ``[prepare]``
+    and its ``[identify]`` overrides."""
     if aircraft is None:
         return cfg
-    return dataclasses.replace(cfg, prepare=aircraft.prep_config(cfg.prepare))
+    return dataclasses.replace(cfg, prepare=aircraft.prep_config(cfg.prepare),
+                               identify=aircraft.identify_config(cfg.identify))
 
 
 def prepare_logs(paths: Sequence[str | os.PathLike[str]], cfg: ServiceConfig, segments: str = "flights",

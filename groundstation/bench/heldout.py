@@ -42,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="override an IdentifyConfig field of the project's identification (repeatable)")
 
 
-def _identify_config(pairs: list[str]) -> Any:
+def _identify_config(pairs: list[str], aircraft: Any) -> Any:
     import dataclasses
 
     from groundstation.sysid.identify import IdentifyConfig
@@ -54,7 +54,8 @@ def _identify_config(pairs: list[str]) -> Any:
         if k not in fields:
             raise ValueError(f"--set {p}: unknown IdentifyConfig field {k!r}")
         kw[k] = json.loads(v) if v not in ("", "none") else None
-    return IdentifyConfig(**kw)
+    base = aircraft.identify_config() if aircraft is not None else IdentifyConfig()
+    return dataclasses.replace(base, **kw)
 
 
 def _splits(prepared: Any, args: argparse.Namespace) -> list[tuple[str, Any, Any]]:
@@ -87,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
 
     con = Console()
     aircraft = load_aircraft(args.aircraft)
-    id_cfg = _identify_config(args.set)
+    id_cfg = _identify_config(args.set, aircraft)
     prepared = prepare_logs(args.logs, ServiceConfig(), aircraft=aircraft)
     results: list[dict[str, Any]] = []
     for name, train, val in _splits(prepared, args):

@@ -34,6 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="configuration TOML ([prepare] channel map and trims, [identify], [bounds], ...)")
     parser.add_argument("--aircraft", type=Path, default=None,
                         help="aircraft TOML: input source and channel map, measured outputs, prior model")
+    parser.add_argument("--folds", type=int, default=5,
+                        help="held-out check: refit on k-1 contiguous blocks of the in-air time and predict the "
+                             "left-out one, for each block (default 5; 0 = skip)")
     parser.add_argument("--no-plot", action="store_true", help="do not write the PNG")
     parser.add_argument("--rrd", type=Path, default=None, help="also write measured vs model to a Rerun .rrd file")
     parser.add_argument("--segments", choices=("flights", "sysid"), default="flights", help=SEGMENTS_HELP)
@@ -87,16 +90,17 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from groundstation.pipeline import identify_prepared, load_aircraft, prepare_logs
+    from groundstation.pipeline import identify_prepared, load_aircraft, prepare_logs, with_aircraft
 
     cfg = config_from_args(args)
     algorithm = cfg.identification.algorithm
     aircraft = load_aircraft(args.aircraft)
+    cfg = with_aircraft(cfg, aircraft)
     if args.domain != "time":
         from groundstation.commands.freq_support import identify_domain
-        from groundstation.pipeline import load_logs, with_aircraft
+        from groundstation.pipeline import load_logs
 
-        return identify_domain(args, load_logs(args.logs, args.segments), with_aircraft(cfg, aircraft))
+        return identify_domain(args, load_logs(args.logs, args.segments), cfg)
     prepared = prepare_logs(args.logs, cfg, args.segments, aircraft)
     con = Console(stderr=True, quiet=args.quiet)
     t0 = time.perf_counter()
@@ -112,6 +116,8 @@ def run(args: argparse.Namespace) -> int:
 
         model = identify_prepared(prepared, cfg, callback=cb, aircraft=aircraft)
     model.fit["seconds"] = round(time.perf_counter() - t0, 3)
+    if args.folds >= 2:
+        held_out(model, prepared, cfg, aircraft, args.folds, con)
     model.source["logs"] = [str(p) for p in args.logs]
     write_json(args.out, model.to_json())
     if not args.no_plot or args.rrd is not None:
@@ -136,6 +142,43 @@ def run(args: argparse.Namespace) -> int:
     if not args.quiet:
         print_model(model, con)
     return 0
+
+
+def held_out(model, prepared, cfg, aircraft, k: int, con) -> None:
+    """Cross-validate ``model`` (refinement from its parameters on k-1 blocks, prediction of the k-th)
+    and record the verdicts in ``model.fit``: ``heldout`` (per channel and fold), ``usable`` (False
+    when a subsystem's prediction runs away in some fold) and the closed-loop evidence."""
+    from groundstation.sysid.heldout import crossvalidate
+    from groundstation.sysid.identify import refit
+
+    prior = aircraft.prior if aircraft is not None else None
+    con.print(f"held-out check: {k} contiguous folds ...")
+    try:
+        cv = crossvalidate(prepared, lambda tr: refit(tr, model, config=cfg.identify, prior=prior), k=k)
+    except ValueError as exc:
+        model.fit["heldout"] = {"skipped": str(exc)}
+        return
+    model.fit["heldout"] = cv.to_json()
+    model.fit["unusable_subsystems"] = list(cv.unusable_subsystems)
+    model.fit["usable"] = not cv.unusable_subsystems
+    model.fit["closed_loop"] = closed_loop_notes(model, prepared, cfg)
+
+
+def closed_loop_notes(model, prepared, cfg) -> list[str]:
+    """What the closed loop means for this model: inputs that follow the output error, stick inputs."""
+    from groundstation.sysid.heldout import feedback_evidence
+
+    notes = feedback_evidence(model, prepared)
+    if notes:
+        notes.append("with the loop closed the inputs correlate with the disturbances the model does not see: "
+                     "output error stays consistent only where the feedback acts on measured outputs; expect damping "
+                     "and input gains biased towards what the controller makes of them, and judge the model by "
+                     "the held-out match, not by its standard errors")
+    if cfg.prepare.input_source == "RC_CHANNELS":
+        notes.append("the inputs are the pilot's sticks (RC), commands to a stabilised aircraft: the model is that "
+                     "of the aircraft with its stabiliser, not of the bare rotor (rotor terms such as M_a, L_b and "
+                     "1/tau_s describe the closed loop)")
+    return notes
 
 
 def print_model(model, con=None) -> None:
@@ -165,3 +208,29 @@ def print_model(model, con=None) -> None:
     con.print(p)
     for r in fit.get("fixed_reasons", []) + fit.get("notes", []):
         con.print(f"note: {r}")
+    print_verdicts(model, con)
+
+
+def print_verdicts(model, con) -> None:
+    """Held-out match, channels predicted or not, unusable subsystems, bounds, instability, prior."""
+    fit = model.fit
+    for name, why in fit.get("pinned_reasons", {}).items():
+        con.print(f"[yellow]bound[/]: {name} {why}")
+    for u in fit.get("unstable_modes", []):
+        con.print(f"[yellow]unstable[/]: {u}")
+    pr = fit.get("prior") or {}
+    if pr.get("prior_dominated"):
+        con.print(f"prior ({pr.get('source')}): not determined by this flight, kept near the prior with its "
+                  f"uncertainty: {', '.join(pr['prior_dominated'])}")
+    ho = fit.get("heldout") or {}
+    if "channel_mean" in ho:
+        chans = ", ".join(f"{c} {v:.1f}" for c, v in ho["channel_mean"].items())
+        con.print(f"held-out match over {ho['k']} contiguous folds ({ho['window_s']:g}-s windows from the measured "
+                  f"states): mean {ho['mean_match']:.1f} % ({chans})")
+        con.print(f"the model predicts: {', '.join(ho['predicted']) or 'no channel'}; "
+                  f"it does not predict: {', '.join(ho['not_predicted']) or 'none'}")
+        for sub in ho.get("unusable_subsystems", []):
+            con.print(f"[red]unusable[/]: the {sub} subsystem's held-out prediction runs away "
+                      f"({'; '.join(f'{f}: {chs}' for f, chs in ho['runaway'].items())}): not a model of the aircraft")
+    for c in fit.get("closed_loop", []):
+        con.print(f"closed loop: {c}")

@@ -108,6 +108,100 @@ def predict(model: HoverModel, prepared: Any, *, window_s: float = 5.0, use_mode
                       duration_s=float(win.count * win.length * win.dt_s), ratio=ratio)
 
 
+@dataclass(frozen=True)
+class CrossValidation:
+    """Held-out prediction over k contiguous folds: per-fold ``Prediction``, channel means, and verdicts."""
+
+    folds: tuple[Prediction, ...]
+    channel_mean: dict[str, float]
+    mean_match: float
+    predicted: tuple[str, ...]      # channels with a positive mean held-out match and no runaway fold
+    not_predicted: tuple[str, ...]
+    runaway: dict[str, tuple[str, ...]]   # fold label -> channels that ran away there
+    unusable_subsystems: tuple[str, ...]  # subsystems with a channel that ran away in some fold
+
+    def to_json(self) -> dict[str, Any]:
+        return {"k": len(self.folds), "window_s": self.folds[0].window_s if self.folds else None,
+                "mean_match": self.mean_match, "channel_mean": self.channel_mean,
+                "folds": [p.match for p in self.folds], "predicted": list(self.predicted),
+                "not_predicted": list(self.not_predicted), "runaway": {k: list(v) for k, v in self.runaway.items()},
+                "unusable_subsystems": list(self.unusable_subsystems)}
+
+
+def crossvalidate(prepared: Any, fit_fold: Any, *, k: int = 5, window_s: float = 5.0,
+                  runaway_factor: float = 3.0) -> CrossValidation:
+    """Fit on k-1 contiguous blocks of the in-air time with ``fit_fold(train) -> HoverModel``, predict
+    the left-out block (:func:`predict`), for each of the k blocks."""
+    from groundstation.dsp.split import contiguous_kfold
+
+    preds, runaway = [], {}
+    for f, (train, val) in enumerate(contiguous_kfold(prepared, k)):
+        if not train.segments or not val.segments:
+            continue
+        try:
+            p = predict(fit_fold(train), val, window_s=window_s)
+        except ValueError:  # a block shorter than one window
+            continue
+        preds.append(p)
+        ra = runaway_channels(p, runaway_factor)
+        if ra:
+            runaway[f"fold {f + 1}"] = tuple(ra)
+    chans = [c for c in OUTPUTS if any(c in p.match for p in preds)]
+    mean = {c: float(np.mean([p.match[c] for p in preds if c in p.match])) for c in chans}
+    ran = {c for v in runaway.values() for c in v}
+    predicted = tuple(c for c in chans if mean[c] > 0 and c not in ran)
+    unusable = tuple(s for s, cs in SUBSYSTEM_CHANNELS.items() if any(c in ran for c in cs))
+    return CrossValidation(tuple(preds), mean, float(np.mean([p.mean_match for p in preds])) if preds else float("nan"),
+                           predicted, tuple(c for c in chans if c not in predicted), runaway, unusable)
+
+
 def runaway_channels(pred: Prediction, runaway_factor: float = 3.0) -> list[str]:
     """Channels whose held-out error is more than ``runaway_factor`` times the signal itself."""
     return [c for c, r in pred.ratio.items() if r > runaway_factor]
+
+
+def feedback_evidence(model: HoverModel, prepared: Any, *, window_s: float = 5.0, max_lag_s: float = 1.0,
+                      z: float = 3.0) -> list[str]:
+    """Signs that someone closes the loop: inputs that follow the model's output error.
+
+    In open loop the inputs do not depend on what the model fails to explain; a pilot or a flight
+    controller reacts to the aircraft's motion, so its inputs correlate with the LATER part of the
+    output error (disturbances, unmodelled motion). For each moving input and each channel of its
+    subsystem, the largest |correlation| of the output error with the input change 0.1 to ``max_lag_s``
+    later is compared with ``z`` / sqrt(N_eff) (N_eff the samples over the error's autocorrelation
+    time). One line per input that responds.
+    """
+    from groundstation.sysid.refine import residual_tau
+
+    win = make_windows(prepared.segments, prepared.dt_s, window_s)
+    u = win.inputs + input_offset(model, prepared)[None, None, :]
+    with threadpool_limits(1):
+        sim = WindowSimulator(u, win.outputs, win.dt_s, win.available, estimate_all_initial=False)
+        e = sim.errors(model.theta[None])[0]  # (W, L, 8)
+    du = np.diff(win.inputs, axis=1)
+    out = []
+    chans = {0: ("p", "q", "theta", "phi"), 1: ("p", "q", "theta", "phi"), 2: ("w", "r"), 3: ("w", "r")}
+    lags = range(max(1, int(0.1 / win.dt_s)), max(2, int(max_lag_s / win.dt_s)))
+    for j, name in enumerate(INPUTS):
+        if np.std(du[..., j]) <= 0:
+            continue
+        cands = []  # (|r| / chance level, r, channel, lag s, chance level)
+        for ch in chans[j]:
+            k = OUTPUTS.index(ch)
+            m = sim.mask[:, k]
+            if m.sum() < 2:
+                continue
+            ee = e[m, :-1, k]
+            tau = float(residual_tau(ee[..., None] / max(float(np.std(ee)), 1e-12), np.ones(1, dtype=bool))[0])
+            thr = z / np.sqrt(ee.size / max(tau, 1.0))
+            for lag in lags:
+                a, b = ee[:, :-lag].ravel(), du[m, lag:, j].ravel()
+                if a.std() > 0 and b.std() > 0:
+                    r = float(np.corrcoef(a, b)[0, 1])
+                    cands.append((abs(r) / thr, r, ch, lag * win.dt_s, thr))
+        if cands:
+            ratio, r, ch, lag_s, thr = max(cands)
+            if ratio > 1.0:
+                out.append(f"input {name} follows the model's {ch} error {lag_s:.2f} s later (correlation {r:+.2f}, "
+                           f"chance level {thr:.2f}): the loop is closed (pilot or flight controller)")
+    return out

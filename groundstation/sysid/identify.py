@@ -50,6 +50,7 @@ from groundstation.sysid.model import (
     bounds_array,
 )
 from groundstation.sysid.optimizers import ALGORITHMS
+from groundstation.sysid.refine import map_objective
 from groundstation.sysid.refine import refine as refine_ls
 from groundstation.sysid.simulate import kinematic_forcing
 
@@ -106,6 +107,10 @@ class IdentifyConfig:
     #: residual weighting of the refinement per channel: "noise" (the residual RMS, maximum likelihood)
     #: or "signal" (the signal's spread, the paper's eq. 11); see :func:`groundstation.sysid.refine.refine`
     channel_weighting: str = "noise"
+    #: further refinement starts besides the search's, comma-separated: "prior" (the prior's nominal),
+    #: "zero" (every parameter 0, inside the bounds); the lowest refined (MAP) cost wins. On real flights
+    #: the search's best point on short windows can sit in a basin that predicts worse than these.
+    extra_starts: str = ""
 
 
 #: Input channels (indices into lat lon col ped) of each subsystem.
@@ -245,6 +250,11 @@ def _progress(callback: Callable[[dict], Any] | None, stage: str, fun: float, nf
         callback({"stage": stage, "nit": 0, "maxiter": 1, "fun": fun, "nfev": nfev})
 
 
+def _score(cost: WindowedCost, r: Any, sig_eff: np.ndarray, prior: tuple[np.ndarray, np.ndarray] | None) -> float:
+    """Comparable score of a refinement: eq. 11 cost without a prior, else the MAP objective at fixed scales."""
+    return float(r.fun) if prior is None else map_objective(cost, r.x, sig_eff, prior)
+
+
 def _search_once(alg: str, it: int, label: str, costs: tuple, plan: _Plan, cfg: IdentifyConfig, sub_free: np.ndarray,
                  refine: bool, rng: np.random.Generator, cb: Callable, callback: Callable | None,
                  sub_name: str) -> tuple[float, np.ndarray, Any, Any]:
@@ -274,14 +284,37 @@ def _search_once(alg: str, it: int, label: str, costs: tuple, plan: _Plan, cfg: 
         _progress(callback, f"screen {sub_name} ({len(starts)} starts)", float(opt.fun), cost_s.nfev + cost.nfev)
         rs = [refine_ls(cost_s, x0, bfree, passes=1, max_nfev=nfev_round, with_std=False, prior=prior,
                         weighting=cfg.channel_weighting) for x0 in starts]
-        scored = sorted(((float(r.map_cost if prior is not None else r.fun), r.x) for r in rs), key=lambda t: t[0])
+        scored = sorted(((_score(cost_s, r, rs[0].sig_eff, prior), r.x) for r in rs), key=lambda t: t[0])
         starts = [sx for _, sx in scored[: max(1, len(scored) // 3)]]
         screen_f = scored[0][0]
         nfev_round *= 2
     _progress(callback, f"refine {sub_name}{label}", screen_f, cost_s.nfev + cost.nfev)
     ref = refine_ls(cost, starts[0], bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev, prior=prior,
                     weighting=cfg.channel_weighting)
-    return float(ref.map_cost if prior is not None else ref.fun), ref.x, opt, ref
+    return float(ref.fun), ref.x, opt, ref
+
+
+def _extra_starts(best: tuple, costs: tuple, plan: _Plan, cfg: IdentifyConfig, sub_free: np.ndarray,
+                  sig_ref: np.ndarray | None) -> tuple:
+    """``best`` or a refinement from one of ``cfg.extra_starts`` with a lower refined (MAP) cost."""
+    names = [n.strip() for n in cfg.extra_starts.split(",") if n.strip()]
+    bad = [n for n in names if n not in ("prior", "zero")]
+    if bad:
+        raise ValueError(f"extra_starts: unknown start(s) {bad} (allowed: prior, zero)")
+    bfree = plan.bounds[sub_free]
+    span = bfree[:, 1] - bfree[:, 0]
+    prior = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
+    for n in names:
+        if n == "prior" and prior is None:
+            continue
+        x0 = prior[0] if n == "prior" and prior is not None else np.zeros(int(sub_free.sum()))
+        x0 = np.clip(x0, bfree[:, 0] + 1e-6 * span, bfree[:, 1] - 1e-6 * span)
+        ref = refine_ls(costs[0], x0, bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev, prior=prior,
+                        weighting=cfg.channel_weighting)
+        F = float(ref.fun) if prior is None or sig_ref is None else map_objective(costs[0], ref.x, sig_ref, prior)
+        if F < best[0]:
+            best = (F, ref.x, best[2], ref, f"{best[4]}+{n} start")
+    return best
 
 
 def _identify_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], plan: _Plan, cfg: IdentifyConfig,
@@ -307,6 +340,8 @@ def _identify_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], pl
     # the vertical/yaw search has fewer dimensions and costs a fraction: give it more iterations
     sub_iters = iters if sub == 0 else int(iters * cfg.vertical_iter_factor)
     best: tuple[float, np.ndarray, Any, Any, str] | None = None   # (F, x, opt, refinement, algorithm)
+    pr = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
+    sig_ref = None   # with a prior, restarts are compared by the MAP objective at the first one's scales
     for restart in range(max(1, cfg.search_restarts if refine else 1)):
         alg = algorithm if restart == 0 or not cfg.restart_algorithm else cfg.restart_algorithm
         it = sub_iters
@@ -314,10 +349,15 @@ def _identify_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], pl
             it = DEFAULT_MAXITER[alg] if sub == 0 else int(DEFAULT_MAXITER[alg] * cfg.vertical_iter_factor)
         F, xr, opt, ref = _search_once(alg, it, f" (search {restart + 1})" if restart else "", costs, plan, cfg,
                                        sub_free, refine, rng, cb, callback, sub_name)
+        if ref is not None and pr is not None:
+            sig_ref = ref.sig_eff if sig_ref is None else sig_ref
+            F = map_objective(cost, xr, sig_ref, pr)
         run.nit += int(opt.nit)
         if best is None or F < best[0]:
             best = (F, xr, opt, ref, alg)
     assert best is not None
+    if refine:
+        best = _extra_starts(best, costs, plan, cfg, sub_free, sig_ref)
     F, x, opt, ref, won = best
     run.search_alg[sub_name] = won
     run.F_search += float(opt.fun)
@@ -441,3 +481,32 @@ def _model(prepared: Any, plan: _Plan, cfg: IdentifyConfig, run: _Run, match: di
                 "segments": [[s.source, int(s.flight), float(s.t_s[0]), float(s.t_s[-1])] for s in segs]},
         pinned=list(pinned),
     )
+
+
+def refit(prepared: Any, model: HoverModel, *, config: IdentifyConfig | None = None, prior: Any = None) -> HoverModel:
+    """The model refined on ``prepared`` from ``model``'s parameters (no search): the cheap refit of
+    a cross-validation fold. Same windows, trims, forcing, weighting and prior as :func:`identify`."""
+    cfg = config or IdentifyConfig()
+    _check(cfg, "cabc", prepared)
+    with threadpool_limits(1):
+        plan = _plan(prepared, cfg, True, None, prior)
+        run = _Run(theta=np.clip(model.theta, plan.bounds[:, 0], plan.bounds[:, 1]))
+        for sub, sub_params in ((0, HOR_PARAMS), (1, VER_PARAMS)):
+            idx = np.array([PARAM_INDEX[p] for p in sub_params])
+            sub_free = np.zeros(N_PARAMS, dtype=bool)
+            sub_free[idx] = plan.free[idx]
+            cost = _costs(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim)[0]
+            if not cost.used.any():
+                continue
+            pr = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
+            ref = refine_ls(cost, run.theta[sub_free], plan.bounds[sub_free], passes=1, max_nfev=cfg.refine_max_nfev,
+                            with_std=False, prior=pr, weighting=cfg.channel_weighting)
+            run.theta = cost.full(ref.x)[0]
+            if cfg.estimate_trim:
+                run.delta[list(_SUBS_INPUTS[sub])] = cost.sim.solve_trim(run.theta[None])[sub][0]
+    return HoverModel(params={n: float(v) for n, v in zip(PARAM_NAMES, run.theta, strict=True)},
+                      sample_rate_hz=float(1.0 / prepared.dt_s),
+                      input_trim_pwm={k: float(v) + float(run.delta[j]) * float(prepared.pwm_per_unit)
+                                      for j, (k, v) in enumerate(prepared.input_trim_pwm.items())},
+                      pwm_per_unit=float(prepared.pwm_per_unit), output_trim=dict(prepared.output_trim),
+                      fit={"window_s": cfg.window_s, "estimate_all_initial": cfg.estimate_all_initial})

@@ -94,7 +94,20 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
     F = float(cost(x[None])[0])
     map_cost = float(res.cost)
     return OptimizeResult(x=x, fun=F, sigma=sigma, std=std, nfev=cost.nfev - nfev0, jac=J, success=bool(res.success),
-                          message=str(res.message), nit=int(res.nfev), prior_share=share, map_cost=map_cost)
+                          message=str(res.message), nit=int(res.nfev), prior_share=share, map_cost=map_cost,
+                          sig_eff=sig)
+
+
+def map_objective(cost: WindowedCost, x: np.ndarray, sig_eff: np.ndarray,
+                  prior: tuple[np.ndarray, np.ndarray] | None) -> float:
+    """``0.5 ||r||^2`` of the a-priori-weighted residual at ``x`` with FIXED channel scales ``sig_eff``
+    (8,): comparable between starts, unlike each refinement's own cost (whose scales follow its misfit)."""
+    r = cost.residuals(np.asarray(x, dtype=float)[None], sig_eff)[0].ravel()
+    J = float(r @ r)
+    if prior is not None:
+        d = (np.asarray(x, dtype=float) - prior[0]) / prior[1]
+        J += float(d @ d)
+    return 0.5 * J
 
 
 def residual_tau(r: np.ndarray, used: np.ndarray, max_lag: int = 60) -> np.ndarray:
