@@ -426,8 +426,11 @@ class Service:
             ic = self.config.identification
             tlogs = (tuple(self._flight_tlogs[k] for k in sorted(self._flight_tlogs)) if ic.scope == "all"
                      else (path,))
+            prev = [k for k in sorted(self._flight_tlogs) if k < fe.flight]
             self.submit_identification(IdentifyJob(flight=fe.flight, tlogs=tlogs, out_dir=str(Path(path).parent),
-                                                   config=self.config))
+                                                   config=self.config,
+                                                   previous_flight=prev[-1] if prev else -1,
+                                                   previous_tlogs=(self._flight_tlogs[prev[-1]],) if prev else ()))
         self._check_exit()
 
     def submit_identification(self, job: IdentifyJob) -> asyncio.Future[JobResult]:

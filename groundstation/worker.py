@@ -36,6 +36,10 @@ class IdentifyJob:
     tlogs: tuple[str, ...]          # the flight's .tlog (scope "last") or all flights so far ("all")
     out_dir: str
     config: ServiceConfig = ServiceConfig()
+    #: the flight before this one (its .tlog; its model is ``model-flightNN.json`` in ``out_dir``), -1 = none:
+    #: the new model is scored on that flight and that flight's model on this one
+    previous_flight: int = -1
+    previous_tlogs: tuple[str, ...] = ()
 
     @property
     def vehicle(self) -> str:
@@ -132,6 +136,30 @@ def run_job(job: IdentifyJob) -> JobResult:
                          seconds=time.perf_counter() - t0)
 
 
+def _cross_flight(job: IdentifyJob, model: Any, prepared: Any) -> dict[str, Any]:
+    """Is the aircraft the same as on the previous flight? The new model predicting the previous flight
+    and the previous flight's model predicting this one (held-out match, 5-s windows from the measured
+    states); empty without a previous flight, an ``error`` line when it cannot be scored."""
+    if job.previous_flight < 0 or not job.previous_tlogs:
+        return {}
+    from groundstation.pipeline import prepare_logs
+    from groundstation.sysid.heldout import predict
+    from groundstation.sysid.model import HoverModel
+
+    out: dict[str, Any] = {"previous_flight": job.previous_flight}
+    try:
+        prev = prepare_logs(job.previous_tlogs, job.config)
+        p = predict(model, prev)
+        out["new_model_on_previous_flight"] = {"mean_match": p.mean_match, "match": p.match}
+        prev_path = Path(job.out_dir) / f"model-flight{job.previous_flight:02d}.json"
+        if prev_path.exists():
+            q = predict(HoverModel.from_json(json.loads(prev_path.read_text())), prepared)
+            out["previous_model_on_new_flight"] = {"mean_match": q.mean_match, "match": q.match}
+    except Exception as exc:  # a previous flight that cannot be scored does not stop this one
+        out["error"] = f"{type(exc).__name__}: {exc}".splitlines()[0]
+    return out
+
+
 def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
     from groundstation.pipeline import identify_prepared, prepare_logs
     from groundstation.sysid.validate import validate
@@ -143,6 +171,9 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
         return JobResult(flight=job.flight, tlogs=job.tlogs, error=f"flight {job.flight}: nothing to identify ({notes})",
                          seconds=time.perf_counter() - t0)
     model = identify_prepared(prepared, cfg)
+    cross = _cross_flight(job, model, prepared)
+    if cross:
+        model.fit["cross_flight"] = cross
     doc = model.to_json()
     val = validate(model, prepared, return_series=True)
     series = val.pop("series")
