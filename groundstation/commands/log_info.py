@@ -70,7 +70,8 @@ def summarise(log: Any) -> dict[str, Any]:
     return {
         "source": log.source,
         "flights": [{"index": f.index, "start_s": _num(f.start_fc_s), "end_s": _num(f.end_fc_s),
-                     "duration_s": _num(f.duration_s), "in_air_s": _num(f.in_air_s)} for f in log.flights],
+                     "duration_s": _num(f.duration_s), "in_air_s": _num(f.in_air_s),
+                     "on_ground_evidence": _ground_evidence(log, f)} for f in log.flights],
         "messages": messages,
         "gaps": gaps[:MAX_GAPS_LISTED],
         "gaps_total": len(gaps),
@@ -86,6 +87,18 @@ def summarise(log: Any) -> dict[str, Any]:
     }
 
 
+def _ground_evidence(log: Any, flight: Any) -> str | None:
+    """Where only height says "in the air": why the aircraft did not fly (no rotor vibration, no body
+    motion), else None."""
+    from groundstation.dsp.prepare import PrepConfig, _land_detector, airborne_evidence
+
+    air = list(getattr(flight, "in_air_intervals_fc_s", ()) or ())
+    if not air or _land_detector(log, flight):
+        return None
+    flying, why = airborne_evidence(log, float(air[0][0]), float(air[-1][1]), PrepConfig())
+    return None if flying else f"in the air by height only, but on the ground: {why}"
+
+
 def _print_tables(info: dict[str, Any]) -> None:
     from rich.console import Console
     from rich.table import Table
@@ -99,6 +112,9 @@ def _print_tables(info: dict[str, Any]) -> None:
         ft.add_row(str(f["index"]), *(("-" if f[k] is None else f"{f[k]:.1f}")
                                       for k in ("start_s", "end_s", "duration_s", "in_air_s")))
     con.print(ft)
+    for f in info["flights"]:
+        if f.get("on_ground_evidence"):
+            con.print(f"flight {f['index']}: {f['on_ground_evidence']}")
     mt = Table(title="messages")
     for c in ("type", "count", "rate Hz"):
         mt.add_column(c, justify="right" if c != "type" else "left")

@@ -77,3 +77,9 @@ def test_channel_map_naming_a_channel_the_log_lacks(flight1):
     with pytest.raises(ValueError) as ei:
         prepare([flight1], PrepConfig(input_channels=(1, 2, 3, 19)))
     assert "flight1.tlog" in str(ei.value) and "channel 19" in str(ei.value)
+
+
+def test_log_info_says_the_ground_run_never_flew(groundrun):
+    from groundstation.commands.log_info import _ground_evidence
+
+    assert "on the ground" in _ground_evidence(groundrun, groundrun.flights[0])
