@@ -167,7 +167,8 @@ def test_log_info_json_on_real_log(capsys):
     info = json.loads(capsys.readouterr().out)
     assert len(info["flights"]) >= 1
     f = info["flights"][0]
-    assert set(f) == {"index", "start_s", "end_s", "duration_s", "in_air_s"}
+    assert set(f) == {"index", "start_s", "end_s", "duration_s", "in_air_s", "on_ground_evidence"}
+    assert f["on_ground_evidence"] is None  # a real flight: the aircraft moves
     assert info["messages"]["ATTITUDE"]["count"] == 39810
     assert info["messages"]["ATTITUDE"]["rate_hz"] == pytest.approx(123.5, abs=0.5)
     assert info["corrupt_bytes"] == 0 and info["packet_loss"]["lost"] == 0
