@@ -642,7 +642,8 @@ def _idx(name: str) -> Callable[[str], int]:
     return fields.index
 
 
-def _make_converters() -> dict[str, Callable[..., Any]]:
+def _state_converters() -> dict[str, Callable[..., Any]]:
+    """HEARTBEAT, attitude and position."""
     convs: dict[str, Callable[..., Any]] = {}
 
     i = _idx("HEARTBEAT")
@@ -676,6 +677,12 @@ def _make_converters() -> dict[str, Callable[..., Any]]:
                                  t[g[7]] * 1e-2, math.nan if hdg == 65535 else hdg * 1e-2)
 
     convs["GLOBAL_POSITION_INT"] = global_pos
+    return convs
+
+
+def _input_converters() -> dict[str, Callable[..., Any]]:
+    """Servo outputs and RC channels."""
+    convs: dict[str, Callable[..., Any]] = {}
 
     i = _idx("SERVO_OUTPUT_RAW")
     sv = [i("time_usec"), i("port")] + [i(f"servo{k}_raw") for k in range(1, 17)]
@@ -693,6 +700,12 @@ def _make_converters() -> dict[str, Callable[..., Any]]:
         return RcChannels(now, s._t_ms(sy, co, t[rc[0]], now), sy, co, tuple([t[k] for k in rc[2:]]), t[rc[1]])
 
     convs["RC_CHANNELS"] = rc_channels
+    return convs
+
+
+def _sensor_converters() -> dict[str, Callable[..., Any]]:
+    """IMUs and GPS."""
+    convs: dict[str, Callable[..., Any]] = {}
 
     def imu_conv(name: str, time_field: str):
         i = _idx(name)
@@ -721,6 +734,12 @@ def _make_converters() -> dict[str, Callable[..., Any]]:
                          math.nan if cog == 65535 else cog * 1e-2, t[gp[7]])
 
     convs["GPS_RAW_INT"] = gps
+    return convs
+
+
+def _status_converters() -> dict[str, Callable[..., Any]]:
+    """Landed state, battery and link status, text, command acknowledgements."""
+    convs: dict[str, Callable[..., Any]] = {}
 
     i = _idx("EXTENDED_SYS_STATE")
     ev, el = i("vtol_state"), i("landed_state")
@@ -759,6 +778,10 @@ def _make_converters() -> dict[str, Callable[..., Any]]:
 
     convs["COMMAND_ACK"] = command_ack
     return convs
+
+
+def _make_converters() -> dict[str, Callable[..., Any]]:
+    return {**_state_converters(), **_input_converters(), **_sensor_converters(), **_status_converters()}
 
 
 _CONVERTERS = _make_converters()

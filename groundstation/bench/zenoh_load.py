@@ -247,6 +247,67 @@ def _count_records(path: str | None) -> int:
     return sum(1 for _ in scan_tlog(Path(path).read_bytes()))
 
 
+def _restart_router(args: argparse.Namespace, router: Router, prompt: list[Any], viewer_cfg: Path,
+                    models_sent: list[int], restart_info: dict[str, Any]) -> None:
+    """Halfway through the phase: close the router, publish a model while it is down, reopen it and
+    time how long the prompt viewers take to get windows again; the late joiner asks the queryable."""
+    time.sleep(args.duration / 2)
+    t0 = time.time()
+    router.close()
+    t_closed = time.time()
+    time.sleep(1.0)
+    n_before = models_sent[0]
+    # a model published while the router is down: lost for live subscribers, but the
+    # queryable must serve it once the router is back
+    while models_sent[0] == n_before and time.time() - t_closed < 5:
+        time.sleep(0.05)
+    outage_model = models_sent[0]
+    router.open()
+    t_back = time.time()
+    first = None
+    while time.time() - t_back < 15.0:
+        arrivals = [t for v in prompt for t, _ in v.windows if t > t_back]
+        if arrivals:
+            first = min(arrivals)
+            break
+        time.sleep(0.01)
+    served = None
+    if first is not None:
+        late = Viewer(viewer_cfg, "bench", "prompt", 0.0)
+        try:
+            served = [json.loads(r.ok.payload.to_bytes()).get("seq")
+                      for r in late.session.get("heli/bench/model/latest", timeout=3.0) if r.ok]
+        finally:
+            late.close()
+    restart_info.update(close_s=t_closed - t0, served_after_back=served, router_open_s=t_back - t_closed - 1.0,
+                        resume_after_back_s=(first - t_back) if first else float("nan"),
+                        resume_after_close_s=(first - t_closed) if first else float("nan"),
+                        outage_model=outage_model)
+
+
+def _phase_figures(name: str, args: argparse.Namespace, report: Any, records: list[Any], sink: Any,
+                   t_steady: float, models_sent: int) -> dict[str, Any]:
+    """Latencies (after the warm-up), delivery counts and recording completeness of one phase."""
+    lat_seq = [(seq, (tp - th) * 1e3) for seq, th, tp in list(sink.window_latency) if th >= t_steady]
+    if args.verbose:
+        print(f"  [{name}] slowest windows (seq, ms): {sorted(lat_seq, key=lambda x: -x[1])[:5]}")
+    lat = [x for _s, x in lat_seq]
+    e2e = [(t - th) * 1e3 for v in records if v.kind == "prompt" for t, th in v.windows if th >= t_steady]
+    prompt = [v for v in records if v.kind == "prompt"]
+    return dict(
+        live_p50_ms=_pct(lat, 50), live_p99_ms=_pct(lat, 99), windows_published=report.windows_published,
+        windows_dropped=report.windows_dropped, e2e_p50_ms=_pct(e2e, 50), e2e_p99_ms=_pct(e2e, 99),
+        session_packets=report.packets, recorded_packets=_count_records(report.session_tlog),
+        link_packets_lost=report.packets_lost, models_sent=models_sent,
+        models_received_min=min((v.models for v in prompt), default=0),
+        models_received_max=max((v.models for v in prompt), default=0),
+        slow_windows=[len(v.windows) for v in records if v.kind == "slow"],
+        slow_models=[v.models for v in records if v.kind == "slow"],
+        prompt_windows_median=statistics.median([len(v.windows) for v in prompt]) if prompt else 0,
+        sink_error=sink.error,
+    )
+
+
 def run_phase(name: str, args: argparse.Namespace, work: Path, field: Path, router: Router,
               n_subs: int, restart: bool) -> dict[str, Any]:
     from groundstation.service import Service
@@ -286,39 +347,8 @@ def run_phase(name: str, args: argparse.Namespace, work: Path, field: Path, rout
         t_ready = [0.0]
 
         def restarter(loop: asyncio.AbstractEventLoop) -> None:
-            time.sleep(args.duration / 2)
             prompt = [probe] if probe is not None else [v for v in viewers if v.kind == "prompt"]
-            t0 = time.time()
-            router.close()
-            t_closed = time.time()
-            time.sleep(1.0)
-            n_before = models_sent[0]
-            # a model published while the router is down: lost for live subscribers, but the
-            # queryable must serve it once the router is back
-            while models_sent[0] == n_before and time.time() - t_closed < 5:
-                time.sleep(0.05)
-            outage_model = models_sent[0]
-            router.open()
-            t_back = time.time()
-            first = None
-            while time.time() - t_back < 15.0:
-                arrivals = [t for v in prompt for t, _ in v.windows if t > t_back]
-                if arrivals:
-                    first = min(arrivals)
-                    break
-                time.sleep(0.01)
-            served = None
-            if first is not None:
-                late = Viewer(viewer_cfg, "bench", "prompt", 0.0)
-                try:
-                    served = [json.loads(r.ok.payload.to_bytes()).get("seq")
-                              for r in late.session.get("heli/bench/model/latest", timeout=3.0) if r.ok]
-                finally:
-                    late.close()
-            restart_info.update(close_s=t_closed - t0, served_after_back=served, router_open_s=t_back - t_closed - 1.0,
-                                resume_after_back_s=(first - t_back) if first else float("nan"),
-                                resume_after_close_s=(first - t_closed) if first else float("nan"),
-                                outage_model=outage_model)
+            _restart_router(args, router, prompt, viewer_cfg, models_sent, restart_info)
 
         async def main() -> Any:
             loop = asyncio.get_running_loop()
@@ -345,27 +375,8 @@ def run_phase(name: str, args: argparse.Namespace, work: Path, field: Path, rout
         report = asyncio.run(main())
         records = host.finish() if host is not None else _drain(viewers)
         host = None
-        sink = service.zenoh
-        t_steady = t_ready[0] + args.warmup_s
-        lat_seq = [(seq, (tp - th) * 1e3) for seq, th, tp in list(sink.window_latency) if th >= t_steady]
-        if args.verbose:
-            print(f"  [{name}] slowest windows (seq, ms): {sorted(lat_seq, key=lambda x: -x[1])[:5]}")
-        lat = [x for _s, x in lat_seq]
-        e2e = [(t - th) * 1e3 for v in records if v.kind == "prompt" for t, th in v.windows if th >= t_steady]
-        prompt = [v for v in records if v.kind == "prompt"]
-        recorded = _count_records(report.session_tlog)
-        out.update(
-            live_p50_ms=_pct(lat, 50), live_p99_ms=_pct(lat, 99), windows_published=report.windows_published,
-            windows_dropped=report.windows_dropped, e2e_p50_ms=_pct(e2e, 50), e2e_p99_ms=_pct(e2e, 99),
-            session_packets=report.packets, recorded_packets=recorded, link_packets_lost=report.packets_lost,
-            models_sent=models_sent[0],
-            models_received_min=min((v.models for v in prompt), default=0),
-            models_received_max=max((v.models for v in prompt), default=0),
-            slow_windows=[len(v.windows) for v in records if v.kind == "slow"],
-            slow_models=[v.models for v in records if v.kind == "slow"],
-            prompt_windows_median=statistics.median([len(v.windows) for v in prompt]) if prompt else 0,
-            sink_error=sink.error, **restart_info,
-        )
+        out.update(_phase_figures(name, args, report, records, service.zenoh, t_ready[0] + args.warmup_s,
+                                  models_sent[0]), **restart_info)
     finally:
         if host is not None:
             host.kill()

@@ -168,6 +168,37 @@ def excitation_gains(ac: Aircraft) -> dict[str, float]:
     return out
 
 
+_Block = tuple[str, str, str | None, float, dict[str, float]]   # name, kind, axis, duration, parameters
+
+
+def _card_round(rng: np.random.Generator, amp: dict[str, float], sweeps: bool) -> list[list[_Block]]:
+    """One round of excitation: per input (shuffled) a sweep and a doublet with hovers between,
+    and the forward and sideways legs at random places."""
+    axes = list(INPUTS)
+    rng.shuffle(axes)
+    blocks: list[list[_Block]] = []
+    for a in axes:
+        pulse = float(rng.uniform(0.2, 0.4) if a in ("lat", "lon") else rng.uniform(0.3, 0.5))
+        sweep = ("sweep_" + a, "sweep", a, float(rng.uniform(15.0, 20.0)),
+                 {"amplitude": amp[a] * float(rng.uniform(0.75, 1.25)), "f0_hz": 0.3,
+                  "f1_hz": float(rng.uniform(6.0, 8.0))})
+        doublet = ("doublet_" + a, "doublet", a, 7 * pulse + 2.5,
+                   {"amplitude": 1.0 * amp[a] * float(rng.uniform(0.75, 1.25)), "pulse_s": pulse})
+        if not sweeps:  # the same draws, a slower multistep in the sweep's place
+            sweep = ("doublet2_" + a, "doublet", a, 7 * 1.6 * pulse + 2.5,
+                     {"amplitude": doublet[4]["amplitude"], "pulse_s": 1.6 * pulse})
+        pair = [sweep, doublet] if rng.random() < 0.7 else [doublet, sweep]
+        blocks.append([pair[0], ("hover", "hold", None, float(rng.uniform(2.0, 4.0)), {}), pair[1],
+                       ("hover", "hold", None, float(rng.uniform(2.0, 4.0)), {})])
+    for name, direction in (("leg_forward", 0.0),
+                            ("leg_sideways", math.copysign(math.pi / 2, rng.uniform(-1, 1)))):
+        leg: list[_Block] = [(name, "leg", None, float(rng.uniform(9.0, 13.0)),
+                {"amplitude": float(rng.uniform(3.0, 6.0)), "direction_rad": direction}),
+               ("hover", "hold", None, float(rng.uniform(2.0, 4.0)), {})]
+        blocks.insert(int(rng.integers(0, len(blocks) + 1)), leg)
+    return blocks
+
+
 def make_card(ac: Aircraft, rng: np.random.Generator, *, duration_s: float | None = None,
               heading_rad: float | None = None, excitation_scale: float = 1.0, sweeps: bool = True) -> Card:
     """Plan one flight. ``duration_s`` (armed time, default ~150-200 s, minimum ~30 s) scales the card;
@@ -201,35 +232,10 @@ def make_card(ac: Aircraft, rng: np.random.Generator, *, duration_s: float | Non
     ]
     tail_s = sum(d for _, _, d in tail)
     fixed_s = sum(d for _, _, d in fixed) + tail_s
-    def one_round() -> list[list[tuple[str, str, str | None, float, dict[str, float]]]]:
-        axes = list(INPUTS)
-        rng.shuffle(axes)
-        blocks: list[list[tuple[str, str, str | None, float, dict[str, float]]]] = []
-        for a in axes:
-            pulse = float(rng.uniform(0.2, 0.4) if a in ("lat", "lon") else rng.uniform(0.3, 0.5))
-            sweep = ("sweep_" + a, "sweep", a, float(rng.uniform(15.0, 20.0)),
-                     {"amplitude": amp[a] * float(rng.uniform(0.75, 1.25)), "f0_hz": 0.3,
-                      "f1_hz": float(rng.uniform(6.0, 8.0))})
-            doublet = ("doublet_" + a, "doublet", a, 7 * pulse + 2.5,
-                       {"amplitude": 1.0 * amp[a] * float(rng.uniform(0.75, 1.25)), "pulse_s": pulse})
-            if not sweeps:  # the same draws, a slower multistep in the sweep's place
-                sweep = ("doublet2_" + a, "doublet", a, 7 * 1.6 * pulse + 2.5,
-                         {"amplitude": doublet[4]["amplitude"], "pulse_s": 1.6 * pulse})
-            pair = [sweep, doublet] if rng.random() < 0.7 else [doublet, sweep]
-            blocks.append([pair[0], ("hover", "hold", None, float(rng.uniform(2.0, 4.0)), {}), pair[1],
-                           ("hover", "hold", None, float(rng.uniform(2.0, 4.0)), {})])
-        for name, direction in (("leg_forward", 0.0),
-                                ("leg_sideways", math.copysign(math.pi / 2, rng.uniform(-1, 1)))):
-            leg: list[tuple[str, str, str | None, float, dict[str, float]]] = [(name, "leg", None, float(rng.uniform(9.0, 13.0)),
-                    {"amplitude": float(rng.uniform(3.0, 6.0)), "direction_rad": direction}),
-                   ("hover", "hold", None, float(rng.uniform(2.0, 4.0)), {})]
-            blocks.insert(int(rng.integers(0, len(blocks) + 1)), leg)
-        return blocks
-
-    blocks = one_round()
+    blocks = _card_round(rng, amp, sweeps)
     round_s = sum(d for b in blocks for _, _, _, d, _ in b)
     for _ in range(max(0, int(round((nominal - fixed_s) / round_s / 1.25)) - 1)):  # long flights: more rounds
-        blocks += one_round()
+        blocks += _card_round(rng, amp, sweeps)
     variable_s = sum(d for b in blocks for _, _, _, d, _ in b)
     scale = max(0.05, (nominal - fixed_s) / variable_s)
     segs: list[Segment] = []
