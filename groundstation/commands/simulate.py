@@ -122,7 +122,7 @@ def _write_bin(args: argparse.Namespace, effects: tuple, aircraft: object) -> in
 
 
 def _serve(args: argparse.Namespace, effects: tuple, aircraft: object) -> int:
-    from hil_replay.fc import serve_simulated_fc
+    from hil_replay.fc import FcConfig, serve_simulated_fc
 
     if not args.speed > 0:
         raise ValueError(f"--speed: {args.speed} must be > 0")
@@ -136,5 +136,6 @@ def _serve(args: argparse.Namespace, effects: tuple, aircraft: object) -> int:
 
     with contextlib.suppress(KeyboardInterrupt):
         asyncio.run(serve_simulated_fc(args.link_path, speed=args.speed, seed=args.seed, flights=flights,
-                                       effects=effects, aircraft=aircraft, on_ready=ready, sim_options=options))
+                                       effects=effects, aircraft=aircraft, on_ready=ready, sim_options=options,
+                                       config=FcConfig(seed=args.seed, record_dataflash=True)))
     return 0
