@@ -1,7 +1,7 @@
 """Onboard log listing and download over a live link: the IO around :mod:`firmware_interface.logdownload`.
 
-:class:`LogTransfer` opens nothing itself: it takes a :class:`~firmware_interface.transports.Link`,
-runs a passive-streams :class:`~firmware_interface.session.MavlinkSession` over it with
+:class:`LogTransfer` takes an opener (``async () -> Link``, so a pulled cable is reopened) or an open
+:class:`~firmware_interface.transports.Link`, runs a passive-streams :class:`~firmware_interface.session.MavlinkSession` over it with
 :class:`~firmware_interface.link.LinkRunner` (GCS heartbeat only; every request goes through the
 session's read-only allowlist), waits for the FC's heartbeat, and then:
 
@@ -20,7 +20,7 @@ from __future__ import annotations
 import asyncio
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
@@ -60,9 +60,8 @@ class DownloadError(LinkError):
 class LogTransfer:
     """List and download onboard logs over ``link`` (see the module docstring)."""
 
-    def __init__(self, link: Link, *, config: DownloadConfig | None = None, url: str = "",
-                 clock: Callable[[], float] = time.time, heartbeat_timeout_s: float = 10.0) -> None:
-        self.link = link
+    def __init__(self, link: Link | Callable[[], Awaitable[Link]], *, config: DownloadConfig | None = None,
+                 url: str = "", clock: Callable[[], float] = time.time, heartbeat_timeout_s: float = 10.0) -> None:
         self.url = url or "the link"
         self.config = config or DownloadConfig()
         self.clock = clock
@@ -70,7 +69,9 @@ class LogTransfer:
         self.session = MavlinkSession(SessionConfig(request_streams=False, link_timeout_s=2.0))
         self._decoder = mavlink2.MAVLink(None, 255, 190)
         self._decoder.robust_parsing = True
-        self._runner = LinkRunner(link, self.session, self._on_events, clock=clock, tick_s=0.02)
+        # an opener (``async () -> Link``) lets the driver reopen a port that vanished (cable pulled)
+        self._runner = LinkRunner(link, self.session, self._on_events, clock=clock, tick_s=0.02,
+                                  backoff_s=0.05, backoff_max_s=0.5)
         self._task: asyncio.Task[None] | None = None
         self._fc: tuple[int, int] | None = None
         self._have_fc = asyncio.Event()
@@ -101,6 +102,12 @@ class LogTransfer:
             except (TimeoutError, asyncio.CancelledError, LinkError, OSError):
                 pass
             self._task = None
+        link = self._runner.link
+        if link is not None:
+            try:
+                await link.close()
+            except (LinkError, OSError):
+                pass
 
     # ------------------------------------------------------------------ events from the link
 
@@ -162,9 +169,10 @@ class LogTransfer:
             for msg in machine.messages_to_send():
                 self.session.send_message(msg)
             out = self.session.data_to_send(self.clock())
-            if out:
+            link = self._runner.link
+            if out and link is not None:
                 try:
-                    await self.link.write(out)
+                    await link.write(out)
                 except (LinkError, OSError):
                     pass
 

@@ -101,6 +101,16 @@ class IdentificationSection:
 
 
 @dataclass(frozen=True)
+class OnboardLogsSection:
+    """``[onboard_logs]``: download each flight's onboard log over the link while disarmed between flights."""
+
+    download: bool = False
+    dir: str = ""                   # default: <record_dir>/onboard
+    after_disarm_s: float = 2.0     # let the FC close its log before listing
+    give_up_s: float = 8.0          # the FC sends nothing this long: keep what came, resume after the next disarm
+
+
+@dataclass(frozen=True)
 class SimSection:
     speed: float = 1.0
     flights: int = 2
@@ -128,6 +138,7 @@ class ServiceConfig:
     zenoh: ZenohSection = field(default_factory=ZenohSection)
     rerun: RerunSection = field(default_factory=RerunSection)
     sim: SimSection = field(default_factory=SimSection)
+    onboard_logs: OnboardLogsSection = field(default_factory=OnboardLogsSection)
 
     #: keys set elsewhere: "section.key" -> where the value comes from (rejected in a file)
     CONFIG_DERIVED: typing.ClassVar[dict[str, str]] = {

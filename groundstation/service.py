@@ -156,6 +156,8 @@ class Service:
         self.packets = 0
         self.window_seq_published = 0
         self.on_window: Callable[[Window], None] | None = None     # test/bench hook (loop thread)
+        self.onboard: Any = None             # groundstation.onboard.OnboardLogs when [onboard_logs] download
+        self._onboard_busy = False
 
     # ------------------------------------------------------------------ control
 
@@ -210,8 +212,13 @@ class Service:
         from hil_replay.fc import SimulatedFCThread
 
         sc = self.config.sim
+        fc_config = self.fc_config
+        if fc_config is None and self.config.onboard_logs.download:
+            from hil_replay.fc import FcConfig
+
+            fc_config = FcConfig(seed=sc.seed, record_dataflash=True)   # an onboard log to download
         self.sim = SimulatedFCThread(speed=sc.speed, seed=sc.seed, flights=sc.flights, effects=sc.effects,
-                                     config=self.fc_config, sim_options=self.sim_options,
+                                     config=fc_config, sim_options=self.sim_options,
                                      session=self.frame_source)
         self.sim.start()
         return f"serial://{self.sim.port_path}:{self.config.link.baud}"
@@ -247,6 +254,12 @@ class Service:
                 self.signing, signer = session_hooks(
                     SigningConfig(lk.signing_key_file, lk.signing_link_id, lk.signing_accept_unsigned), time.time())
                 self.session = MavlinkSession(verifier=self.signing, signer=signer)
+                ob = self.config.onboard_logs
+                if ob.download:
+                    from groundstation.onboard import OnboardLogs
+
+                    self.onboard = OnboardLogs(ob, Path(ob.dir) if ob.dir else self.record_dir / "onboard",
+                                               self.session, self.log)
                 self._open_sinks(loop)
                 if self.config.identification.enabled:
                     self._executor = self._new_executor()
@@ -322,6 +335,11 @@ class Service:
         status_every = 1.0 / self.config.service.status_rate_hz
         next_status = time.monotonic()
         while not self._stop.is_set():
+            if self.onboard is not None:
+                self.onboard.tick(time.time())   # its requests leave with the link driver's next tick
+                if self._onboard_busy and not self.onboard.busy:
+                    self._check_exit()   # the download (and its file) finished since the last tick
+                self._onboard_busy = self.onboard.busy
             tick = getattr(self.recorder, "tick", None)
             if tick is not None:
                 tick()
@@ -337,8 +355,11 @@ class Service:
     def _on_events(self, events: list[Any]) -> None:
         """A batch of session events from the link driver (on the loop)."""
         self.recorder.handle(events)          # recording first, before anything that could fail
+        now = time.time()
+        if self.onboard is not None:
+            self.onboard.on_events(events, now)
         try:
-            self._live(events, time.time())
+            self._live(events, now)
         except Exception as exc:  # a live-path bug must never stop the recording: count, warn once
             self.live_errors += 1
             if self.live_errors == 1:
@@ -418,6 +439,8 @@ class Service:
             self._flight_tlogs[fe.flight] = path
             self.report.flight_tlogs.append(path)
         self.log(f"flight {fe.flight}: disarmed after {fe.duration_s:.1f} s; recorded {path or '(no file)'}")
+        if self.onboard is not None:
+            self.onboard.flight_ended(time.time())
         self._rerun_event(f"flight {fe.flight} disarmed ({fe.duration_s:.1f} s)", "INFO")
         if self.rerun is not None and self._rerun_calls is not None:
             self._flush_rows_to_rerun()
@@ -545,7 +568,7 @@ class Service:
 
     def _check_exit(self) -> None:
         k = self.config.service.exit_after_flights
-        if k and self.flights_completed >= k and not self._pending:
+        if k and self.flights_completed >= k and not self._pending and not (self.onboard and self.onboard.busy):
             self.request_stop(f"{k} flight(s) done")
 
     # ------------------------------------------------------------------ status

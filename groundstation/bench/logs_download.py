@@ -66,22 +66,19 @@ def download(data: bytes, *, corrupt: float = 0.0, unplug: bool = False, seed: i
     pulled = threading.Event()
 
     async def main() -> tuple[bytes, int]:
-        link = await open_link(f"serial://{fc.port_path}:921600")
-        try:
-            async with LogTransfer(link, config=DownloadConfig(link_lost_give_up_s=30.0)) as tr:
-                (entry,) = await tr.list_logs()
+        url = f"serial://{fc.port_path}:921600"
+        async with LogTransfer(lambda: open_link(url), config=DownloadConfig(link_lost_give_up_s=30.0)) as tr:
+            (entry,) = await tr.list_logs()
 
-                def progress(received: int, size: int) -> None:
-                    samples.append((time.perf_counter(), received))
-                    if unplug and received > size // 2 and not pulled.is_set():
-                        pulled.set()
-                        fc.unplug(1.0)
+            def progress(received: int, size: int) -> None:
+                samples.append((time.perf_counter(), received))
+                if unplug and received > size // 2 and not pulled.is_set():
+                    pulled.set()
+                    fc.unplug(1.0)
 
-                samples.append((time.perf_counter(), 0))
-                got = await tr.download(entry, on_progress=progress)
-                return got, entry.size_bytes
-        finally:
-            await link.close()
+            samples.append((time.perf_counter(), 0))
+            got = await tr.download(entry, on_progress=progress)
+            return got, entry.size_bytes
 
     with fc:
         got, size = asyncio.run(main())

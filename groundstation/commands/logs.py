@@ -48,16 +48,20 @@ async def _main(args: argparse.Namespace) -> int:
 
     if not args.give_up_s > 0:
         raise ValueError(f"--give-up-s: {args.give_up_s} must be > 0")
-    link = await open_link(args.link)
-    try:
-        async with LogTransfer(link, url=args.link, config=DownloadConfig(give_up_s=args.give_up_s)) as tr:
-            entries = await tr.list_logs()
-            if args.action == "list":
-                _print_list(entries, args.json)
-                return 0
-            return await _get(tr, entries, args)
-    finally:
-        await link.close()
+    first = await open_link(args.link)  # a bad URL or port fails here, in one line
+    opened = [first]
+
+    async def opener():
+        if opened:
+            return opened.pop()
+        return await open_link(args.link)
+
+    async with LogTransfer(opener, url=args.link, config=DownloadConfig(give_up_s=args.give_up_s)) as tr:
+        entries = await tr.list_logs()
+        if args.action == "list":
+            _print_list(entries, args.json)
+            return 0
+        return await _get(tr, entries, args)
 
 
 def _print_list(entries: tuple, as_json: bool) -> None:

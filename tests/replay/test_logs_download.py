@@ -95,19 +95,16 @@ def test_byte_identical_through_pty_with_one_percent_corruption_and_an_unplug(fl
     pulled = threading.Event()
 
     async def main():
-        link = await open_link(f"serial://{fc.port_path}:921600")
-        try:
-            async with LogTransfer(link, config=DownloadConfig(link_lost_give_up_s=30.0)) as tr:
-                (entry,) = await tr.list_logs()
+        url = f"serial://{fc.port_path}:921600"
+        async with LogTransfer(lambda: open_link(url), config=DownloadConfig(link_lost_give_up_s=30.0)) as tr:
+            (entry,) = await tr.list_logs()
 
-                def progress(received, size):
-                    if received > size // 2 and not pulled.is_set():
-                        pulled.set()
-                        fc.unplug(1.0)
+            def progress(received, size):
+                if received > size // 2 and not pulled.is_set():
+                    pulled.set()
+                    fc.unplug(1.0)
 
-                return entry, await tr.download(entry, on_progress=progress)
-        finally:
-            await link.close()
+            return entry, await tr.download(entry, on_progress=progress)
 
     with fc:
         entry, data = asyncio.run(main())

@@ -1,0 +1,146 @@
+"""The service's onboard-log download between flights (``[onboard_logs] download = true``).
+
+After each disarm (and a short wait for the FC to close its log), the newest onboard log is listed
+and downloaded over the service's own link and MAVLink session, with the sans-IO
+:class:`~firmware_interface.logdownload.LogLister` and
+:class:`~firmware_interface.logdownload.LogDownloader`: the service hands this object its session
+events (:meth:`OnboardLogs.on_events`) and calls :meth:`OnboardLogs.tick` from its timer; requests
+leave through the session's read-only allowlist. Only while disarmed: arming stops the download (the
+FC would not answer anyway), keeps what arrived, and the next disarm resumes it. A finished log is
+written atomically and verified in a thread (:func:`firmware_interface.logtransfer.write_verified`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+from firmware_interface.logdownload import (
+    DownloadComplete,
+    DownloadConfig,
+    DownloadFailed,
+    LogDownloader,
+    LogEntry,
+    LogListed,
+    LogLister,
+    LogRequestFailed,
+)
+from firmware_interface.samples import Heartbeat, LinkLost, LinkRestored, RawPacket
+from groundstation.config import OnboardLogsSection
+
+__all__ = ["OnboardLogs", "OnboardLogsSection"]
+
+
+class OnboardLogs:
+    """See the module docstring. ``session`` is the service's MavlinkSession; ``log`` one-line messages."""
+
+    def __init__(self, config: OnboardLogsSection, out_dir: Path, session: Any, log: Callable[[str], None]) -> None:
+        self.config = config
+        self.out_dir = out_dir
+        self.session = session
+        self.log = log
+        self.dl_config = DownloadConfig(give_up_s=config.give_up_s)
+        self._decoder = mavlink2.MAVLink(None, 255, 190)
+        self._decoder.robust_parsing = True
+        self._fc: tuple[int, int] | None = None
+        self.armed = False
+        self._start_at: float | None = None
+        self._machine: Any = None
+        self._partial: dict[int, tuple[bytes, bytes]] = {}
+        self._done: set[int] = set()
+        self._writing: set[asyncio.Future[Any]] = set()
+        self._last: LogDownloader | None = None
+        self.downloaded: list[str] = []
+
+    @property
+    def busy(self) -> bool:
+        return self._start_at is not None or self._machine is not None or bool(self._writing)
+
+    def flight_ended(self, now: float) -> None:
+        self._start_at = now + self.config.after_disarm_s
+
+    def on_events(self, events: list[Any], now: float) -> None:
+        m = self._machine
+        for ev in events:
+            t = type(ev)
+            if t is RawPacket:
+                if m is not None and ev.msg_type in ("LOG_ENTRY", "LOG_DATA") and self._fc and ev.sysid == self._fc[0]:
+                    m.receive_message(self._decoder.decode(bytearray(ev.data)), now)
+            elif t is Heartbeat:
+                if ev.autopilot != mavlink2.MAV_AUTOPILOT_INVALID and ev.mav_type != mavlink2.MAV_TYPE_GCS:
+                    self._fc = self._fc or (ev.sysid, ev.compid)
+                    if ev.sysid == self._fc[0]:
+                        self.armed = bool(ev.armed)
+                        if m is not None:
+                            m.fc_armed(self.armed, now)
+            elif t is LinkLost and isinstance(m, LogDownloader):
+                m.link_lost(now)
+            elif t is LinkRestored and isinstance(m, LogDownloader):
+                m.link_restored(now)
+
+    def tick(self, now: float) -> None:
+        if self._machine is None and self._start_at is not None and now >= self._start_at:
+            self._start_at = None
+            if self.armed or self._fc is None:
+                return
+            self._machine = LogLister(self._fc, self.dl_config)
+            self._machine.start(now)
+        m = self._machine
+        if m is None:
+            return
+        m.handle_timer(now)
+        for msg in m.messages_to_send():
+            self.session.send_message(msg)
+        for ev in m.events():
+            self._on_result(ev, now)
+
+    def _on_result(self, ev: Any, now: float) -> None:
+        if not isinstance(ev, (LogListed, LogRequestFailed, DownloadFailed, DownloadComplete)):
+            return  # progress
+        self._machine = None
+        if isinstance(ev, LogListed):
+            todo = [e for e in ev.entries if e.log_id not in self._done]
+            if todo:
+                self._download(max(todo, key=lambda e: e.log_id), now)
+        elif isinstance(ev, LogRequestFailed):
+            self.log(f"onboard log: {ev.reason}")
+        elif isinstance(ev, DownloadFailed):
+            last = self._last
+            if last is not None and last.received_blocks:
+                self._partial[ev.log_id] = (bytes(last.data), bytes(last.have))
+            self.log(f"onboard {ev.reason} (kept; resumes after the next disarm)")
+        elif isinstance(ev, DownloadComplete):
+            self._done.add(ev.log_id)
+            self._partial.pop(ev.log_id, None)
+            self._write(ev)
+
+    def _download(self, entry: LogEntry, now: float) -> None:
+        part = self._partial.get(entry.log_id)
+        data, have = part if part is not None else (None, None)
+        dl = LogDownloader(entry, self._fc or (1, 1), self.dl_config, data=data, have=have)
+        self._last = self._machine = dl
+        dl.fc_armed(self.armed, now)
+        dl.start(now)
+        self.log(f"onboard log {entry.log_id}: downloading {entry.size_bytes / 1024:.0f} kB")
+
+    def _write(self, ev: DownloadComplete) -> None:
+        from firmware_interface.logtransfer import write_verified
+
+        path = self.out_dir / f"log-{ev.log_id}.bin"
+        fut = asyncio.get_running_loop().run_in_executor(None, write_verified, path, ev.data, len(ev.data))
+        self._writing.add(fut)
+
+        def done(f: asyncio.Future[Any]) -> None:
+            self._writing.discard(f)
+            exc = f.exception()
+            if exc is not None:
+                self.log(f"onboard log {ev.log_id}: {exc}")
+            else:
+                self.downloaded.append(str(path))
+                self.log(f"onboard log {ev.log_id}: wrote {path}, verified")
+
+        fut.add_done_callback(done)

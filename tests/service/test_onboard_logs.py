@@ -1,0 +1,51 @@
+"""The service downloads each flight's onboard log over its own link while disarmed, with the built-in
+simulated FC (which writes a 200 Hz dataflash log of the flight), and every byte it sent the FC is a
+heartbeat, a stream request or one of the log-download requests."""
+
+from __future__ import annotations
+
+import asyncio
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+from firmware_interface.readers import load_log
+from groundstation.service import Service
+from tests.service.conftest import service_config
+
+
+class TeeService(Service):
+    def _start_builtin_sim(self) -> str:
+        url = super()._start_builtin_sim()
+        self.to_fc: list[bytes] = []
+        proto = self.sim.fc.protocol
+        original = proto.receive_data
+
+        def tee(data: bytes) -> None:
+            self.to_fc.append(bytes(data))
+            original(data)
+
+        proto.receive_data = tee
+        return url
+
+
+def test_service_downloads_the_flight_log_between_flights(tmp_path):
+    cfg = service_config(tmp_path, service={"exit_after_flights": 1}, sim={"speed": 20.0, "flights": 1, "seed": 6},
+                         identification={"enabled": False},
+                         onboard_logs={"download": True, "after_disarm_s": 0.5})
+    lines: list[str] = []
+    service = TeeService(cfg, sim_options={"flight_duration_s": 40.0, "pause_s": 2.0}, log=lines.append)
+    report = asyncio.run(asyncio.wait_for(service.run(), 240))
+    assert report.flights == 1, lines
+    fc_logs = service.sim.fc.protocol.logs
+    assert len(fc_logs) == 1
+    path = tmp_path / "rec" / "onboard" / "log-1.bin"
+    assert service.onboard.downloaded == [str(path)], (lines, service._stop_reason)
+    assert path.read_bytes() == fc_logs[0]
+    log = load_log(path)
+    assert log.has("IMU") and log.chirps
+    parser = mavlink2.MAVLink(None, 1, 1)
+    parser.robust_parsing = True
+    kinds = {m.get_type() for m in parser.parse_buffer(b"".join(service.to_fc)) or [] if m.get_type() != "BAD_DATA"}
+    assert {"LOG_REQUEST_LIST", "LOG_REQUEST_DATA", "LOG_REQUEST_END"} <= kinds
+    assert kinds <= {"HEARTBEAT", "COMMAND_LONG", "REQUEST_DATA_STREAM", "LOG_REQUEST_LIST", "LOG_REQUEST_DATA",
+                     "LOG_REQUEST_END"}
