@@ -86,7 +86,8 @@ def columns(log: Any, name: str) -> dict[str, np.ndarray] | None:
     body = fmt.len - 3
     dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": body})
     buf = np.frombuffer(log.data_map, dtype=np.uint8)
-    raw = buf[(offs + 3)[:, None] + np.arange(body)]
+    # every byte position as the start of a body-long row (a view); one row copied per record
+    raw = np.lib.stride_tricks.sliding_window_view(buf, body)[offs + 3]
     rec = raw.view(dtype).reshape(-1)
     out: dict[str, np.ndarray] = {}
     for col, dt, mult in zip(names, formats, mults, strict=True):

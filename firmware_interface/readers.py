@@ -71,19 +71,24 @@ def load_log(path: str | os.PathLike[str]) -> LogData:
     """Read a .tlog, dataflash .bin, PX4 .px4log or PX4 .ulg into :class:`LogData` (raises LogError)."""
     p = Path(path)
     try:
-        data = p.read_bytes()
+        with p.open("rb") as fh:
+            head = fh.read(16)  # the content decides the reader; only a .tlog is read here whole
     except FileNotFoundError:
         raise LogError(f"{p}: no such file") from None
     except IsADirectoryError:
         raise LogError(f"{p}: is a directory, not a log file") from None
     except OSError as exc:
         raise LogError(f"{p}: cannot read ({exc.strerror or exc})") from None
-    if not data:
+    if not head:
         raise LogError(f"{p}: empty file")
-    if data[:3] == _DF_MAGIC:
+    if head[:3] == _DF_MAGIC:
         return load_dataflash(p)
-    if data[:7] == ULOG_MAGIC:
+    if head[:7] == ULOG_MAGIC:
         return load_ulog(p)
+    try:
+        data = p.read_bytes()
+    except OSError as exc:
+        raise LogError(f"{p}: cannot read ({exc.strerror or exc})") from None
     return load_tlog_bytes(data, str(p))
 
 
