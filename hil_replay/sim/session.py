@@ -182,59 +182,21 @@ class SimulatedSession:
         previous tick (with the frame's own: 200 Hz), as an autopilot's onboard log holds them."""
         ac = self.aircraft
         dt = 1.0 / FRAME_RATE_HZ
-        h = dt / SUBSTEPS
-        eff = {e.name: e for e in self.effects}
-        drag_c = float(eff["quadratic_drag"].params["c_per_m"]) if "quadratic_drag" in eff else 0.0
-        ge_gain = float(eff["ground_effect"].params["gain"]) if "ground_effect" in eff else 0.0
-        step = make_stepper(ac, drag_c_per_m=drag_c, ground_effect_gain=ge_gain, wind="wind_gust" in eff)
-        sf = make_specific_force(ac, drag_c_per_m=drag_c, ground_effect_gain=ge_gain)
+        fx = _EffectState.of(self.effects, ac, dt, np.random.default_rng(self._seeds[4]))
+        step = make_stepper(ac, drag_c_per_m=fx.drag_c, ground_effect_gain=fx.ge_gain, wind=fx.wind)
+        sf = make_specific_force(ac, drag_c_per_m=fx.drag_c, ground_effect_gain=fx.ge_gain)
         pilot = Pilot(ac, np.random.default_rng(self._seeds[1]), dt_s=dt, config=self.pilot_config)
         noise_rng = np.random.default_rng(self._seeds[2])
         gust = None
-        if "wind_gust" in eff:
-            gp = eff["wind_gust"].params
+        if fx.wind:
+            gp = next(e for e in self.effects if e.name == "wind_gust").params
             gust = GustModel(np.random.default_rng(self._seeds[3]), dt, float(gp["sigma_m_s"]), float(gp["tau_s"]))
-        chains: list[InputChain | None] = [None, None, None, None]
-        for i, ch in enumerate(INPUTS):
-            kw: dict[str, float] = {}
-            for e in self.effects:
-                if e.input == ch and e.name in CHAIN_EFFECTS:
-                    kw.update({k: float(v) for k, v in e.params.items()})
-            if kw:
-                chains[i] = InputChain(h, **kw)
-        bias = [0.0, 0.0, 0.0]
-        gscale = [1.0, 1.0, 1.0]
-        asym = [0.0, 0.0, 0.0, 0.0]
-        for e in self.effects:
-            if e.name == "gyro_bias":
-                bias["pqr".index(str(e.output))] += float(e.params["bias_rad_s"])
-            elif e.name == "gyro_scale":
-                gscale["pqr".index(str(e.output))] = 1.0 + float(e.params["scale_error"])
-            elif e.name == "input_asymmetry":
-                asym[INPUTS.index(str(e.input))] = float(e.params["asymmetry"])
-        vscale = 1.0 + float(eff["velocity_scale"].params["scale_error"]) if "velocity_scale" in eff else 1.0
-        sag = float(eff["rotor_sag"].params["sag_per_unit"]) if "rotor_sag" in eff else 0.0
-        post = _PostChain(asym, sag, float(ac.parameters["Z_col"])) if sag or any(asym) else None
-        vib_amp, vib_w = 0.0, 0.0
-        vib_phase = np.random.default_rng(self._seeds[4]).uniform(0, 2 * math.pi, 6).tolist()
-        if "rotor_vibration" in eff:
-            vib_amp = float(eff["rotor_vibration"].params["amplitude_rad_s"])
-            vib_w = 2 * math.pi * float(eff["rotor_vibration"].params["rpm"]) / 60.0
-        vib_axis = (1.0, 0.8, 0.5)
-        latency = float(eff["velocity_latency"].params["latency_s"]) if "velocity_latency" in eff else 0.0
-        lat_ticks = latency / dt
-        hist: deque[tuple[float, ...]] = deque(maxlen=int(lat_ticks) + 3)
-        nz = self.noise
-
+        sensors = _Sensors(self.noise, fx, sf, ac, dt)
         trim = [float(ac.trim_pwm[c]) for c in INPUTS]
         ppu = float(ac.pwm_per_unit)
-        servo_idx = [int(ac.servo[c]) - 1 for c in INPUTS]
-        P = ac.parameters
-        Z_col, Z_ped = float(P["Z_col"]), float(P["Z_ped"])
+        Z_col = float(ac.parameters["Z_col"])
         # ground idle: collective well below hover pitch (thrust-reducing direction for this aircraft)
         col_low = min(0.9, 0.25 * max(1.0, 6.0 / max(abs(Z_col), 1e-3))) * (1.0 if Z_col > 0 else -1.0)
-        cap_mah = float(ac.battery_capacity_mah)
-        cells = ac.battery_cells
 
         avail_all = tuple(n for n in MESSAGE_NAMES if n not in ("HEARTBEAT", "GPS_RAW_INT", "SYS_STATUS"))
         avail_gps = avail_all + ("GPS_RAW_INT",)
@@ -245,177 +207,257 @@ class SimulatedSession:
         landed = True
         air: list[list[float | None]] = []
         self.in_air_fc_s = air  # filled while flying: [[liftoff, touchdown], ...] (FC s)
-        used_mah = 0.0
         flight_k = -1
         off_n = off_e = 0.0
         n_ticks = int(round(self.end_s * FRAME_RATE_HZ)) + 1
         arm = self.arm_times_s
         ends = [a + c.duration_s for a, c in zip(arm, self.cards, strict=False)]
-        dcmd = [0.0, 0.0, col_low, 0.0]
-        g = G_M_S2
-        throttle = 1000
         # high-rate gyro (200 Hz) only when asked: its own noise stream, so the 50 Hz telemetry is unchanged
         fast_rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(6,))) if fast_gyro else None
         fast_before: tuple[tuple[float, ...], ...] = ()
         for k in range(n_ticks):
             t = k * dt
-            fi = None
-            for i in range(self.n_flights):
-                if arm[i] - 1e-9 <= t < ends[i] - 1e-9:
-                    fi = i
-                    break
+            fi = next((i for i in range(self.n_flights) if arm[i] - 1e-9 <= t < ends[i] - 1e-9), None)
             armed = fi is not None
             seg_kind = "off"
             if fi is not None:
                 if fi != flight_k:  # new flight: fresh battery, the card starts where the aircraft stands
                     flight_k = fi
-                    used_mah = 0.0
+                    sensors.used_mah = 0.0
                     off_n, off_e = x[12], x[13]
-                card = self.cards[fi]
-                mode, seg, ref, exc = card.at(t - arm[fi])
-                ref = (ref[0] + off_n, ref[1] + off_e) + ref[2:]
-                seg_kind = seg.kind
-                if mode == "fly":
-                    excited = INPUTS.index(seg.axis) if seg.axis is not None else None
-                    cmd = pilot.command(x, ref, excited)
-                    cmd = [c + e for c, e in zip(cmd, exc, strict=False)]
-                    throttle = 1850
-                else:
-                    rem = pilot.remnant()
-                    cmd = [0.3 * rem[0], 0.3 * rem[1], col_low, 0.3 * rem[3]]
-                    spool_t = t - arm[fi] - seg.start_s if seg.name == "spool_up" else seg.end_s - (t - arm[fi])
-                    throttle = int(1100 + 750 * min(1.0, max(0.0, spool_t / 3.0)))
+                cmd, throttle, seg_kind = _pilot_command(self.cards[fi], t - arm[fi], pilot, x, (off_n, off_e),
+                                                         col_low)
             else:
                 cmd = [0.0, 0.0, col_low, 0.0]
                 throttle = 1000
             pwm = [min(2000, max(1000, int(round(tr + c * ppu)))) for tr, c in zip(trim, cmd, strict=False)]
             dcmd = [(p_ - tr) / ppu for p_, tr in zip(pwm, trim, strict=False)]
             wind = gust.wind if gust is not None else [0.0, 0.0, 0.0]
-
-            # ---------------- measurement at t ----------------
-            z = noise_rng.standard_normal(_N_NOISE).tolist()
-            u, v, w, p, q, r, ph, th, ps = x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7], x[8]
-            sph, cph, sth, cth, sps, cps = math.sin(ph), math.cos(ph), math.sin(th), math.cos(th), \
-                math.sin(ps), math.cos(ps)
-            vn = cth * cps * u + (sph * sth * cps - cph * sps) * v + (cph * sth * cps + sph * sps) * w
-            ve = cth * sps * u + (sph * sth * sps + cph * cps) * v + (cph * sth * sps - sph * cps) * w
-            vd = -sth * u + sph * cth * v + cph * cth * w
-            hist.append((vn, ve, vd, x[12], x[13], x[14]))
-            if latency > 0.0:
-                nv = _delayed(hist, lat_ticks)
-            else:
-                nv = (vn, ve, vd, x[12], x[13], x[14])
             spinning = armed and (seg_kind != "ground" or throttle > 1500)
-            mp, mq, mr = gscale[0] * p + bias[0], gscale[1] * q + bias[1], gscale[2] * r + bias[2]
-            mroll, mpitch = ph, th
-            if vib_amp and spinning:
-                s1 = [math.sin(vib_w * t + vib_phase[i]) for i in range(3)]
-                s2 = [math.sin(2 * vib_w * t + vib_phase[3 + i]) for i in range(3)]
-                vib = [vib_amp * a * (x1 + 0.5 * x2) for a, x1, x2 in zip(vib_axis, s1, s2, strict=False)]
-                mp, mq, mr = mp + vib[0], mq + vib[1], mr + vib[2]
-                mroll += 0.1 * vib[0]
-                mpitch += 0.1 * vib[1]
-            mp += nz.gyro_rad_s * z[0]
-            mq += nz.gyro_rad_s * z[1]
-            mr += nz.gyro_rad_s * z[2]
-            mroll += nz.attitude_rad * z[3]
-            mpitch += nz.attitude_rad * z[4]
-            myaw = _wrap(ps + nz.yaw_rad * z[5])
-            mvn = vscale * nv[0] + nz.vel_m_s * z[6]
-            mve = vscale * nv[1] + nz.vel_m_s * z[7]
-            mvd = vscale * nv[2] + nz.vel_down_m_s * z[8]
-            mn = nv[3] + nz.pos_m * z[9]
-            me = nv[4] + nz.pos_m * z[10]
-            md = nv[5] + nz.alt_m * z[11]
-            acc_sig = nz.accel_m_s2 if spinning else 0.02
-            # the accelerometer costs a model evaluation: computed only if RAW_IMU is built
-            acc = _Accel(sf, x, dcmd, wind, landed, (acc_sig * z[12], acc_sig * z[13], acc_sig * z[14]))
-            gps_n = x[12] + nz.gps_pos_m * z[15]
-            gps_e = x[13] + nz.gps_pos_m * z[16]
-            gps_d = x[14] + 2 * nz.gps_pos_m * z[17]
-            gvn, gve = vn + nz.gps_vel_m_s * z[18], ve + nz.gps_vel_m_s * z[19]
-            jms = (int(z[20] > 0.8) - int(z[20] < -0.8), int(z[21] > 0.8) - int(z[21] < -0.8),
-                   int(z[20] * z[21] > 0.6) - int(z[20] * z[21] < -0.6))
-            jus = (int(z[20] * 400.0), int(z[21] * 400.0), int((z[20] - z[21]) * 300.0))
-            if not armed:
-                landed_state = 1
-            elif seg_kind == "takeoff":
-                landed_state = 3
-            elif seg_kind == "land":
-                landed_state = 1 if landed else 4
-            else:
-                landed_state = 1 if landed else 2
-            # battery: current from collective and rotor state
-            if not armed:
-                current_a = 0.6
-            elif not spinning:
-                current_a = 2.0
-            elif landed:
-                current_a = 0.35 * float(ac.hover_current_a)
-            else:
-                current_a = float(ac.hover_current_a) * max(0.3, 1.0 + 2.0 * dcmd[2])
-            used_mah += current_a * dt / 3.6
-            frac = min(1.0, used_mah / cap_mah)
-            volt = cells * (4.15 - 0.55 * frac) - 0.0025 * cells * current_a
-            servo = [1500, 1500, 1500, 1500, 0, 0, 0, throttle]
-            for i_s, pw in zip(servo_idx, pwm, strict=False):
-                servo[i_s] = pw
-            meas = Measurement(t, armed, jms, jus, mroll, mpitch, myaw, mp, mq, mr, mn, me, md, mvn, mve, mvd,
-                               acc, gps_n, gps_e, gps_d, gvn, gve, tuple(servo), landed_state, volt, current_a, frac)
+            meas = sensors.measure(noise_rng.standard_normal(_N_NOISE).tolist(), t, x, armed, seg_kind, landed,
+                                   spinning, throttle, dcmd, wind, pwm)
             if k % 50 == 0:
                 avail = avail_1hz
             elif k % 10 == 0:
                 avail = avail_gps
             else:
                 avail = avail_all
-            da0 = [dcmd[i] if chains[i] is None else chains[i](dcmd[i]) for i in range(4)]  # type: ignore[misc]
-            if post is not None:
-                da0 = post(da0)
+            da0 = fx.actuate(dcmd)
             yield TelemetryFrame(meas, fi, avail, tuple(x), tuple(dcmd), tuple(da0), tuple(wind), fast_before)
-
-            # ---------------- integrate to t + dt ----------------
-            wn, we, wd = wind
-            fast: list[tuple[float, ...]] = []
-            for sub in range(SUBSTEPS):
-                if sub == 0:
-                    da = da0
-                else:
-                    da = [dcmd[i] if chains[i] is None else chains[i](dcmd[i]) for i in range(4)]  # type: ignore[misc]
-                    if post is not None:
-                        da = post(da)
-                moves = True
-                if landed:
-                    thrust = g - Z_col * da[2] - Z_ped * da[3]
-                    if ge_gain:
-                        thrust *= 1.0 + ge_gain * ground_effect_excess(0.0, ac.rotor_radius_m, ac.hub_height_m)
-                    if not armed or seg_kind == "ground" or thrust <= g:
-                        moves = False
-                    else:
-                        landed = False
-                        air.append([round(t + (sub + 1) * h, 4), None])
-                if moves:
-                    x = step(x, h, da[0], da[1], da[2], da[3], wn, we, wd)
-                    if x[14] > 0.0:  # touchdown: skids on the ground, level, at rest
-                        landed = True
-                        air[-1][1] = round(t + (sub + 1) * h, 4)
-                        x = [0.0] * 6 + [0.0, 0.0, x[8], 0.0, 0.0, 0.0, x[12], x[13], 0.0]
-                if fast_rng is not None and sub < SUBSTEPS - 1:  # the 200 Hz gyro between two ticks
-                    ts = t + (sub + 1) * h
-                    gz = fast_rng.standard_normal(6).tolist()
-                    gy = [x[3 + i] + bias[i] + nz.gyro_rad_s * gz[i] for i in range(3)]
-                    att = [x[6] + nz.attitude_rad * gz[3], x[7] + nz.attitude_rad * gz[4],
-                           _wrap(x[8] + nz.yaw_rad * gz[5])]
-                    if vib_amp and spinning:
-                        for i in range(3):
-                            vb = vib_amp * vib_axis[i] * (math.sin(vib_w * ts + vib_phase[i])
-                                                          + 0.5 * math.sin(2 * vib_w * ts + vib_phase[3 + i]))
-                            gy[i] += vb
-                            if i < 2:
-                                att[i] += 0.1 * vb
-                    fast.append((ts, gy[0], gy[1], gy[2], att[0], att[1], att[2]))
-            fast_before = tuple(fast)
+            x, landed, fast_before = _integrate(step, fx, ac, x, landed, t, dt, da0, dcmd, wind, armed, seg_kind,
+                                                spinning, air, fast_rng, self.noise)
             if gust is not None:
                 gust.step()
+
+
+def _pilot_command(card: Card, t_flight: float, pilot: Pilot, x: list[float], offset_ne: tuple[float, float],
+                   col_low: float) -> tuple[list[float], int, str]:
+    """The pilot's normalised commands, throttle PWM and segment kind at ``t_flight`` into the card."""
+    mode, seg, ref, exc = card.at(t_flight)
+    ref = (ref[0] + offset_ne[0], ref[1] + offset_ne[1]) + ref[2:]
+    if mode == "fly":
+        excited = INPUTS.index(seg.axis) if seg.axis is not None else None
+        cmd = pilot.command(x, ref, excited)
+        return [c + e for c, e in zip(cmd, exc, strict=False)], 1850, seg.kind
+    rem = pilot.remnant()
+    spool_t = t_flight - seg.start_s if seg.name == "spool_up" else seg.end_s - t_flight
+    return ([0.3 * rem[0], 0.3 * rem[1], col_low, 0.3 * rem[3]],
+            int(1100 + 750 * min(1.0, max(0.0, spool_t / 3.0))), seg.kind)
+
+
+@dataclass
+class _EffectState:
+    """The injected effects as the simulation loop uses them (input chains hold state)."""
+
+    drag_c: float
+    ge_gain: float
+    wind: bool
+    chains: list[InputChain | None]
+    post: _PostChain | None
+    bias: list[float]
+    gscale: list[float]
+    vscale: float
+    vib_amp: float
+    vib_w: float
+    vib_phase: list[float]
+    latency_ticks: float
+    vib_axis: tuple[float, float, float] = (1.0, 0.8, 0.5)
+
+    @classmethod
+    def of(cls, effects: Sequence[Effect], ac: Aircraft, dt: float, phase_rng: np.random.Generator) -> _EffectState:
+        eff = {e.name: e for e in effects}
+
+        def param(name: str, key: str, default: float) -> float:
+            return float(eff[name].params[key]) if name in eff else default
+
+        h = dt / SUBSTEPS
+        chains: list[InputChain | None] = [None, None, None, None]
+        for i, ch in enumerate(INPUTS):
+            kw: dict[str, float] = {}
+            for e in effects:
+                if e.input == ch and e.name in CHAIN_EFFECTS:
+                    kw.update({k: float(v) for k, v in e.params.items()})
+            if kw:
+                chains[i] = InputChain(h, **kw)
+        bias, gscale, asym = [0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0, 0.0]
+        for e in effects:
+            if e.name == "gyro_bias":
+                bias["pqr".index(str(e.output))] += float(e.params["bias_rad_s"])
+            elif e.name == "gyro_scale":
+                gscale["pqr".index(str(e.output))] = 1.0 + float(e.params["scale_error"])
+            elif e.name == "input_asymmetry":
+                asym[INPUTS.index(str(e.input))] = float(e.params["asymmetry"])
+        sag = param("rotor_sag", "sag_per_unit", 0.0)
+        vib_phase = phase_rng.uniform(0, 2 * math.pi, 6).tolist()
+        return cls(drag_c=param("quadratic_drag", "c_per_m", 0.0), ge_gain=param("ground_effect", "gain", 0.0),
+                   wind="wind_gust" in eff, chains=chains,
+                   post=_PostChain(asym, sag, float(ac.parameters["Z_col"])) if sag or any(asym) else None,
+                   bias=bias, gscale=gscale, vscale=1.0 + param("velocity_scale", "scale_error", 0.0),
+                   vib_amp=param("rotor_vibration", "amplitude_rad_s", 0.0),
+                   vib_w=2 * math.pi * param("rotor_vibration", "rpm", 0.0) / 60.0, vib_phase=vib_phase,
+                   latency_ticks=param("velocity_latency", "latency_s", 0.0) / dt)
+
+    def actuate(self, dcmd: list[float]) -> list[float]:
+        """The inputs acting on the rotor at the next 200 Hz sub-step (one step of each input chain)."""
+        da = [dcmd[i] if self.chains[i] is None else self.chains[i](dcmd[i]) for i in range(4)]  # type: ignore[misc]
+        return self.post(da) if self.post is not None else da
+
+    def vibration(self, t: float) -> list[float]:
+        """Rotor vibration on p q r at ``t`` (rad/s)."""
+        s1 = [math.sin(self.vib_w * t + self.vib_phase[i]) for i in range(3)]
+        s2 = [math.sin(2 * self.vib_w * t + self.vib_phase[3 + i]) for i in range(3)]
+        return [self.vib_amp * a * (x1 + 0.5 * x2) for a, x1, x2 in zip(self.vib_axis, s1, s2, strict=False)]
+
+
+class _Sensors:
+    """What the autopilot measures at a tick: noise, effects, battery (its state: the energy used)."""
+
+    def __init__(self, nz: NoiseConfig, fx: _EffectState, sf: Any, ac: Aircraft, dt: float) -> None:
+        self.nz, self.fx, self.sf, self.ac, self.dt = nz, fx, sf, ac, dt
+        self.hist: deque[tuple[float, ...]] = deque(maxlen=int(fx.latency_ticks) + 3)
+        self.servo_idx = [int(ac.servo[c]) - 1 for c in INPUTS]
+        self.used_mah = 0.0
+
+    def measure(self, z: list[float], t: float, x: list[float], armed: bool, seg_kind: str, landed: bool,
+                spinning: bool, throttle: int, dcmd: list[float], wind: list[float], pwm: list[int]) -> Measurement:
+        nz, fx = self.nz, self.fx
+        u, v, w, p, q, r, ph, th, ps = x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7], x[8]
+        sph, cph, sth, cth, sps, cps = math.sin(ph), math.cos(ph), math.sin(th), math.cos(th), \
+            math.sin(ps), math.cos(ps)
+        vn = cth * cps * u + (sph * sth * cps - cph * sps) * v + (cph * sth * cps + sph * sps) * w
+        ve = cth * sps * u + (sph * sth * sps + cph * cps) * v + (cph * sth * sps - sph * cps) * w
+        vd = -sth * u + sph * cth * v + cph * cth * w
+        self.hist.append((vn, ve, vd, x[12], x[13], x[14]))
+        nv = _delayed(self.hist, fx.latency_ticks) if fx.latency_ticks > 0.0 else (vn, ve, vd, x[12], x[13], x[14])
+        b, gs = fx.bias, fx.gscale
+        mp, mq, mr = gs[0] * p + b[0], gs[1] * q + b[1], gs[2] * r + b[2]
+        mroll, mpitch = ph, th
+        if fx.vib_amp and spinning:
+            vib = fx.vibration(t)
+            mp, mq, mr = mp + vib[0], mq + vib[1], mr + vib[2]
+            mroll += 0.1 * vib[0]
+            mpitch += 0.1 * vib[1]
+        mp += nz.gyro_rad_s * z[0]
+        mq += nz.gyro_rad_s * z[1]
+        mr += nz.gyro_rad_s * z[2]
+        mroll += nz.attitude_rad * z[3]
+        mpitch += nz.attitude_rad * z[4]
+        myaw = _wrap(ps + nz.yaw_rad * z[5])
+        mvn = fx.vscale * nv[0] + nz.vel_m_s * z[6]
+        mve = fx.vscale * nv[1] + nz.vel_m_s * z[7]
+        mvd = fx.vscale * nv[2] + nz.vel_down_m_s * z[8]
+        acc_sig = nz.accel_m_s2 if spinning else 0.02
+        # the accelerometer costs a model evaluation: computed only if RAW_IMU is built
+        acc = _Accel(self.sf, x, dcmd, wind, landed, (acc_sig * z[12], acc_sig * z[13], acc_sig * z[14]))
+        jms = (int(z[20] > 0.8) - int(z[20] < -0.8), int(z[21] > 0.8) - int(z[21] < -0.8),
+               int(z[20] * z[21] > 0.6) - int(z[20] * z[21] < -0.6))
+        jus = (int(z[20] * 400.0), int(z[21] * 400.0), int((z[20] - z[21]) * 300.0))
+        volt, current_a, frac = self._battery(armed, spinning, landed, dcmd)
+        servo = [1500, 1500, 1500, 1500, 0, 0, 0, throttle]
+        for i_s, pw in zip(self.servo_idx, pwm, strict=False):
+            servo[i_s] = pw
+        return Measurement(t, armed, jms, jus, mroll, mpitch, myaw, mp, mq, mr,
+                           nv[3] + nz.pos_m * z[9], nv[4] + nz.pos_m * z[10], nv[5] + nz.alt_m * z[11],
+                           mvn, mve, mvd, acc, x[12] + nz.gps_pos_m * z[15], x[13] + nz.gps_pos_m * z[16],
+                           x[14] + 2 * nz.gps_pos_m * z[17], vn + nz.gps_vel_m_s * z[18], ve + nz.gps_vel_m_s * z[19],
+                           tuple(servo), _landed_state(armed, seg_kind, landed), volt, current_a, frac)
+
+    def _battery(self, armed: bool, spinning: bool, landed: bool, dcmd: list[float]) -> tuple[float, float, float]:
+        """(voltage V, current A, fraction used): current from the collective and the rotor state."""
+        ac = self.ac
+        if not armed:
+            current_a = 0.6
+        elif not spinning:
+            current_a = 2.0
+        elif landed:
+            current_a = 0.35 * float(ac.hover_current_a)
+        else:
+            current_a = float(ac.hover_current_a) * max(0.3, 1.0 + 2.0 * dcmd[2])
+        self.used_mah += current_a * self.dt / 3.6
+        frac = min(1.0, self.used_mah / float(ac.battery_capacity_mah))
+        cells = ac.battery_cells
+        return cells * (4.15 - 0.55 * frac) - 0.0025 * cells * current_a, current_a, frac
+
+
+def _landed_state(armed: bool, seg_kind: str, landed: bool) -> int:
+    """MAV_LANDED_STATE: 1 on ground, 2 in air, 3 taking off, 4 landing."""
+    if not armed:
+        return 1
+    if seg_kind == "takeoff":
+        return 3
+    if seg_kind == "land":
+        return 1 if landed else 4
+    return 1 if landed else 2
+
+
+def _integrate(step: Any, fx: _EffectState, ac: Aircraft, x: list[float], landed: bool, t: float, dt: float,
+               da0: list[float], dcmd: list[float], wind: list[float], armed: bool, seg_kind: str, spinning: bool,
+               air: list[list[float | None]], fast_rng: np.random.Generator | None,
+               nz: NoiseConfig) -> tuple[list[float], bool, tuple[tuple[float, ...], ...]]:
+    """Integrate from ``t`` to ``t + dt`` in 200 Hz sub-steps: lift-off and touchdown (appended to
+    ``air``), and the 200 Hz gyro between two ticks when ``fast_rng`` is given."""
+    h = dt / SUBSTEPS
+    g = G_M_S2
+    Z_col, Z_ped = float(ac.parameters["Z_col"]), float(ac.parameters["Z_ped"])
+    wn, we, wd = wind
+    fast: list[tuple[float, ...]] = []
+    for sub in range(SUBSTEPS):
+        da = da0 if sub == 0 else fx.actuate(dcmd)
+        moves = True
+        if landed:
+            thrust = g - Z_col * da[2] - Z_ped * da[3]
+            if fx.ge_gain:
+                thrust *= 1.0 + fx.ge_gain * ground_effect_excess(0.0, ac.rotor_radius_m, ac.hub_height_m)
+            if not armed or seg_kind == "ground" or thrust <= g:
+                moves = False
+            else:
+                landed = False
+                air.append([round(t + (sub + 1) * h, 4), None])
+        if moves:
+            x = step(x, h, da[0], da[1], da[2], da[3], wn, we, wd)
+            if x[14] > 0.0:  # touchdown: skids on the ground, level, at rest
+                landed = True
+                air[-1][1] = round(t + (sub + 1) * h, 4)
+                x = [0.0] * 6 + [0.0, 0.0, x[8], 0.0, 0.0, 0.0, x[12], x[13], 0.0]
+        if fast_rng is not None and sub < SUBSTEPS - 1:  # the 200 Hz gyro between two ticks
+            fast.append(_fast_sample(fast_rng, fx, nz, x, t + (sub + 1) * h, spinning))
+    return x, landed, tuple(fast)
+
+
+def _fast_sample(rng: np.random.Generator, fx: _EffectState, nz: NoiseConfig, x: list[float], ts: float,
+                 spinning: bool) -> tuple[float, ...]:
+    """One 200 Hz gyro and attitude sample (t_s, p, q, r, roll, pitch, yaw)."""
+    gz = rng.standard_normal(6).tolist()
+    gy = [x[3 + i] + fx.bias[i] + nz.gyro_rad_s * gz[i] for i in range(3)]
+    att = [x[6] + nz.attitude_rad * gz[3], x[7] + nz.attitude_rad * gz[4], _wrap(x[8] + nz.yaw_rad * gz[5])]
+    if fx.vib_amp and spinning:
+        for i in range(3):
+            vb = fx.vib_amp * fx.vib_axis[i] * (math.sin(fx.vib_w * ts + fx.vib_phase[i])
+                                                + 0.5 * math.sin(2 * fx.vib_w * ts + fx.vib_phase[3 + i]))
+            gy[i] += vb
+            if i < 2:
+                att[i] += 0.1 * vb
+    return (ts, gy[0], gy[1], gy[2], att[0], att[1], att[2])
 
 
 class _PostChain:
