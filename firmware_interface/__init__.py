@@ -15,8 +15,14 @@ Public API (import from the modules):
   (waits for a port not plugged in yet, reconnects with backoff; clock and sleep injected).
 * :mod:`~firmware_interface.recorder` — ``Recorder(out_dir).handle(events)``: session .tlog plus
   ``flight-NN.tlog`` per armed interval, crash-safe.
-* :mod:`~firmware_interface.readers` — ``load_log(path) -> LogData`` for .tlog, .bin, .px4log;
-  ``build_logdata(events, ...)``, ``find_flights(series)``.
+* :mod:`~firmware_interface.readers` — ``load_log(path) -> LogData`` for .tlog, .bin, .px4log, .ulg;
+  ``build_logdata(events, ...)``, ``find_flights(series)``, ``restrict_to_chirps(log)`` (SYSID chirps);
+  :mod:`~firmware_interface.ulog` (pyulog) and :mod:`~firmware_interface.dfcolumns` (DFReader's index,
+  decoded a record type at a time) behind it.
+* :mod:`~firmware_interface.logdownload` — sans-IO onboard-log download: ``LogLister``,
+  ``LogDownloader`` (received-block bitmap, bounded gap re-requests, resume); pure.
+* :mod:`~firmware_interface.logtransfer` — ``LogTransfer(opener)``: list and download over a live link;
+  ``write_verified``, ``save_partial``, ``load_partial``.
 * :mod:`~firmware_interface.tlogread` — ``scan_tlog(bytes, TlogScan())``: tolerant record scanner.
 * :mod:`~firmware_interface.samples` — the event dataclasses and ``LogData``;
   :mod:`~firmware_interface.errors` — ``FirmwareInterfaceError``, the base of ``LinkError`` (ValueError)
