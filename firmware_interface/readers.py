@@ -351,6 +351,8 @@ def load_dataflash(path: str | os.PathLike[str]) -> LogData:
     if tail:
         out.notes.append(f"{p}: the log ends inside a record (last {tail} bytes not a whole record); "
                          "everything before it was read")
+    if "HEARTBEAT" not in series:
+        out.notes.append(f"{p}: no arming events (ARM, EV or STAT): the whole log is taken as one flight")
     out.chirps.extend(chirp_segments(sids, series.get("SYSID")))
     return out
 

@@ -213,3 +213,15 @@ def load_log_bytes(tmp_path, data):
     p = tmp_path / "whole.bin"
     p.write_bytes(data)
     return load_log(p)
+
+
+def test_bench_log_without_arming_is_one_flight_and_says_so(tmp_path):
+    out = _fmt(128, "FMT", "BBnNZ", "Type,Length,Name,Format,Columns")
+    out += _fmt(130, "ATT", "Qffffff", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw")
+    for k in range(100):
+        out += _rec(130, "Qffffff", 1_000_000 + k * 20_000, 0, 1.0, 0, 2.0, 0, 3.0)
+    path = tmp_path / "bench.bin"
+    path.write_bytes(out)
+    log = load_log(path)
+    assert len(log.flights) == 1 and log.flights[0].duration_s == pytest.approx(1.98)
+    assert any("bench.bin" in n and "no arming events" in n for n in log.notes)
