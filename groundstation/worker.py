@@ -75,6 +75,7 @@ class JobResult:
     freq: dict[str, Any] | None = None              # heli-freq-verification/1: Tischler J per pair
     freq_path: str | None = None
     freq_error: str | None = None                   # frequency check failed (the model is still good)
+    freq_pairs: Any = None                          # Bode arrays per scored pair (data, model, coherence), for Rerun
     trends: dict[str, Any] | None = None            # heli-trends/1 over the vehicle's flights ([service] campaign_db)
     trends_error: str | None = None                 # the campaign table failed (the model is still good)
     identify_s: float | None = None
@@ -186,7 +187,7 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
         _plot(overlay, png_path, f"{job.vehicle} flight {job.flight}: model vs measured")
         png = (str(png_path),)
     identify_s = time.perf_counter() - t0
-    freq, freq_path, freq_error = _freq_check(job, model)
+    freq, freq_path, freq_error, bode = _freq_check(job, model)
     gap, gap_path, gap_error, pictures = (_diagnose(job, model, prepared) if cfg.identification.diagnose
                                           else (None, None, None, None))
     trends, trends_error = _trends(job, model, gap, prepared, time.perf_counter() - t0)
@@ -196,7 +197,7 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
         # numpy arrays pickle fast back to the service (lists would cost the live loop a spike)
         overlay=Overlay(*(np.asarray(overlay[k], dtype=float) for k in ("t_fc_s", "model", "measured"))),
         gap=gap, gap_path=gap_path, gap_error=gap_error, gap_pictures=pictures, identify_s=identify_s,
-        freq=freq, freq_path=freq_path, freq_error=freq_error, trends=trends, trends_error=trends_error,
+        freq=freq, freq_path=freq_path, freq_error=freq_error, freq_pairs=bode, trends=trends, trends_error=trends_error,
         seconds=time.perf_counter() - t0)
 
 
@@ -215,9 +216,10 @@ def _trends(job: IdentifyJob, model: Any, gap: Any, prepared: Any, seconds: floa
         return None, f"flight {job.flight}: trends: {type(exc).__name__}: {exc}".splitlines()[0]
 
 
-def _freq_check(job: IdentifyJob, model: Any) -> tuple[Any, Any, Any]:
-    """(J table document, its file, None) of the model's frequency-domain check on the flight at the
-    log's native rate, or (None, None, one-line error): the model stands on its own."""
+def _freq_check(job: IdentifyJob, model: Any) -> tuple[Any, Any, Any, Any]:
+    """(J table document, its file, None, Bode arrays per scored pair) of the model's frequency-domain
+    check on the flight at the log's native rate, or (None, None, one-line error, None): the model
+    stands on its own."""
     from groundstation.commands.freq_support import prepare_native
     from groundstation.freq.model_response import delays_from_augmentations
     from groundstation.freq.spectra import estimate_responses
@@ -229,11 +231,13 @@ def _freq_check(job: IdentifyJob, model: Any) -> tuple[Any, Any, Any]:
         v = verify(model.theta, estimate_responses(prepared, job.config.freq),
                    delays_from_augmentations(model.augmentations))
     except Exception as exc:
-        return None, None, f"flight {job.flight}: frequency check: {type(exc).__name__}: {exc}".splitlines()[0]
+        return None, None, f"flight {job.flight}: frequency check: {type(exc).__name__}: {exc}".splitlines()[0], None
     doc = {**v.to_json(), "vehicle": job.vehicle, "flight": job.flight}
     path = Path(job.out_dir) / f"freq-flight{job.flight:02d}.json"
     path.write_text(json.dumps(doc, indent=1, allow_nan=False))
-    return doc, str(path), None
+    from groundstation.sinks.rerun_sink import freq_pairs
+
+    return doc, str(path), None, freq_pairs(v)
 
 
 def _diagnose(job: IdentifyJob, model: Any, prepared: Any) -> tuple[Any, Any, Any, Any]:

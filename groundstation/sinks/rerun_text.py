@@ -71,8 +71,17 @@ def heldout_match(result: Any) -> dict[str, float]:
     return {}
 
 
+def _previous(result: Any) -> dict[str, Any]:
+    """The cross-flight check the worker puts in the model's fit (``model.fit.cross_flight``)."""
+    fit = (field_of(result, "model") or {}).get("fit") or {}
+    return fit.get("cross_flight") or {}
+
+
 def cross_flight(result: Any) -> dict[str, float]:
-    """Match % per channel of the model on another flight (the cross-flight check), when present."""
+    """Match % per channel of the previous flight's model predicting this flight, when present."""
+    got = _per_channel((_previous(result).get("previous_model_on_new_flight") or {}).get("match"))
+    if got:
+        return got
     val = field_of(result, "validation") or {}
     for src in (result, val):
         for key in ("cross_flight", "cross_flight_check", "crossflight"):
@@ -85,10 +94,11 @@ def cross_flight(result: Any) -> dict[str, float]:
 def fit_text(result: Any) -> dict[str, str]:
     """Short per-channel fit for view titles: ``fit 91% · held-out 88%``."""
     fit = _per_channel(field_of(result, "validation")) or _per_channel(field_of(result, "match_degree"))
-    ho = heldout_match(result)
+    ho, xf = heldout_match(result), cross_flight(result)
     out = {}
     for c in OUTPUTS:
         parts = ([f"fit {fit[c]:.0f}%"] if c in fit else []) + ([f"held-out {ho[c]:.0f}%"] if c in ho else [])
+        parts += [f"previous flight's model {xf[c]:.0f}%"] if c in xf and c not in ho else []
         if parts:
             out[c] = " · ".join(parts)
     return out
@@ -98,14 +108,18 @@ def fit_table(flight: int, result: Any) -> str:
     """Markdown table: match % of the model per channel, in-sample, held-out and on another flight."""
     fit = _per_channel(field_of(result, "validation")) or _per_channel(field_of(result, "match_degree"))
     ho, xf = heldout_match(result), cross_flight(result)
-    cols = [("fit (this flight) %", fit)] + ([("held-out %", ho)] if ho else []) + ([("other flight %", xf)] if xf else [])
+    prev = _previous(result).get("previous_flight", field_of(field_of(result, "cross_flight") or {}, "model_flight", "?"))
+    xf_name = f"flight {prev}'s model %"
+    cols = [("fit (this flight) %", fit)] + ([("held-out %", ho)] if ho else []) + ([(xf_name, xf)] if xf else [])
     lines = [f"### Flight {flight}: model match per channel", "",
              "| channel | " + " | ".join(n for n, _ in cols) + " |", "|---" * (len(cols) + 1) + "|"]
     for c in OUTPUTS:
         cells = [f"{d[c]:.1f}" if c in d else "–" for _, d in cols]
         lines.append(f"| {SYMBOL[c]} [{UNITS[c]}] | " + " | ".join(cells) + " |")
-    if not ho:
+    if not ho and not xf:
         lines += ["", "No held-out score in this result: judge the model by held-out prediction before trusting it."]
+    elif not ho:
+        lines += ["", "Held out: the previous flight's model predicting this flight (a cross-flight check)."]
     secs = _num(field_of(result, "seconds"))
     if secs is not None:
         lines += ["", f"identified in {secs:.0f} s"]

@@ -151,3 +151,24 @@ def test_frequency_verification_is_drawn_as_bode_per_scored_pair(tmp_path):
             assert f"/heli/flights/1/bode/{p.input}_{p.output}/{k}" in lay.entities
     bode = [v for v in lay.views_under(lay.opening_tab()) if "/bode/" in v.origin]
     assert len(bode) == 3 * len(v.pairs) and all(v.kind == "BarChart" and "[Hz]" in v.name for v in bode)
+
+
+def test_fit_table_shows_the_cross_flight_check():
+    from groundstation.sinks.rerun_text import fit_table, fit_text
+
+    res = {"flight": 2, "validation": {"channels": {"q": {"match": 95.0}}},
+           "cross_flight": {"model_flight": 1, "channels": {"q": {"match": 71.5}}}}
+    table = fit_table(2, res)
+    assert "flight 1's model %" in table and "71.5" in table and "95.0" in table
+    assert fit_text(res)["q"] == "fit 95% · previous flight's model 72%"
+
+
+def test_cross_flight_from_the_models_fit_as_the_worker_writes_it():
+    from groundstation.sinks.rerun_text import fit_table, fit_text
+
+    res = {"flight": 3, "validation": {"channels": {"p": {"match": 93.0}}},
+           "model": {"fit": {"cross_flight": {"previous_flight": 2,
+                                              "previous_model_on_new_flight": {"mean_match": 80.0,
+                                                                               "match": {"p": 80.4}}}}}}
+    assert "flight 2's model %" in fit_table(3, res) and "80.4" in fit_table(3, res)
+    assert fit_text(res)["p"] == "fit 93% · held-out 80%"
