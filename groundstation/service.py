@@ -411,9 +411,11 @@ class Service:
         self._sm_buf.clear()
 
     def _rerun_flight_state(self) -> None:
+        if self.rerun is None or self._rerun_calls is None:
+            return
         ft = self.live.flights
         state = "in air" if ft.in_air else "armed" if ft.armed else "on ground"
-        if state != self._rerun_state and self.rerun is not None and self._rerun_calls is not None:
+        if state != self._rerun_state:
             self._rerun_state = state
             newest = self.live.aligner.newest_t_fc_s
             if math.isfinite(newest):
