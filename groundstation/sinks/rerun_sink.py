@@ -344,7 +344,7 @@ class RerunSink:
         self._log_spectra(f, pic)
         labels = []
         for ep in pic.effects:
-            lab = _safe(ep.label)
+            lab = _safe(ep.label + ("" if ep.significant else " not significant"))
             for c in ep.channels or pic.channels:
                 k = OUTPUTS.index(c)
                 for kind, y in (("before", ep.before_pct), ("after", ep.after_pct)):

@@ -98,7 +98,7 @@ def fit_text(result: Any) -> dict[str, str]:
     out = {}
     for c in OUTPUTS:
         parts = ([f"fit {fit[c]:.0f}%"] if c in fit else []) + ([f"held-out {ho[c]:.0f}%"] if c in ho else [])
-        parts += [f"previous flight's model {xf[c]:.0f}%"] if c in xf and c not in ho else []
+        parts += [f"held-out {xf[c]:.0f}%"] if c in xf and c not in ho else []   # the previous flight's model
         if parts:
             out[c] = " · ".join(parts)
     return out

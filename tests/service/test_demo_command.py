@@ -56,7 +56,7 @@ def _check_demo_recording(rrd: Path, rec: Path) -> None:
             assert v.fc_range_s is not None, v.name
             spans[v.fc_range_s] = v.name
     q = next(v for v in lay.views_under(opening) if v.origin == "/heli/outputs/q")
-    assert "[rad/s]" in q.name and "fit " in q.name and "previous flight's model" in q.name   # cross-flight check
+    assert "[rad/s]" in q.name and "fit " in q.name and "held-out" in q.name   # flight 1's model on flight 2
     assert len(spans) == 1                      # every plot of the tab shows the same window: the whole flight
     (t0, t1), = spans
     assert 25.0 < t1 - t0 < 40.0                # the 30 s flight (padded), not a 60 s window at t = 0

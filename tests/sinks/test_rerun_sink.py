@@ -160,7 +160,7 @@ def test_fit_table_shows_the_cross_flight_check():
            "cross_flight": {"model_flight": 1, "channels": {"q": {"match": 71.5}}}}
     table = fit_table(2, res)
     assert "flight 1's model %" in table and "71.5" in table and "95.0" in table
-    assert fit_text(res)["q"] == "fit 95% · previous flight's model 72%"
+    assert fit_text(res)["q"] == "fit 95% · held-out 72%"
 
 
 def test_cross_flight_from_the_models_fit_as_the_worker_writes_it():
