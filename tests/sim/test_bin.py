@@ -56,3 +56,16 @@ def test_identify_on_the_sysid_segments_only(sim_bin, tmp_path, capsys):
         total = sum(c.duration_s for c in log.chirps)
         assert doc["schema"] == "heli-hover-model/1"
         assert doc["source"]["window_s"][1] - doc["source"]["window_s"][0] <= total + 1.0
+
+
+def test_bin_writer_and_log_serving_fc_are_independent_of_the_estimators(tmp_path):
+    """Writing the onboard log and serving it must not load groundstation.sysid/gap (the simulator is the truth)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from hil_replay.dataflash import write_bin; import hil_replay.fc; "
+            f"write_bin({str(tmp_path / 'i.bin')!r}, seed=0, flight_duration_s=30); "
+            "bad = [m for m in sys.modules if m.startswith(('groundstation.sysid', 'groundstation.gap'))]; "
+            "print(bad); sys.exit(1 if bad else 0)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stdout + res.stderr
