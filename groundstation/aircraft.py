@@ -52,14 +52,17 @@ SIGN_FIXED = {"inv_tau_s": (1.0, "1/tau_s is positive; the matrix entry is -inv_
 #: helicopter's rotor makes (flapping time constant 1/tau_s of 5-20 /s, on-axis flapping moments of
 #: tens to hundreds of 1/s^2), damping terms negative, and everything else centred on zero with a
 #: standard deviation as wide as small helicopters range (paper Table 5, Mettler's R-50, our trex600).
+#: The heave/yaw cross-couplings (Z_r, N_w, Z_ped) of a single-rotor helicopter are a few tenths
+#: (R-50 0.3-0.4, trex600 0.1-0.6): without a tight prior a weak vertical-velocity estimate lets them
+#: carry pedal and yaw activity into w (on the real TREX 550 log, Z_ped 24 and N_w 5.7).
 WIDE_PRIOR: dict[str, tuple[float, float]] = {
     "X_u": (-0.1, 0.5), "Y_v": (-0.1, 0.5), "M_u": (0.0, 1.5), "M_v": (0.0, 1.5), "M_q": (-0.5, 2.0),
     "M_a": (0.0, 100.0), "M_b": (0.0, 100.0), "L_u": (0.0, 1.5), "L_v": (0.0, 1.5), "L_p": (-1.0, 4.0),
     "L_a": (0.0, 100.0), "L_b": (0.0, 150.0), "k1": (0.0, 0.5), "inv_tau_s": (10.0, 6.0),
     "X_lat": (0.0, 5.0), "Y_lon": (0.0, 5.0), "M_lat": (0.0, 15.0), "M_lon": (0.0, 15.0),
     "L_lat": (0.0, 15.0), "L_lon": (0.0, 15.0), "A_lat": (0.0, 8.0), "B_lon": (0.0, 8.0),
-    "Z_w": (-0.7, 1.5), "Z_r": (0.0, 2.0), "N_w": (0.0, 2.0), "N_r": (-1.0, 2.0), "k_r": (0.0, 8.0),
-    "Z_col": (0.0, 30.0), "Z_ped": (0.0, 10.0), "N_col": (0.0, 15.0), "N_ped": (0.0, 20.0),
+    "Z_w": (-0.7, 1.5), "Z_r": (0.0, 1.0), "N_w": (0.0, 1.0), "N_r": (-1.0, 2.0), "k_r": (0.0, 8.0),
+    "Z_col": (0.0, 30.0), "Z_ped": (0.0, 3.0), "N_col": (0.0, 15.0), "N_ped": (0.0, 20.0),
 }
 
 
