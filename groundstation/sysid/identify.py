@@ -1,6 +1,6 @@
 """Identification of the eq.-8 hover model from prepared data: global search (CABC by default) + refinement.
 
-``identify(prepared, algorithm="cabc", seed=0, refine=True, maxiter=None, callback=None, bounds=None)``
+``identify(prepared, algorithm="cabc", seed=0, refine=True, maxiter=None, callback=None, bounds=None, prior=None)``
 
 1. cut the segments into windows (:func:`groundstation.sysid.cost.make_windows`);
 2. decide which parameters the data can support: parameters of an input that never moves, or that
@@ -24,6 +24,14 @@
    ``q u - p v + g (cos phi cos theta - 1)`` as a known forcing on w (``kinematic_forcing``): eq. 8
    drops them, and with a pilot closing the loop they bias Z_col low (simulated trex600 flights:
    7-12 % low without, under 1 % with).
+
+5. with a ``prior`` (the aircraft file's prior model) the refinement is output error with a priori
+   weighting (MAP, :func:`groundstation.sysid.refine.refine`): ``fit["prior"]`` says which parameters the
+   flight determines and which stay near the prior; ``extra_starts`` adds refinements from the prior and
+   from zero; restarts and starts are compared by the MAP objective at fixed channel scales;
+6. the report: parameters on a bound with why (``fit["pinned_reasons"]``), unstable modes with their
+   time constants (``fit["unstable_modes"]``). :func:`refit` refines a model on other data without a
+   search (the folds of the held-out check, :mod:`groundstation.sysid.heldout`).
 
 No timing and no IO here (the CLI measures wall time and writes files). BLAS is held to one thread
 while identifying: the batched products are small and threads only contend on a shared machine.
