@@ -167,6 +167,9 @@ class LinkRunner:
         waiter = asyncio.ensure_future(self._stop.wait())
         try:
             done, _ = await asyncio.wait({read, waiter}, timeout=self.tick_s, return_when=asyncio.FIRST_COMPLETED)
+        except BaseException:          # cancelled from outside: the read must not outlive us
+            read.cancel()
+            raise
         finally:
             waiter.cancel()
         if read in done:

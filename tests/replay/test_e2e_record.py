@@ -1,4 +1,4 @@
-"""Issue #2 end to end: replay a flight through a real pty with 1 % corrupted bytes and a 3 s unplug
+"""End to end: replay a flight through a real pty with 1 % corrupted bytes and a 3 s unplug
 into ``groundstation record`` (subprocess, real pyserial); the recording must hold every packet
 that was neither corrupted nor sent during the unplug, compared packet by packet with the source,
 and the record summary must report the corruption.
@@ -11,6 +11,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 from groundstation.bench.replay import synthesize_tlog
 from hil_replay.player import TlogPlayer, read_tlog_packets
@@ -19,6 +20,19 @@ from hil_replay.pty import VirtualSerialPort
 
 def _src(pkt: bytes) -> tuple[int, int]:
     return (pkt[5], pkt[6]) if pkt[0] == 0xFD else (pkt[3], pkt[4])
+
+
+def _wait_recorded(rec_dir: Path, n: int, timeout_s: float = 60.0) -> None:
+    """Until the session file holds ``n`` packets from the FC (the recorder flushes at least every
+    0.5 s): the stop then comes after the data, whatever the machine's speed."""
+    from firmware_interface.tlogread import scan_tlog
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        files = sorted(rec_dir.glob("session-*.tlog"))
+        if files and sum(_src(p) == (1, 1) for _, p in scan_tlog(files[0].read_bytes())) >= n:
+            return
+        time.sleep(0.05)
 
 
 def test_corrupted_unplugged_replay_into_record(tmp_path):
@@ -33,7 +47,7 @@ def test_corrupted_unplugged_replay_into_record(tmp_path):
             player = TlogPlayer(packets, port, speed=8.0, corrupt_rate=0.01, unplug_at_s=8.0,
                                 unplug_for_s=3.0, seed=11, reader_timeout_s=30.0)
             report = player.run()
-            time.sleep(0.5)   # the recorder writes what it has read
+            _wait_recorded(out_dir, len(report.intact))
             proc.send_signal(signal.SIGINT)
             stdout, stderr = proc.communicate(timeout=30)
         finally:
@@ -72,7 +86,7 @@ def test_replay_command_into_record_command(tmp_path):
             [sys.executable, "-m", "groundstation.cli", "record", "--link", f"serial://{link}:921600",
              "--out", str(tmp_path / "rec")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         assert replay.wait(timeout=60) == 0
-        time.sleep(0.5)
+        _wait_recorded(tmp_path / "rec", len(json.loads((tmp_path / "report.json").read_text())["intact"]))
         record.send_signal(signal.SIGINT)
         stdout, stderr = record.communicate(timeout=30)
     finally:

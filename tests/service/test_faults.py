@@ -127,6 +127,22 @@ def test_unwritable_record_dir_is_one_line_exit_2(tmp_path):
     assert len(err) == 1 and str(blocker / "rec") in err[0]
 
 
+def _attitudes(data: bytes) -> int:
+    from firmware_interface.tlogread import scan_tlog
+
+    return sum(1 for _, p in scan_tlog(data) if (p[7] if p[0] == 0xFD else p[5]) == 30)
+
+
+def _wait_file(path: Path, pred, timeout_s: float) -> bool:
+    """Until ``pred(bytes of path)`` holds (a condition on the recording, not a delay)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if path.exists() and pred(path.read_bytes()):
+            return True
+        time.sleep(0.05)
+    return False
+
+
 _CHILD = textwrap.dedent("""
     import asyncio, sys
     sys.path.insert(0, {root!r})
@@ -153,7 +169,8 @@ def test_signal_mid_flight_closes_recordings_and_exits_0_within_2s(tmp_path, sig
             line = proc.stdout.readline()
             armed = "armed at" in line
         assert armed
-        time.sleep(1.0)                  # a second into the flight
+        # a second into the flight: the flight file holds 50 ATTITUDE packets (flushed every 0.5 s)
+        assert _wait_file(tmp_path / "rec" / "flight-01.tlog", lambda data: _attitudes(data) >= 50, 60)
         t0 = time.monotonic()
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=10)
@@ -213,7 +230,6 @@ def test_ctrl_c_during_identification_stops_the_worker_and_exits_0(tmp_path):
             proc.kill()
     assert proc.returncode == 0, err
     assert elapsed < 2.0
-    time.sleep(0.5)
 
     def running(pid: int) -> bool:       # exited processes may linger as zombies until init reaps them
         try:
@@ -221,6 +237,9 @@ def test_ctrl_c_during_identification_stops_the_worker_and_exits_0(tmp_path):
         except OSError:
             return False
 
+    deadline = time.monotonic() + 10      # the kill was sent before the service exited
+    while [w for w in worker if running(w)] and time.monotonic() < deadline:
+        time.sleep(0.05)
     assert not [w for w in worker if running(w)]                    # the worker is gone too
     flights = sorted((tmp_path / "rec").glob("flight-*.tlog"))
     assert flights and load_log(flights[0]).has("ATTITUDE")
