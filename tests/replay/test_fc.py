@@ -191,8 +191,11 @@ def test_thread_keeps_heartbeating_after_the_session_ends():
     with SimulatedFCThread(speed=0, session=heli, config=FcConfig(packet_loss=0.0)) as fc:
         gcs = GcsReader(fc.port_path)
         try:
-            time.sleep(1.6)
-            hbs = [m for m in gcs.snapshot() if m.get_type() == "HEARTBEAT"]
+            deadline = time.monotonic() + 30      # until a heartbeat and idle frames after the session came
+            hbs: list = []
+            while time.monotonic() < deadline and not (hbs and fc.stats.frames > 50):
+                time.sleep(0.05)
+                hbs = [m for m in gcs.snapshot() if m.get_type() == "HEARTBEAT"]
         finally:
             gcs.close()
         assert fc.is_alive()
@@ -212,8 +215,14 @@ def test_unplug_and_replug_while_serving():
             n_before = len(reader.data)
             assert n_before > 0
             fc.unplug(1.0)   # 5 s of FC time at 5x
-            time.sleep(2.0)
-            after = reader.data[n_before:]
+            parser = mavlink.MAVLink(None)
+            deadline = time.monotonic() + 30       # until the reader is back and a heartbeat came through
+            after = b""
+            while time.monotonic() < deadline and not (
+                    reader.connections == 2
+                    and any(m.get_type() == "HEARTBEAT" for m in mavlink.MAVLink(None).parse_buffer(after) or [])):
+                time.sleep(0.05)
+                after = bytes(reader.data[n_before:])
         finally:
             reader.close()
     assert reader.connections == 2
