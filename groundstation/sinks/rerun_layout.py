@@ -139,9 +139,10 @@ def _bode_tab(v: str, fv: FlightViews) -> rrb.Container:
     cols = []
     for pair in fv.bode_pairs:
         inp, out = pair.split("_", 1)
-        cols.append(rrb.Vertical(*[rrb.BarChartView(origin=f"{f}/{pair}/{k}", name=f"{SYMBOL.get(out, out)}/{inp} {k} {u}")
-                                   for k, u in (("magnitude", "[dB] vs [Hz]"), ("phase", "[deg] vs [Hz]"),
-                                                ("coherence", "[0-1] vs [Hz]"))]))
+        cols.append(rrb.Vertical(*[rrb.BarChartView(origin=f"{f}/{pair}/{k}", name=f"{SYMBOL.get(out, out)}/{inp} {k} {u}",
+                                                    plot_legend=rrb.PlotLegend(visible=False))
+                                   for k, u in (("magnitude", "[dB] vs [Hz] · blue flight, red model"),
+                                                ("phase", "[deg] vs [Hz]"), ("coherence", "[0-1] vs [Hz]"))]))
     return rrb.Grid(*cols, name="frequency responses")
 
 
