@@ -40,7 +40,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--grow-from", type=float, default=0.02, help="deadband half-width on the first flight")
     parser.add_argument("--grow-to", type=float, default=0.08, help="deadband half-width on the last flight")
     parser.add_argument("--restarts", type=int, default=1, help="identification searches per subsystem")
-    parser.add_argument("--keep", type=Path, default=None, help="keep the logs and the table in this directory")
+    parser.add_argument("--keep", type=Path, default=None,
+                        help="keep the logs and the table (bench.sqlite, aircraft 'bench') in this directory")
 
 
 def _simulate(d: Path, args: argparse.Namespace) -> tuple[list[Path], np.ndarray]:
@@ -128,6 +129,12 @@ def run(args: argparse.Namespace) -> int:
         print("1. campaign in one process (identify + diagnose + cross-flight fit per flight):", flush=True)
         rows, marks = _scaling(paths, Settings(config=cfg, diagnose=True))
         _print_scaling(marks)
+        if args.keep is not None:  # the same table `groundstation campaign DIR --vehicle bench --restarts N` reads
+            from groundstation.campaign.store import CampaignStore
+
+            store = CampaignStore(d / "bench.sqlite")
+            store.put(rows)
+            store.close()
         if args.speedup_flights > 0:
             k = min(args.speedup_flights, len(paths))
             print(f"2. speed-up on {k} flights (identification only), {os.cpu_count()} cores:", flush=True)
@@ -161,9 +168,10 @@ def _print_speedup(sp: dict[str, tuple[float, float]]) -> None:
 
 
 def _print_trends(trends: dict, widths: np.ndarray, inp: str) -> None:
-    key = f"effect:deadband[{inp}].half_width"
+    key = f"effect:deadband[{inp}].deadband"   # half-width, normalised units (the gap report's estimate)
     t = trends.get(key)
-    others = [k for k, tr in trends.items() if tr.changed and k != key]
+    same = f"effect:deadband[{inp}]."          # the same estimate in PWM microseconds is the same effect
+    others = [k for k, tr in trends.items() if tr.changed and not k.startswith(same)]
     if t is None:
         print(f"  {key}: never estimated (the diagnosis did not score a deadband on {inp}): FAIL")
     else:

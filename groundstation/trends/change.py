@@ -179,13 +179,13 @@ def assess(name: str, values, std=None, *, n_tests: int = 1, config: TrendConfig
         above = abs(z[k]) > crit
         if above and changed_at is None:
             idx = fin[fin <= k]
-            _, bz = _slope(v[idx], np.maximum(sig[idx], 1e-300))
+            _, bz = _slope(v[idx], sig[idx])
             if above_prev or abs(bz) > crit:
                 changed_at, direction = int(k), int(np.sign(z[k]))
                 kind = "trend" if _steady(v[idx]) else "step"
         above_prev = above
     idx = fin
-    b, bz = _slope(v[idx], np.maximum(sig_all[idx], 1e-300))
+    b, bz = _slope(v[idx], sig_all[idx])
     tested = bool(np.isfinite(z).any())
     return Trend(name, v, s, sig_all, z, z_crit, tau, b, bz, changed_at, kind, direction, tested,
                  "" if tested else "no uncertainty: no standard errors and too few flights to measure the scatter")
