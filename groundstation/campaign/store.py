@@ -133,7 +133,7 @@ def _sql(v: Any) -> Any:
 
 def series(rows: list[dict[str, Any]]) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
     """Per-quantity values over the flights: every free parameter (with its standard error), every
-    effect estimate (no standard error) and the held-out fit; ``{name: (values (n,), std (n,) or None)}``."""
+    effect estimate in the report's own units (no standard error; its copy in PWM units is left out); ``{name: (values (n,), std (n,) or None)}``."""
     out: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
     n = len(rows)
     for p in PARAM_NAMES:
@@ -146,6 +146,8 @@ def series(rows: list[dict[str, Any]]) -> dict[str, tuple[np.ndarray, np.ndarray
     effects: dict[str, np.ndarray] = {}
     for i, r in enumerate(rows):
         for k, val in json.loads(r.get("effect_values") or "{}").items():
+            if "_pwm_us" in k:  # the same estimate in PWM units: one series per quantity
+                continue
             effects.setdefault(k, np.full(n, np.nan))[i] = _num(val)
     out.update({f"effect:{k}": (v, None) for k, v in sorted(effects.items())})
     return out
