@@ -212,6 +212,7 @@ def run_case(job: dict[str, Any]) -> dict[str, Any]:
         truth = write_tlog(path, seed=job["seed"], flights=1, effects=effects, **kw)
         out["truth"] = truth.get("effects", [])
         t0 = time.perf_counter()
+        c0 = time.process_time()
         prepared = prepare([load_log(path)])
         model = None
         if job["model_source"] == "truth":
@@ -219,10 +220,11 @@ def run_case(job: dict[str, Any]) -> dict[str, Any]:
         try:
             diag = run_diagnosis(model, prepared, seed=job["seed"])
         except ValueError as exc:  # a flight the diagnosis refuses (too little data): counted, not hidden
-            out.update(seconds=time.perf_counter() - t0, flight_s=0.0, verdict="refused", effects=[], sensor_errors=[],
+            out.update(seconds=time.perf_counter() - t0, cpu_s=time.process_time() - c0, flight_s=0.0, verdict="refused", effects=[], sensor_errors=[],
                        candidates=[], error=str(exc))
             return out
         out["seconds"] = time.perf_counter() - t0
+        out["cpu_s"] = time.process_time() - c0
         out["flight_s"] = float(sum(s.t_s[-1] - s.t_s[0] for s in prepared.segments))
         rep = diag.report
         out["verdict"] = rep["verdict"]
@@ -235,6 +237,8 @@ def run_case(job: dict[str, Any]) -> dict[str, Any]:
         out["candidates"] = [{k: e.get(k) for k in ("effect", "input", "output", "estimate", "score", "p_value",
                                                     "shrink_pct")} for e in rep["effects"] + rep["candidates"]]
         out["unexplained"] = rep.get("unexplained")
+        out["structure_tests"] = [{k: t[k] for k in ("kind", "input", "coefficient", "score_pct", "p_value",
+                                                     "significant")} for t in rep.get("structure_tests", [])]
         out["gap_to_noise_ratio"] = rep["gap"].get("gap_to_noise_ratio")
         if job.get("fresh") and job["effects"]:
             path2 = Path(td) / "fresh.tlog"
@@ -325,10 +329,13 @@ def print_summary(results: list[dict], classes: list[str], wall: float) -> None:
         both = sum(all(t in _named(r) for t in r["truth_effects"]) for r in combos)
         print(f"two-effect flights with both effects named: {both}/{len(combos)}")
     secs = [r["seconds"] for r in results]
+    cpu = [r.get("cpu_s", np.nan) for r in results]
     fl = [r["flight_s"] for r in results]
     if secs:
         print(f"diagnosis wall per case: median {np.median(secs):.1f} s (max {np.max(secs):.1f} s) for median "
               f"{np.median(fl):.0f} s of in-air data; total bench wall {wall:.0f} s")
+        print(f"diagnosis CPU time per case (one core, independent of other load on the machine): median "
+              f"{np.median(cpu):.1f} s (max {np.max(cpu):.1f} s)")
 
 
 def _print_singles(singles: list[dict], classes: list[str]) -> None:

@@ -167,8 +167,19 @@ def print_summary(report: dict) -> None:
     g = report["gap"]
     con.print(f"worst channels {g['worst_channels']}, band {g['band_hz']} Hz, condition: {g['conditions']}, "
               f"flagged windows {g['windows_s'][:6]}")
+    if report.get("tested"):
+        con.print(f"tested on this log: {', '.join(report['tested'])}")
     if report.get("untestable"):
-        con.print(f"untestable: {report['untestable']}")
+        con.print(f"not testable on this log: {report['untestable']}")
+    dc = report.get("data_compatibility") or {}
+    for f in dc.get("findings", []):
+        con.print(f"[bold]sensor error[/bold] ({f['kind']} on {f['channel']}): {f['evidence']}")
+    ux = report.get("unexplained")
+    if ux:
+        con.print(f"[bold]unexplained[/bold]: channels above noise {ux['channels_above_noise']}, band {ux['band_hz']} Hz, "
+                  f"condition {ux['condition']}")
+        for line in ux["what_it_looks_like"]:
+            con.print(f"  - {line}")
     print_frequency(report.get("frequency") or {}, con)
 
 

@@ -231,3 +231,85 @@ def evidence(h: hypotheses.Hypothesis, s: attribute.Score, kin: dict, lines: lis
         return (f"narrow line at {ln.frequency_hz:.2f} Hz in {','.join(ln.channels)} "
                 f"({ln.ratio:.1f}x local median, log10 p={ln.log10_p:.1f})")
     return base
+
+
+def _conditioned_context(a: attribute.Candidate, ctx: hypotheses.Context, segs: list[SegmentArrays]
+                         ) -> hypotheses.Context | None:
+    """A context whose base model already contains effect ``a`` (None when it cannot be put in)."""
+    ev, h = ctx.ev, a.hyp
+
+    def on(segs_x: list[SegmentArrays], theta: np.ndarray) -> hypotheses.Context:
+        ev_x = Evaluator(segs_x, ev.dt_s, theta, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds,
+                         ridge=ev.ridge)
+        return hypotheses.Context(ev_x, segs_x)
+
+    if h.effect in hypotheses.INPUT_EFFECTS:
+        return on(hypotheses.apply_input_effect(h, segs, ev.dt_s), h.extra.get("theta_refit", ev.theta0))
+    if h.effect in ("ground_effect", "quadratic_drag") and h.extra.get("X") is not None:
+        return hypotheses.Context(ev, segs, given=h.extra["X"])
+    if h.effect == "gyro_bias" and h.output:
+        c = OUTPUTS.index(h.output)
+        b = float(h.estimate.get("bias_rad_s", 0.0))
+        segs_b = []
+        for s in segs:
+            y, yr = s.outputs.copy(), s.outputs_raw.copy()
+            y[:, c] -= b
+            yr[:, c] -= b
+            segs_b.append(SegmentArrays(t_s=s.t_s, inputs=s.inputs, outputs=y, outputs_raw=yr, alt_m=s.alt_m,
+                                        flight=s.flight))
+        return on(segs_b, ev.theta0)
+    if h.effect == "velocity_latency":
+        d = float(h.estimate.get("latency_s", 0.0)) / ev.dt_s
+        segs_v = []
+        for s in segs:
+            y, yr = s.outputs.copy(), s.outputs_raw.copy()
+            y[:, :3] = hypotheses.shift(y[:, :3], -d)
+            yr[:, :3] = hypotheses.shift(yr[:, :3], -d)
+            segs_v.append(SegmentArrays(t_s=s.t_s, inputs=s.inputs, outputs=y, outputs_raw=yr, alt_m=s.alt_m,
+                                        flight=s.flight))
+        return on(segs_v, ev.theta0)
+    return None  # rotor vibration (raw residual only), air mass (its own protocol, see encompass)
+
+
+def _rescan(b: attribute.Candidate, ctx: hypotheses.Context) -> hypotheses.Hypothesis | None:
+    e = b.hyp.effect
+    if e in hypotheses.INPUT_EFFECTS:
+        return hypotheses.rescan_input_effect(ctx, b.hyp)
+    scans = {"velocity_latency": hypotheses.scan_velocity_latency, "gyro_bias": hypotheses.scan_gyro_bias,
+             "quadratic_drag": hypotheses.scan_quadratic_drag, "ground_effect": hypotheses.scan_ground_effect,
+             "wind_gust": hypotheses.scan_wind_gust}
+    return scans[e](ctx) if e in scans else None
+
+
+def conditional_names(ranked: list[attribute.Candidate], ctx: hypotheses.Context, segs: list[SegmentArrays],
+                      rng: np.random.Generator, cfg: DiagnoseConfig, crit: float) -> None:
+    """Second and later effects are named only if they add to the first one (held-out, conditional).
+
+    With the top effect in the base model, each other named effect is scanned again (same channel,
+    same grid, nested selection) and must lower the held-out cost of that model significantly (at
+    the same Bonferroni level), by more than ``min_score_pct``, and shrink the gap on its own
+    channels; else it is marked not significant with the conditional p-value in its evidence.
+    Effects of different kinds that cannot be put into the model together (the spectral line,
+    the air mass) keep their own tests. Changes ``ranked`` candidates in place.
+    """
+    if len(ranked) < 2:
+        return
+    top = ranked[0]
+    cctx = _conditioned_context(top, ctx, segs)
+    if cctx is None:
+        return
+    for b in ranked[1:]:
+        if b.hyp.effect == "rotor_vibration":
+            continue  # raw-residual line: disjoint from every model-based effect
+        hb = _rescan(b, cctx)
+        if hb is None or hb.sse is None or not hb.testable:
+            continue
+        base = hb.extra.get("base_sse", cctx.base_sse)
+        s = attribute.score(base, hb.sse, cctx.ev.energy, hb.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
+        s.p_value = p_value(hb, cctx, base, rng, cfg)
+        b.hyp.extra[f"p_given_{top.hyp.effect}"] = s.p_value
+        b.hyp.extra[f"score_given_{top.hyp.effect}"] = s.score_pct
+        if not (s.p_value < crit and gain_ok(s, cfg) and physical(hb, cfg)):
+            b.significant = False
+            b.evidence += (f"; not named: adds {s.score_pct:+.1f}% held-out (p={s.p_value:.2g}, gap on its channels "
+                           f"{s.shrink_pct:+.1f}%) once the {top.hyp.effect} is in the model")

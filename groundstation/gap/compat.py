@@ -33,6 +33,9 @@ from scipy import stats
 from groundstation.gap.evaluate import SegmentArrays
 
 U, V, W, P, Q, R, THETA, PHI = range(8)
+#: a kinematic regression slope beyond this is not a calibration error but two signals that do not
+#: measure the same motion (a held or filtered height, a rate that is not this attitude's derivative)
+MAX_SLOPE = 0.5
 
 
 @dataclass(frozen=True)
@@ -163,7 +166,7 @@ def _vertical_rows(segs: list[SegmentArrays], trims: np.ndarray, dt_s: float, L:
 
 def check(segs: list[SegmentArrays], available: np.ndarray, dt_s: float, sigma_raw: np.ndarray,
           trims: np.ndarray | None = None, *, window_s: float = 4.0, alpha: float = 0.01,
-          min_windows: int = 6) -> Compatibility:
+          min_windows: int = 6, min_effect_to_noise: float = 1.0) -> Compatibility:
     """Kinematic consistency of the gyros and the vertical velocity (see the module docstring).
 
     ``segs``: in-air segments (raw outputs, trim removed, plus ``trims`` (8,) to make them absolute);
@@ -192,6 +195,11 @@ def check(segs: list[SegmentArrays], available: np.ndarray, dt_s: float, sigma_r
         est3 = _estimates(sensor, ("bias", "scale", "shift_s"), beta, cov, G)
         # the regression measures e' in true = measured (1 - e'); the scale error is e = e' / (1 - e')
         s = est3[1]
+        if not abs(s.value) < MAX_SLOPE or not np.isfinite(s.se) or s.se <= 0:
+            pair = "height and vertical velocity" if sensor == "w" else f"{sensor} gyro and attitude angles"
+            untestable[sensor] = (f"{pair} do not agree kinematically (slope {s.value:+.2f}): one is not the "
+                                  "integral of the other here (e.g. a height that is held, filtered or missing)")
+            continue
         est3[1] = Estimate(sensor, "scale", s.value / (1.0 - s.value), s.se / (1.0 - s.value) ** 2, s.p_value)
         ests += est3
         scales.append((sensor, est3[1], col))
@@ -201,7 +209,7 @@ def check(segs: list[SegmentArrays], available: np.ndarray, dt_s: float, sigma_r
         x = np.concatenate([s.outputs_raw[:, col] for s in segs])
         rms = float(np.sqrt(np.mean((x - x.mean()) ** 2)))
         etn = abs(e.value) * rms / max(float(sigma_raw[col]), 1e-12)
-        if e.p_value < crit and etn > 1.0:
+        if e.p_value < crit and etn > min_effect_to_noise:
             kind = "velocity_scale" if sensor == "w" else "gyro_scale"
             what = "vertical velocity against the height" if sensor == "w" else f"{sensor} gyro against the Euler angles"
             findings.append(Finding(kind, sensor, e.value, e.se, e.p_value, etn,

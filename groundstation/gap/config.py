@@ -99,6 +99,16 @@ class DiagnoseConfig:
     #: excess residual energy in flagged windows (else the gap is spread evenly: "none")
     unexplained_flagged_share: float = 0.5
 
+    # ------------------------------------------------------------------ data compatibility
+    #: window over which the kinematics are integrated (s): long enough to lever a scale factor,
+    #: short enough that the integrated gyro noise (a random walk) stays near the angle noise
+    compat_window_s: float = 4.0
+    #: a significant sensor scale error is a finding only when the error it makes on its channel
+    #: (scale x rms of the channel) exceeds this many times the channel's measured white noise
+    compat_min_effect_to_noise: float = 1.0
+    #: input lags (s) over which the residual-input cross-correlation is reported
+    xcorr_max_lag_s: float = 1.0
+
     # ------------------------------------------------------------------ numerical constants
     #: seed of the Monte-Carlo calibration of noise floors for interpolated streams: a property of
     #: the stream's stride, not of the data, so a fixed seed makes it a constant

@@ -29,21 +29,34 @@ What it leaves to others: reading logs and preparing data (``dsp.prepare``), ide
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from groundstation.gap import attribute, candidates, fingerprints, hypotheses, locate, noise
+from groundstation.gap import (
+    attribute,
+    candidates,
+    compat,
+    fingerprints,
+    hypotheses,
+    locate,
+    noise,
+    structure,
+)
 from groundstation.gap.config import DiagnoseConfig
 from groundstation.gap.evaluate import Evaluator, SegmentArrays
 from groundstation.gap.report import build_report
 from groundstation.sysid.model import INPUTS, OUTPUTS, HoverModel
 
-__all__ = ["CATALOGUE", "DiagnoseConfig", "Diagnosis", "diagnose", "run_diagnosis", "segments_from_prepared"]
+__all__ = ["CATALOGUE", "VERDICTS", "DiagnoseConfig", "Diagnosis", "diagnose", "run_diagnosis", "segments_from_prepared"]
 
 CATALOGUE = ("input_delay", "rate_limit", "deadband", "ground_effect", "wind_gust", "quadratic_drag",
              "gyro_bias", "rotor_vibration", "velocity_latency")
+#: every verdict a report can carry
+VERDICTS = (*CATALOGUE, "sensor_error", "unexplained", "none")
 
 
 @dataclass
@@ -159,6 +172,7 @@ class Decision:
     others: list[attribute.Candidate]  # scored, not named
     untestable: dict[str, str]
     excitation: dict
+    unexplained: dict | None  # evidence when the verdict is "unexplained" (else None)
 
 
 def diagnose(model: HoverModel | None, prepared: Any, *, seed: int = 0,
@@ -172,10 +186,12 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
     """Like :func:`diagnose` but also returns the arrays behind the report (for plots)."""
     cfg = config or DiagnoseConfig()
     rng = np.random.default_rng(seed)
+    comp, prepared = compat_stage(prepared, cfg)
     base = base_stage(model, prepared, cfg, seed)
     loc = locate_stage(base, prepared, cfg)
     att = attribute_stage(base, loc, prepared, cfg, rng, seed)
-    dec = decide_stage(base, loc, att, cfg)
+    tests = structure_stage(base, loc, att, cfg, rng)
+    dec = decide_stage(base, loc, att, comp, tests, cfg)
     ev = base.ev
     report = build_report(
         verdict=dec.verdict, channels=loc.chan, worst=loc.worst, windows_s=loc.windows_s, band=loc.band,
@@ -184,10 +200,61 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
         base_params=ev.theta0, kinematic=att.kin, lines=att.lines, nominal=loc.nominal, n_windows=ev.W,
         window_s=cfg.window_s, folds=cfg.folds, alpha=cfg.alpha, gap_significant=loc.gap_significant,
     )
+    report["tested"] = sorted(h.effect for h in att.hyps if h.testable and h.effect not in dec.untestable) + (
+        ["rotor_vibration"] if any(base.avail[3:]) else [])
+    report["data_compatibility"] = compat_section(comp)
+    report["unexplained"] = dec.unexplained
+    # where and how the model departs, whatever the verdict, when the departure is above the noise
+    report["departure"] = (dec.unexplained or _unexplained_evidence(base, loc, tests, cfg)) \
+        if loc.gap_significant else None
+    report["structure_tests"] = [dataclasses.asdict(t) for t in tests]
     arrays = {"t_s": ev.T, "Y": ev.Y, "Yraw": ev.Yraw, "yhat": loc.yhat_ho, "mask": ev.mask, "flag": loc.flag,
               "spectra": att.spectra, "band": loc.band, "candidates": att.candidates, "evaluator": ev,
               "ctx": att.ctx}
     return Diagnosis(report=report, arrays=arrays)
+
+
+def compat_stage(prepared: Any, cfg: DiagnoseConfig) -> tuple[compat.Compatibility, Any]:
+    """Data compatibility before blame: the kinematic checks, and the data with found scale errors undone."""
+    segs, avail = segments_from_prepared(prepared, cfg.channel_share_min)
+    stride = getattr(prepared, "native_stride", None)
+    sigma = noise.raw_noise_std([s.outputs_raw for s in segs], stride(OUTPUTS) if stride is not None else None,
+                                cfg.noise_calibration_seed) if segs else np.full(8, np.nan)
+    comp = compat.check(segs, avail, float(prepared.dt_s), sigma, _trims(prepared), window_s=cfg.compat_window_s,
+                        alpha=cfg.alpha, min_windows=cfg.min_windows,
+                        min_effect_to_noise=cfg.compat_min_effect_to_noise)
+    fac = comp.scale_corrections()
+    if not fac:
+        return comp, prepared
+    cols = np.ones(8)
+    for c, f in fac.items():
+        cols[c] = f
+    new_segs = []
+    for s in prepared.segments:
+        s2 = copy.copy(s)
+        for name in ("outputs", "outputs_raw"):
+            if getattr(s, name, None) is not None:
+                object.__setattr__(s2, name, np.asarray(getattr(s, name), float) * cols)
+        new_segs.append(s2)
+    p2 = copy.copy(prepared)
+    object.__setattr__(p2, "segments", new_segs)
+    notes = list(getattr(prepared, "notes", []) or [])
+    notes.append("sensor scale errors found by data compatibility were undone before the diagnosis: "
+                 + "; ".join(f"{f.kind} on {f.channel} {100 * f.estimate:+.1f}%" for f in comp.findings))
+    object.__setattr__(p2, "notes", notes)
+    return comp, p2
+
+
+def compat_section(comp: compat.Compatibility) -> dict[str, Any]:
+    """The ``data_compatibility`` block of the report."""
+    return {
+        "estimates": [{"sensor": e.sensor, "parameter": e.parameter, "value": round(e.value, 6), "se": round(e.se, 6),
+                       "p_value": float(f"{e.p_value:.3g}")} for e in comp.estimates],
+        "findings": [{"kind": f.kind, "channel": f.channel, "estimate": round(f.estimate, 4), "se": round(f.se, 4),
+                      "p_value": float(f"{f.p_value:.3g}"), "effect_to_noise": round(f.effect_to_noise, 2),
+                      "significant": True, "evidence": f.evidence} for f in comp.findings],
+        "untestable": comp.untestable,
+    }
 
 
 def base_stage(model: HoverModel | None, prepared: Any, cfg: DiagnoseConfig, seed: int) -> Base:
@@ -319,6 +386,8 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
                     break
             c.evidence = candidates.evidence(c.hyp, c.score, kin, lines)
     candidates.encompass(cands, ctx, segs, rng, cfg, crit)
+    ranked = sorted((c for c in cands if c.significant), key=lambda c: -c.score.score_pct)
+    candidates.conditional_names(ranked, ctx, segs, rng, cfg, crit)
     return Attributed(ctx=ctx, hyps=hyps, candidates=cands, kin=kin, lines=lines, spectra=spectra, crit=crit)
 
 
@@ -344,13 +413,59 @@ def _significance(results: list, kin: dict, lines: list, crit: float, cfg: Diagn
     return cands
 
 
-def decide_stage(base: Base, loc: Located, att: Attributed, cfg: DiagnoseConfig) -> Decision:
-    """The verdict, the named effects, what the log cannot test and what the flight excited."""
+def structure_stage(base: Base, loc: Located, att: Attributed, cfg: DiagnoseConfig,
+                    rng: np.random.Generator) -> list[structure.StructureTest]:
+    """Held-out tests of structure the linear model cannot have (input asymmetry, amplitude dependence)."""
+    return structure.nonlinear_input_tests(att.ctx, loc.in_excited, rng, cfg)
+
+
+def _unexplained_evidence(base: Base, loc: Located, tests: list[structure.StructureTest],
+                          cfg: DiagnoseConfig) -> dict[str, Any]:
+    """Where the departure is and what it looks like, for an ``unexplained`` verdict."""
+    ev = base.ev
+    e = ev.Y - loc.yhat_ho
+    xc = structure.input_cross_correlation(e[:, ev.start:], ev.U[:, ev.start:], base.dt_s, loc.out_excited,
+                                           loc.in_excited, cfg.xcorr_max_lag_s)
+    ratio = {OUTPUTS[c]: round(float(loc.gap_ratio[c]), 2) for c in range(8)
+             if np.isfinite(loc.gap_ratio[c]) and loc.gap_ratio[c] > cfg.gap_ratio_significant}
+    sig = [t for t in tests if t.significant]
+    looks = [t.description for t in sig]
+    if loc.cond.get("label", "none") != "none":
+        looks.append(f"the residual grows with {loc.cond['label']}")
+    return {"channels_above_noise": ratio, "band_hz": loc.band.get("band_hz"),
+            "band_input_coherence": round(float(loc.band.get("input_coherence", 0.0)), 3),
+            "condition": loc.cond.get("label", "none"), "windows_s": loc.windows_s[:10],
+            "what_it_looks_like": looks, "residual_input_correlation": xc}
+
+
+def decide_stage(base: Base, loc: Located, att: Attributed, comp: compat.Compatibility,
+                 tests: list[structure.StructureTest], cfg: DiagnoseConfig) -> Decision:
+    """The verdict, the named effects, what the log cannot test and what the flight excited.
+
+    Order of verdicts: a named catalogue effect; else a sensor error found by data compatibility
+    (``sensor_error``: it explains the gap, the data were corrected before the rest); else
+    ``unexplained`` when a structure the linear model cannot have is significant, or the gap is
+    significant and localised in flagged windows; else ``none``.
+    """
     ranked = sorted((c for c in att.candidates if c.significant), key=lambda c: -c.score.score_pct)
+    sig_tests = sorted((t for t in tests if t.significant), key=lambda t: -t.score_pct)
+    if ranked and sig_tests and sig_tests[0].score_pct > ranked[0].score.score_pct:
+        # a structure the catalogue has no name for explains more of the held-out cost than the best
+        # catalogue effect: naming the effect would send a team after the wrong cause
+        for c in ranked:
+            c.significant = False
+            c.evidence += (f"; not named: a structure outside the catalogue explains more of the held-out cost "
+                           f"({sig_tests[0].score_pct:+.1f}% vs {c.score.score_pct:+.1f}%)")
+        ranked = []
+    unexplained = None
     if ranked:
         verdict = ranked[0].hyp.effect
-    elif loc.gap_significant and loc.flagged_share > cfg.unexplained_flagged_share:
-        verdict = "unexplained"  # a localised departure (most of the excess in flagged windows)
+    elif comp.findings:
+        verdict = "sensor_error"
+    elif any(t.significant for t in tests) or (loc.gap_significant
+                                                and loc.flagged_share > cfg.unexplained_flagged_share):
+        verdict = "unexplained"
+        unexplained = _unexplained_evidence(base, loc, tests, cfg)
     else:
         verdict = "none"
     untestable = {h.effect: h.reason for h in att.hyps if not h.testable}
@@ -364,7 +479,7 @@ def decide_stage(base: Base, loc: Located, att: Attributed, cfg: DiagnoseConfig)
                                            ("not measured" if not avail[c] else "too little excitation"))
                               for c in range(8)}}
     return Decision(verdict=verdict, ranked=ranked, others=[c for c in att.candidates if not c.significant],
-                    untestable=untestable, excitation=excitation)
+                    untestable=untestable, excitation=excitation, unexplained=unexplained)
 
 
 def _window_features(ev: Evaluator) -> dict[str, np.ndarray]:

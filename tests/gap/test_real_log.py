@@ -14,7 +14,7 @@ from scipy.signal import welch
 
 from firmware_interface.readers import load_log
 from groundstation.cli import main
-from groundstation.gap.diagnose import CATALOGUE
+from groundstation.gap.diagnose import VERDICTS
 from tests.realdata import real_log
 
 
@@ -35,7 +35,21 @@ def test_real_trex550_diagnosis(tmp_path, capsys):
     assert main(["diagnose", str(path), "--out", str(out), "--quiet"]) == 0
     rep = json.loads(out.read_text())
     assert rep["schema"] == "heli-gap-report/1"
-    assert rep["verdict"] in (*CATALOGUE, "none", "unexplained")
+    assert rep["verdict"] in VERDICTS
+    # what the log can test and what it cannot, said explicitly
+    assert "ground_effect" not in rep["tested"] and "input_delay" in rep["tested"]
+    dc = rep["data_compatibility"]
+    assert {(e["sensor"], e["parameter"]) for e in dc["estimates"]} >= {("p", "scale"), ("q", "scale")}
+    assert all(e["se"] > 0 for e in dc["estimates"])
+    assert "r" in dc["untestable"]
+    # a found sensor error is a calibration-sized one, never a blow-up of an ill-posed regression
+    assert all(abs(f["estimate"]) < 0.5 for f in dc["findings"])
+    # the departure is far above the noise on this flight: the report says where, whatever the verdict
+    assert rep["gap"]["significant"]
+    assert rep["departure"]["channels_above_noise"]
+    if rep["verdict"] == "unexplained":
+        ux = rep["unexplained"]
+        assert ux["channels_above_noise"] or ux["what_it_looks_like"]
     assert rep["excitation"]["inputs"]["lat"] == "too little excitation"
     assert "ground_effect" in rep["untestable"]
     native = _native_line_hz(path)
