@@ -399,6 +399,32 @@ class Service:
         if self.on_window is not None:
             self.on_window(w)
 
+    def _close_rerun(self) -> None:
+        """Close the Rerun sink on its own logger thread, after every call already queued: closing it
+        from here while that thread still logs a result raced it (under load a saved .rrd lost its
+        blueprint). A file is given time to be finished; a live viewer at most 0.5 s."""
+        if self.rerun is None:
+            return
+        calls, sink = self._rerun_calls, self.rerun
+        if calls is None:
+            calls = BackgroundCalls("rerun-close", maxsize=1)
+        budget_s = 10.0 if sink.mode == "save" else 0.5
+        errors: list[str] = []
+
+        def close() -> None:
+            try:
+                sink.close()
+            except Exception as exc:  # a viewer gone at exit must not stop the shutdown
+                errors.append(f"closing Rerun: {type(exc).__name__}: {exc}")
+
+        queued = calls.submit(close)
+        if not calls.close(budget_s):
+            self._warn(f"closing Rerun: the logger did not finish within {budget_s:g} s")
+        elif not queued:              # the queue was full: the thread has ended now, close from here
+            close()
+        for e in errors:
+            self._warn(e)
+
     def _flush_rows_to_rerun(self) -> None:
         if self.rerun is not None and self._rerun_calls is not None:
             if self._rows_buf:
@@ -648,13 +674,7 @@ class Service:
                     p.kill()
         # 3. sinks (bounded waits)
         self._flush_rows_to_rerun()
-        if self._rerun_calls is not None:
-            self._rerun_calls.close(0.5)
-        if self.rerun is not None:
-            try:
-                self.rerun.close()
-            except Exception as exc:  # a viewer gone at exit must not stop the shutdown
-                self._warn(f"closing Rerun: {type(exc).__name__}: {exc}")
+        self._close_rerun()
         if self.zenoh is not None:
             self._publish_status()
             self.zenoh.close(0.5)
