@@ -249,13 +249,26 @@ class RerunSink:
     def flight_ended(self, flight: int, t_start_s: float, t_end_s: float) -> None:
         """A flight's span is known: send what is buffered and open the recording on it."""
         self.flush()
+        t_start_s, t_end_s = self._finite_span(flight, float(t_start_s), float(t_end_s))
+        if not t_start_s < t_end_s:
+            return                    # no FC time known for this flight: no view of its own
         old = self.flights.get(flight)
-        fv = FlightViews(flight, float(t_start_s), float(t_end_s))
+        fv = FlightViews(flight, t_start_s, t_end_s)
         self.flights[flight] = replace(old, t_start_s=fv.t_start_s, t_end_s=fv.t_end_s) if old else fv
         self.stream.send_property("flights", rr.AnyValues(
             numbers=sorted(self.flights), start_fc_s=[self.flights[k].t_start_s for k in sorted(self.flights)],
             end_fc_s=[self.flights[k].t_end_s for k in sorted(self.flights)]))
         self._send_blueprint()
+
+    def _finite_span(self, flight: int, t_start_s: float, t_end_s: float) -> tuple[float, float]:
+        """A flight armed before the FC clock was known has no start time (NaN): it starts where the
+        previous flight ended, else at the first row seen; a missing end is the last row seen."""
+        if not np.isfinite(t_start_s):
+            ends = [f.t_end_s for k, f in self.flights.items() if k < flight]
+            t_start_s = max(ends) if ends else self._t_first
+        if not np.isfinite(t_end_s):
+            t_end_s = self._t_last
+        return t_start_s, t_end_s
 
     def _send_blueprint(self, final: bool = False) -> None:
         """To a live viewer at every change; into a file once, at close (a viewer opening a file keeps the

@@ -172,3 +172,19 @@ def test_cross_flight_from_the_models_fit_as_the_worker_writes_it():
                                                                                "match": {"p": 80.4}}}}}}
     assert "flight 2's model %" in fit_table(3, res) and "80.4" in fit_table(3, res)
     assert fit_text(res)["p"] == "fit 93% · held-out 80%"
+
+
+def test_flight_armed_before_the_fc_clock_still_gets_a_view_and_the_file_its_blueprint(tmp_path):
+    """A flight whose arming came before any FC time (start NaN) once made close() fail converting
+    NaN and the saved file had no blueprint at all."""
+    path = tmp_path / "nan_start.rrd"
+    sink = RerunSink("heli", "save", str(path))
+    t = 10.0 + np.arange(500) * DT
+    sink.log_rows(t, 1.7e9 + t, np.zeros((500, 4)), np.zeros((500, 8)), "smoothed")
+    sink.flight_ended(1, float("nan"), float(t[-1]))
+    sink.close()
+    lay = read_layout(path)
+    ranges = [v.fc_range_s for v in lay.views.values() if v.fc_range_s is not None]
+    assert ranges, "no view opens on the flight"
+    assert all(np.isfinite(r).all() for r in ranges)
+    assert min(r[0] for r in ranges) <= t[0] + 1e-6 and max(r[1] for r in ranges) >= t[-1] - 1e-6
