@@ -67,8 +67,11 @@ _MAV_AUTOPILOT_INVALID = 8
 _MAV_TYPE_GCS = 6
 
 
-def load_log(path: str | os.PathLike[str]) -> LogData:
-    """Read a .tlog, dataflash .bin, PX4 .px4log or PX4 .ulg into :class:`LogData` (raises LogError)."""
+def load_log(path: str | os.PathLike[str], *, all_topics: bool = False) -> LogData:
+    """Read a .tlog, dataflash .bin, PX4 .px4log or PX4 .ulg into :class:`LogData` (raises LogError).
+
+    ``all_topics``: a ULog's unmapped topics are decoded and counted too (the other formats always are).
+    """
     p = Path(path)
     try:
         with p.open("rb") as fh:
@@ -84,7 +87,7 @@ def load_log(path: str | os.PathLike[str]) -> LogData:
     if head[:3] == _DF_MAGIC:
         return load_dataflash(p)
     if head[:7] == ULOG_MAGIC:
-        return load_ulog(p)
+        return load_ulog(p, all_topics=all_topics)
     try:
         data = p.read_bytes()
     except OSError as exc:

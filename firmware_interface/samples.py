@@ -276,7 +276,8 @@ class LogData:
     key (callers must say which type is missing rather than guess). ``message_counts`` counts
     every decoded message type, including ones without a series. ``notes`` are one-line remarks
     of the reader (a topic the file lacks, a log never armed) for the user; ``chirps`` the
-    system-identification chirps of a dataflash log.
+    system-identification chirps of a dataflash log; ``dropouts_s`` the
+    intervals the FC's own logger reports lost (ULog).
     """
 
     source: str
@@ -286,6 +287,9 @@ class LogData:
     flights: list[FlightInterval]
     notes: list[str] = field(default_factory=list)
     chirps: list[ChirpSegment] = field(default_factory=list)
+    #: (start on the FC clock, duration) in s of each interval the FC's logger itself lost data
+    #: (ULog dropout records); empty for logs that do not record their own losses
+    dropouts_s: list[tuple[float, float]] = field(default_factory=list)
 
     def has(self, name: str) -> bool:
         return name in self.series and len(self.series[name]) > 0

@@ -16,9 +16,13 @@ RC_CHANNELS            ``input_rc`` ``values[k]`` in µs, else ``manual_control_
                        throttle 0..1 as 1000 + 1000·throttle)
 LOCAL_POSITION_NED     ``vehicle_local_position`` x y z vx vy vz
 IMU                    ``sensor_combined`` ``accelerometer_m_s2[k]``, ``gyro_rad[k]``
+GPS_RAW_INT            ``vehicle_gps_position`` else ``sensor_gps``: fix, position, speed, satellites
 HEARTBEAT              ``vehicle_status`` ``arming_state`` (2 = armed): flights
 EXTENDED_SYS_STATE     ``vehicle_land_detected`` ``landed`` (1 on ground, else 2 in air): in-air time
 =====================  ===================================================================
+
+pyulog decodes only these topics unless ``all_topics`` is asked for (``log-info``): the rest of a
+PX4 log is skipped. The logger's own dropout records become ``LogData.dropouts_s`` and one note.
 
 The aircraft's channel map then picks the channels out of SERVO_OUTPUT_RAW or RC_CHANNELS, as
 for any other log. ``message_counts`` holds pyulog's own per-topic counts (``topic`` for multi
@@ -51,20 +55,25 @@ ULOG_MAGIC = b"ULog\x01\x12\x35"
 #: The topics this reader maps (anything else is only counted).
 ULOG_TOPICS = ("vehicle_attitude", "vehicle_angular_velocity", "actuator_outputs", "actuator_servos",
                "input_rc", "manual_control_setpoint", "vehicle_local_position", "sensor_combined",
-               "vehicle_status", "vehicle_land_detected")
+               "vehicle_status", "vehicle_land_detected", "vehicle_gps_position", "sensor_gps")
 
 _ARMED = 2  # vehicle_status.arming_state ARMING_STATE_ARMED (every PX4 version)
 
 
-def load_ulog(path: str | os.PathLike[str]) -> LogData:
-    """Read a PX4 .ulg through pyulog into :class:`LogData` (raises LogError naming the file)."""
+def load_ulog(path: str | os.PathLike[str], *, all_topics: bool = False) -> LogData:
+    """Read a PX4 .ulg through pyulog into :class:`LogData` (raises LogError naming the file).
+
+    By default pyulog decodes only :data:`ULOG_TOPICS` (what every command maps; the other topics'
+    records are skipped unread, which is most of a PX4 log), so ``message_counts`` holds those;
+    ``all_topics`` decodes every topic and counts them all (``log-info``).
+    """
     from pyulog import ULog
 
     p = Path(path)
     noise = io.StringIO()  # pyulog prints damaged-message notices to stdout; keep stdout clean
     try:
         with contextlib.redirect_stdout(noise):
-            ulog = ULog(str(p), None, True)
+            ulog = ULog(str(p), None if all_topics else list(ULOG_TOPICS), True)
     except Exception as exc:  # pyulog raises bare exceptions on malformed files
         raise LogError(f"{p}: not a readable ULog ({type(exc).__name__}: {exc})") from None
     topics: dict[str, dict[str, np.ndarray]] = {}
@@ -74,8 +83,9 @@ def load_ulog(path: str | os.PathLike[str]) -> LogData:
         if d.multi_id == 0 and d.name in ULOG_TOPICS and len(d.data["timestamp"]):
             topics[d.name] = d.data
     if "vehicle_attitude" not in topics:
+        seen = ", ".join(sorted(counts)) or "none"
         raise LogError(f"{p}: ULog has no vehicle_attitude topic (attitude and body rates); "
-                       f"topics: {', '.join(sorted(counts)) or 'none'}")
+                       f"{'topics' if all_topics else 'mapped topics present'}: {seen}")
     notes: list[str] = []
     series = {name: s for name, s in _map_topics(topics, p, notes).items() if len(s)}
     from firmware_interface.readers import _finish
@@ -83,7 +93,21 @@ def load_ulog(path: str | os.PathLike[str]) -> LogData:
     stats = LinkStats(packets=sum(counts.values()))
     log = _finish(str(p), series, counts, stats)
     log.notes.extend(notes)
+    log.dropouts_s.extend(_dropouts(ulog))
+    if log.dropouts_s:
+        lost = sum(d for _, d in log.dropouts_s)
+        t0, d0 = max(log.dropouts_s, key=lambda x: x[1])
+        log.notes.append(f"{p}: the FC's logger lost data {len(log.dropouts_s)} times, {lost * 1e3:.0f} ms in "
+                         f"all (longest {d0 * 1e3:.0f} ms at {t0:.1f} s)")
+    if ulog.file_corruption:
+        log.notes.append(f"{p}: pyulog found damaged records and skipped them")
     return log
+
+
+def _dropouts(ulog: object) -> list[tuple[float, float]]:
+    """(start s, duration s) of each ULog dropout record of positive duration (FC clock)."""
+    return [(float(d.timestamp) * 1e-6, float(d.duration) * 1e-3)
+            for d in getattr(ulog, "dropouts", ()) if d.duration > 0]
 
 
 def _t(d: dict[str, np.ndarray]) -> np.ndarray:
@@ -125,6 +149,8 @@ def _map_topics(topics: dict[str, dict[str, np.ndarray]], p: Path, notes: list[s
         gyr = _cols(sc, "gyro_rad[{}]", 3)
         if acc is not None and gyr is not None:
             out["IMU"] = _series("IMU", _t(sc), [*acc, *gyr])
+    else:
+        notes.append(f"{p}: ULog has no sensor_combined topic (IMU accelerations and gyros)")
     vs = topics.get("vehicle_status")
     if vs is not None and "arming_state" in vs and np.any(vs["arming_state"] == _ARMED):
         armed = (np.asarray(vs["arming_state"]) == _ARMED).astype(float)
@@ -133,6 +159,11 @@ def _map_topics(topics: dict[str, dict[str, np.ndarray]], p: Path, notes: list[s
     else:
         what = "no vehicle_status topic" if vs is None else "vehicle_status never shows the vehicle armed"
         notes.append(f"{p}: {what}: the whole log is taken as one flight")
+    gps = _gps(topics)
+    if gps is not None:
+        out["GPS_RAW_INT"] = gps
+    else:
+        notes.append(f"{p}: ULog has no vehicle_gps_position or sensor_gps topic (GPS)")
     ld = topics.get("vehicle_land_detected")
     if ld is not None and "landed" in ld:
         landed = np.asarray(ld["landed"], dtype=float)
@@ -195,3 +226,25 @@ def _rc(topics: dict[str, dict[str, np.ndarray]]) -> Series | None:
     nan = np.full(len(thr), math.nan)
     return _series("RC_CHANNELS", _t(ms), [1500.0 + 500.0 * sticks[0], 1500.0 + 500.0 * sticks[1], thr_us,
                                            1500.0 + 500.0 * sticks[3], *([nan] * 14)])
+
+
+def _gps(topics: dict[str, dict[str, np.ndarray]]) -> Series | None:
+    """``vehicle_gps_position`` (else ``sensor_gps``): integer 1e-7 deg / mm fields (PX4 < 1.14) or
+    ``latitude_deg``/``longitude_deg``/``altitude_msl_m`` (PX4 >= 1.14)."""
+    g = topics.get("vehicle_gps_position", topics.get("sensor_gps"))
+    if g is None:
+        return None
+    n = len(g["timestamp"])
+    nan = np.full(n, math.nan)
+
+    def col(*names: str, scale: float = 1.0) -> np.ndarray:
+        for k in names:
+            if k in g:
+                return np.asarray(g[k], dtype=float) * scale
+        return nan
+
+    lat = col("latitude_deg") if "latitude_deg" in g else col("lat", scale=1e-7)
+    lon = col("longitude_deg") if "longitude_deg" in g else col("lon", scale=1e-7)
+    alt = col("altitude_msl_m") if "altitude_msl_m" in g else col("alt", scale=1e-3)
+    return _series("GPS_RAW_INT", _t(g), [col("fix_type"), lat, lon, alt, col("vel_m_s"),
+                                          col("satellites_used")])

@@ -7,10 +7,12 @@ Generates both files in a temporary directory (removed afterwards):
 * a ULog of about ``--ulog-mb``: the real pyulog sample log's topics repeated end to end with their
   timestamps moved on, written by pyulog itself.
 
-Then times, on the same files in one run: this project's reader (``load_log``, what log-info,
-identify, validate and diagnose use), pymavlink's ``mavlogdump.py --quiet`` (every record decoded)
-and pyulog's ``ulog_info``. MB/s = file size / wall time (target >= 20 MB/s for our reader). Each
-external tool runs as its own process (its start-up included) with ``--tool-timeout-s``.
+Then times, on the same files in one run: this project's reader (``load_log``, what identify,
+validate and diagnose use; for a ULog also with every topic decoded, as log-info reads it),
+pymavlink's ``mavlogdump.py --quiet`` (every record decoded) and pyulog's ``ulog_info``. MB/s =
+file size / wall time (target >= 20 MB/s for our reader); ``--repeat N`` gives the median of N
+runs of each. Each external tool runs as its own process (its start-up included) with
+``--tool-timeout-s``; ``--only bin|ulog`` times one kind of log.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +38,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ulog-mb", type=float, default=100.0, help="ULog size (MB, approximate)")
     p.add_argument("--tool-timeout-s", type=float, default=900.0, help="give up on an external tool after this")
     p.add_argument("--no-tools", action="store_true", help="time only this project's reader")
+    p.add_argument("--only", choices=("bin", "ulog"), default=None, help="time only this kind of log")
+    p.add_argument("--repeat", type=int, default=1, help="time each reader this many times; report the median")
 
 
 def write_dataflash(path: Path, size_bytes: int, seed: int = 0) -> int:
@@ -135,12 +140,18 @@ def _tool(cmd: list[str], timeout_s: float) -> float | None:
     return time.perf_counter() - t0
 
 
-def _ours(path: Path) -> float:
+def _ours(path: Path, all_topics: bool = False) -> float:
     from firmware_interface.readers import load_log
 
     t0 = time.perf_counter()
-    load_log(path)
+    load_log(path, all_topics=all_topics)
     return time.perf_counter() - t0
+
+
+def _median_s(fn: Callable[[], float | None], repeat: int) -> float | None:
+    """Median of ``repeat`` timings; None when any run timed out."""
+    times = [fn() for _ in range(max(1, repeat))]
+    return None if any(t is None for t in times) else float(np.median([t for t in times if t is not None]))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -154,18 +165,28 @@ def run(args: argparse.Namespace) -> int:
     try:
         binp, ulg = tmp / "big.bin", tmp / "big.ulg"
         t0 = time.perf_counter()
-        bin_size = write_dataflash(binp, int(args.size_mb * 1e6))
-        ulog_size = write_ulog(ulg, int(args.ulog_mb * 1e6))
-        con.print(f"generated {bin_size / 1e6:.1f} MB .bin and {ulog_size / 1e6:.1f} MB .ulg in "
-                  f"{time.perf_counter() - t0:.1f} s")
-        todo: list[tuple[str, Path, int, str, list[str] | None]] = [("dataflash .bin", binp, bin_size, "groundstation load_log", None),
-                ("ULog .ulg", ulg, ulog_size, "groundstation load_log", None)]
-        if not args.no_tools:
-            todo.insert(1, ("dataflash .bin", binp, bin_size, "mavlogdump.py --quiet",
-                            [str(bindir / "mavlogdump.py"), "--quiet", str(binp)]))
-            todo.append(("ULog .ulg", ulg, ulog_size, "ulog_info", [str(bindir / "ulog_info"), str(ulg)]))
+        todo: list[tuple[str, Path, int, str, list[str] | None]] = []
+        if args.only != "ulog":
+            size = write_dataflash(binp, int(args.size_mb * 1e6))
+            todo.append(("dataflash .bin", binp, size, "groundstation load_log", None))
+            if not args.no_tools:
+                todo.append(("dataflash .bin", binp, size, "mavlogdump.py --quiet",
+                             [str(bindir / "mavlogdump.py"), "--quiet", str(binp)]))
+        if args.only != "bin":
+            size = write_ulog(ulg, int(args.ulog_mb * 1e6))
+            todo.append(("ULog .ulg", ulg, size, "groundstation load_log", None))
+            todo.append(("ULog .ulg", ulg, size, "load_log all topics (log-info)", []))
+            if not args.no_tools:
+                todo.append(("ULog .ulg", ulg, size, "ulog_info", [str(bindir / "ulog_info"), str(ulg)]))
+        made = ", ".join(f"{s / 1e6:.1f} MB {k}" for k, _, s, _, c in todo if c is None)
+        con.print(f"generated {made} in {time.perf_counter() - t0:.1f} s; median of {max(1, args.repeat)} run(s) each")
         for kind, path, size, who, cmd in todo:
-            secs = _ours(path) if cmd is None else _tool([sys.executable, *cmd], args.tool_timeout_s)
+            def once(path: Path = path, cmd: list[str] | None = cmd) -> float | None:
+                if not cmd:  # None: the mapped topics; []: every topic
+                    return _ours(path, all_topics=cmd is not None)
+                return _tool([sys.executable, *cmd], args.tool_timeout_s)
+
+            secs = _median_s(once, args.repeat)
             rows.append({"file": kind, "reader": who, "mb": round(size / 1e6, 1),
                          "seconds": None if secs is None else round(secs, 2),
                          "mb_per_s": None if secs is None else round(size / 1e6 / secs, 1)})

@@ -7,12 +7,14 @@ prints one JSON object (``--json``) or the same as readable tables (rich)::
      "messages": {TYPE: {"count", "rate_hz"}},
      "gaps": [{"message", "start_s", "duration_s"}], "gaps_total": n,
      "corrupt_bytes": n, "truncated_tail_bytes": n, "fc_reboots": n,
-     "packet_loss": {"lost": n, "by_source": {"sysid:compid": n}}, "notes": [str],
+     "packet_loss": {"lost": n, "by_source": {"sysid:compid": n}},
+     "dropouts": [{"start_s", "duration_s"}], "notes": [str],
      "chirps": [{"index", "axis", "sid_axis", "magnitude", "f_start_hz", "f_stop_hz", "start_s", "duration_s"}]}
 
 Times are on the FC clock (s). ``rate_hz`` is the mean rate over the message's own span (series
 types) or over the log span (other types). A gap is an interval longer than 3 median sample periods
-of that series. Leaves analysis beyond this to ``groundstation.dsp``.
+of that series (a GPS outage shows as a GPS_RAW_INT gap). ``dropouts`` are the intervals the FC's own
+logger says it lost (ULog); empty for other logs. Leaves analysis beyond this to ``groundstation.dsp``.
 """
 
 from __future__ import annotations
@@ -79,6 +81,7 @@ def summarise(log: Any) -> dict[str, Any]:
         "truncated_tail_bytes": int(st.truncated_tail_bytes),
         "fc_reboots": int(st.fc_reboots),
         "packet_loss": {"lost": int(st.packets_lost), "by_source": dict(st.loss_by_source)},
+        "dropouts": [{"start_s": _num(a), "duration_s": _num(d)} for a, d in getattr(log, "dropouts_s", [])],
         "notes": list(getattr(log, "notes", [])),
         "chirps": [{"index": c.index, "axis": c.axis_name, "sid_axis": c.axis, "magnitude": _num(c.magnitude),
                     "f_start_hz": _num(c.f_start_hz), "f_stop_hz": _num(c.f_stop_hz),
@@ -140,13 +143,13 @@ def _print_tables(info: dict[str, Any]) -> None:
                        f"{c['start_s']:.1f}", f"{c['duration_s']:.1f}", f"{c['magnitude']:g}")
         con.print(ct)
     for note in info["notes"]:
-        con.print(note, markup=False, highlight=False)
+        con.print(note, markup=False, highlight=False, soft_wrap=True)
 
 
 def run(args: argparse.Namespace) -> int:
     from firmware_interface.readers import load_log
 
-    info = summarise(load_log(args.log))
+    info = summarise(load_log(args.log, all_topics=True))
     if args.json:
         print(json.dumps(info))
     else:

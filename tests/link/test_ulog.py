@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import struct
 
 import numpy as np
 import pytest
@@ -127,3 +128,67 @@ def test_every_command_reads_the_ulog_and_px4log(sample, tmp_path, capsys):
         code = cli_main(["diagnose", str(log), "--model", str(model), "--out", str(tmp_path / "gap.json"),
                          "--quiet"])
         _one_line_or_ok(code, capsys.readouterr().err, log)
+
+
+def _add_gps_topic(ulog, outage_s):
+    """A ``vehicle_gps_position`` topic (PX4 < 1.14 fields) at 5 Hz over the log, silent in
+    ``outage_s``, built with pyulog's own format, subscription and data classes."""
+    fmt = b"vehicle_gps_position:uint64_t timestamp;int32_t lat;int32_t lon;int32_t alt;float vel_m_s;" \
+          b"uint8_t fix_type;uint8_t satellites_used;"
+    ulog._message_formats["vehicle_gps_position"] = ULog.MessageFormat(fmt, None)
+    msg_id = max(d.msg_id for d in ulog.data_list) + 1
+    sub = ULog._MessageAddLogged(struct.pack("<BH", 0, msg_id) + b"vehicle_gps_position", None,
+                                 ulog._message_formats)
+    t_us = np.arange(ulog.start_timestamp, ulog.last_timestamp, 200_000, dtype=np.uint64)
+    t_s = t_us * 1e-6
+    t_us = t_us[(t_s < outage_s[0]) | (t_s > outage_s[1])]
+    rec = np.zeros(len(t_us), dtype=sub.dtype)
+    rec["timestamp"] = t_us
+    rec["lat"], rec["lon"], rec["alt"] = 473977420, 85455940, 488_000
+    rec["vel_m_s"], rec["fix_type"], rec["satellites_used"] = 1.5, 3, 11
+    sub.buffer = bytearray(rec.tobytes())
+    ulog._data_list.append(ULog.Data(sub))
+
+
+def test_gps_and_logger_dropouts_in_log_info(sample, tmp_path, capsys):
+    path = _variant(sample, tmp_path, "gps.ulg", lambda u: _add_gps_topic(u, (150.0, 160.0)))
+    log = load_log(path)
+    gps = log.series["GPS_RAW_INT"]
+    assert gps["lat_deg"][0] == pytest.approx(47.397742) and gps["alt_m"][0] == pytest.approx(488.0)
+    assert gps["satellites"][0] == 11 and gps["fix_type"][0] == 3
+    assert cli_main(["log-info", str(path), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    outage = [g for g in info["gaps"] if g["message"] == "GPS_RAW_INT"]
+    assert len(outage) == 1 and outage[0]["start_s"] == pytest.approx(150.0, abs=0.25)
+    assert outage[0]["duration_s"] == pytest.approx(10.0, abs=0.5)
+    # the sample's own logger dropouts (pyulog's records), and one note that sums them
+    ref = ULog(str(sample))
+    want = [x for d in ref.dropouts if d.duration > 0 for x in (d.timestamp * 1e-6, d.duration * 1e-3)]
+    assert want and [x for d in info["dropouts"] for x in (d["start_s"], d["duration_s"])] == pytest.approx(want)
+    notes = [n for n in info["notes"] if "logger lost data" in n]
+    assert len(notes) == 1 and f"{len(want) // 2} times" in notes[0] and str(path) in notes[0]
+
+
+def test_ulog_missing_topic_is_one_line_in_log_info(sample, tmp_path, capsys):
+    def edit(ulog):
+        ulog._data_list = [d for d in ulog.data_list if d.name != "vehicle_local_position"]
+
+    path = _variant(sample, tmp_path, "nolpos.ulg", edit)
+    assert cli_main(["log-info", str(path)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    lines = [ln for ln in out if "vehicle_local_position" in ln]
+    assert len(lines) == 1 and str(path) in lines[0]
+
+
+def test_default_read_decodes_only_the_mapped_topics(sample):
+    from firmware_interface.ulog import ULOG_TOPICS
+
+    fast, full = load_log(sample), load_log(sample, all_topics=True)
+    assert set(fast.message_counts) <= set(ULOG_TOPICS) < set(ULOG_TOPICS) | set(full.message_counts)
+    assert set(full.message_counts) - set(fast.message_counts)
+    assert fast.series.keys() == full.series.keys()
+    for name, s in fast.series.items():
+        assert np.array_equal(s.t_fc_s, full.series[name].t_fc_s)
+    assert fast.flights == full.flights
+    # pyulog dates a dropout by the last record it decoded before it: the same within a few ms
+    assert np.array(fast.dropouts_s) == pytest.approx(np.array(full.dropouts_s), abs=5e-3)
