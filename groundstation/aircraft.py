@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.errors import GroundstationError
 from groundstation.sysid.model import OUTPUTS, PARAM_NAMES, bounds_array
 
 INPUT_SOURCES = ("SERVO_OUTPUT_RAW", "RC_CHANNELS", "SWASHPLATE")
@@ -66,7 +67,7 @@ WIDE_PRIOR: dict[str, tuple[float, float]] = {
 }
 
 
-class AircraftError(ValueError):
+class AircraftError(GroundstationError, ValueError):
     """An aircraft file or one of its values is wrong (one line naming the file, key and value)."""
 
 

@@ -12,11 +12,32 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 from groundstation.config import ServiceConfig
+from groundstation.errors import DspError, FreqError, GapError, SysidError
+
+
+@contextmanager
+def about_logs(paths: Sequence[str | os.PathLike[str]]) -> Iterator[None]:
+    """Name the logs in an error of the numerical packages that does not already name one.
+
+    The pure packages know settings and samples, not files: ``identify.window_s = 30: no in-air
+    segment is that long`` becomes ``flight1.tlog: identify.window_s = 30: ...``, one line that
+    names the file, the key and the value. The error keeps its type (a ValueError too).
+    """
+    try:
+        yield
+    except (DspError, SysidError, GapError, FreqError) as exc:
+        msg = str(exc)
+        if any(Path(p).name in msg for p in paths):
+            raise
+        names = [str(p) for p in paths]
+        where = ", ".join(names) if len(names) <= 3 else f"{', '.join(names[:2])} and {len(names) - 2} more logs"
+        raise type(exc)(f"{where}: {msg}") from exc
 
 
 def load_logs(paths: Sequence[str | os.PathLike[str]], segments: str = "flights") -> list[Any]:

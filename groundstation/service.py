@@ -466,10 +466,11 @@ class Service:
         if path:
             self._flight_tlogs[fe.flight] = path
             self.report.flight_tlogs.append(path)
-        self.log(f"flight {fe.flight}: disarmed after {fe.duration_s:.1f} s; recorded {path or '(no file)'}")
+        held = f"after {fe.duration_s:.1f} s" if math.isfinite(fe.duration_s) else "(no FC time seen while armed)"
+        self.log(f"flight {fe.flight}: disarmed {held}; recorded {path or '(no file)'}")
         if self.onboard is not None:
             self.onboard.flight_ended(time.time())
-        self._rerun_event(f"flight {fe.flight} disarmed ({fe.duration_s:.1f} s)", "INFO")
+        self._rerun_event(f"flight {fe.flight} disarmed {held}", "INFO")
         if self.rerun is not None and self._rerun_calls is not None:
             self._flush_rows_to_rerun()
             self._rerun_calls.submit(self.rerun.flight_ended, fe.flight, fe.t_fc_s - fe.duration_s, fe.t_fc_s)

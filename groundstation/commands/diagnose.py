@@ -33,6 +33,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from groundstation.pipeline import about_logs
+
+    with about_logs(args.logs):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from groundstation.commands.validate import load_model
     from groundstation.config import load_config
     from groundstation.dsp.prepare import prepare

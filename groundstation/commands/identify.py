@@ -87,6 +87,13 @@ def write_json(path: Path, doc: dict) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from groundstation.pipeline import about_logs
+
+    with about_logs(args.logs):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 

@@ -45,7 +45,9 @@ def load_model(path: Path):
     if not path.exists():
         raise OSError(f"{path}: no such model file")
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(path.read_bytes())
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a model file (binary, not JSON text)") from None
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
     try:
@@ -55,6 +57,13 @@ def load_model(path: Path):
 
 
 def run(args: argparse.Namespace) -> int:
+    from groundstation.pipeline import about_logs
+
+    with about_logs(args.logs):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from groundstation.config import load_config
     from groundstation.pipeline import load_aircraft, prepare_logs, with_aircraft
     from groundstation.sysid.validate import validate

@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from groundstation.errors import DspError
+
 
 def uniform_grid(start_s: float, end_s: float, rate_hz: float) -> np.ndarray:
     """Grid ``start_s + k / rate_hz`` for all k with the time ``<= end_s``; shape (n,)."""
     if rate_hz <= 0:
-        raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
+        raise DspError(f"rate_hz must be > 0, got {rate_hz}")
     if end_s < start_s:
         return np.zeros(0)
     n = int(np.floor((end_s - start_s) * rate_hz + 1e-9)) + 1

@@ -40,6 +40,7 @@ from firmware_interface.samples import (
     ServoOutputRaw,
 )
 from groundstation.dsp.smoothing import FIRST_ROW, INTERIOR_KERNEL, SECOND_ROW
+from groundstation.errors import DspError
 
 INPUTS = ("lat", "lon", "col", "ped")
 OUTPUTS = ("u", "v", "w", "p", "q", "r", "theta", "phi")
@@ -96,7 +97,7 @@ class CausalSmoother:
 
     def __init__(self, n_channels: int, passes: int = 1) -> None:
         if passes < 0:
-            raise ValueError(f"passes must be >= 0, got {passes}")
+            raise DspError(f"passes must be >= 0, got {passes}")
         self.n_channels = n_channels
         self.passes = passes
         self._stages = [_OnePass() for _ in range(passes)]
@@ -318,7 +319,13 @@ class FlightEnded:
 
 
 class FlightTracker:
-    """Flights from the armed flag; in air from EXTENDED_SYS_STATE landed_state, else height."""
+    """Flights from the armed flag; in air from EXTENDED_SYS_STATE landed_state, else height.
+
+    HEARTBEAT carries no FC time: an arming seen before any time-stamped message (FC time NaN) opens
+    the flight at once, but its :class:`FlightStarted` waits for the first known FC time
+    (:meth:`on_time`); the flight starts then. A flight that ends before any FC time is known ends
+    with time and duration NaN, never a made-up time.
+    """
 
     def __init__(self, in_air_alt_m: float = 0.5) -> None:
         self.in_air_alt_m = in_air_alt_m
@@ -329,13 +336,26 @@ class FlightTracker:
         self.height_m = math.nan
         self._ground_alt_m = math.nan
 
+    @property
+    def start_pending(self) -> bool:
+        """Armed, but no FC time known yet for the start of the flight."""
+        return self.armed and not math.isfinite(self.start_fc_s)
+
+    def on_time(self, t_fc_s: float) -> FlightStarted | None:
+        """The newest known FC time: starts a flight armed before any time was known."""
+        if self.start_pending and math.isfinite(t_fc_s):
+            self.start_fc_s = float(t_fc_s)
+            return FlightStarted(self.flight, self.start_fc_s)
+        return None
+
     def on_heartbeat(self, armed: bool, t_fc_s: float) -> FlightStarted | FlightEnded | None:
-        """Returns the transition, if any (None = no change, not a failure)."""
+        """Returns the transition, if any (None = no change, not a failure, or a start waiting for
+        its FC time)."""
         if armed and not self.armed:
             self.armed = True
             self.flight += 1
-            self.start_fc_s = t_fc_s   # the ground altitude stays the last one seen while disarmed
-            return FlightStarted(self.flight, t_fc_s)
+            self.start_fc_s = math.nan   # the ground altitude stays the last one seen while disarmed
+            return self.on_time(t_fc_s)
         if not armed and self.armed:
             self.armed = False
             return FlightEnded(self.flight, t_fc_s, t_fc_s - self.start_fc_s)
@@ -402,7 +422,7 @@ class WindowBuffer:
 
     def __init__(self, length: int, hop: int) -> None:
         if length < 1 or not 1 <= hop <= length:
-            raise ValueError(f"window length {length} / hop {hop}: need 1 <= hop <= length")
+            raise DspError(f"window length {length} / hop {hop}: need 1 <= hop <= length")
         self.length = length
         self.hop = hop
         self._t = np.full(length, np.nan)
@@ -568,14 +588,18 @@ class LivePipeline:
                 # HEARTBEAT has no FC time field: the newest FC time seen on the time-stamped streams
                 # is a better estimate than the session's clock model early in a fast replay
                 t_hb = al._newest if math.isfinite(al._newest) else ev.t_fc_s
-                tr = self.flights.on_heartbeat(ev.armed, t_hb)
-                if tr is not None:
-                    out.flight_events.append(tr)
+                for tr in (self.flights.on_time(t_hb), self.flights.on_heartbeat(ev.armed, t_hb)):
+                    if tr is not None:
+                        out.flight_events.append(tr)
             elif isinstance(ev, ExtendedSysState):
                 self.flights.landed_state = ev.landed_state
             elif isinstance(ev, FcRebooted):
                 self._flush_smoother(out)
                 al.reset()
+            if self.flights.start_pending:
+                started = self.flights.on_time(al.newest_t_fc_s)
+                if started is not None:
+                    out.flight_events.append(started)
             self._drain(out)
         return out
 

@@ -47,6 +47,7 @@ from groundstation.dsp.grid import (
     uniform_grid,
 )
 from groundstation.dsp.smoothing import smooth5
+from groundstation.errors import DspError
 
 INPUTS: tuple[str, ...] = ("lat", "lon", "col", "ped")
 OUTPUTS: tuple[str, ...] = ("u", "v", "w", "p", "q", "r", "theta", "phi")
@@ -93,22 +94,22 @@ class PrepConfig:
 
     def __post_init__(self) -> None:
         if self.rate_hz <= 0:
-            raise ValueError(f"prepare.rate_hz must be > 0, got {self.rate_hz}")
+            raise DspError(f"prepare.rate_hz must be > 0, got {self.rate_hz}")
         if self.smooth_passes < 0:
-            raise ValueError(f"prepare.smooth_passes must be >= 0, got {self.smooth_passes}")
+            raise DspError(f"prepare.smooth_passes must be >= 0, got {self.smooth_passes}")
         if self.pwm_per_unit == 0:
-            raise ValueError("prepare.pwm_per_unit must be non-zero")
+            raise DspError("prepare.pwm_per_unit must be non-zero")
         if self.input_source not in ("SERVO_OUTPUT_RAW", "RC_CHANNELS"):
-            raise ValueError(f"prepare.input_source must be SERVO_OUTPUT_RAW or RC_CHANNELS, got {self.input_source!r}")
+            raise DspError(f"prepare.input_source must be SERVO_OUTPUT_RAW or RC_CHANNELS, got {self.input_source!r}")
         if self.velocity_source not in ("auto", "local", "global", "none"):
-            raise ValueError(f"prepare.velocity_source must be auto|local|global|none, got {self.velocity_source!r}")
+            raise DspError(f"prepare.velocity_source must be auto|local|global|none, got {self.velocity_source!r}")
         if len(self.input_channels) != 4:
-            raise ValueError("prepare.input_channels needs 4 channel numbers (lat lon col ped)")
+            raise DspError("prepare.input_channels needs 4 channel numbers (lat lon col ped)")
         if self.swash_phase_deg and len(self.swash_phase_deg) != 3:
-            raise ValueError(f"prepare.swash_phase_deg needs 3 angles, got {self.swash_phase_deg}")
+            raise DspError(f"prepare.swash_phase_deg needs 3 angles, got {self.swash_phase_deg}")
         bad = [c for c in self.measured_outputs if c not in OUTPUTS]
         if bad:
-            raise ValueError(f"prepare.measured_outputs: unknown channel(s) {bad} (allowed: {', '.join(OUTPUTS)})")
+            raise DspError(f"prepare.measured_outputs: unknown channel(s) {bad} (allowed: {', '.join(OUTPUTS)})")
 
 
 @dataclass(frozen=True, eq=False)
@@ -313,10 +314,10 @@ def _input_pwm(log: Any, cfg: PrepConfig) -> np.ndarray:
     for c in cfg.input_channels:
         col = f"pwm_us_{c}"
         if col not in servo.columns:
-            raise ValueError(f"{src}: {cfg.input_source} has no channel {c} (input channel map)")
+            raise DspError(f"{src}: {cfg.input_source} has no channel {c} (input channel map)")
         v = _channel_values(servo, col, pwm_units)
         if not np.isfinite(v).any():
-            raise ValueError(f"{src}: {cfg.input_source} channel {c} is never set in this log (input channel map)")
+            raise DspError(f"{src}: {cfg.input_source} channel {c} is never set in this log (input channel map)")
         cols.append(v)
     pwm = np.stack(cols, axis=1)
     if cfg.swash_phase_deg:
@@ -390,13 +391,13 @@ def airborne_evidence(log: Any, a: float, b: float, cfg: PrepConfig) -> tuple[bo
 def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str]) -> list[_Raw]:
     src = log.source
     if not log.has(cfg.input_source):
-        raise ValueError(f"{src}: no {cfg.input_source} messages (servo outputs needed for the inputs lat lon col ped)")
+        raise DspError(f"{src}: no {cfg.input_source} messages (servo outputs needed for the inputs lat lon col ped)")
     if not log.has("ATTITUDE"):
-        raise ValueError(f"{src}: no ATTITUDE messages (attitude and body rates needed for the outputs)")
+        raise DspError(f"{src}: no ATTITUDE messages (attitude and body rates needed for the outputs)")
     flights = list(log.flights)
     if not flights:
         if log.has("HEARTBEAT"):
-            raise ValueError(f"{src}: the vehicle was never armed (no flight in HEARTBEAT base_mode)")
+            raise DspError(f"{src}: the vehicle was never armed (no flight in HEARTBEAT base_mode)")
         from types import SimpleNamespace
 
         att = log.series["ATTITUDE"]
@@ -451,12 +452,12 @@ def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str]) -> list[_Raw]:
                 out.append(_Raw(t_s=t[sl], pwm=pwm[sl], outputs=outputs, alt_m=alt_g[sl], available=avail,
                                 flight=int(fl.index), source=src, native_s=native_s))
     if n_air == 0 and ground:
-        raise ValueError(f"{src}: the aircraft never left the ground, nothing to identify: in-air time from "
+        raise DspError(f"{src}: the aircraft never left the ground, nothing to identify: in-air time from "
                          f"height alone, but no rotor vibration and no body motion: {'; '.join(ground)}")
     for g in ground:
         notes.append(f"{src}: {g}: on the ground by rotor and motion evidence, left out")
     if n_air == 0:
-        raise ValueError(
+        raise DspError(
             f"{src}: never in the air for at least {cfg.min_segment_s:g} s "
             f"(no in-air segment from EXTENDED_SYS_STATE landed_state or altitude within the armed flights)"
         )
@@ -535,17 +536,17 @@ def _still_inputs_message(logs: list[Any], cfg: PrepConfig) -> str:
 def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
     """Turn logs into trimmed, smoothed in-air segments (see module docstring).
 
-    Raises ValueError with one line naming the log and the missing message or segment.
+    Raises DspError (a ValueError) with one line naming the log and the missing message or segment.
     """
     cfg = config or PrepConfig()
     if not logs:
-        raise ValueError("no logs given")
+        raise DspError("no logs given")
     notes: list[str] = []
     raws: list[_Raw] = []
     for log in logs:
         got = _raw_segments(log, cfg, notes)
         if not got:
-            raise ValueError(
+            raise DspError(
                 f"{log.source}: no in-air segment of at least {cfg.min_segment_s:g} s with servo outputs and attitude "
                 f"(gaps longer than {cfg.max_gap_s:g} s split segments)"
             )
@@ -567,7 +568,7 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
         if still[k]:
             notes.append(f"input {name} never moves (held at {trim_pwm[k]:g} us): its parameters are not identifiable")
     if all(still):
-        raise ValueError(_still_inputs_message(logs, cfg))
+        raise DspError(_still_inputs_message(logs, cfg))
     avail_any = np.any([r.available for r in raws], axis=0)
     for j, name in enumerate(OUTPUTS):
         if not avail_any[j]:
@@ -608,7 +609,7 @@ def prepared_from_arrays(
     u = np.asarray(inputs, dtype=float)
     y = np.asarray(outputs, dtype=float)
     if u.ndim != 2 or u.shape[1] != 4 or y.ndim != 2 or y.shape[1] != 8 or u.shape[0] != y.shape[0]:
-        raise ValueError(f"inputs must be (n, 4) and outputs (n, 8) with equal n, got {u.shape} and {y.shape}")
+        raise DspError(f"inputs must be (n, 4) and outputs (n, 8) with equal n, got {u.shape} and {y.shape}")
     avail = np.isfinite(y).all(axis=0) if available is None else np.asarray(available, dtype=bool)
     sm = smooth5(np.nan_to_num(y), smooth_passes)
     sm[:, ~avail] = np.nan

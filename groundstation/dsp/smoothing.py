@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from groundstation.errors import DspError
+
 #: Centred kernel for y[i-2..i+2].
 INTERIOR_KERNEL = np.array([-3.0, 12.0, 17.0, 12.0, -3.0]) / 35.0
 #: End rows: weights on y[0..4] for the first two outputs (the last two are these reversed).
@@ -20,7 +22,7 @@ SECOND_ROW = np.array([2.0, 27.0, 12.0, -8.0, 2.0]) / 35.0
 def smooth5(y: np.ndarray, passes: int = 1) -> np.ndarray:
     """Apply eq. (18) ``passes`` times along axis 0; returns a new float array of the same shape."""
     if passes < 0:
-        raise ValueError(f"passes must be >= 0, got {passes}")
+        raise DspError(f"passes must be >= 0, got {passes}")
     out = np.array(y, dtype=float, copy=True)
     n = out.shape[0]
     if n < 5 or passes == 0:

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from groundstation.dsp.prepare import PreparedData, Segment
+from groundstation.errors import DspError
 
 
 def _slice(seg: Segment, a: int, b: int) -> Segment:
@@ -38,7 +39,7 @@ def block_labels(n: int, block_n: int, k: int) -> np.ndarray:
 def kfold(prepared: PreparedData, k: int = 5, block_s: float = 10.0) -> list[tuple[PreparedData, PreparedData]]:
     """``k`` (train, validation) pairs; see the module docstring."""
     if k < 2:
-        raise ValueError(f"k must be >= 2, got {k}")
+        raise DspError(f"k must be >= 2, got {k}")
     block_n = int(round(block_s / prepared.dt_s))
     out = []
     for f in range(k):
@@ -65,7 +66,7 @@ def by_flight(prepared: PreparedData) -> list[tuple[Any, PreparedData, PreparedD
     """Leave-one-flight-out: ``[((source, flight), train, validation), ...]`` (needs >= 2 flights)."""
     keys = sorted({(s.source, s.flight) for s in prepared.segments})
     if len(keys) < 2:
-        raise ValueError("by_flight needs at least two flights in the prepared data")
+        raise DspError("by_flight needs at least two flights in the prepared data")
     out = []
     for key in keys:
         val = [s for s in prepared.segments if (s.source, s.flight) == key]
@@ -96,10 +97,10 @@ def contiguous_kfold(prepared: PreparedData, k: int = 5, min_s: float = 5.0) -> 
     duration (counting only in-air samples, gaps between segments skipped); fold f validates on
     block f and trains on the others. Pieces shorter than ``min_s`` are dropped."""
     if k < 2:
-        raise ValueError(f"k must be >= 2, got {k}")
+        raise DspError(f"k must be >= 2, got {k}")
     t = np.concatenate([s.t_s for s in prepared.segments]) if prepared.segments else np.zeros(0)
     if t.size < k:
-        raise ValueError(f"contiguous_kfold: {t.size} samples cannot make {k} folds")
+        raise DspError(f"contiguous_kfold: {t.size} samples cannot make {k} folds")
     t = np.sort(t)
     edges = np.concatenate([[t[0]], t[(np.arange(1, k) * t.size) // k], [np.inf]])
     return [_cut(prepared, lambda ts, a=edges[f], b=edges[f + 1]: (ts >= a) & (ts < b), min_s) for f in range(k)]
@@ -110,6 +111,6 @@ def train_first(prepared: PreparedData, train_s: float, min_s: float = 5.0) -> t
     t = np.sort(np.concatenate([s.t_s for s in prepared.segments])) if prepared.segments else np.zeros(0)
     n = int(round(train_s / prepared.dt_s))
     if n >= t.size:
-        raise ValueError(f"train_first: only {t.size * prepared.dt_s:.1f} s in the air, cannot train on {train_s:g} s")
+        raise DspError(f"train_first: only {t.size * prepared.dt_s:.1f} s in the air, cannot train on {train_s:g} s")
     cut = t[n]
     return _cut(prepared, lambda ts: ts >= cut, min_s)

@@ -15,5 +15,6 @@ Pure numpy/scipy: no files, no plots, no clocks (plots and Rerun output live in
 """
 
 
-class FreqError(ValueError):
-    """Bad input to the frequency-domain analysis (names the field and value)."""
+from groundstation.errors import FreqError
+
+__all__ = ["FreqError"]

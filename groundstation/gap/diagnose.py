@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.errors import GapError
 from groundstation.gap import (
     attribute,
     candidates,
@@ -264,9 +265,9 @@ def base_stage(model: HoverModel | None, prepared: Any, cfg: DiagnoseConfig, see
     L = int(round(cfg.window_s / dt))
     segs = [s for s in segs if s.t_s.shape[0] >= L]
     if not segs:
-        raise ValueError(f"no in-air segment of at least {cfg.window_s:g} s to diagnose")
+        raise GapError(f"diagnose.window_s = {cfg.window_s:g}: no in-air segment is that long, nothing to diagnose")
     if avail.sum() < 2:
-        raise ValueError(f"too few measured output channels to diagnose: {[OUTPUTS[c] for c in np.flatnonzero(avail)]}")
+        raise GapError(f"too few measured output channels to diagnose: {[OUTPUTS[c] for c in np.flatnonzero(avail)]}")
     notes: list[str] = list(getattr(prepared, "notes", []) or [])
     identified_here = model is None
     if model is None:
@@ -279,7 +280,8 @@ def base_stage(model: HoverModel | None, prepared: Any, cfg: DiagnoseConfig, see
     theta_given = model.theta
     ev = Evaluator(segs, dt, theta_given, avail, window_s=cfg.window_s, folds=cfg.folds, ridge=cfg.ridge)
     if ev.W < cfg.min_windows:
-        raise ValueError(f"too little in-air data: {ev.W} windows of {cfg.window_s:g} s")
+        raise GapError(f"diagnose.window_s = {cfg.window_s:g}: too little in-air data, {ev.W} windows "
+                       f"(diagnose.min_windows = {cfg.min_windows})")
     given_metrics = None
     if not identified_here:
         yg = ev.simulate(theta_given)[0]

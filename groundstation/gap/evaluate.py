@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from groundstation.errors import GapError
 from groundstation.gap.linsim import simulate
 from groundstation.sysid.model import N_PARAMS
 
@@ -83,7 +84,7 @@ class Evaluator:
         self.L = max(int(round(window_s / dt_s)), 20)
         self.starts = window_starts(segments, self.L)
         if len(self.starts) < 2 * folds:
-            raise ValueError(f"too little in-air data for diagnosis: {len(self.starts)} windows of "
+            raise GapError(f"too little in-air data for diagnosis: {len(self.starts)} windows of "
                              f"{window_s:g} s (need at least {2 * folds})")
         self.W = len(self.starts)
         self.folds = folds

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.errors import GapError
 from groundstation.gap.evaluate import Evaluator, SegmentArrays
 from groundstation.gap.linsim import full_matrices
 from groundstation.gap.linsim import simulate as lsim
@@ -284,7 +285,7 @@ def apply_input_effect(h: Hypothesis, segments: list[SegmentArrays], dt_s: float
         elif h.effect == "deadband":
             u[:, c] = (deadzone if lab["kind"] == "deadzone" else backlash)(u[:, c], float(lab["width"]))
         else:
-            raise ValueError(f"not an input effect: {h.effect}")
+            raise GapError(f"not an input effect: {h.effect}")
         out.append(SegmentArrays(t_s=s.t_s, inputs=u, outputs=s.outputs, outputs_raw=s.outputs_raw,
                                  alt_m=s.alt_m, flight=s.flight))
     return out

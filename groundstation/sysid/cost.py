@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from groundstation.errors import SysidError
 from groundstation.sysid.model import N_PARAMS, PARAM_INDEX
 from groundstation.sysid.simulate import WindowSimulator, objective_from_sse
 
@@ -50,14 +51,16 @@ class Windows:
         return int(self.inputs.shape[1])
 
 
-def make_windows(segments: list, dt_s: float, window_s: float, *, raw: bool = False) -> Windows:
+def make_windows(segments: list, dt_s: float, window_s: float, *, raw: bool = False,
+                 key: str = "window_s") -> Windows:
     """Non-overlapping windows of ``round(window_s / dt_s)`` samples from each segment.
 
-    Raises ValueError when no segment holds one window.
+    Raises SysidError (a ValueError) when no segment holds one window; its message names the
+    setting ``key`` the window length came from (e.g. ``identify.window_s``) and its value.
     """
     L = int(round(window_s / dt_s))
     if L < 5:
-        raise ValueError(f"window_s={window_s} gives fewer than 5 samples at dt_s={dt_s}")
+        raise SysidError(f"{key} = {window_s:g}: fewer than 5 samples at dt_s={dt_s:g}")
     ins, outs, av, seg, t0 = [], [], [], [], []
     for i, s in enumerate(segments):
         y = s.outputs_raw if raw else s.outputs
@@ -71,7 +74,7 @@ def make_windows(segments: list, dt_s: float, window_s: float, *, raw: bool = Fa
             t0.append(float(s.t_s[k * L]))
     if not ins:
         longest = max((s.duration_s for s in segments), default=0.0)
-        raise ValueError(f"no segment is at least one window long (window_s={window_s:g}, longest segment {longest:.1f} s)")
+        raise SysidError(f"{key} = {window_s:g}: no in-air segment is that long (longest {longest:.1f} s)")
     return Windows(np.stack(ins), np.stack(outs), np.stack(av), np.array(seg), np.array(t0), float(dt_s))
 
 
@@ -104,7 +107,7 @@ class WindowedCost:
         free = np.asarray(free, dtype=bool)
         self.theta_fixed = np.asarray(theta_fixed, dtype=float).copy()
         if free.shape != (N_PARAMS,) or self.theta_fixed.shape != (N_PARAMS,):
-            raise ValueError("free and theta_fixed must have 31 entries")
+            raise SysidError("free and theta_fixed must have 31 entries")
         self.linear_idx: dict[int, list[int]] = {}
         linear: dict[int, tuple[tuple[int, int], ...]] = {}
         self.searched = free.copy()

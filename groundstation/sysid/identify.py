@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from groundstation.errors import SysidError
 from groundstation.sysid.cost import WindowedCost, make_windows, subset_windows
 from groundstation.sysid.model import (
     HOR_PARAMS,
@@ -203,13 +204,13 @@ class _Plan:
 
 def _check(cfg: IdentifyConfig, algorithm: str, prepared: Any) -> None:
     if algorithm not in ALGORITHMS:
-        raise ValueError(f"unknown algorithm {algorithm!r}; choose one of {sorted(ALGORITHMS)}")
+        raise SysidError(f"unknown algorithm {algorithm!r}; choose one of {sorted(ALGORITHMS)}")
     if cfg.restart_algorithm and cfg.restart_algorithm not in ALGORITHMS:
-        raise ValueError(f"restart_algorithm: unknown {cfg.restart_algorithm!r}; choose one of {sorted(ALGORITHMS)}")
+        raise SysidError(f"identify.restart_algorithm: unknown {cfg.restart_algorithm!r}; choose one of {sorted(ALGORITHMS)}")
     if cfg.search_restarts < 1:
-        raise ValueError(f"search_restarts: {cfg.search_restarts} must be >= 1")
+        raise SysidError(f"identify.search_restarts = {cfg.search_restarts}: must be >= 1")
     if not prepared.segments:
-        raise ValueError("no in-air segments to identify from")
+        raise SysidError("no in-air segments to identify from")
 
 
 def _prior_arrays(prior: Any) -> tuple[np.ndarray, np.ndarray] | None:
@@ -223,14 +224,14 @@ def _prior_arrays(prior: Any) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def _plan(prepared: Any, cfg: IdentifyConfig, refine: bool, bounds: dict | None, prior: Any) -> _Plan:
-    win = make_windows(prepared.segments, prepared.dt_s, cfg.window_s)
-    win_s = make_windows(prepared.segments, prepared.dt_s, cfg.search_window_s)
+    win = make_windows(prepared.segments, prepared.dt_s, cfg.window_s, key="identify.window_s")
+    win_s = make_windows(prepared.segments, prepared.dt_s, cfg.search_window_s, key="identify.search_window_s")
     if cfg.search_stride > 1 and win_s.count >= 2 * cfg.search_stride:
         win_s = subset_windows(win_s, np.arange(0, win_s.count, cfg.search_stride))
     free, reasons = free_mask(prepared)
     kf = [c.strip() for c in cfg.kinematic_forcing.split(",") if c.strip()]
     if any(c not in ("u", "v", "w") for c in kf):
-        raise ValueError(f"kinematic_forcing: channels must be among u, v, w, got {cfg.kinematic_forcing!r}")
+        raise SysidError(f"identify.kinematic_forcing: channels must be among u, v, w, got {cfg.kinematic_forcing!r}")
     forcing = forcing_s = None
     if kf and refine:
         trim_vec = np.array([float(prepared.output_trim.get(c, 0.0)) for c in OUTPUTS])
@@ -308,7 +309,7 @@ def _extra_starts(best: tuple, costs: tuple, plan: _Plan, cfg: IdentifyConfig, s
     names = [n.strip() for n in cfg.extra_starts.split(",") if n.strip()]
     bad = [n for n in names if n not in ("prior", "zero")]
     if bad:
-        raise ValueError(f"extra_starts: unknown start(s) {bad} (allowed: prior, zero)")
+        raise SysidError(f"identify.extra_starts: unknown start(s) {bad} (allowed: prior, zero)")
     bfree = plan.bounds[sub_free]
     span = bfree[:, 1] - bfree[:, 0]
     prior = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
@@ -431,7 +432,7 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
              maxiter: int | None = None, callback: Callable[[dict], Any] | None = None,
              bounds: dict[str, tuple[float, float]] | None = None,
              config: IdentifyConfig | None = None, prior: Any = None) -> HoverModel:
-    """Identify the hover model; see the module docstring. Raises ValueError for unusable data.
+    """Identify the hover model; see the module docstring. Raises SysidError (a ValueError) for unusable data.
 
     ``prior``: a prior model (:class:`groundstation.aircraft.Prior` or ``(nominal (31,), std (31,))``)
     for output error with a priori weighting; None = plain output error.

@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.errors import SysidError
+
 G_M_S2 = 9.81
 
 HOR_STATES: tuple[str, ...] = ("u", "v", "theta", "phi", "q", "p", "a_s", "b_s")
@@ -71,21 +73,37 @@ def bounds_array(bounds: dict[str, tuple[float, float]] | None = None) -> np.nda
     if bounds:
         unknown = set(bounds) - set(PARAM_NAMES)
         if unknown:
-            raise ValueError(f"unknown parameter name(s) in bounds: {sorted(unknown)}; allowed: {PARAM_NAMES}")
+            raise SysidError(f"unknown parameter name(s) in bounds: {sorted(unknown)}; allowed: {PARAM_NAMES}")
         merged.update(bounds)
     out = np.array([merged[n] for n in PARAM_NAMES], dtype=float)
     bad = out[:, 0] >= out[:, 1]
     if bad.any():
         names = [PARAM_NAMES[i] for i in np.flatnonzero(bad)]
-        raise ValueError(f"bounds with lower >= upper for {names}")
+        raise SysidError(f"bounds with lower >= upper for {names}")
     return out
 
 
+def _number(value: Any, key: str) -> float:
+    """``value`` as a float, or a SysidError naming the model field ``key`` and the value."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise SysidError(f"model field {key} = {value!r}: not a number") from None
+
+
+def _numbers(doc: dict[str, Any], key: str) -> dict[str, float]:
+    """The table ``doc[key]`` (absent: empty) with float values; a SysidError names a bad entry."""
+    table = doc.get(key, {})
+    if not isinstance(table, dict):
+        raise SysidError(f"model field {key} = {table!r}: not a table of numbers")
+    return {k: _number(v, f"{key}.{k}") for k, v in table.items()}
+
+
 def theta_from_dict(params: dict[str, float]) -> np.ndarray:
-    """Parameter dict -> vector (N_PARAMS,); raises ValueError naming a missing key."""
+    """Parameter dict -> vector (N_PARAMS,); raises SysidError (a ValueError) naming a missing key."""
     missing = [n for n in PARAM_NAMES if n not in params]
     if missing:
-        raise ValueError(f"model parameters missing: {missing}")
+        raise SysidError(f"model parameters missing: {missing}")
     return np.array([float(params[n]) for n in PARAM_NAMES])
 
 
@@ -276,19 +294,20 @@ class HoverModel:
 
     @classmethod
     def from_json(cls, doc: dict[str, Any]) -> HoverModel:
-        """Inverse of :meth:`to_json`; raises ValueError naming the bad field."""
-        if doc.get("schema") != "heli-hover-model/1":
-            raise ValueError(f"not a heli-hover-model/1 document (schema={doc.get('schema')!r})")
+        """Inverse of :meth:`to_json`; raises SysidError (a ValueError) naming the bad field."""
+        if not isinstance(doc, dict) or doc.get("schema") != "heli-hover-model/1":
+            schema = doc.get("schema") if isinstance(doc, dict) else type(doc).__name__
+            raise SysidError(f"not a heli-hover-model/1 document (schema={schema!r})")
         if "parameters" not in doc:
-            raise ValueError("model document has no 'parameters'")
-        params = {k: float(v) for k, v in doc["parameters"].items()}
+            raise SysidError("model document has no 'parameters'")
+        params = _numbers(doc, "parameters")
         theta_from_dict(params)  # validates presence
         return cls(
             params=params,
-            sample_rate_hz=float(doc.get("sample_rate_hz", 50.0)),
-            input_trim_pwm={k: float(v) for k, v in doc.get("input_trim_pwm", {}).items()} or {k: 1500.0 for k in INPUTS},
-            pwm_per_unit=float(doc.get("pwm_per_unit", 500.0)),
-            output_trim={k: float(v) for k, v in doc.get("output_trim", {}).items()} or {k: 0.0 for k in OUTPUTS},
+            sample_rate_hz=_number(doc.get("sample_rate_hz", 50.0), "sample_rate_hz"),
+            input_trim_pwm=_numbers(doc, "input_trim_pwm") or {k: 1500.0 for k in INPUTS},
+            pwm_per_unit=_number(doc.get("pwm_per_unit", 500.0), "pwm_per_unit"),
+            output_trim=_numbers(doc, "output_trim") or {k: 0.0 for k in OUTPUTS},
             parameter_std=dict(doc.get("parameter_std", {})),
             augmentations=list(doc.get("augmentations", [])),
             fit=dict(doc.get("fit", {})),

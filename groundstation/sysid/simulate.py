@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from groundstation.errors import SysidError
 from groundstation.sysid.model import build_matrices, discretize
 
 # (state index, output column) of the measured states per subsystem
@@ -144,14 +145,14 @@ class WindowSimulator:
         u = np.asarray(inputs, dtype=float)
         y = np.asarray(outputs, dtype=float)
         if u.ndim != 3 or u.shape[2] != 4 or y.ndim != 3 or y.shape[2] != 8 or u.shape[:2] != y.shape[:2]:
-            raise ValueError(f"inputs must be (W, L, 4) and outputs (W, L, 8), got {u.shape} and {y.shape}")
+            raise SysidError(f"inputs must be (W, L, 4) and outputs (W, L, 8), got {u.shape} and {y.shape}")
         if not np.isfinite(u).all():
-            raise ValueError("inputs contain NaN/inf")
+            raise SysidError("inputs contain NaN/inf")
         self.inputs = u
         self.dt_s = float(dt_s)
         self.subsystems = tuple(sorted(set(subsystems)))
         if not self.subsystems or any(i not in (0, 1) for i in self.subsystems):
-            raise ValueError(f"subsystems must be a subset of (0, 1), got {subsystems}")
+            raise SysidError(f"subsystems must be a subset of (0, 1), got {subsystems}")
         keep = np.zeros(8, dtype=bool)
         for i in self.subsystems:
             keep[[o for _, o in _SUBS[i].meas]] = True
@@ -166,13 +167,13 @@ class WindowSimulator:
         self.lifted_block = (int(block), int(block)) if block is not None else tuple(int(v) for v in lifted_block)
         self.estimate_trim = bool(estimate_trim)
         if self.estimate_trim and linear:
-            raise ValueError("estimate_trim and linear (projected B entries) cannot be combined")
+            raise SysidError("estimate_trim and linear (projected B entries) cannot be combined")
         self.forcing = None if forcing is None else np.nan_to_num(np.asarray(forcing, dtype=float))
         if self.forcing is not None:
             if self.forcing.shape != (u.shape[0], u.shape[1], 3):
-                raise ValueError(f"forcing must be (W, L, 3) like the inputs, got {self.forcing.shape}")
+                raise SysidError(f"forcing must be (W, L, 3) like the inputs, got {self.forcing.shape}")
             if linear:
-                raise ValueError("forcing and linear (projected B entries) cannot be combined")
+                raise SysidError("forcing and linear (projected B entries) cannot be combined")
         self.chunk_bytes = 2e6  # candidates are processed in chunks of about this much lifted output
         self._prep: list[dict] = []
         for sub in _SUBS:

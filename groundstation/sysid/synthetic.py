@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import solve_discrete_are
 
+from groundstation.errors import SysidError
 from groundstation.sysid.model import PARAM_NAMES, build_matrices, discretize
 
 #: A plausible small-helicopter truth in the paper's naming (a_s acts on pitch via M_a, b_s on roll via L_b).
@@ -65,7 +66,7 @@ def simulate_flight(theta: np.ndarray, duration_s: float = 60.0, dt_s: float = 0
     rng = np.random.default_rng(seed)
     th = np.asarray(theta, dtype=float)
     if th.shape != (len(PARAM_NAMES),):
-        raise ValueError("theta must have 31 entries")
+        raise SysidError("theta must have 31 entries")
     n = int(round(duration_s / dt_s))
     Ah, Bh, Av, Bv = build_matrices(th)
     exc = _card(n, dt_s, rng, amplitude)

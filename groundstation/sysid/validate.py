@@ -87,7 +87,7 @@ def validate(model: HoverModel, prepared: Any, *, window_s: float | None = None,
     ws = float(window_s if window_s is not None else model.fit.get("window_s", 3.0) or 3.0)
     est_all = bool(model.fit.get("estimate_all_initial", True))
     with threadpool_limits(1):
-        win = make_windows(prepared.segments, prepared.dt_s, ws)
+        win = make_windows(prepared.segments, prepared.dt_s, ws, key="window_s")
         sim = WindowSimulator(win.inputs, win.outputs, win.dt_s, win.available, estimate_all_initial=est_all)
         yhat = sim.simulate(model.theta[None])[0]
     y = sim.outputs

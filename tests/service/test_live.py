@@ -123,6 +123,31 @@ def test_flight_tracker_transitions_and_in_air():
     assert isinstance(ft.on_heartbeat(True, 20.0), FlightStarted) and ft.flight == 2
 
 
+def test_flight_armed_before_any_fc_time_starts_at_the_first_known_time():
+    ft = FlightTracker()
+    assert ft.on_heartbeat(True, math.nan) is None      # armed, FC time not known yet: no NaN start
+    assert ft.armed and ft.flight == 1 and ft.start_pending
+    started = ft.on_time(5.25)
+    assert started == FlightStarted(1, 5.25) and not ft.start_pending
+    assert ft.on_time(6.0) is None                      # only once
+    end = ft.on_heartbeat(False, 9.25)
+    assert end == FlightEnded(1, 9.25, 4.0)
+    # a flight that ends before any FC time is known: time and duration NaN, never invented
+    assert ft.on_heartbeat(True, math.nan) is None
+    end = ft.on_heartbeat(False, math.nan)
+    assert isinstance(end, FlightEnded) and end.flight == 2 and math.isnan(end.duration_s)
+
+
+def test_pipeline_armed_heartbeat_before_timed_messages_gives_a_finite_start():
+    lp = LivePipeline(LiveConfig(window_s=1.0, hop_s=0.2))
+    first = lp.feed([Heartbeat(10.0, math.nan, 1, 1, 4, 3, 129, 0, 4, True)])
+    assert first.flight_events == []                    # before: FlightStarted(1, nan)
+    out = lp.feed(_events(60, t0=3.0)[2:])              # time-stamped rows from FC 3.0 s, no heartbeat
+    starts = [e for e in out.flight_events if isinstance(e, FlightStarted)]
+    assert starts == [FlightStarted(1, 3.0)]
+    assert all(math.isfinite(e.t_fc_s) for e in out.flight_events)
+
+
 def _events(n: int, t0: float = 0.0, armed: bool = True):
     evs = []
     for k in range(n):
