@@ -13,7 +13,7 @@ Entity tree under ``/{vehicle}`` (every scalar on the ``fc_time`` timeline, flig
     flights/{n}/verdict                      what the diagnosis found, how sure, what to do next (text)
     flights/{n}/spectrum/{u..phi}/{psd,floor,lines}     residual spectrum in dB, frequency in Hz
     flights/{n}/effects/{label}/{u..phi}/{before,after} held-out NRMSE per window with/without an effect
-    flights/{n}/bode/{input}_{output}/{magnitude,phase,coherence}/{data,model}
+    flights/{n}/bode/{input}_{output}/{magnitude,phase,coherence}/{data,model}   at log10(f / Hz)
 
 :func:`blueprint` lays these out as one tab per flight (latest first, opened on the whole flight:
 every plot of the tab shows the flight's FC-time span, not a window at t = 0) plus a session tab.
@@ -141,8 +141,9 @@ def _bode_tab(v: str, fv: FlightViews) -> rrb.Container:
         inp, out = pair.split("_", 1)
         cols.append(rrb.Vertical(*[rrb.BarChartView(origin=f"{f}/{pair}/{k}", name=f"{SYMBOL.get(out, out)}/{inp} {k} {u}",
                                                     plot_legend=rrb.PlotLegend(visible=False))
-                                   for k, u in (("magnitude", "[dB] vs [Hz] · blue flight, red model"),
-                                                ("phase", "[deg] vs [Hz]"), ("coherence", "[0-1] vs [Hz]"))]))
+                                   for k, u in (("magnitude", "[dB] vs log10 f [Hz] · blue flight, red model"),
+                                                ("phase", "[deg] vs log10 f [Hz]"),
+                                                ("coherence", "[0-1] vs log10 f [Hz]"))]))
     return rrb.Grid(*cols, name="frequency responses")
 
 

@@ -389,7 +389,9 @@ class RerunSink:
         """Bode magnitude/phase/coherence of data (and model) per input-output pair.
 
         Each pair (mapping or object) has ``input``, ``output``, ``f_hz`` (F,), ``data`` (F,) complex,
-        optional ``model`` (F,) complex and ``coherence`` (F,). Returns the pair labels logged.
+        optional ``model`` (F,) complex and ``coherence`` (F,). Returns the pair labels logged. The
+        bars stand at ``log10(f / Hz)`` (a Bode plot's axis; Rerun's plots of a non-time axis are
+        bar charts).
         """
         out = []
         for p in pairs:
@@ -399,11 +401,13 @@ class RerunSink:
                 continue
             pair = f"{inp}_{outp}"
             base = f"{self.root}/flights/{flight}/bode/{pair}"
-            df = float(np.median(np.diff(fr))) if len(fr) > 1 else 1.0
+            ok = fr > 0
+            fr = np.log10(fr[ok])  # the composite frequencies are log-spaced: a Bode axis is log10(f / Hz)
+            df = float(np.median(np.diff(fr))) if len(fr) > 1 else 0.1
             for who, h in (("data", _get(p, "data")), ("model", _get(p, "model"))):
                 if h is None:
                     continue
-                h = np.asarray(h, dtype=complex)
+                h = np.asarray(h, dtype=complex)[ok]
                 color = _COLORS["smoothed" if who == "data" else "model"]
                 with np.errstate(divide="ignore"):
                     mag = np.nan_to_num(20.0 * np.log10(np.abs(h)), neginf=-120.0)
@@ -412,7 +416,7 @@ class RerunSink:
                                     static=True)
             coh = _get(p, "coherence")
             if coh is not None:
-                self.stream.log(f"{base}/coherence/data", rr.BarChart(np.asarray(coh, dtype=float), abscissa=fr,
+                self.stream.log(f"{base}/coherence/data", rr.BarChart(np.asarray(coh, dtype=float)[ok], abscissa=fr,
                                                                       widths=[df], color=(120, 120, 120)), static=True)
             out.append(pair)
         return tuple(out)

@@ -150,7 +150,13 @@ def test_frequency_verification_is_drawn_as_bode_per_scored_pair(tmp_path):
         for k in ("magnitude/data", "magnitude/model", "phase/data", "phase/model", "coherence/data"):
             assert f"/heli/flights/1/bode/{p.input}_{p.output}/{k}" in lay.entities
     bode = [v for v in lay.views_under(lay.opening_tab()) if "/bode/" in v.origin]
-    assert len(bode) == 3 * len(v.pairs) and all(v.kind == "BarChart" and "[Hz]" in v.name for v in bode)
+    assert len(bode) == 3 * len(v.pairs) and all(v.kind == "BarChart" and "log10 f [Hz]" in v.name for v in bode)
+    # the bars stand at log10(f / Hz): the log-spaced composite frequencies evenly spread, as on a Bode axis
+    p0 = v.pairs[0]
+    entity = f"/heli/flights/1/bode/{p0.input}_{p0.output}/magnitude/data"
+    rb = next(c.to_record_batch() for c in RrdReader(path).stream().to_chunks() if c.entity_path == entity)
+    x = np.asarray(rb.column("BarChart:abscissa").to_pylist()[-1][0]["buffer"])
+    assert x == pytest.approx(np.log10(v.responses.f_hz))
 
 
 def test_fit_table_shows_the_cross_flight_check():
