@@ -8,7 +8,9 @@ Frequency-domain figures on simulated flights with known truth:
    window lengths, the truth's J, delays and bandwidths), median of repeats, BLAS on one thread;
 3. a 100 ms transport delay on the lon input after the log: the delay recovered from the phase
    slope of the data against the delay-free truth;
-4. frequency-domain identification (CABC + refinement): the 8 key parameters' errors against truth.
+4. frequency-domain identification (CABC + refinement): the 8 key parameters' errors against truth;
+   and the same refinement started at the truth (the J minimum nearest it): when that minimum is
+   itself off, the responses (not the search) put J's minimum there.
 
 Flights: ``linear`` = the eq.-8 model under a state-feedback pilot (:mod:`groundstation.sysid.synthetic`;
 the delay is a shift of the logged input), ``sim`` = the nonlinear simulator (hil_replay)
@@ -116,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
         tmp = Path(td)
         for src in sources:
             con.print(f"[bold]{src} flights[/], {args.duration_s:g} s, seeds 1..{args.seeds}")
-            inside, J_true, delays, key_ok, worst = [], [], [], [], []
+            inside, J_true, delays, key_ok, worst, near_ok = [], [], [], [], [], []
             for seed in range(1, args.seeds + 1):
                 prep, truth = _linear(seed, args.duration_s) if src == "linear" else _sim(seed, args.duration_s, tmp)
                 th = theta_from_dict(truth)
@@ -144,9 +146,16 @@ def run(args: argparse.Namespace) -> int:
                     worst.append(f"{w} {err[w]:+.1f} %")
                     con.print(f"    frequency-domain identification: {key_ok[-1]}/8 key parameters within 10 % "
                               f"(worst {worst[-1]}), J_avg {verify(m.theta, rs).J_avg:.1f}")
+                    near = identify_frequency(rs, prep, start=th)  # the J minimum nearest the truth
+                    e2 = {k: 100 * (near.params[k] - truth[k]) / abs(truth[k]) for k in KEY}
+                    w2 = max(e2, key=lambda k: abs(e2[k]))
+                    near_ok.append(sum(abs(e) <= 10 for e in e2.values()))
+                    con.print(f"    J minimum nearest the truth (refined from it): {near_ok[-1]}/8 within 10 % "
+                              f"(worst {w2} {e2[w2]:+.1f} %), J_avg {verify(near.theta, rs).J_avg:.1f}")
             con.print(f"  median: {100 * np.median(inside):.1f} % inside the bound (min {100 * np.min(inside):.1f} %), "
                       f"true-model J_avg {np.nanmedian(J_true):.1f} (max {np.nanmax(J_true):.1f}), "
                       f"delay error {1000 * np.nanmedian(np.abs(np.array(delays) - 0.1)):.1f} ms "
                       f"(max {1000 * np.nanmax(np.abs(np.array(delays) - 0.1)):.1f} ms)"
-                      + (f", key parameters within 10 %: {', '.join(f'{k}/8' for k in key_ok)}" if key_ok else ""))
+                      + (f", key parameters within 10 %: {', '.join(f'{k}/8' for k in key_ok)} (at the J minimum "
+                         f"nearest the truth: {', '.join(f'{k}/8' for k in near_ok)})" if key_ok else ""))
     return 0

@@ -230,10 +230,39 @@ def _std(res: Any, n_params: int) -> np.ndarray:
     return np.sqrt(np.maximum(np.diag(cov), 0.0))
 
 
+def _global_search(cost: _SubCost, lo: np.ndarray, hi: np.ndarray, name: str, cfg: FreqIdentifyConfig,
+                   algorithm: str, rng: np.random.Generator, callback: Callable[[dict], Any] | None
+                   ) -> tuple[list[np.ndarray], np.ndarray, float, list[float]]:
+    """The optimiser's search of one subsystem: (refinement starts, best point, its cost, history)."""
+
+    def cb(res: Any) -> bool:
+        if callback is not None:
+            return bool(callback({"stage": f"search {name} (frequency)", "nit": res.nit, "maxiter": cfg.maxiter,
+                                  "fun": float(res.fun), "nfev": res.nfev}))
+        return False
+
+    search: Any = cost
+    dims = list(range(lo.size))
+    if name == "horizontal" and cfg.varpro:
+        search = _VarProCost(cost, lo, hi)
+        dims = search.search_dims()
+    opt = ALGORITHMS[algorithm](search, np.stack([lo[dims], hi[dims]], axis=1), rng=rng, maxiter=cfg.maxiter,
+                                callback=cb)
+    starts = _distinct_best(opt, cfg.refine_starts, hi[dims] - lo[dims])
+    if search is not cost:
+        starts = list(search.complete(np.array(starts)))
+        opt.x = starts[0]
+    return starts, np.asarray(opt.x, float), float(opt.fun), list(opt.history)
+
+
 def identify_frequency(responses: ResponseSet, prepared: Any = None, *, algorithm: str = "cabc", seed: int = 0,
                        bounds: dict[str, tuple[float, float]] | None = None, config: FreqIdentifyConfig | None = None,
-                       callback: Callable[[dict], Any] | None = None) -> HoverModel:
-    """Fit the hover model to ``responses``; trims and sources come from ``prepared`` when given."""
+                       callback: Callable[[dict], Any] | None = None, start: np.ndarray | None = None) -> HoverModel:
+    """Fit the hover model to ``responses``; trims and sources come from ``prepared`` when given.
+
+    ``start`` (31,): no global search; the refinement runs from this parameter vector only (the
+    J minimum nearest a given model, e.g. a time-domain fit's or, on simulated data, the truth's).
+    """
     cfg = config or FreqIdentifyConfig()
     if algorithm not in ALGORITHMS:
         raise FreqError(f"unknown algorithm {algorithm!r}; choose one of {sorted(ALGORITHMS)}")
@@ -245,8 +274,8 @@ def identify_frequency(responses: ResponseSet, prepared: Any = None, *, algorith
     delays = np.zeros(4)
     fixed: list[str] = []
     reasons: list[str] = []
-    fit: dict[str, Any] = {"algorithm": algorithm, "domain": "frequency", "evaluations": 0, "history": {},
-                           "search_cost": {}, "J_by_subsystem": {}}
+    fit: dict[str, Any] = {"algorithm": algorithm if start is None else "refinement from a given start",
+                           "domain": "frequency", "evaluations": 0, "history": {}, "search_cost": {}, "J_by_subsystem": {}}
     active = set(rs.conditioned_on)
     for name, params, inputs in _SUBSYSTEMS:
         pairs = [p for p in rs.with_response if p.input in inputs and has_path(p.input, p.output)]
@@ -266,24 +295,12 @@ def identify_frequency(responses: ResponseSet, prepared: Any = None, *, algorith
         lo = np.concatenate([b_all[free_idx, 0], np.zeros(len(d_in))])
         hi = np.concatenate([b_all[free_idx, 1], np.full(len(d_in), cfg.max_delay_s)])
 
-        def cb(res: Any, name: str = name) -> bool:
-            if callback is not None:
-                return bool(callback({"stage": f"search {name} (frequency)", "nit": res.nit, "maxiter": cfg.maxiter,
-                                      "fun": float(res.fun), "nfev": res.nfev}))
-            return False
-
-        search: Any = cost
-        dims = list(range(lo.size))
-        if name == "horizontal" and cfg.varpro:
-            search = _VarProCost(cost, lo, hi)
-            dims = search.search_dims()
-        opt = ALGORITHMS[algorithm](search, np.stack([lo[dims], hi[dims]], axis=1), rng=rng, maxiter=cfg.maxiter,
-                                    callback=cb)
-        starts = _distinct_best(opt, cfg.refine_starts, hi[dims] - lo[dims])
-        if search is not cost:
-            starts = list(search.complete(np.array(starts)))
-            opt.x = starts[0]
-        best_x, best_f, best_res = np.asarray(opt.x, float), float(opt.fun), None
+        if start is None:
+            starts, x_s, f_s, history = _global_search(cost, lo, hi, name, cfg, algorithm, rng, callback)
+        else:  # refine the given model only
+            x_s = np.clip(np.concatenate([np.asarray(start, float)[free_idx], np.zeros(len(d_in))]), lo, hi)
+            starts, f_s, history = [x_s], float(cost(x_s[None])[0]), []
+        best_x, best_f, best_res = np.asarray(x_s, float), f_s, None
         if cfg.refine:
             best_f = np.inf
             for x0 in starts:
@@ -298,8 +315,8 @@ def identify_frequency(responses: ResponseSet, prepared: Any = None, *, algorith
             s = _std(best_res, best_x.size)
             std[free_idx] = s[: free_idx.size]
         fit["evaluations"] += cost.nfev
-        fit["history"][name] = [float(h) for h in opt.history]
-        fit["search_cost"][name] = float(opt.fun)
+        fit["history"][name] = [float(h) for h in history]
+        fit["search_cost"][name] = f_s
         fit["J_by_subsystem"][name] = best_f
     return _model(theta, std, delays, cfg, fit, fixed, reasons, rs, prepared, b_all)
 

@@ -36,6 +36,17 @@ def test_fit_reaches_the_truths_J_and_key_parameters(flight150):
     assert m.input_trim_pwm == flight150.input_trim_pwm
 
 
+def test_refinement_from_a_given_start_finds_the_nearest_J_minimum(flight150, truth_theta):
+    """``start``: no search, the refinement only; from the truth it ends at a J no higher than the
+    truth's, at the responses' own minimum near it."""
+    rs = estimate_responses(flight150)
+    near = identify_frequency(rs, flight150, start=truth_theta)
+    assert near.fit["algorithm"] == "refinement from a given start" and not any(near.fit["history"].values())
+    assert verify(near.theta, rs).J_avg <= verify(truth_theta, rs).J_avg
+    err = {k: abs(near.params[k] - EXAMPLE_TRUTH[k]) / abs(EXAMPLE_TRUTH[k]) for k in KEY}
+    assert max(err.values()) <= 0.25, err  # the responses' own minimum, not the truth: see docs/frequency.md
+
+
 def test_fitted_delay_and_other_optimiser():
     prep = flight(150.0, seed=2, delay_samples={1: 5})
     rs = estimate_responses(prep)
