@@ -233,7 +233,7 @@ def evidence(h: hypotheses.Hypothesis, s: attribute.Score, kin: dict, lines: lis
     return base
 
 
-def _conditioned_context(a: attribute.Candidate, ctx: hypotheses.Context, segs: list[SegmentArrays]
+def conditioned_context(a: attribute.Candidate, ctx: hypotheses.Context, segs: list[SegmentArrays]
                          ) -> hypotheses.Context | None:
     """A context whose base model already contains effect ``a`` (None when it cannot be put in)."""
     ev, h = ctx.ev, a.hyp
@@ -271,7 +271,7 @@ def _conditioned_context(a: attribute.Candidate, ctx: hypotheses.Context, segs: 
     return None  # rotor vibration (raw residual only), air mass (its own protocol, see encompass)
 
 
-def _rescan(b: attribute.Candidate, ctx: hypotheses.Context) -> hypotheses.Hypothesis | None:
+def rescan(b: attribute.Candidate, ctx: hypotheses.Context) -> hypotheses.Hypothesis | None:
     e = b.hyp.effect
     if e in hypotheses.INPUT_EFFECTS:
         return hypotheses.rescan_input_effect(ctx, b.hyp)
@@ -295,13 +295,13 @@ def conditional_names(ranked: list[attribute.Candidate], ctx: hypotheses.Context
     if len(ranked) < 2:
         return
     top = ranked[0]
-    cctx = _conditioned_context(top, ctx, segs)
+    cctx = conditioned_context(top, ctx, segs)
     if cctx is None:
         return
     for b in ranked[1:]:
         if b.hyp.effect == "rotor_vibration":
             continue  # raw-residual line: disjoint from every model-based effect
-        hb = _rescan(b, cctx)
+        hb = rescan(b, cctx)
         if hb is None or hb.sse is None or not hb.testable:
             continue
         base = hb.extra.get("base_sse", cctx.base_sse)

@@ -149,6 +149,7 @@ class Located:
     worst: list[str]
     gap_significant: bool
     flagged_share: float  # share of the excess residual energy in flagged windows
+    out_stride: np.ndarray | None  # (8,) grid steps between samples of each output's own stream
 
 
 @dataclass(frozen=True)
@@ -325,7 +326,8 @@ def locate_stage(base: Base, prepared: Any, cfg: DiagnoseConfig) -> Located:
     return Located(nf=nf, out_excited=out_excited, in_excited=in_excited, yhat_ho=ev.Y - e, chan=chan,
                    energy_w=energy_w, flag=flag, nominal=nominal, windows_s=windows_s, band=band, cond=cond,
                    gap_ratio=gap_ratio, worst=worst, gap_significant=bool(n_above >= cfg.gap_channels_min),
-                   flagged_share=flagged_share)
+                   flagged_share=flagged_share,
+                   out_stride=None if out_stride is None else np.asarray(out_stride, float))
 
 
 def _scan_all(ctx: hypotheses.Context, in_excited: np.ndarray) -> list[hypotheses.Hypothesis]:
@@ -417,8 +419,104 @@ def _significance(results: list, kin: dict, lines: list, crit: float, cfg: Diagn
 
 def structure_stage(base: Base, loc: Located, att: Attributed, cfg: DiagnoseConfig,
                     rng: np.random.Generator) -> list[structure.StructureTest]:
-    """Held-out tests of structure the linear model cannot have (input asymmetry, amplitude dependence)."""
-    return structure.nonlinear_input_tests(att.ctx, loc.in_excited, rng, cfg)
+    """Held-out tests of structure the linear model cannot have (input asymmetry, amplitude dependence),
+    then, when both a structure and catalogue effects are significant, which of them explains the other
+    (:func:`_structure_against_named`)."""
+    tests = structure.nonlinear_input_tests(att.ctx, loc.in_excited, rng, cfg)
+    if any(t.significant for t in tests) and any(c.significant for c in att.candidates):
+        _structure_against_named(base, att, tests, structure.structure_crit(loc.in_excited, cfg), cfg, rng)
+    return tests
+
+
+def _structure_context(t: structure.StructureTest, base: Base, att: Attributed, cfg: DiagnoseConfig,
+                       rng: np.random.Generator) -> hypotheses.Context:
+    """A context whose base model has structure ``t`` in its input, re-identified around it.
+
+    Like an input effect's outer re-fit: the base was identified without the structure and absorbed
+    part of it, so the coefficient found around it is biased towards none; the base is re-fitted
+    (Levenberg-Marquardt) with the structure in place and the coefficient estimated again on it,
+    up to ``outer_iterations`` times.
+    """
+    ev = base.ev
+    coef = t.coefficient
+    for it in range(cfg.outer_iterations + 1):
+        segs_s = structure.apply_structure(dataclasses.replace(t, coefficient=coef), base.segs, ev)
+        ev_s = Evaluator(segs_s, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds,
+                         ridge=ev.ridge)
+        ev_s.refine(cfg.refit_iterations)
+        ctx_s = hypotheses.Context(ev_s, segs_s)
+        ctx_s.pwm_per_unit = att.ctx.pwm_per_unit
+        if it == cfg.outer_iterations:
+            break
+        more = structure.retest(ctx_s, [t], rng, cfg, 1.0)[0]
+        if not more.score_pct > 0 or abs(more.coefficient) < 0.1 * abs(coef):
+            break
+        coef += more.coefficient
+    return ctx_s
+
+
+def _effect_given_structure(c: attribute.Candidate, t: structure.StructureTest, base: Base, att: Attributed,
+                            cfg: DiagnoseConfig, rng: np.random.Generator) -> tuple[bool, str]:
+    """Is catalogue effect ``c`` still significant once structure ``t`` is in the model (base re-fitted)?"""
+    ctx_s = _structure_context(t, base, att, cfg, rng)
+    h = candidates.rescan(c, ctx_s)
+    if h is None or h.sse is None or not h.testable:
+        return True, "cannot be re-tested with the structure in the model"
+    h.extra = {**c.hyp.extra, **h.extra}
+    b = h.extra.get("base_sse", ctx_s.base_sse) if h.effect == "wind_gust" else ctx_s.base_sse
+    s = attribute.score(b, h.sse, ctx_s.ev.energy, h.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
+    s.p_value = candidates.p_value(h, ctx_s, b, rng, cfg)
+    ok = bool(s.p_value < att.crit and candidates.gain_ok(s, cfg) and candidates.physical(h, cfg))
+    return ok, f"{s.score_pct:+.1f}% held-out (p={s.p_value:.2g}) with the {t.input} {t.kind.replace('_', ' ')} in"
+
+
+def _structure_against_named(base: Base, att: Attributed, tests: list[structure.StructureTest], crit_s: float,
+                             cfg: DiagnoseConfig, rng: np.random.Generator) -> None:
+    """Encompassing tests between the significant structures and the best named catalogue effect.
+
+    A structure the linear model cannot have (an asymmetric or amplitude-dependent input gain) and a
+    catalogue effect can mimic each other (a deadband is an amplitude-dependent gain; a per-window air
+    velocity soaks up an asymmetric response). Both ways round, on held-out data: the structure tests
+    again with the effect in the model (does the effect remove the structure?), and the effect's scan
+    again with the structure in the model and the base re-fitted (does the effect add anything?).
+    The effect stays named when it adds to the structure, or when it removes the structure; it is
+    withheld (the structure is then left unexplained) when the structure stays and the effect adds
+    nothing; when neither adds to the other the larger held-out gain decides. A rotor line (a
+    raw-residual fingerprint, disjoint from any input structure) is compared by held-out gain only.
+    Changes the candidates in place (``significant``, ``evidence``).
+    """
+    ranked = sorted((c for c in att.candidates if c.significant), key=lambda c: -c.score.score_pct)
+    sig = sorted((t for t in tests if t.significant), key=lambda t: -t.score_pct)
+    top = ranked[0]
+    if top.hyp.effect == "rotor_vibration":
+        keep = top.score.score_pct >= sig[0].score_pct
+        why = f"the structure explains more of the held-out cost ({sig[0].score_pct:+.1f}% vs {top.score.score_pct:+.1f}%)"
+    else:
+        c_adds, c_txt = _effect_given_structure(top, sig[0], base, att, cfg, rng)
+        cctx = candidates.conditioned_context(top, att.ctx, base.segs)
+        if cctx is None:
+            s_stays = None
+        else:
+            left = [t for t in structure.retest(cctx, sig, rng, cfg, crit_s) if t.significant]
+            s_stays = bool(left)
+        top.hyp.extra["given_structure"] = c_txt
+        if s_stays is None:
+            keep = c_adds
+        elif c_adds != s_stays:
+            keep = c_adds
+        elif c_adds:
+            keep = True  # each adds to the other: both are there; the structure stays in the departure block
+        else:
+            keep = top.score.score_pct >= sig[0].score_pct
+        why = (f"once the {sig[0].input} {sig[0].kind.replace('_', ' ')} (outside the catalogue) is in the model "
+               f"it adds {c_txt.split(' with')[0]}"
+               + ("" if s_stays is None else f", and that structure {'stays' if s_stays else 'goes'} with it in"))
+    if keep:
+        top.evidence += f"; kept beside a structure outside the catalogue: {why}"
+        return
+    for c in ranked:
+        c.significant = False
+        c.evidence += f"; not named: {why}"
 
 
 def _unexplained_evidence(base: Base, loc: Located, tests: list[structure.StructureTest],
@@ -432,12 +530,18 @@ def _unexplained_evidence(base: Base, loc: Located, tests: list[structure.Struct
              if np.isfinite(loc.gap_ratio[c]) and loc.gap_ratio[c] > cfg.gap_ratio_significant}
     sig = [t for t in tests if t.significant]
     looks = [t.description for t in sig]
+    whiteness = structure.ljung_box((ev.Yraw - loc.yhat_ho)[:, ev.start:], loc.out_stride, loc.out_excited,
+                                    base.dt_s, cfg.xcorr_max_lag_s, cfg.alpha)
+    coloured = [w["output"] for w in whiteness if not w["white"]]
+    if coloured:
+        looks.append(f"held-out residual not white (Ljung-Box, lags up to {cfg.xcorr_max_lag_s:g} s) on "
+                     + ", ".join(coloured))
     if loc.cond.get("label", "none") != "none":
         looks.append(f"the residual grows with {loc.cond['label']}")
     return {"channels_above_noise": ratio, "band_hz": loc.band.get("band_hz"),
             "band_input_coherence": round(float(loc.band.get("input_coherence", 0.0)), 3),
             "condition": loc.cond.get("label", "none"), "windows_s": loc.windows_s[:10],
-            "what_it_looks_like": looks, "residual_input_correlation": xc}
+            "what_it_looks_like": looks, "residual_input_correlation": xc, "whiteness": whiteness}
 
 
 def decide_stage(base: Base, loc: Located, att: Attributed, comp: compat.Compatibility,
@@ -450,15 +554,6 @@ def decide_stage(base: Base, loc: Located, att: Attributed, comp: compat.Compati
     significant and localised in flagged windows; else ``none``.
     """
     ranked = sorted((c for c in att.candidates if c.significant), key=lambda c: -c.score.score_pct)
-    sig_tests = sorted((t for t in tests if t.significant), key=lambda t: -t.score_pct)
-    if ranked and sig_tests and sig_tests[0].score_pct > ranked[0].score.score_pct:
-        # a structure the catalogue has no name for explains more of the held-out cost than the best
-        # catalogue effect: naming the effect would send a team after the wrong cause
-        for c in ranked:
-            c.significant = False
-            c.evidence += (f"; not named: a structure outside the catalogue explains more of the held-out cost "
-                           f"({sig_tests[0].score_pct:+.1f}% vs {c.score.score_pct:+.1f}%)")
-        ranked = []
     unexplained = None
     if ranked:
         verdict = ranked[0].hyp.effect

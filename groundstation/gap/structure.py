@@ -13,9 +13,13 @@ k-fold re-fit, so the model gets every chance to absorb the structure linearly f
   against its white-noise null ``N(0, 1/n_eff)`` with ``n_eff`` from the residual's own
   autocorrelation (Bartlett), reported as evidence.
 
-Whiteness of the residual itself is not tested: the outputs are smoothed and some are interpolated
-from slower streams, so even a perfect model leaves coloured noise; the held-out gap-to-noise ratio
-of the locate stage (residual against the noise floor measured in the data) stands in for it.
+* **whiteness** (Ljung-Box, reported as evidence): the held-out residual against the *raw* outputs
+  (not the smoothed ones), read at each channel's own stream interval (a channel sent slower than
+  the grid is interpolated onto it, which correlates neighbouring grid samples), pooled over
+  windows, lags up to ``max_lag_s``; the statistic against chi-square with as many degrees of freedom
+  as lags. It does not decide a verdict on its own: in closed-loop flight the disturbances the pilot
+  answers colour even a perfect model's residual; the held-out gap-to-noise ratio of the locate
+  stage (residual against the noise floor measured in the data) decides whether there is a gap.
 
 A structure test counts when it is significant (Bonferroni over the structure tests at the
 configured family-wise alpha) and practically significant (held-out cost down by more than
@@ -33,6 +37,7 @@ from scipy import stats
 
 from groundstation.gap import attribute, hypotheses
 from groundstation.gap.config import DiagnoseConfig
+from groundstation.gap.evaluate import SegmentArrays
 from groundstation.sysid.model import INPUTS, OUTPUTS
 
 
@@ -50,51 +55,79 @@ class StructureTest:
     description: str
 
 
+def _feature(u: np.ndarray, kind: str, mean_abs: float, sd: float) -> np.ndarray:
+    """The extra input signal of a structure on input samples ``u`` (any shape)."""
+    if kind == "input_asymmetry":
+        return np.abs(u) - mean_abs
+    return u * np.abs(u) / sd
+
+
 def _feature_columns(ctx: hypotheses.Context, c: int, kind: str) -> tuple[np.ndarray, float]:
     """Weighted output sensitivities (W, L, 8, 1) to an extra input signal on channel ``c``."""
     ev = ctx.ev
     u = ev.U[:, :, c]
-    if kind == "input_asymmetry":
-        g = np.abs(u) - np.abs(u).mean()
-        scale = 1.0
-    else:
-        sd = float(u.std()) or 1.0
-        g = u * np.abs(u) / sd
-        scale = sd
+    sd = float(u.std()) or 1.0
+    g = _feature(u, kind, float(np.abs(u).mean()), sd)
     U2 = ev.U.copy()
     U2[:, :, c] = u + g
     yh = ctx.variants_residual(U_list=[ev.U, U2])
     X = ((yh[1] - yh[0]) * ev.w8) * ev.mask[:, None]
-    return X[..., None], scale
+    return X[..., None], (1.0 if kind == "input_asymmetry" else sd)
+
+
+def _one_test(ctx: hypotheses.Context, c: int, kind: str, rng: np.random.Generator, cfg: DiagnoseConfig,
+              crit: float) -> StructureTest:
+    """One held-out structure test on input ``c`` against ``ctx``'s base model."""
+    ev = ctx.ev
+    out_ch = tuple(int(k) for k in np.flatnonzero(ev.available))
+    X, _ = _feature_columns(ctx, c, kind)
+    sse, _, coefs = ctx.nested(f"{kind}_{c}", [({}, ev.r0, X)])
+    s = attribute.score(ctx.base_sse, sse, ev.energy, out_ch, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
+    s.p_value = attribute.combined_p(ctx.base_sse.sum(1), sse.sum(1), rng, cfg.n_boot, cfg.window_alpha,
+                                     ctx.base_blocks, ctx.blocks[f"{kind}_{c}"])
+    coef = float(np.mean(coefs[0][:, 0]))
+    sig = bool(s.p_value < crit and s.score_pct > cfg.min_score_pct and s.shrink_pct > 0)
+    if kind == "input_asymmetry":
+        what = (f"{INPUTS[c]} response asymmetric: gain {100 * coef:+.0f} % for deflections above trim, "
+                f"{-100 * coef:+.0f} % below")
+    else:
+        what = f"{INPUTS[c]} gain changes with deflection: {100 * coef:+.0f} % per input std"
+    return StructureTest(kind, INPUTS[c], coef, float(s.score_pct), float(s.shrink_pct), float(s.p_value), sig,
+                         f"{what}; held-out cost {s.score_pct:+.1f}% (p={s.p_value:.2g})")
+
+
+def structure_crit(in_excited: np.ndarray, cfg: DiagnoseConfig) -> float:
+    """Per-test level of the structure tests (Bonferroni over two tests per excited input)."""
+    return cfg.alpha / max(2 * int(np.sum(in_excited[:4])), 1)
 
 
 def nonlinear_input_tests(ctx: hypotheses.Context, in_excited: np.ndarray, rng: np.random.Generator,
                           cfg: DiagnoseConfig) -> list[StructureTest]:
     """Asymmetry and amplitude-dependence tests on every excited input (see the module docstring)."""
-    ev = ctx.ev
-    chans = [c for c in range(4) if in_excited[c]]
-    n_tests = max(2 * len(chans), 1)
-    crit = cfg.alpha / n_tests
-    out_ch = tuple(int(c) for c in np.flatnonzero(ev.available))
-    tests = []
-    for c in chans:
-        for kind in ("input_asymmetry", "amplitude_dependence"):
-            X, _ = _feature_columns(ctx, c, kind)
-            sse, _, coefs = ctx.nested(f"{kind}_{c}", [({}, ev.r0, X)])
-            s = attribute.score(ctx.base_sse, sse, ev.energy, out_ch, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
-            s.p_value = attribute.combined_p(ctx.base_sse.sum(1), sse.sum(1), rng, cfg.n_boot, cfg.window_alpha,
-                                             ctx.base_blocks, ctx.blocks[f"{kind}_{c}"])
-            coef = float(np.mean(coefs[0][:, 0]))
-            sig = bool(s.p_value < crit and s.score_pct > cfg.min_score_pct and s.shrink_pct > 0)
-            if kind == "input_asymmetry":
-                what = (f"{INPUTS[c]} response asymmetric: gain {100 * coef:+.0f} % for deflections above trim, "
-                        f"{-100 * coef:+.0f} % below")
-            else:
-                what = f"{INPUTS[c]} gain changes with deflection: {100 * coef:+.0f} % per input std"
-            tests.append(StructureTest(kind, INPUTS[c], coef, float(s.score_pct), float(s.shrink_pct),
-                                       float(s.p_value), sig,
-                                       f"{what}; held-out cost {s.score_pct:+.1f}% (p={s.p_value:.2g})"))
-    return tests
+    crit = structure_crit(in_excited, cfg)
+    return [_one_test(ctx, c, kind, rng, cfg, crit) for c in range(4) if in_excited[c]
+            for kind in ("input_asymmetry", "amplitude_dependence")]
+
+
+def retest(ctx: hypotheses.Context, tests: list[StructureTest], rng: np.random.Generator, cfg: DiagnoseConfig,
+           crit: float) -> list[StructureTest]:
+    """The same structure tests against another base model (one with a catalogue effect in it):
+    does the structure survive once that effect is in the model?"""
+    return [_one_test(ctx, INPUTS.index(t.input), t.kind, rng, cfg, crit) for t in tests]
+
+
+def apply_structure(t: StructureTest, segments: list[SegmentArrays], ev: Any) -> list[SegmentArrays]:
+    """The segments with the fitted structure put into their input (``u + coefficient x feature(u)``)."""
+    c = INPUTS.index(t.input)
+    u_w = ev.U[:, :, c]
+    mean_abs, sd = float(np.abs(u_w).mean()), float(u_w.std()) or 1.0
+    out = []
+    for s in segments:
+        u = s.inputs.copy()
+        u[:, c] = u[:, c] + t.coefficient * _feature(u[:, c], t.kind, mean_abs, sd)
+        out.append(SegmentArrays(t_s=s.t_s, inputs=u, outputs=s.outputs, outputs_raw=s.outputs_raw,
+                                 alt_m=s.alt_m, flight=s.flight))
+    return out
 
 
 def _n_eff(x: np.ndarray, max_lag: int) -> float:
@@ -130,3 +163,32 @@ def input_cross_correlation(e: np.ndarray, U: np.ndarray, dt_s: float, out_excit
                         "lag_s": round(k * max(n_lag // 10, 1) * dt_s, 2), "z": round(z, 1),
                         "log10_p": round(float(stats.norm.logsf(z) / np.log(10) + np.log10(2)), 1)})
     return sorted(res, key=lambda d: -float(d["z"]))[:4]
+
+
+def ljung_box(e_raw: np.ndarray, stride: np.ndarray | None, channels: np.ndarray, dt_s: float,
+              max_lag_s: float = 1.0, alpha: float = 0.01) -> list[dict]:
+    """Ljung-Box (portmanteau) whiteness of the held-out raw residual ``e_raw`` (W, L, 8) per channel in
+    ``channels``: ``Q = sum_h n_h rho_h^2`` with ``n_h`` the lag-``h`` products pooled over windows.
+
+    Each channel is read every ``stride[c]`` grid steps (its own stream interval), windows pooled
+    (lag products within windows only); Bonferroni over the channels tested.
+    """
+    res: list[dict[str, Any]] = []
+    chans = [int(c) for c in np.flatnonzero(channels)]
+    for c in chans:
+        k = 1 if stride is None else max(int(round(float(stride[c]))), 1)
+        x = e_raw[:, ::k, c]
+        x = x - x.mean()
+        n_w = x.shape[1]
+        H = min(max(int(round(max_lag_s / (k * dt_s))), 1), max(n_w // 4, 1))
+        den = float((x ** 2).sum()) / x.size
+        if den <= 0 or n_w <= H + 1:
+            continue
+        rho = np.array([float((x[:, h:] * x[:, :-h]).sum()) / (x.shape[0] * (n_w - h)) / den for h in range(1, H + 1)])
+        n_h = x.shape[0] * (n_w - np.arange(1, H + 1))
+        q = float(np.sum(n_h * rho ** 2))  # pooled over windows: var(rho_h) = 1 / n_h under whiteness
+        log10_p = float(stats.chi2.logsf(q, H) / np.log(10))
+        res.append({"output": OUTPUTS[c], "q": round(q, 1), "lags": H, "lag_step_s": round(k * dt_s, 3),
+                    "lag1_autocorrelation": round(float(rho[0]), 3), "log10_p": round(log10_p, 1),
+                    "white": bool(log10_p > np.log10(alpha / max(len(chans), 1)))})
+    return res
