@@ -456,18 +456,18 @@ def _structure_context(t: structure.StructureTest, base: Base, att: Attributed, 
 
 
 def _effect_given_structure(c: attribute.Candidate, t: structure.StructureTest, base: Base, att: Attributed,
-                            cfg: DiagnoseConfig, rng: np.random.Generator) -> tuple[bool, str]:
+                            cfg: DiagnoseConfig, rng: np.random.Generator) -> tuple[bool, float, str]:
     """Is catalogue effect ``c`` still significant once structure ``t`` is in the model (base re-fitted)?"""
     ctx_s = _structure_context(t, base, att, cfg, rng)
     h = candidates.rescan(c, ctx_s)
     if h is None or h.sse is None or not h.testable:
-        return True, "cannot be re-tested with the structure in the model"
+        return True, float("inf"), "cannot be re-tested with the structure in the model"
     h.extra = {**c.hyp.extra, **h.extra}
     b = h.extra.get("base_sse", ctx_s.base_sse) if h.effect == "wind_gust" else ctx_s.base_sse
     s = attribute.score(b, h.sse, ctx_s.ev.energy, h.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
     s.p_value = candidates.p_value(h, ctx_s, b, rng, cfg)
     ok = bool(s.p_value < att.crit and candidates.gain_ok(s, cfg) and candidates.physical(h, cfg))
-    return ok, f"{s.score_pct:+.1f}% held-out (p={s.p_value:.2g}) with the {t.input} {t.kind.replace('_', ' ')} in"
+    return ok, float(s.score_pct), f"{s.score_pct:+.1f}% held-out (p={s.p_value:.2g}) with the {t.input} {t.kind.replace('_', ' ')} in"
 
 
 def _structure_against_named(base: Base, att: Attributed, tests: list[structure.StructureTest], crit_s: float,
@@ -479,10 +479,11 @@ def _structure_against_named(base: Base, att: Attributed, tests: list[structure.
     velocity soaks up an asymmetric response). Both ways round, on held-out data: the structure tests
     again with the effect in the model (does the effect remove the structure?), and the effect's scan
     again with the structure in the model and the base re-fitted (does the effect add anything?).
-    The effect stays named when it adds to the structure, or when it removes the structure; it is
-    withheld (the structure is then left unexplained) when the structure stays and the effect adds
-    nothing; when neither adds to the other the larger held-out gain decides. A rotor line (a
-    raw-residual fingerprint, disjoint from any input structure) is compared by held-out gain only.
+    The effect stays named when it removes the structure; when the structure stays it is withheld
+    (the structure is left unexplained) unless it adds to the structure more than the structure adds
+    to it. An air mass cannot be put into the model the structure is tested in, so it never removes
+    one: beside a significant structure it is withheld. A rotor line (a raw-residual fingerprint,
+    disjoint from any input structure) is compared by held-out gain only.
     Changes the candidates in place (``significant``, ``evidence``).
     """
     ranked = sorted((c for c in att.candidates if c.significant), key=lambda c: -c.score.score_pct)
@@ -492,25 +493,24 @@ def _structure_against_named(base: Base, att: Attributed, tests: list[structure.
         keep = top.score.score_pct >= sig[0].score_pct
         why = f"the structure explains more of the held-out cost ({sig[0].score_pct:+.1f}% vs {top.score.score_pct:+.1f}%)"
     else:
-        c_adds, c_txt = _effect_given_structure(top, sig[0], base, att, cfg, rng)
         cctx = candidates.conditioned_context(top, att.ctx, base.segs)
         if cctx is None:
-            s_stays = None
+            # an air mass cannot be put into the model the structure is tested in: it cannot be
+            # shown to remove the structure, which then stays unexplained
+            keep = False
+            why = (f"the {sig[0].input} {sig[0].kind.replace('_', ' ')} (outside the catalogue) cannot be tested "
+                   f"with the {top.hyp.effect} in the model, so it is not shown to be removed by it")
         else:
             left = [t for t in structure.retest(cctx, sig, rng, cfg, crit_s) if t.significant]
-            s_stays = bool(left)
-        top.hyp.extra["given_structure"] = c_txt
-        if s_stays is None:
-            keep = c_adds
-        elif c_adds != s_stays:
-            keep = c_adds
-        elif c_adds:
-            keep = True  # each adds to the other: both are there; the structure stays in the departure block
-        else:
-            keep = top.score.score_pct >= sig[0].score_pct
-        why = (f"once the {sig[0].input} {sig[0].kind.replace('_', ' ')} (outside the catalogue) is in the model "
-               f"it adds {c_txt.split(' with')[0]}"
-               + ("" if s_stays is None else f", and that structure {'stays' if s_stays else 'goes'} with it in"))
+            if not left:
+                keep, why = True, f"it removes the {sig[0].input} {sig[0].kind.replace('_', ' ')} (outside the catalogue)"
+            else:
+                # the structure stays: the effect is named only if both are there and it explains more
+                c_adds, c_score, c_txt = _effect_given_structure(top, left[0], base, att, cfg, rng)
+                keep = c_adds and c_score >= left[0].score_pct
+                why = (f"the {left[0].input} {left[0].kind.replace('_', ' ')} (outside the catalogue) stays with "
+                       f"the {top.hyp.effect} in the model ({left[0].score_pct:+.1f}% held-out), and the "
+                       f"{top.hyp.effect} adds {c_txt}")
     if keep:
         top.evidence += f"; kept beside a structure outside the catalogue: {why}"
         return

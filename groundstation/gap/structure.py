@@ -187,7 +187,7 @@ def ljung_box(e_raw: np.ndarray, stride: np.ndarray | None, channels: np.ndarray
         rho = np.array([float((x[:, h:] * x[:, :-h]).sum()) / (x.shape[0] * (n_w - h)) / den for h in range(1, H + 1)])
         n_h = x.shape[0] * (n_w - np.arange(1, H + 1))
         q = float(np.sum(n_h * rho ** 2))  # pooled over windows: var(rho_h) = 1 / n_h under whiteness
-        log10_p = float(stats.chi2.logsf(q, H) / np.log(10))
+        log10_p = max(float(stats.chi2.logsf(q, H) / np.log(10)), -300.0)  # finite for the JSON report
         res.append({"output": OUTPUTS[c], "q": round(q, 1), "lags": H, "lag_step_s": round(k * dt_s, 3),
                     "lag1_autocorrelation": round(float(rho[0]), 3), "log10_p": round(log10_p, 1),
                     "white": bool(log10_p > np.log10(alpha / max(len(chans), 1)))})
