@@ -61,7 +61,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "loose, or the simulator's default (default: drawn)")
     parser.add_argument("--excitation", type=float, default=None,
                         help="scale of the card's sweep and doublet amplitudes (e.g. 0.5: a cautious pilot)")
-    parser.add_argument("--json", type=Path, default=None, help="write every case result to this JSON file")
+    parser.add_argument("--json", type=Path, default=None,
+                        help="write every case result to this JSON file (rewritten as each case finishes)")
+    parser.add_argument("--from-json", type=Path, default=None, dest="from_json",
+                        help="print the summary of a JSON file written by --json (a whole or a stopped run) "
+                             "without running anything")
 
 
 #: Pilot variants for robustness runs: Bryson allowed deviations scaled (smaller = stiffer loops).
@@ -235,7 +239,7 @@ def run_case(job: dict[str, Any]) -> dict[str, Any]:
                                 if e.get("significant")]
         # every scored hypothesis (significant or not), for inspecting why a case went wrong
         out["candidates"] = [{k: e.get(k) for k in ("effect", "input", "output", "estimate", "score", "p_value",
-                                                    "shrink_pct")} for e in rep["effects"] + rep["candidates"]]
+                                                    "shrink_pct", "evidence")} for e in rep["effects"] + rep["candidates"]]
         out["unexplained"] = rep.get("unexplained")
         out["structure_tests"] = [{k: t[k] for k in ("kind", "input", "coefficient", "score_pct", "p_value",
                                                      "significant")} for t in rep.get("structure_tests", [])]
@@ -281,16 +285,45 @@ def run(args: argparse.Namespace) -> int:
     unknown = set(classes) - set(CLASSES)
     if unknown:
         raise ValueError(f"--classes: unknown effect name(s) {sorted(unknown)}; allowed {CLASSES}")
+    if args.from_json is not None:
+        try:
+            saved = json.loads(args.from_json.read_text())
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"--from-json {args.from_json}: {exc}") from None
+        print(f"{len(saved)} cases from {args.from_json}")
+        print_summary(sorted(saved, key=lambda r: r["case"]), classes, float("nan"))
+        return 0
     parse_rates(args.rates)  # a bad --rates is reported before any flight is simulated
-    jobs = make_jobs(args, classes)
+    jobs = interleave(make_jobs(args, classes))
     t0 = time.perf_counter()
+    results: list[dict[str, Any]] = []
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
-        results = list(pool.map(run_case, jobs))
+        for r in pool.map(run_case, jobs):
+            results.append(r)
+            if args.json:  # written as cases finish: a bench stopped early keeps what it measured
+                args.json.write_text(json.dumps(results, indent=1, default=str))
     wall = time.perf_counter() - t0
-    if args.json:
-        args.json.write_text(json.dumps(results, indent=1, default=str))
-    print_summary(results, classes, wall)
+    print_summary(sorted(results, key=lambda r: r["case"]), classes, wall)
     return 0
+
+
+def interleave(jobs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Jobs in round-robin over their kinds (single, outside, combined), each kind in its own order,
+    so that any prefix of the run covers every kind (case numbers and seeds are unchanged)."""
+    kinds: dict[str, list[dict[str, Any]]] = {}
+    for j in jobs:
+        kinds.setdefault(j["kind"], []).append(j)
+    queues = list(kinds.values())
+    n = [len(q) for q in queues]
+    total = sum(n)
+    out: list[dict[str, Any]] = []
+    taken = [0] * len(queues)
+    while len(out) < total:
+        # the kind furthest behind its share of the run so far goes next
+        k = min((i for i in range(len(queues)) if taken[i] < n[i]), key=lambda i: (taken[i] + 1) / n[i])
+        out.append(queues[k][taken[k]])
+        taken[k] += 1
+    return out
 
 
 def _named(r: dict[str, Any]) -> list[str]:
