@@ -1,0 +1,48 @@
+"""``bench diagnose``: job order that keeps every kind in any prefix, and summaries of saved runs."""
+
+import json
+
+from groundstation.bench.diagnose import interleave
+from groundstation.cli import main
+
+
+def test_any_prefix_of_the_run_covers_every_kind_in_order():
+    jobs = ([{"kind": "single", "case": i} for i in range(20)] + [{"kind": "outside", "case": 20 + i} for i in range(6)]
+            + [{"kind": "combined", "case": 26 + i} for i in range(4)])
+    order = interleave(jobs)
+    assert sorted(j["case"] for j in order) == list(range(30))
+    assert {j["kind"] for j in order[:8]} == {"single", "outside", "combined"}
+    for kind in ("single", "outside", "combined"):
+        cases = [j["case"] for j in order if j["kind"] == kind]
+        assert cases == sorted(cases)
+
+
+def _case(case, kind, truth, verdict, effects=(), sensors=()):
+    return {"case": case, "kind": kind, "truth_effects": truth, "verdict": verdict,
+            "truth": [{"effect": t, "input": None, "output": None, "params": {}} for t in truth],
+            "effects": [{"effect": e, "input": None, "output": None, "estimate": {}, "shrink_pct": s, "score": 1.0}
+                        for e, s in effects],
+            "sensor_errors": list(sensors), "seconds": 10.0, "cpu_s": 5.0, "flight_s": 150.0,
+            "flight": {"aircraft": "trex600", "pilot": "default", "sweeps": True, "rates": {"ATTITUDE": 25.0}}}
+
+
+def test_summary_of_a_saved_run(tmp_path, capsys):
+    saved = [_case(0, "single", [], "none"), _case(1, "single", ["wind_gust"], "wind_gust", [("wind_gust", 30.0)]),
+             _case(2, "single", ["wind_gust"], "unexplained"),
+             _case(3, "outside", ["rotor_sag"], "ground_effect", [("ground_effect", 12.0)]),
+             _case(4, "combined", ["wind_gust", "deadband"], "wind_gust", [("wind_gust", 20.0), ("deadband", 5.0)])]
+    path = tmp_path / "run.json"
+    path.write_text(json.dumps(saved))
+    assert main(["bench", "diagnose", "--from-json", str(path), "--classes", "none,wind_gust,deadband"]) == 0
+    out = capsys.readouterr().out
+    assert "5 cases from" in out
+    assert "top-1 accuracy: 2/3" in out
+    assert "false alarms on effect-free flights: 0/1" in out
+    assert "unexplained or the right sensor finding 0/1; a catalogue name with shrink > 10 %: 1/1" in out
+    assert "both effects named: 1/1" in out
+
+
+def test_summary_of_a_missing_file_is_one_clear_error(tmp_path, capsys):
+    assert main(["bench", "diagnose", "--from-json", str(tmp_path / "nope.json")]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--from-json" in err[0] and "nope.json" in err[0]
