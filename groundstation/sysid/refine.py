@@ -24,8 +24,12 @@ from scipy.optimize import OptimizeResult, least_squares
 
 from groundstation.sysid.cost import WindowedCost
 
-#: residual bytes simulated per batch of perturbed candidates in the finite-difference Jacobians
-JAC_CHUNK_BYTES = 16e6
+#: residual bytes simulated per batch of perturbed candidates in the finite-difference Jacobians.
+#: Small on purpose: the simulation's temporaries are a few times this, and temporaries of tens of
+#: MB are fresh pages from the kernel at every Jacobian (on 4 simulated flights 16 MB batches made
+#: 465 000 page faults and 1.9 s of system time in the Jacobians, 1 MB batches 40 000 and 0.1 s,
+#: with less user time too: the batch stays in cache). The numbers do not depend on it.
+JAC_CHUNK_BYTES = 1e6
 
 
 def _fd_step(x: np.ndarray, span: np.ndarray) -> np.ndarray:
@@ -73,7 +77,7 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
             h = _fd_step(xx, span)
             # step away from the bound we are close to
             h = np.where(xx + h > hi, -h, h)
-            J = _fd_jacobian(cost, xx, h, sig, central=False)
+            J = _fd_jacobian(cost, xx, h, sig, central=False, reuse=True)
             return J if ps is None else np.vstack([J, np.diag(1.0 / ps)])
 
         res = least_squares(fun, x, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac", max_nfev=max_nfev,
@@ -164,18 +168,20 @@ def jac_final(cost: WindowedCost, x: np.ndarray, sigma: np.ndarray, span: np.nda
 
 
 def _fd_jacobian(cost: WindowedCost, x: np.ndarray, h: np.ndarray, sigma: np.ndarray, *,
-                 central: bool) -> np.ndarray:
+                 central: bool, reuse: bool = False) -> np.ndarray:
     """Finite-difference Jacobian (n_res, D) of the weighted residuals, steps ``h`` (D,).
 
     The perturbed candidates are simulated a few at a time (about :data:`JAC_CHUNK_BYTES` of
     residuals per batch), so the temporaries of the simulation stay bounded however many windows
     the data hold: only the Jacobian itself grows with the data. Rows in the order of
     :meth:`WindowedCost.residuals` (window, sample, channel); the same numbers as one batch.
+    ``reuse``: write into the array kept on ``cost`` (:func:`_jacobian_buffer`), overwritten by the
+    next such call; for the Jacobians of the iterations, not for one that is kept.
     """
     D = x.size
     r0 = None if central else cost.residuals(x[None], sigma).reshape(-1)
     n_res = cost.sim.W * cost.sim.L * int(cost.used.sum())
-    J = np.empty((D, n_res))
+    J = _jacobian_buffer(cost, D, n_res) if reuse else np.empty((D, n_res))
     step = max(1, int(JAC_CHUNK_BYTES // (8 * n_res * (2 if central else 1))))
     for d0 in range(0, D, step):
         d1 = min(D, d0 + step)
@@ -188,6 +194,21 @@ def _fd_jacobian(cost: WindowedCost, x: np.ndarray, h: np.ndarray, sigma: np.nda
             R = cost.residuals(Xp, sigma).reshape(d1 - d0, -1)
             J[d0:d1] = (R - r0) / h[d0:d1, None]
     return J.T
+
+
+def _jacobian_buffer(cost: WindowedCost, D: int, n_res: int) -> np.ndarray:
+    """A (D, n_res) array kept on ``cost`` and reused by every Jacobian of the same shape.
+
+    A refinement takes a Jacobian per iteration; with many windows it is tens of MB, and a fresh
+    array each time is fresh pages from the kernel (page faults: system time that grew with the
+    data). scipy's least_squares is done with a Jacobian when it asks for the next one; the Jacobian
+    that is kept (:func:`jac_final`, the standard errors) gets its own array.
+    """
+    buf = getattr(cost, "_jac_buffer", None)
+    if buf is None or buf.shape != (D, n_res):
+        buf = np.empty((D, n_res))
+        cost._jac_buffer = buf  # type: ignore[attr-defined]
+    return buf
 
 
 def coloured_cov(J: np.ndarray, r: np.ndarray, max_lag: int = 60) -> np.ndarray:
