@@ -19,6 +19,7 @@ from typing import Any
 
 from groundstation.config import ServiceConfig
 from groundstation.errors import DspError, FreqError, GapError, SysidError
+from groundstation.parallel import Map, serial_map
 
 
 @contextmanager
@@ -40,15 +41,17 @@ def about_logs(paths: Sequence[str | os.PathLike[str]]) -> Iterator[None]:
         raise type(exc)(f"{where}: {msg}") from exc
 
 
-def load_logs(paths: Sequence[str | os.PathLike[str]], segments: str = "flights") -> list[Any]:
+def load_logs(paths: Sequence[str | os.PathLike[str]], segments: str = "flights",
+              pmap: Map = serial_map) -> list[Any]:
     """Read the logs (.tlog/.bin/.px4log/.ulg); ``segments="sysid"`` keeps only the system-identification
-    chirps of ArduPilot SYSID-mode logs. A missing file raises OSError naming it."""
+    chirps of ArduPilot SYSID-mode logs. A missing file raises OSError naming it. ``pmap`` reads them
+    (one log per worker process with :func:`groundstation.parallel.worker_map`)."""
     from firmware_interface.readers import load_log, restrict_to_chirps
 
     for p in paths:
         if not Path(p).exists():
             raise OSError(f"{p}: no such log file")
-    logs = [load_log(p) for p in paths]
+    logs = pmap(load_log, [str(p) for p in paths])
     if segments == "sysid":
         logs = [restrict_to_chirps(log) for log in logs]
     return logs
@@ -73,16 +76,16 @@ def with_aircraft(cfg: ServiceConfig, aircraft: Any) -> ServiceConfig:
 
 
 def prepare_logs(paths: Sequence[str | os.PathLike[str]], cfg: ServiceConfig, segments: str = "flights",
-                 aircraft: Any = None) -> Any:
+                 aircraft: Any = None, pmap: Map = serial_map) -> Any:
     """Read the logs and prepare them with ``cfg.prepare`` (a :class:`groundstation.dsp.prepare.PreparedData`),
     the aircraft file's channel map and outputs applied when one is given."""
     from groundstation.dsp.prepare import prepare
 
-    return prepare(load_logs(paths, segments), with_aircraft(cfg, aircraft).prepare)
+    return prepare(load_logs(paths, segments, pmap), with_aircraft(cfg, aircraft).prepare)
 
 
 def identify_prepared(prepared: Any, cfg: ServiceConfig, *, callback: Callable[[dict], Any] | None = None,
-                      aircraft: Any = None) -> Any:
+                      aircraft: Any = None, pmap: Map = serial_map) -> Any:
     """The hover model of ``prepared`` (a :class:`groundstation.sysid.model.HoverModel`) identified with
     ``cfg.identify``, ``cfg.bounds`` and ``cfg.identification``'s algorithm, seed and refine, and the
     aircraft file's prior model (output error with a priori weighting) when one is given."""
@@ -91,4 +94,4 @@ def identify_prepared(prepared: Any, cfg: ServiceConfig, *, callback: Callable[[
     ic = cfg.identification
     return identify(prepared, algorithm=ic.algorithm, seed=ic.seed, refine=ic.refine, callback=callback,
                     bounds=dict(cfg.bounds) or None, config=cfg.identify,
-                    prior=aircraft.prior if aircraft is not None else None)
+                    prior=aircraft.prior if aircraft is not None else None, pmap=pmap)

@@ -10,6 +10,7 @@ a summary. Options override the configuration file (``[prepare]``, ``[identify]`
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import time
 from pathlib import Path
@@ -41,6 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rrd", type=Path, default=None, help="also write measured vs model to a Rerun .rrd file")
     parser.add_argument("--segments", choices=("flights", "sysid"), default="flights", help=SEGMENTS_HELP)
     parser.add_argument("--quiet", action="store_true")
+    parser.add_argument("--jobs", type=int, default=None,
+                        help="worker processes for reading the logs, the searches' screening refinements and the "
+                             "held-out folds (default: all cores but one; the model is the same for any number)")
     parser.add_argument("--domain", choices=("time", "frequency", "both"), default="time",
                         help="time: the paper's output-error fit (default); frequency: minimise Tischler's J over the "
                              "flight's frequency responses; both: fit both ways, score each both ways")
@@ -87,13 +91,14 @@ def write_json(path: Path, doc: dict) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from groundstation.parallel import worker_map
     from groundstation.pipeline import about_logs
 
-    with about_logs(args.logs):
-        return _run(args)
+    with about_logs(args.logs), worker_map(args.jobs) as pmap:
+        return _run(args, pmap)
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run(args: argparse.Namespace, pmap) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -107,8 +112,8 @@ def _run(args: argparse.Namespace) -> int:
         from groundstation.commands.freq_support import identify_domain
         from groundstation.pipeline import load_logs
 
-        return identify_domain(args, load_logs(args.logs, args.segments), cfg)
-    prepared = prepare_logs(args.logs, cfg, args.segments, aircraft)
+        return identify_domain(args, load_logs(args.logs, args.segments, pmap), cfg)
+    prepared = prepare_logs(args.logs, cfg, args.segments, aircraft, pmap)
     con = Console(stderr=True, quiet=args.quiet)
     t0 = time.perf_counter()
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
@@ -121,10 +126,10 @@ def _run(args: argparse.Namespace) -> int:
                         info=f"F={info['fun']:.4g} evals={info['nfev']}")
             return False
 
-        model = identify_prepared(prepared, cfg, callback=cb, aircraft=aircraft)
+        model = identify_prepared(prepared, cfg, callback=cb, aircraft=aircraft, pmap=pmap)
     model.fit["seconds"] = round(time.perf_counter() - t0, 3)
     if args.folds >= 2:
-        held_out(model, prepared, cfg, aircraft, args.folds, con)
+        held_out(model, prepared, cfg, aircraft, args.folds, con, pmap)
     model.source["logs"] = [str(p) for p in args.logs]
     write_json(args.out, model.to_json())
     if not args.no_plot or args.rrd is not None:
@@ -151,7 +156,7 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def held_out(model, prepared, cfg, aircraft, k: int, con) -> None:
+def held_out(model, prepared, cfg, aircraft, k: int, con, pmap=None) -> None:
     """Cross-validate ``model`` (refinement from its parameters on k-1 blocks, prediction of the k-th)
     and record the verdicts in ``model.fit``: ``heldout`` (per channel and fold), ``usable`` (False
     when a subsystem's prediction runs away in some fold) and the closed-loop evidence."""
@@ -161,7 +166,8 @@ def held_out(model, prepared, cfg, aircraft, k: int, con) -> None:
     prior = aircraft.prior if aircraft is not None else None
     con.print(f"held-out check: {k} contiguous folds ...")
     try:
-        cv = crossvalidate(prepared, lambda tr: refit(tr, model, config=cfg.identify, prior=prior), k=k)
+        cv = crossvalidate(prepared, functools.partial(refit, model=model, config=cfg.identify, prior=prior), k=k,
+                           **({} if pmap is None else {"pmap": pmap}))
     except ValueError as exc:
         model.fit["heldout"] = {"skipped": str(exc)}
         return

@@ -12,6 +12,7 @@ local refinement. Which parameters are free is decided in :mod:`groundstation.sy
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -125,6 +126,12 @@ class WindowedCost:
                                    estimate_trim=estimate_trim, forcing=forcing)
         self.nfev = 0
         self.used: np.ndarray = np.asarray(self.sim.mask.any(axis=0), dtype=bool)  # (8,) channels in the cost
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled for worker processes without the reusable Jacobian array (see refine)."""
+        state = dict(self.__dict__)
+        state.pop("_jac_buffer", None)
+        return state
 
     @property
     def dim(self) -> int:

@@ -24,11 +24,13 @@ Pure numpy; splitting the data is :mod:`groundstation.dsp.split`'s.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from groundstation.parallel import Map, serial_map
 from groundstation.sysid.cost import make_windows
 from groundstation.sysid.model import INPUTS, OUTPUTS, HoverModel, build_matrices
 from groundstation.sysid.simulate import WindowSimulator
@@ -128,18 +130,30 @@ class CrossValidation:
                 "unusable_subsystems": list(self.unusable_subsystems)}
 
 
+def _fit_or_none(fit_fold: Any, train: Any) -> Any:
+    """``fit_fold(train)``, None for a block too short to fit (module-level for worker processes)."""
+    try:
+        return fit_fold(train)
+    except ValueError:  # a block shorter than one window
+        return None
+
+
 def crossvalidate(prepared: Any, fit_fold: Any, *, k: int = 5, window_s: float = 5.0,
-                  runaway_factor: float = 3.0) -> CrossValidation:
+                  runaway_factor: float = 3.0, pmap: Map = serial_map) -> CrossValidation:
     """Fit on k-1 contiguous blocks of the in-air time with ``fit_fold(train) -> HoverModel``, predict
-    the left-out block (:func:`predict`), for each of the k blocks."""
+    the left-out block (:func:`predict`), for each of the k blocks. ``pmap`` fits the folds (in worker
+    processes with :func:`groundstation.parallel.worker_map`; ``fit_fold`` must then be picklable)."""
     from groundstation.dsp.split import contiguous_kfold
 
+    folds = [(f, train, val) for f, (train, val) in enumerate(contiguous_kfold(prepared, k))
+             if train.segments and val.segments]
+    models = pmap(partial(_fit_or_none, fit_fold), [train for _, train, _ in folds])
     preds, runaway = [], {}
-    for f, (train, val) in enumerate(contiguous_kfold(prepared, k)):
-        if not train.segments or not val.segments:
+    for (f, _, val), model in zip(folds, models, strict=True):
+        if model is None:
             continue
         try:
-            p = predict(fit_fold(train), val, window_s=window_s)
+            p = predict(model, val, window_s=window_s)
         except ValueError:  # a block shorter than one window
             continue
         preds.append(p)

@@ -41,12 +41,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
 from groundstation.errors import SysidError
+from groundstation.parallel import Map, serial_map
 from groundstation.sysid.cost import WindowedCost, make_windows, subset_windows
 from groundstation.sysid.model import (
     HOR_PARAMS,
@@ -200,6 +202,7 @@ class _Plan:
     bounds: np.ndarray
     prior: tuple[np.ndarray, np.ndarray] | None
     kf: list[str]
+    pmap: Callable[[Callable[[Any], Any], Any], list[Any]] = field(default=serial_map)
 
 
 def _check(cfg: IdentifyConfig, algorithm: str, prepared: Any) -> None:
@@ -223,7 +226,8 @@ def _prior_arrays(prior: Any) -> tuple[np.ndarray, np.ndarray] | None:
     return np.asarray(m, dtype=float), np.asarray(sd, dtype=float)
 
 
-def _plan(prepared: Any, cfg: IdentifyConfig, refine: bool, bounds: dict | None, prior: Any) -> _Plan:
+def _plan(prepared: Any, cfg: IdentifyConfig, refine: bool, bounds: dict | None, prior: Any,
+          pmap: Map = serial_map) -> _Plan:
     win = make_windows(prepared.segments, prepared.dt_s, cfg.window_s, key="identify.window_s")
     win_s = make_windows(prepared.segments, prepared.dt_s, cfg.search_window_s, key="identify.search_window_s")
     if cfg.search_stride > 1 and win_s.count >= 2 * cfg.search_stride:
@@ -241,7 +245,7 @@ def _plan(prepared: Any, cfg: IdentifyConfig, refine: bool, bounds: dict | None,
         forcing[..., off] = 0.0
         forcing_s[..., off] = 0.0
     return _Plan(win, win_s, forcing, forcing_s, free, reasons, bounds_array(bounds), _prior_arrays(prior),
-                 kf if refine else [])
+                 kf if refine else [], pmap)
 
 
 def _costs(plan: _Plan, cfg: IdentifyConfig, sub: int, sub_free: np.ndarray, theta: np.ndarray,
@@ -291,8 +295,10 @@ def _search_once(alg: str, it: int, label: str, costs: tuple, plan: _Plan, cfg: 
     screen_f = float("nan")
     while len(starts) > 1:   # short refinements of many starts, longer ones of the best few
         _progress(callback, f"screen {sub_name} ({len(starts)} starts)", float(opt.fun), cost_s.nfev + cost.nfev)
-        rs = [refine_ls(cost_s, x0, bfree, passes=1, max_nfev=nfev_round, with_std=False, prior=prior,
-                        weighting=cfg.channel_weighting) for x0 in starts]
+        nfev0 = cost_s.nfev
+        rs = plan.pmap(partial(_screen_refine, cost_s, bfree, nfev_round, prior, cfg.channel_weighting), starts)
+        if cost_s.nfev == nfev0:    # refined in worker processes, on copies of the cost
+            cost_s.nfev += sum(int(r.nfev) for r in rs)
         scored = sorted(((_score(cost_s, r, rs[0].sig_eff, prior), r.x) for r in rs), key=lambda t: t[0])
         starts = [sx for _, sx in scored[: max(1, len(scored) // 3)]]
         screen_f = scored[0][0]
@@ -301,6 +307,14 @@ def _search_once(alg: str, it: int, label: str, costs: tuple, plan: _Plan, cfg: 
     ref = refine_ls(cost, starts[0], bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev, prior=prior,
                     weighting=cfg.channel_weighting)
     return float(ref.fun), ref.x, opt, ref
+
+
+def _screen_refine(cost: WindowedCost, bfree: np.ndarray, max_nfev: int, prior: tuple[np.ndarray, np.ndarray] | None,
+                   weighting: str, x0: np.ndarray) -> Any:
+    """A short refinement of one start (the screening; module-level so worker processes can run it)."""
+    with threadpool_limits(1):
+        return refine_ls(cost, x0, bfree, passes=1, max_nfev=max_nfev, with_std=False, prior=prior,
+                         weighting=weighting)
 
 
 def _extra_starts(best: tuple, costs: tuple, plan: _Plan, cfg: IdentifyConfig, sub_free: np.ndarray,
@@ -431,11 +445,13 @@ def _prior_report(plan: _Plan, run: _Run, prior: Any) -> dict[str, Any]:
 def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: bool = True,
              maxiter: int | None = None, callback: Callable[[dict], Any] | None = None,
              bounds: dict[str, tuple[float, float]] | None = None,
-             config: IdentifyConfig | None = None, prior: Any = None) -> HoverModel:
+             config: IdentifyConfig | None = None, prior: Any = None, pmap: Map = serial_map) -> HoverModel:
     """Identify the hover model; see the module docstring. Raises SysidError (a ValueError) for unusable data.
 
     ``prior``: a prior model (:class:`groundstation.aircraft.Prior` or ``(nominal (31,), std (31,))``)
-    for output error with a priori weighting; None = plain output error.
+    for output error with a priori weighting; None = plain output error. ``pmap``: a map over worker
+    processes (:func:`groundstation.parallel.worker_map`) for the screening refinements of each
+    search's starts; the model is the same with any map.
     """
     cfg = config or IdentifyConfig()
     _check(cfg, algorithm, prepared)
@@ -443,7 +459,7 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
     rng = np.random.default_rng(seed)
     trim = cfg.estimate_trim and refine
     with threadpool_limits(1):
-        plan = _plan(prepared, cfg, refine, bounds, prior)
+        plan = _plan(prepared, cfg, refine, bounds, prior, pmap)
         run = _Run(theta=np.clip(np.zeros(N_PARAMS), plan.bounds[:, 0], plan.bounds[:, 1]))
         for sub, sub_name, sub_params in ((0, "horizontal", HOR_PARAMS), (1, "vertical", VER_PARAMS)):
             _identify_subsystem(sub, sub_name, sub_params, plan, cfg, run, algorithm=algorithm, iters=iters,
