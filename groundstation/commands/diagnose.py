@@ -30,16 +30,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, default=None,
                         help="configuration TOML ([prepare] channel map and trims, [diagnose], ...)")
     parser.add_argument("--quiet", action="store_true", help="no terminal table")
+    parser.add_argument("--jobs", type=int, default=None,
+                        help="worker processes for reading the logs, the base model's identification and the "
+                             "catalogue scans (default: all cores but one; the report is the same for any number)")
 
 
 def run(args: argparse.Namespace) -> int:
+    from groundstation.parallel import worker_map
     from groundstation.pipeline import about_logs
 
-    with about_logs(args.logs):
-        return _run(args)
+    with about_logs(args.logs), worker_map(args.jobs) as pmap:
+        return _run(args, pmap)
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run(args: argparse.Namespace, pmap) -> int:
     from groundstation.commands.validate import load_model
     from groundstation.config import load_config
     from groundstation.dsp.prepare import prepare
@@ -51,9 +55,9 @@ def _run(args: argparse.Namespace) -> int:
         cfg = cfg.replace("diagnose", window_s=args.window_s)
     seed = cfg.identification.seed if args.seed is None else args.seed
     model = load_model(args.model) if args.model else None
-    logs = load_logs(args.logs, args.segments)
+    logs = load_logs(args.logs, args.segments, pmap)
     prepared = prepare(logs, cfg.prepare)
-    diag = run_diagnosis(model, prepared, seed=seed, config=cfg.diagnose)
+    diag = run_diagnosis(model, prepared, seed=seed, config=cfg.diagnose, pmap=pmap)
     report = diag.report
     native = native_vibration(logs, cfg.prepare.rate_hz)
     if native is not None:

@@ -32,6 +32,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -50,6 +51,7 @@ from groundstation.gap import (
 from groundstation.gap.config import DiagnoseConfig
 from groundstation.gap.evaluate import Evaluator, SegmentArrays
 from groundstation.gap.report import build_report
+from groundstation.parallel import Map, serial_map
 from groundstation.sysid.model import INPUTS, OUTPUTS, HoverModel
 
 __all__ = ["CATALOGUE", "VERDICTS", "DiagnoseConfig", "Diagnosis", "diagnose", "run_diagnosis", "segments_from_prepared"]
@@ -184,14 +186,16 @@ def diagnose(model: HoverModel | None, prepared: Any, *, seed: int = 0,
 
 
 def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
-                  config: DiagnoseConfig | None = None) -> Diagnosis:
-    """Like :func:`diagnose` but also returns the arrays behind the report (for plots)."""
+                  config: DiagnoseConfig | None = None, pmap: Map = serial_map) -> Diagnosis:
+    """Like :func:`diagnose` but also returns the arrays behind the report (for plots). ``pmap``: a
+    map over worker processes (:func:`groundstation.parallel.worker_map`) for the base model's
+    identification and the catalogue scans; the report is the same with any map."""
     cfg = config or DiagnoseConfig()
     rng = np.random.default_rng(seed)
     comp, prepared = compat_stage(prepared, cfg)
-    base = base_stage(model, prepared, cfg, seed)
+    base = base_stage(model, prepared, cfg, seed, pmap)
     loc = locate_stage(base, prepared, cfg)
-    att = attribute_stage(base, loc, prepared, cfg, rng, seed)
+    att = attribute_stage(base, loc, prepared, cfg, rng, seed, pmap)
     tests = structure_stage(base, loc, att, cfg, rng)
     dec = decide_stage(base, loc, att, comp, tests, cfg)
     ev = base.ev
@@ -259,7 +263,8 @@ def compat_section(comp: compat.Compatibility) -> dict[str, Any]:
     }
 
 
-def base_stage(model: HoverModel | None, prepared: Any, cfg: DiagnoseConfig, seed: int) -> Base:
+def base_stage(model: HoverModel | None, prepared: Any, cfg: DiagnoseConfig, seed: int,
+               pmap: Map = serial_map) -> Base:
     """Windows of the in-air data and the base model refined on them (identified when ``model`` is None)."""
     segs, avail = segments_from_prepared(prepared, cfg.channel_share_min)
     dt = float(prepared.dt_s)
@@ -276,7 +281,7 @@ def base_stage(model: HoverModel | None, prepared: Any, cfg: DiagnoseConfig, see
 
         # the diagnosis blames whatever the base model gets wrong: a search stuck in a wrong basin
         # would be reported as an effect, so it pays for independent searches here
-        model = identify(prepared, seed=seed, config=IdentifyConfig(search_restarts=cfg.identify_restarts))
+        model = identify(prepared, seed=seed, config=IdentifyConfig(search_restarts=cfg.identify_restarts), pmap=pmap)
         notes.append("base model identified on the same data; hold-out by k-fold re-fit over windows")
     theta_given = model.theta
     ev = Evaluator(segs, dt, theta_given, avail, window_s=cfg.window_s, folds=cfg.folds, ridge=cfg.ridge)
@@ -330,29 +335,42 @@ def locate_stage(base: Base, prepared: Any, cfg: DiagnoseConfig) -> Located:
                    out_stride=None if out_stride is None else np.asarray(out_stride, float))
 
 
-def _scan_all(ctx: hypotheses.Context, in_excited: np.ndarray) -> list[hypotheses.Hypothesis]:
-    """Every catalogue hypothesis scanned on the base windows (input effects only on excited inputs)."""
+_INPUT_SCANS = ("input_delay", "rate_limit", "deadband")
+_OTHER_SCANS = ("velocity_latency", "gyro_bias", "quadratic_drag", "ground_effect", "wind_gust")
+
+
+def _scan_one(ctx: hypotheses.Context, in_ch: list[int], name: str) -> tuple[hypotheses.Hypothesis, dict, dict]:
+    """One catalogue scan (``hypotheses.scan_<name>``) and what it cached on ``ctx`` (module-level, so
+    worker processes can run it on their copy of ``ctx``)."""
+    fn = getattr(hypotheses, f"scan_{name}")
+    h = fn(ctx, in_ch) if name in _INPUT_SCANS else fn(ctx)
+    return h, dict(ctx.change), dict(ctx.blocks)
+
+
+def _scan_all(ctx: hypotheses.Context, in_excited: np.ndarray, pmap: Map = serial_map) -> list[hypotheses.Hypothesis]:
+    """Every catalogue hypothesis scanned on the base windows (input effects only on excited inputs).
+    The scans are independent and deterministic: ``pmap`` may run them in worker processes; what
+    each cached on its copy of ``ctx`` comes back into ``ctx``."""
     in_ch = [c for c in range(4) if in_excited[c]]
     hyps: list[hypotheses.Hypothesis] = []
-    if in_ch:
-        hyps += [hypotheses.scan_input_delay(ctx, in_ch), hypotheses.scan_rate_limit(ctx, in_ch),
-                 hypotheses.scan_deadband(ctx, in_ch)]
-    else:
-        for name in ("input_delay", "rate_limit", "deadband"):
+    if not in_ch:
+        for name in _INPUT_SCANS:
             hyps.append(hypotheses.Hypothesis(name, testable=False, reason="no excited input channel"))
-    hyps += [hypotheses.scan_velocity_latency(ctx), hypotheses.scan_gyro_bias(ctx),
-             hypotheses.scan_quadratic_drag(ctx), hypotheses.scan_ground_effect(ctx),
-             hypotheses.scan_wind_gust(ctx)]
+    names = (_INPUT_SCANS if in_ch else ()) + _OTHER_SCANS
+    for h, change, blocks in pmap(partial(_scan_one, ctx, in_ch), names):
+        ctx.change.update(change)
+        ctx.blocks.update(blocks)
+        hyps.append(h)
     return hyps
 
 
 def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig, rng: np.random.Generator,
-                    seed: int) -> Attributed:
+                    seed: int, pmap: Map = serial_map) -> Attributed:
     """Scan, score and test every catalogue hypothesis; the fingerprints; plausibility; encompassing."""
     ev, segs, avail, dt, nf = base.ev, base.segs, base.avail, base.dt_s, loc.nf
     ctx = hypotheses.Context(ev, segs)
     ctx.pwm_per_unit = float(getattr(prepared, "pwm_per_unit", 500.0))
-    hyps = _scan_all(ctx, loc.in_excited)
+    hyps = _scan_all(ctx, loc.in_excited, pmap)
 
     # model-free fingerprints
     yfit = ev.simulate(ev.theta0)[0]
