@@ -46,6 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="skip a phase (repeatable)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=None, help="also write the figures as JSON here")
+    parser.add_argument("--idle-after-s", type=float, default=60.0,
+                        help="after the job, measure the idle service for as long as the job took, up to this "
+                             "(the load the machine's other work causes over a period of that length; 0: skip)")
     parser.add_argument("--rerun", action="store_true",
                         help="also save a Rerun .rrd (rerun.mode = save) so its cost is in the figures")
 
@@ -165,7 +168,7 @@ def _config(tmp: Path, link_url: str, *, identify: bool, hop_s: float = 0.25, re
 
 
 async def _realtime_and_load(tmp: Path, seconds: float, seed: int, load: bool, realtime: bool,
-                             job_tlog: str | None, rerun: bool = False) -> dict[str, Any]:
+                             job_tlog: str | None, rerun: bool = False, idle_after_s: float = 0.0) -> dict[str, Any]:
     from groundstation.service import Service
     from groundstation.worker import IdentifyJob
 
@@ -192,9 +195,17 @@ async def _realtime_and_load(tmp: Path, seconds: float, seed: int, load: bool, r
             res = await asyncio.wait_for(fut, 600)
             t3 = time.time()
             during = _stats_ms(sub.between(t2 + 1.0, t3))   # skip the worker's spawn second
+            # the same service, idle, for as long again (up to --idle-after-s): what the machine's
+            # other load does to the p99 over a period of that length, right after the job
+            idle_s = min(t3 - t2, idle_after_s)
+            await asyncio.sleep(1.0 + idle_s)
+            idle = _stats_ms(sub.between(t3 + 1.0, t3 + 1.0 + idle_s))
             out["load"] = {**during, "job_s": t3 - t2, "job_error": res.error,
+                           "identify_s": res.identify_s,
                            "worst_s_ms": sub.worst(t2, t3 + 1.0),
-                           "p99_growth_ms": during["p99_ms"] - base["p99_ms"]}
+                           "p99_growth_ms": during["p99_ms"] - base["p99_ms"],
+                           "idle_after": {**idle, "seconds": idle_s, "worst_s_ms": sub.worst(t3 + 1.0, t3 + 1.0 + idle_s)},
+                           "p99_vs_idle_after_ms": during["p99_ms"] - idle["p99_ms"]}
     finally:
         service.request_stop("bench done")
         await asyncio.wait_for(task, 30)
@@ -259,7 +270,7 @@ def run(args: argparse.Namespace) -> int:
         if "realtime" not in args.skip or "load" not in args.skip:
             results.update(asyncio.run(_realtime_and_load(
                 tmp / "rt", args.realtime_s, args.seed, "load" not in args.skip, "realtime" not in args.skip, tlog,
-                args.rerun)))
+                args.rerun, args.idle_after_s)))
         if "maxspeed" not in args.skip and tlog is not None:
             results["maxspeed"] = asyncio.run(_maxspeed(tmp / "max", tlog, args.rerun))
 
@@ -279,6 +290,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"under load (identification {ld['job_s']:.0f} s{', error ' + ld['job_error'] if ld['job_error'] else ''}; "
               f"{ld['n']} windows): latency median {ld['median_ms']:.1f} ms, p99 {ld['p99_ms']:.1f} ms; "
               f"p99 growth {ld['p99_growth_ms']:+.1f} ms (target <= 10)")
+        ia = ld.get("idle_after") or {}
+        if ia.get("n"):
+            print(f"idle right after the job ({ia['seconds']:.0f} s, {ia['n']} windows): p99 {ia['p99_ms']:.1f} ms; "
+                  f"during the job minus idle after: {ld['p99_vs_idle_after_ms']:+.1f} ms; worst windows "
+                  f"(s after submit, ms) during {ld['worst_s_ms'][:3]} (identification ended at "
+                  f"{ld['identify_s'] or float('nan'):.0f} s), idle {ia['worst_s_ms'][:3]}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     return 0
