@@ -10,6 +10,8 @@ peak memory well under N times one flight's).
 
 ``--jobs J`` is passed to the command (worker processes; 1 = all in one process). On a shared
 machine compare CPU seconds rather than wall time; the load average is printed with each row.
+The command runs from the installed package, or from the checkout ``$PYTHONPATH`` names first
+(that is how a before/after pair is measured).
 """
 
 from __future__ import annotations
@@ -31,7 +33,8 @@ HELP = "identify (and diagnose) on 1, 2, 4 ... flights together: wall, user/sys 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--flights", default="1,2,4", help="comma-separated numbers of flights")
     parser.add_argument("--duration-s", type=float, default=60.0, help="armed time per simulated flight")
-    parser.add_argument("--jobs", type=int, default=1, help="--jobs of the command (default 1: one process)")
+    parser.add_argument("--jobs", type=int, default=None,
+                        help="--jobs of the command (default: not given, the command's default)")
     parser.add_argument("--repeat", type=int, default=1, help="runs per N (medians are printed)")
     parser.add_argument("--diagnose", action="store_true", help="time `diagnose` (identify + gap report) instead")
     parser.add_argument("--keep", type=Path, default=None, help="write the simulated logs here and keep them")
@@ -66,9 +69,10 @@ def _measure(argv: list[str]) -> dict[str, float]:
 
 def _command(logs: list[Path], out: Path, args: argparse.Namespace) -> list[str]:
     base = [sys.executable, "-m", "groundstation.cli"]
+    jobs = [] if args.jobs is None else ["--jobs", str(args.jobs)]
     if args.diagnose:
-        return base + ["diagnose", *map(str, logs), "--out", str(out), "--quiet", "--jobs", str(args.jobs)]
-    return base + ["identify", *map(str, logs), "--out", str(out), "--no-plot", "--quiet", "--jobs", str(args.jobs)]
+        return base + ["diagnose", *map(str, logs), "--out", str(out), "--quiet", *jobs]
+    return base + ["identify", *map(str, logs), "--out", str(out), "--no-plot", "--quiet", *jobs]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -81,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
         logs = _simulate(folder, ns[-1], args.duration_s)
         rows: dict[int, dict[str, Any]] = {}
         what = "diagnose" if args.diagnose else "identify"
-        print(f"{what} --jobs {args.jobs} on N simulated flights of {args.duration_s:g} s "
+        print(f"{what} --jobs {args.jobs or 'default'} on N simulated flights of {args.duration_s:g} s "
               f"(medians of {args.repeat}; CPU = user + sys of the command and its workers)")
         print(f"{'N':>3} {'wall s':>8} {'user s':>8} {'sys s':>7} {'CPU/flight s':>13} {'sys/flight s':>13} "
               f"{'peak MB':>8} {'load':>5}")
