@@ -33,8 +33,12 @@ from groundstation.sysid.model import INPUTS
 
 #: Candidate delays / latencies (s); the grid is physical time, not samples.
 DELAY_GRID_S = (0.02, 0.04, 0.06, 0.08, 0.10, 0.13, 0.16, 0.20, 0.25)
-#: Slew limits as quantiles of the channel's own |input rate|.
+#: Slew limits as quantiles of the channel's own |input rate| ...
 RATE_QUANTILES = (0.6, 0.75, 0.85, 0.92, 0.96, 0.98, 0.99, 0.995, 0.998)
+#: ... and as fractions of its largest |input rate|: on a card of steps (multisteps, no sweeps) the
+#: quantiles are set by the small corrections between the steps (a few input quanta per sample)
+#: and a slew limit acts only on the step edges, far above every quantile
+RATE_OF_MAX = (0.05, 0.1, 0.2, 0.35, 0.5, 0.7)
 #: Deadband half-widths as quantiles of the channel's own |input|.
 DEADBAND_QUANTILES = (0.1, 0.2, 0.35, 0.5, 0.7, 0.85)
 #: ... and as multiples of the channel's input standard deviation.
@@ -217,15 +221,16 @@ def scan_rate_limit(ctx: Context, channels: list[int]) -> Hypothesis:
     labels: list[dict[str, Any]] = []
     for c in channels:
         du = np.concatenate([np.abs(np.diff(s.inputs[:, c])) for s in segs])
-        steps = np.quantile(du, RATE_QUANTILES)
+        steps = np.unique(np.concatenate([np.quantile(du, RATE_QUANTILES), du.max() * np.array(RATE_OF_MAX)]))
         steps = np.maximum(steps, 1e-9)
         lim = [rate_limit(s.inputs[:, c], steps) for s in segs]
-        for j, q in enumerate(RATE_QUANTILES):
+        for j in range(steps.size):
             Us = [s.inputs.copy() for s in segs]
             for u, lm in zip(Us, lim, strict=True):
                 u[:, c] = lm[:, j]
             U_list.append(ev.cut(Us))
-            labels.append({"channel": c, "rate_per_s": float(steps[j] / ev.dt_s), "quantile": q})
+            labels.append({"channel": c, "rate_per_s": float(steps[j] / ev.dt_s),
+                           "quantile": float(np.mean(du <= steps[j]))})
     yh = ctx.variants_residual(U_list=U_list)
     variants = [(lab, ev.residual(y), None) for lab, y in zip(labels, yh, strict=True)]
     sse, best, _ = ctx.nested("rate_limit", variants)
