@@ -215,14 +215,20 @@ def scan_input_delay(ctx: Context, channels: list[int]) -> Hypothesis:
                       extra={"variants": len(variants), "label": lab, "r_best": variants[best][1]})
 
 
+def slew_grid(du: np.ndarray) -> np.ndarray:
+    """Candidate slew limits (input units per grid step) from one channel's |input steps| ``du``:
+    :data:`RATE_QUANTILES` of them and :data:`RATE_OF_MAX` fractions of the largest, ascending."""
+    steps = np.unique(np.concatenate([np.quantile(du, RATE_QUANTILES), du.max() * np.array(RATE_OF_MAX)]))
+    return np.maximum(steps, 1e-9)
+
+
 def scan_rate_limit(ctx: Context, channels: list[int]) -> Hypothesis:
     ev, segs = ctx.ev, ctx.segments
     U_list: list[np.ndarray] = []
     labels: list[dict[str, Any]] = []
     for c in channels:
         du = np.concatenate([np.abs(np.diff(s.inputs[:, c])) for s in segs])
-        steps = np.unique(np.concatenate([np.quantile(du, RATE_QUANTILES), du.max() * np.array(RATE_OF_MAX)]))
-        steps = np.maximum(steps, 1e-9)
+        steps = slew_grid(du)
         lim = [rate_limit(s.inputs[:, c], steps) for s in segs]
         for j in range(steps.size):
             Us = [s.inputs.copy() for s in segs]

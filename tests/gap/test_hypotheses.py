@@ -75,3 +75,24 @@ def test_air_mass_slower_than_the_velocity_sensors_resolve_is_not_physical():
     # drag must oppose the motion on every axis it is estimated on
     assert not _physical(Hypothesis("quadratic_drag", estimate={"drag_u_per_m": -0.0002, "drag_v_per_m": 0.0016}))
     assert _physical(Hypothesis("quadratic_drag", estimate={"drag_u_per_m": 0.03, "drag_v_per_m": 0.04}))
+
+
+def test_slew_grid_reaches_a_limit_that_acts_only_on_step_edges():
+    """A card of steps (no sweeps) with small quantised corrections between them: the |input step|
+    quantiles sit at the input quantum, while a 2.4 /s slew limit acts on the step edges only."""
+    from groundstation.gap.hypotheses import RATE_QUANTILES, slew_grid
+
+    dt, quantum = 0.02, 1 / 500
+    rng = np.random.default_rng(5)
+    n = 7500
+    steps = np.repeat(rng.choice([-0.15, 0.15], n // 750), 750)  # a multistep every 15 s
+    corr = np.zeros(n)
+    for k in range(1, n):  # the pilot's small corrections between the steps
+        corr[k] = 0.98 * corr[k - 1] + 0.002 * rng.standard_normal()
+    u = np.round((steps + corr) / quantum) * quantum
+    du = np.abs(np.diff(u))
+    limit = 2.4 * dt
+    assert np.quantile(du, RATE_QUANTILES).max() < limit / 3  # the quantiles alone never get near it
+    grid = slew_grid(du)
+    assert np.all(np.diff(grid) > 0)
+    assert np.min(np.abs(np.log(grid / limit))) < np.log(1.5)
