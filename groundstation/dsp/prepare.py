@@ -16,6 +16,8 @@ What it does, per log (:class:`firmware_interface.samples.LogData`):
    segment is split into a part with and a part without velocity channels (``available``);
    horizontal velocities without the vertical one still give u and v (w unmeasured);
    ``measured_outputs`` (the aircraft file's) drops channels the aircraft does not log;
+   a horizontal velocity the attitude contradicts (``velocity_check``,
+   :mod:`groundstation.dsp.velocity_check`) is left out with a note;
 4. inputs ``delta = (pwm - trim) / pwm_per_unit`` (trim = median in-air PWM unless configured) from
    servo outputs or RC inputs, or unmixed from three swashplate servos (``swash_phase_deg``); when
    none of the configured inputs moves, the error names the channels of the log that do;
@@ -91,6 +93,9 @@ class PrepConfig:
     #: (std above ``airborne_rate_rad_s``); a ground run with the rotor stopped shows neither
     airborne_vibration_m_s2: float = 0.3
     airborne_rate_rad_s: float = 0.03
+    #: check the horizontal velocities against the attitude (gravity tilt,
+    #: :mod:`groundstation.dsp.velocity_check`) and leave out a channel that does not measure the motion
+    velocity_check: bool = True
 
     def __post_init__(self) -> None:
         if self.rate_hz <= 0:
@@ -584,6 +589,8 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
         raw_out[:, ~r.available] = np.nan
         segs.append(Segment(t_s=r.t_s, inputs=inputs, outputs=sm, outputs_raw=raw_out, alt_m=r.alt_m,
                             available=r.available.copy(), flight=r.flight, source=r.source))
+    if cfg.velocity_check:
+        segs = _drop_inconsistent_velocities(segs, 1.0 / cfg.rate_hz, notes)
     native = np.array([r.native_s for r in raws], dtype=float)
     native_med = [float(np.nanmedian(native[:, k])) if np.isfinite(native[:, k]).any() else float("nan")
                   for k in range(12)]
@@ -596,6 +603,31 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
         notes=notes,
         native_interval_s=dict(zip(INPUTS + OUTPUTS, native_med, strict=True)),
     )
+
+
+def _drop_inconsistent_velocities(segs: list[Segment], dt_s: float, notes: list[str]) -> list[Segment]:
+    """Segments without the horizontal velocity channels the attitude contradicts, and a note for each."""
+    from groundstation.dsp.velocity_check import check_horizontal
+
+    bad = [c for c in check_horizontal(segs, dt_s) if not c.usable]
+    if not bad:
+        return segs
+    cols = [OUTPUTS.index(c.channel) for c in bad]
+    for c in bad:
+        what = "height" if c.channel == "w" else "attitude"
+        why = ("it does not follow the " + what if c.verdict == "contradicted"
+               else "the " + what + " cannot confirm it measures the motion")
+        notes.append(f"output {c.channel} left out: {why} (scale {c.scale:.2f} +- {c.se:.2f}, 1 expected; "
+                     f"[prepare] velocity_check = false uses it anyway)")
+    out = []
+    for s in segs:
+        avail = s.available.copy()
+        avail[cols] = False
+        o, r = s.outputs.copy(), s.outputs_raw.copy()
+        o[:, cols] = np.nan
+        r[:, cols] = np.nan
+        out.append(replace(s, available=avail, outputs=o, outputs_raw=r))
+    return out
 
 
 def prepared_from_arrays(

@@ -122,6 +122,10 @@ class IdentifyConfig:
     #: "zero" (every parameter 0, inside the bounds); the lowest refined (MAP) cost wins. On real flights
     #: the search's best point on short windows can sit in a basin that predicts worse than these.
     extra_starts: str = ""
+    #: how the data rows count against an aircraft file's prior: "logged" (every sample; the prior
+    #: holds what the flight does not determine) or "effective" (samples over the residual's
+    #: autocorrelation time: a stronger prior). See :func:`groundstation.sysid.refine.refine`.
+    prior_weighting: str = "logged"
 
 
 #: Input channels (indices into lat lon col ped) of each subsystem.
@@ -212,6 +216,8 @@ def _check(cfg: IdentifyConfig, algorithm: str, prepared: Any) -> None:
         raise SysidError(f"identify.restart_algorithm: unknown {cfg.restart_algorithm!r}; choose one of {sorted(ALGORITHMS)}")
     if cfg.search_restarts < 1:
         raise SysidError(f"identify.search_restarts = {cfg.search_restarts}: must be >= 1")
+    if cfg.prior_weighting not in ("logged", "effective"):
+        raise SysidError(f"identify.prior_weighting = {cfg.prior_weighting!r}: choose logged or effective")
     if not prepared.segments:
         raise SysidError("no in-air segments to identify from")
 
@@ -296,7 +302,8 @@ def _search_once(alg: str, it: int, label: str, costs: tuple, plan: _Plan, cfg: 
     while len(starts) > 1:   # short refinements of many starts, longer ones of the best few
         _progress(callback, f"screen {sub_name} ({len(starts)} starts)", float(opt.fun), cost_s.nfev + cost.nfev)
         nfev0 = cost_s.nfev
-        rs = plan.pmap(partial(_screen_refine, cost_s, bfree, nfev_round, prior, cfg.channel_weighting), starts)
+        rs = plan.pmap(partial(_screen_refine, cost_s, bfree, nfev_round, prior, cfg.channel_weighting,
+                               cfg.prior_weighting == "effective"), starts)
         if cost_s.nfev == nfev0:    # refined in worker processes, on copies of the cost
             cost_s.nfev += sum(int(r.nfev) for r in rs)
         scored = sorted(((_score(cost_s, r, rs[0].sig_eff, prior), r.x) for r in rs), key=lambda t: t[0])
@@ -305,16 +312,17 @@ def _search_once(alg: str, it: int, label: str, costs: tuple, plan: _Plan, cfg: 
         nfev_round *= 2
     _progress(callback, f"refine {sub_name}{label}", screen_f, cost_s.nfev + cost.nfev)
     ref = refine_ls(cost, starts[0], bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev, prior=prior,
-                    weighting=cfg.channel_weighting)
+                    weighting=cfg.channel_weighting,
+                        prior_colour=cfg.prior_weighting == "effective")
     return float(ref.fun), ref.x, opt, ref
 
 
 def _screen_refine(cost: WindowedCost, bfree: np.ndarray, max_nfev: int, prior: tuple[np.ndarray, np.ndarray] | None,
-                   weighting: str, x0: np.ndarray) -> Any:
+                   weighting: str, prior_colour: bool, x0: np.ndarray) -> Any:
     """A short refinement of one start (the screening; module-level so worker processes can run it)."""
     with threadpool_limits(1):
         return refine_ls(cost, x0, bfree, passes=1, max_nfev=max_nfev, with_std=False, prior=prior,
-                         weighting=weighting)
+                         weighting=weighting, prior_colour=prior_colour)
 
 
 def _extra_starts(best: tuple, costs: tuple, plan: _Plan, cfg: IdentifyConfig, sub_free: np.ndarray,
@@ -333,7 +341,8 @@ def _extra_starts(best: tuple, costs: tuple, plan: _Plan, cfg: IdentifyConfig, s
         x0 = prior[0] if n == "prior" and prior is not None else np.zeros(int(sub_free.sum()))
         x0 = np.clip(x0, bfree[:, 0] + 1e-6 * span, bfree[:, 1] - 1e-6 * span)
         ref = refine_ls(costs[0], x0, bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev, prior=prior,
-                        weighting=cfg.channel_weighting)
+                        weighting=cfg.channel_weighting,
+                        prior_colour=cfg.prior_weighting == "effective")
         F = float(ref.fun) if prior is None or sig_ref is None else map_objective(costs[0], ref.x, sig_ref, prior)
         if F < best[0]:
             best = (F, ref.x, best[2], ref, f"{best[4]}+{n} start")
@@ -525,7 +534,8 @@ def refit(prepared: Any, model: HoverModel, *, config: IdentifyConfig | None = N
                 continue
             pr = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
             ref = refine_ls(cost, run.theta[sub_free], plan.bounds[sub_free], passes=1, max_nfev=cfg.refine_max_nfev,
-                            with_std=False, prior=pr, weighting=cfg.channel_weighting)
+                            with_std=False, prior=pr, weighting=cfg.channel_weighting,
+                        prior_colour=cfg.prior_weighting == "effective")
             run.theta = cost.full(ref.x)[0]
             if cfg.estimate_trim:
                 run.delta[list(_SUBS_INPUTS[sub])] = cost.sim.solve_trim(run.theta[None])[sub][0]
