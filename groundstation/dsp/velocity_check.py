@@ -102,7 +102,7 @@ def check_horizontal(segments: list, dt_s: float, *, window_s: float = 4.0, z: f
     """
     L = max(int(round(window_s / dt_s)), 5)
     stride = max(1, L // 50)
-    out = []
+    out: list[VelocityCheck] = []
     if not segments:
         return out
     moving = np.std(np.vstack([s.inputs for s in segments]), axis=0) > 0
