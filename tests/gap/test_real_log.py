@@ -61,4 +61,7 @@ def test_real_trex550_diagnosis(tmp_path, capsys):
     vib = [e for e in rep["effects"] if e["effect"] == "rotor_vibration"]
     assert vib and vib[0]["per_channel_shrink"]["p"] > 0
     untouched = [c for c in vib[0]["per_channel_shrink"] if c not in lines[0]["channels"]]
-    assert untouched and all(vib[0]["per_channel_shrink"][c] == 0 for c in untouched)
+    # channels without the line are not "explained" by it (the velocity check leaves u, v, w out of
+    # this log, so the line may be in every channel that remains)
+    assert all(vib[0]["per_channel_shrink"][c] == 0 for c in untouched)
+    assert set(vib[0]["per_channel_shrink"]) <= {"p", "q", "r", "theta", "phi"}
