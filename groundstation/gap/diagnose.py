@@ -499,9 +499,8 @@ def _structure_against_named(base: Base, att: Attributed, tests: list[structure.
     again with the structure in the model and the base re-fitted (does the effect add anything?).
     The effect stays named when it removes the structure; when the structure stays it is withheld
     (the structure is left unexplained) unless it adds to the structure more than the structure adds
-    to it. An air mass cannot be put into the model the structure is tested in, so it never removes
-    one: beside a significant structure it is withheld. A rotor line (a raw-residual fingerprint,
-    disjoint from any input structure) is compared by held-out gain only.
+    to it. An air mass (its own within-window protocol) and a rotor line (a raw-residual fingerprint)
+    cannot be put into the model the structure is tested in: for them the larger held-out gain decides.
     Changes the candidates in place (``significant``, ``evidence``).
     """
     ranked = sorted((c for c in att.candidates if c.significant), key=lambda c: -c.score.score_pct)
@@ -513,11 +512,11 @@ def _structure_against_named(base: Base, att: Attributed, tests: list[structure.
     else:
         cctx = candidates.conditioned_context(top, att.ctx, base.segs)
         if cctx is None:
-            # an air mass cannot be put into the model the structure is tested in: it cannot be
-            # shown to remove the structure, which then stays unexplained
-            keep = False
-            why = (f"the {sig[0].input} {sig[0].kind.replace('_', ' ')} (outside the catalogue) cannot be tested "
-                   f"with the {top.hyp.effect} in the model, so it is not shown to be removed by it")
+            # an air mass cannot be put into the model the structure is tested in (its own within-window
+            # protocol): the larger held-out gain decides, as for the rotor line
+            keep = top.score.score_pct >= sig[0].score_pct
+            why = (f"the {sig[0].input} {sig[0].kind.replace('_', ' ')} (outside the catalogue) explains "
+                   f"{sig[0].score_pct:+.1f}% of the held-out cost, the {top.hyp.effect} {top.score.score_pct:+.1f}%")
         else:
             left = [t for t in structure.retest(cctx, sig, rng, cfg, crit_s) if t.significant]
             if not left:
