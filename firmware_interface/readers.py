@@ -68,7 +68,8 @@ _MAV_TYPE_GCS = 6
 
 
 def load_log(path: str | os.PathLike[str], *, all_topics: bool = False) -> LogData:
-    """Read a .tlog, dataflash .bin, PX4 .px4log or PX4 .ulg into :class:`LogData` (raises LogError).
+    """Read a .tlog, dataflash .bin, PX4 .px4log or PX4 .ulg, or any of them xz- or gzip-compressed, into
+    :class:`LogData` (raises LogError).
 
     ``all_topics``: a ULog's unmapped topics are decoded and counted too (the other formats always are).
     """
@@ -84,6 +85,8 @@ def load_log(path: str | os.PathLike[str], *, all_topics: bool = False) -> LogDa
         raise LogError(f"{p}: cannot read ({exc.strerror or exc})") from None
     if not head:
         raise LogError(f"{p}: empty file")
+    if head.startswith(_XZ_MAGIC) or head.startswith(_GZ_MAGIC):
+        return _load_compressed(p, head, all_topics)
     if head[:3] == _DF_MAGIC:
         return load_dataflash(p)
     if head[:7] == ULOG_MAGIC:
@@ -93,6 +96,32 @@ def load_log(path: str | os.PathLike[str], *, all_topics: bool = False) -> LogDa
     except OSError as exc:
         raise LogError(f"{p}: cannot read ({exc.strerror or exc})") from None
     return load_tlog_bytes(data, str(p))
+
+
+_XZ_MAGIC = b"\xfd7zXZ\x00"
+_GZ_MAGIC = b"\x1f\x8b"
+
+
+def _load_compressed(p: Path, head: bytes, all_topics: bool) -> LogData:
+    """An xz- or gzip-compressed log (as archives keep them): decompressed to a temporary file, read by
+    the reader its content asks for, and named after the compressed file."""
+    import gzip
+    import lzma
+    import shutil
+    import tempfile
+
+    opener: Any = lzma.open if head.startswith(_XZ_MAGIC) else gzip.open
+    with tempfile.TemporaryDirectory(prefix="gs-log-") as td:
+        inner = Path(td) / (p.stem if p.suffix in (".xz", ".gz") else p.name)
+        try:
+            with opener(p, "rb") as src, inner.open("wb") as dst:
+                shutil.copyfileobj(src, dst, 1 << 20)
+        except (OSError, EOFError, lzma.LZMAError) as exc:
+            raise LogError(f"{p}: cannot decompress ({exc})") from None
+        if inner.stat().st_size == 0:
+            raise LogError(f"{p}: empty file once decompressed")
+        log = load_log(inner, all_topics=all_topics)
+    return replace(log, source=str(p))
 
 
 def load_tlog_bytes(data: bytes, source: str = "<bytes>") -> LogData:
