@@ -219,8 +219,10 @@ def print_model(model, con=None) -> None:
         note = "fixed (not identifiable)" if n in fit.get("fixed", []) else ("PINNED at bound" if n in model.pinned else "")
         p.add_row(n, f"{model.params[n]:.4g}", "-" if s is None else f"{s:.3g}", note)
     con.print(p)
+    from rich.markup import escape
+
     for r in fit.get("fixed_reasons", []) + fit.get("notes", []):
-        con.print(f"note: {r}")
+        con.print(f"note: {escape(r)}")
     print_verdicts(model, con)
 
 

@@ -618,7 +618,7 @@ def _drop_inconsistent_velocities(segs: list[Segment], dt_s: float, notes: list[
         why = ("it does not follow the " + what if c.verdict == "contradicted"
                else "the " + what + " cannot confirm it measures the motion")
         notes.append(f"output {c.channel} left out: {why} (scale {c.scale:.2f} +- {c.se:.2f}, 1 expected; "
-                     f"[prepare] velocity_check = false uses it anyway)")
+                     f"prepare.velocity_check = false uses it anyway)")
     out = []
     for s in segs:
         avail = s.available.copy()

@@ -117,7 +117,7 @@ class CrossValidation:
     folds: tuple[Prediction, ...]
     channel_mean: dict[str, float]
     mean_match: float
-    predicted: tuple[str, ...]      # channels with a positive mean held-out match and no runaway fold
+    predicted: tuple[str, ...]      # channels with a positive held-out match in every fold and no runaway
     not_predicted: tuple[str, ...]
     runaway: dict[str, tuple[str, ...]]   # fold label -> channels that ran away there
     unusable_subsystems: tuple[str, ...]  # subsystems with a channel that ran away in some fold
@@ -163,7 +163,8 @@ def crossvalidate(prepared: Any, fit_fold: Any, *, k: int = 5, window_s: float =
     chans = [c for c in OUTPUTS if any(c in p.match for p in preds)]
     mean = {c: float(np.mean([p.match[c] for p in preds if c in p.match])) for c in chans}
     ran = {c for v in runaway.values() for c in v}
-    predicted = tuple(c for c in chans if mean[c] > 0 and c not in ran)
+    # predicted: better than predicting no motion in every fold that holds the channel, never running away
+    predicted = tuple(c for c in chans if all(p.match[c] > 0 for p in preds if c in p.match) and c not in ran)
     unusable = tuple(s for s, cs in SUBSYSTEM_CHANNELS.items() if any(c in ran for c in cs))
     return CrossValidation(tuple(preds), mean, float(np.mean([p.mean_match for p in preds])) if preds else float("nan"),
                            predicted, tuple(c for c in chans if c not in predicted), runaway, unusable)
