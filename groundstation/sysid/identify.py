@@ -437,7 +437,8 @@ def _pinned(theta: np.ndarray, free: np.ndarray, b: np.ndarray) -> dict[str, str
 
 
 def _prior_report(plan: _Plan, run: _Run, prior: Any) -> dict[str, Any]:
-    """Which free parameters the flight determines and which stay at their prior (share > 0.5)."""
+    """Which free parameters the flight determines and which stay at their prior (share > 0.5); the
+    parameters the data cannot move at all (``fixed_at_prior``) keep the prior's value and std."""
     if plan.prior is None:
         return {}
     det: list[str] = []
@@ -446,6 +447,7 @@ def _prior_report(plan: _Plan, run: _Run, prior: Any) -> dict[str, Any]:
         if plan.free[i] and np.isfinite(run.share[i]):
             (undet if run.share[i] > 0.5 else det).append(n)
     return {"source": str(getattr(prior, "source", "given")), "determined": det, "prior_dominated": undet,
+            "fixed_at_prior": [n for i, n in enumerate(PARAM_NAMES) if not plan.free[i]],
             "prior_share": {n: float(run.share[i]) for i, n in enumerate(PARAM_NAMES) if np.isfinite(run.share[i])},
             "nominal": {n: float(plan.prior[0][i]) for i, n in enumerate(PARAM_NAMES)},
             "std": {n: float(plan.prior[1][i]) for i, n in enumerate(PARAM_NAMES)}}
@@ -469,12 +471,21 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
     trim = cfg.estimate_trim and refine
     with threadpool_limits(1):
         plan = _plan(prepared, cfg, refine, bounds, prior, pmap)
-        run = _Run(theta=np.clip(np.zeros(N_PARAMS), plan.bounds[:, 0], plan.bounds[:, 1]))
+        run = _Run(theta=np.clip(_fixed_values(plan), plan.bounds[:, 0], plan.bounds[:, 1]))
         for sub, sub_name, sub_params in ((0, "horizontal", HOR_PARAMS), (1, "vertical", VER_PARAMS)):
             _identify_subsystem(sub, sub_name, sub_params, plan, cfg, run, algorithm=algorithm, iters=iters,
                                 maxiter=maxiter, refine=refine, rng=rng, callback=callback)
         match, used = _in_sample_match(plan, cfg, run.theta, trim)
     return _model(prepared, plan, cfg, run, match, used, algorithm=algorithm, seed=seed, refine=refine, prior=prior)
+
+
+def _fixed_values(plan: _Plan) -> np.ndarray:
+    """(31,) start vector whose fixed entries are what is published for them: 0 without a prior, the
+    prior's nominal with one (a parameter the flight cannot move stays at the prior, not at 0)."""
+    theta = np.zeros(N_PARAMS)
+    if plan.prior is not None:
+        theta[~plan.free] = plan.prior[0][~plan.free]
+    return theta
 
 
 def _model(prepared: Any, plan: _Plan, cfg: IdentifyConfig, run: _Run, match: dict[str, float], used: np.ndarray, *,
@@ -485,6 +496,8 @@ def _model(prepared: Any, plan: _Plan, cfg: IdentifyConfig, run: _Run, match: di
     pinned = _pinned(theta, plan.free, plan.bounds)
     std: dict[str, float | None] = {n: (float(run.std[i]) if np.isfinite(run.std[i]) else None)
                                     for i, n in enumerate(PARAM_NAMES)}
+    if plan.prior is not None:  # fixed at the prior: published with the prior's uncertainty
+        std.update({PARAM_NAMES[i]: float(plan.prior[1][i]) for i in np.flatnonzero(~plan.free)})
     segs = prepared.segments
     fit: dict[str, Any] = {
         "algorithm": algorithm, "seed": int(seed), "fitness": float(1.0 / (1.0 + run.F_total)), "cost": float(run.F_total),
@@ -494,7 +507,9 @@ def _model(prepared: Any, plan: _Plan, cfg: IdentifyConfig, run: _Run, match: di
         "evaluations": int(run.nfev), "iterations": int(run.nit), "seconds": None,
         "window_s": float(cfg.window_s), "windows": int(plan.win.count), "estimate_all_initial": cfg.estimate_all_initial,
         "channels": [OUTPUTS[j] for j in range(8) if used[j]],
-        "fixed": [PARAM_NAMES[i] for i in range(N_PARAMS) if not plan.free[i]], "fixed_reasons": plan.reasons,
+        "fixed": [PARAM_NAMES[i] for i in range(N_PARAMS) if not plan.free[i]],
+        "fixed_reasons": [r.replace(" fixed at 0", " fixed at the prior's value") if plan.prior is not None else r
+                          for r in plan.reasons],
         "noise_sigma": {OUTPUTS[j]: float(run.sigma[j]) for j in range(8) if np.isfinite(run.sigma[j])},
         "history": run.histories, "history_nfev": run.histories_nfev, "notes": list(prepared.notes),
         "trim_estimated": bool(cfg.estimate_trim and refine), "kinematic_forcing": plan.kf,

@@ -59,3 +59,26 @@ def test_prediction_scores_truth_above_a_wrong_model_and_flags_runaway(vertical_
     bad = predict(HoverModel(params=bad_params), prep)
     assert bad.match["r"] < good.match["r"] - 30
     assert "r" in runaway_channels(bad)
+
+
+def test_parameters_the_data_cannot_move_keep_the_prior_value_and_std():
+    from groundstation.aircraft import wide_prior
+    from groundstation.sysid.identify import IdentifyConfig, identify
+    from groundstation.sysid.model import PARAM_NAMES
+
+    u, _, ym = simulate_flight(theta_from_dict(EXAMPLE_TRUTH), 40.0, seed=7)
+    u[:, 0] = 0.0  # the lateral stick never moves: X_lat, M_lat, L_lat, A_lat cannot be determined
+    ym[:, 2] = np.nan  # w not measured: the heave terms cannot be either
+    prior = wide_prior()
+    nominal = dict(zip(PARAM_NAMES, prior.nominal, strict=True))
+    std = dict(zip(PARAM_NAMES, prior.std, strict=True))
+    m = identify(prepared_from_arrays(u, ym, 0.02), seed=0, maxiter=4, prior=prior,
+                 config=IdentifyConfig(refine_max_nfev=5, refine_passes=1, search_restarts=1))
+    fixed = set(m.fit["fixed"])
+    assert {"A_lat", "L_lat", "Z_w"} <= fixed
+    for name in fixed:
+        assert m.params[name] == nominal[name] and m.parameter_std[name] == std[name], name
+    assert set(m.fit["prior"]["fixed_at_prior"]) == fixed
+    assert any("fixed at the prior's value" in r for r in m.fit["fixed_reasons"])
+    assert not any("fixed at 0" in r for r in m.fit["fixed_reasons"])
+    assert m.params["Z_w"] != 0.0  # the wide prior's heave damping, not 0
