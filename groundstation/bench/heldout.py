@@ -78,6 +78,12 @@ def _score(model: Any, val: Any, window_s: float) -> dict[str, Any]:
             "unstable": [m.describe() for m in unstable_modes(model.theta)]}
 
 
+def _selection(model: Any) -> dict[str, Any]:
+    """The configuration the identification chose by held-out prediction on its training part."""
+    sel = model.fit.get("selection") or {}
+    return {"chosen": sel.get("chosen"), "scores": {r["name"]: r["mean_match"] for r in sel.get("candidates", [])}}
+
+
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
@@ -95,7 +101,8 @@ def run(args: argparse.Namespace) -> int:
         row: dict[str, Any] = {"split": name, "train_s": train.duration_s, "val_s": val.duration_s}
         t0 = time.perf_counter()
         model = identify(train, seed=args.seed, prior=aircraft.prior if aircraft else None, config=id_cfg)
-        row["project"] = _score(model, val, args.window_s) | {"seconds": time.perf_counter() - t0}
+        row["project"] = _score(model, val, args.window_s) | {"seconds": time.perf_counter() - t0,
+                                                              "selection": _selection(model)}
         if not args.no_reference:
             t0 = time.perf_counter()
             ref = fit_reference(train, starts=args.reference_starts, seed=args.seed, window_s=args.window_s)
@@ -122,6 +129,11 @@ def _print_split(con: Any, row: dict[str, Any]) -> None:
         r = row[k]
         t.add_row(k, *[f"{r['match'].get(c, float('nan')):.1f}" for c in chans], f"{r['mean']:.1f}", f"{r['seconds']:.0f}")
     con.print(t)
+    sel = row["project"].get("selection") or {}
+    if len(sel.get("scores") or {}) > 1:
+        scores = ", ".join(f"{n} {v:.1f} %" for n, v in sel["scores"].items())
+        con.print(f"  project: configuration chosen by held-out prediction on the training part: {sel['chosen']} "
+                  f"(inner folds: {scores})")
     for k in kinds:
         for u in row[k]["unstable"]:
             con.print(f"  {k}: {u}")
@@ -142,6 +154,9 @@ def _summary(results: list[dict[str, Any]]) -> dict[str, Any]:
             s["folds_channel_mean"] = {c: float(np.mean([r[k]["match"][c] for r in folds if c in r[k]["match"]]))
                                        for c in chans}
             s["folds_min_channel"] = float(min(min(r[k]["match"].values()) for r in folds))
+            s["folds_min_channel_name"] = min(((v, c) for r in folds for c, v in r[k]["match"].items()))[1]
+            s["chosen"] = sorted({str(r[k].get("selection", {}).get("chosen")) for r in results
+                                  if r[k].get("selection", {}).get("chosen")})
         first = [r for r in results if r["split"].startswith("first")]
         if first:
             s["train_first_mean"] = first[0][k]["mean"]
@@ -156,7 +171,9 @@ def _print_summary(con: Any, summary: dict[str, Any]) -> None:
         if "folds_mean" in s:
             chan = ", ".join(f"{c} {v:.1f}" for c, v in s["folds_channel_mean"].items())
             parts.append(f"k-fold held-out mean match {s['folds_mean']:.1f} % (per channel: {chan}; "
-                         f"lowest channel in any fold {s['folds_min_channel']:.1f} %)")
+                         f"lowest channel in any fold {s['folds_min_channel']:.1f} % ({s['folds_min_channel_name']}))")
+        if s.get("chosen"):
+            parts.append(f"configuration chosen: {', '.join(s['chosen'])}")
         if "train_first_mean" in s:
             parts.append(f"train-first split {s['train_first_mean']:.1f} %")
         parts.append(f"splits with an unstable mode: {s['unstable_splits']}")

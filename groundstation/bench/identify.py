@@ -149,8 +149,16 @@ def run(args: argparse.Namespace) -> int:
     t0, c0 = time.perf_counter(), time.process_time()
     model = identify(train, seed=0)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    con.print(f"default identification (CABC + refinement): {wall:.2f} s wall ({cpu:.2f} s CPU), "
-              f"{model.fit['evaluations']} evaluations, cost {model.fit['cost']:.4f}")
+    con.print(f"default identification (CABC + refinement + held-out selection of the configuration): {wall:.2f} s wall "
+              f"({cpu:.2f} s CPU), {model.fit['evaluations']} evaluations, cost {model.fit['cost']:.4f}")
+    t1, c1 = time.perf_counter(), time.process_time()
+    identify(train, seed=0, config=IdentifyConfig(select_candidates=""))
+    wall0, cpu0 = time.perf_counter() - t1, time.process_time() - c1
+    sel = model.fit.get("selection") or {}
+    scores = ", ".join(f"{r['name']} {r['mean_match']:.1f} %" for r in sel.get("candidates", []))
+    con.print(f"held-out selection over {sel.get('k')} folds chose: {sel.get('chosen')} ({scores}); without the "
+              f"selection {wall0:.2f} s wall ({cpu0:.2f} s CPU): with it {wall / wall0:.2f}x wall, {cpu / cpu0:.2f}x CPU "
+              f"(target <= 1.5x)")
     t = Table(title="identified vs truth")
     for c in ("param", "truth", "estimate", "err %", "std", "z"):
         t.add_column(c, justify="right")
@@ -182,6 +190,7 @@ def run(args: argparse.Namespace) -> int:
     con.print(tv)
     con.print(f"identified / true mean match on the other flight: {ratio:.2f}% (target >= 99%)")
     summary: dict[str, Any] = {"flights": desc, "speed_updates_per_s": sp, "default_wall_s": wall, "default_cpu_s": cpu,
+                               "no_selection_wall_s": wall0, "no_selection_cpu_s": cpu0, "selection": sel.get("chosen"),
                                "key_err_pct": key_err, "z": dict(zip(PARAM_NAMES, [float(z) for z in z_all], strict=True)),
                                "match_ratio_pct": ratio, "match_identified": v_id["channels"], "match_true": v_true["channels"]}
     if not args.skip_compare:

@@ -10,6 +10,7 @@ a summary. Options override the configuration file (``[prepare]``, ``[identify]`
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import json
 import time
@@ -164,16 +165,21 @@ def held_out(model, prepared, cfg, aircraft, k: int, con, pmap=None) -> None:
     from groundstation.sysid.identify import refit
 
     prior = aircraft.prior if aircraft is not None else None
-    con.print(f"held-out check: {k} contiguous folds ...")
-    try:
-        cv = crossvalidate(prepared, functools.partial(refit, model=model, config=cfg.identify, prior=prior), k=k,
-                           **({} if pmap is None else {"pmap": pmap}))
-    except ValueError as exc:
-        model.fit["heldout"] = {"skipped": str(exc)}
-        return
-    model.fit["heldout"] = cv.to_json()
-    model.fit["unusable_subsystems"] = list(cv.unusable_subsystems)
-    model.fit["usable"] = not cv.unusable_subsystems
+    done = model.fit.get("heldout") or {}
+    if done.get("k") != k:   # not already checked by the configuration's held-out selection
+        con.print(f"held-out check: {k} contiguous folds ...")
+        try:
+            chosen = (model.fit.get("selection") or {}).get("overrides", {})
+            icfg = dataclasses.replace(cfg.identify, **chosen)
+            cv = crossvalidate(prepared, functools.partial(refit, model=model, config=icfg, prior=prior), k=k,
+                               **({} if pmap is None else {"pmap": pmap}))
+        except ValueError as exc:
+            model.fit["heldout"] = {"skipped": str(exc)}
+            return
+        done = cv.to_json()
+    model.fit["heldout"] = done
+    model.fit["unusable_subsystems"] = list(done["unusable_subsystems"])
+    model.fit["usable"] = not done["unusable_subsystems"]
     model.fit["closed_loop"] = closed_loop_notes(model, prepared, cfg)
 
 
@@ -237,6 +243,8 @@ def print_verdicts(model, con) -> None:
     if pr.get("prior_dominated"):
         con.print(f"prior ({pr.get('source')}): not determined by this flight, kept near the prior with its "
                   f"uncertainty: {', '.join(pr['prior_dominated'])}")
+    for line in selection_lines(fit.get("selection") or {}):
+        con.print(line)
     ho = fit.get("heldout") or {}
     if "channel_mean" in ho:
         chans = ", ".join(f"{c} {v:.1f}" for c, v in ho["channel_mean"].items())
@@ -249,3 +257,17 @@ def print_verdicts(model, con) -> None:
                       f"({'; '.join(f'{f}: {chs}' for f, chs in ho['runaway'].items())}): not a model of the aircraft")
     for c in fit.get("closed_loop", []):
         con.print(f"closed loop: {c}")
+
+
+def selection_lines(sel: dict) -> list[str]:
+    """What the held-out selection of the configuration compared and chose, one line per candidate."""
+    if "skipped" in sel:
+        return [f"configuration not compared by held-out prediction: {sel['skipped']}"]
+    rows = sel.get("candidates") or []
+    if len(rows) < 2:
+        return []
+    out = [f"configuration chosen by held-out prediction over {sel['k']} folds: {sel['chosen']} ({sel['rule']})"]
+    for r in rows:
+        gain = "" if "gain" not in r else f", gain {r['gain']:+.1f} +- {r['gain_se']:.1f} points per fold"
+        out.append(f"  {r['name']}: held-out mean {r['mean_match']:.1f} %{gain}")
+    return out

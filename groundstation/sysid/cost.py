@@ -53,8 +53,10 @@ class Windows:
 
 
 def make_windows(segments: list, dt_s: float, window_s: float, *, raw: bool = False,
-                 key: str = "window_s") -> Windows:
-    """Non-overlapping windows of ``round(window_s / dt_s)`` samples from each segment.
+                 key: str = "window_s", step_s: float = 0.0) -> Windows:
+    """Windows of ``round(window_s / dt_s)`` samples from each segment, one every ``step_s`` seconds
+    (0 = every ``window_s``: non-overlapping; shorter steps give overlapping windows, more starting
+    points of the same data).
 
     Raises SysidError (a ValueError) when no segment holds one window; its message names the
     setting ``key`` the window length came from (e.g. ``identify.window_s``) and its value.
@@ -62,17 +64,17 @@ def make_windows(segments: list, dt_s: float, window_s: float, *, raw: bool = Fa
     L = int(round(window_s / dt_s))
     if L < 5:
         raise SysidError(f"{key} = {window_s:g}: fewer than 5 samples at dt_s={dt_s:g}")
+    S = L if step_s <= 0 else max(1, int(round(step_s / dt_s)))
     ins, outs, av, seg, t0 = [], [], [], [], []
     for i, s in enumerate(segments):
         y = s.outputs_raw if raw else s.outputs
-        nwin = s.n // L
-        for k in range(nwin):
-            sl = slice(k * L, (k + 1) * L)
+        for a in range(0, s.n - L + 1, S):
+            sl = slice(a, a + L)
             ins.append(s.inputs[sl])
             outs.append(y[sl])
             av.append(np.asarray(s.available, dtype=bool))
             seg.append(i)
-            t0.append(float(s.t_s[k * L]))
+            t0.append(float(s.t_s[a]))
     if not ins:
         longest = max((s.duration_s for s in segments), default=0.0)
         raise SysidError(f"{key} = {window_s:g}: no in-air segment is that long (longest {longest:.1f} s)")
