@@ -81,7 +81,8 @@ def _score(model: Any, val: Any, window_s: float) -> dict[str, Any]:
 def _selection(model: Any) -> dict[str, Any]:
     """The configuration the identification chose by held-out prediction on its training part."""
     sel = model.fit.get("selection") or {}
-    return {"chosen": sel.get("chosen"), "scores": {r["name"]: r["mean_match"] for r in sel.get("candidates", [])}}
+    return {"chosen": sel.get("chosen"), "scores": {r["name"]: r["mean_match"] for r in sel.get("candidates", [])},
+            "not_predicted": list((model.fit.get("heldout") or {}).get("not_predicted", []))}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -134,6 +135,9 @@ def _print_split(con: Any, row: dict[str, Any]) -> None:
         scores = ", ".join(f"{n} {v:.1f} %" for n, v in sel["scores"].items())
         con.print(f"  project: configuration chosen by held-out prediction on the training part: {sel['chosen']} "
                   f"(inner folds: {scores})")
+    if sel.get("not_predicted"):
+        con.print(f"  project: its held-out check on the training part says it does not predict "
+                  f"{', '.join(sel['not_predicted'])} (scored here all the same)")
     for k in kinds:
         for u in row[k]["unstable"]:
             con.print(f"  {k}: {u}")
@@ -155,6 +159,10 @@ def _summary(results: list[dict[str, Any]]) -> dict[str, Any]:
                                        for c in chans}
             s["folds_min_channel"] = float(min(min(r[k]["match"].values()) for r in folds))
             s["folds_min_channel_name"] = min(((v, c) for r in folds for c, v in r[k]["match"].items()))[1]
+            claimed = [v for r in folds for c, v in r[k]["match"].items()
+                       if c not in r[k].get("selection", {}).get("not_predicted", [])]
+            if k == "project" and claimed:
+                s["folds_min_claimed_channel"] = float(min(claimed))
             s["chosen"] = sorted({str(r[k].get("selection", {}).get("chosen")) for r in results
                                   if r[k].get("selection", {}).get("chosen")})
         first = [r for r in results if r["split"].startswith("first")]
@@ -172,6 +180,9 @@ def _print_summary(con: Any, summary: dict[str, Any]) -> None:
             chan = ", ".join(f"{c} {v:.1f}" for c, v in s["folds_channel_mean"].items())
             parts.append(f"k-fold held-out mean match {s['folds_mean']:.1f} % (per channel: {chan}; "
                          f"lowest channel in any fold {s['folds_min_channel']:.1f} % ({s['folds_min_channel_name']}))")
+        if "folds_min_claimed_channel" in s:
+            parts.append(f"lowest channel the model says it predicts (its own held-out check on the training part) "
+                         f"{s['folds_min_claimed_channel']:.1f} %")
         if s.get("chosen"):
             parts.append(f"configuration chosen: {', '.join(s['chosen'])}")
         if "train_first_mean" in s:

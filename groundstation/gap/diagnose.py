@@ -280,8 +280,11 @@ def base_stage(model: HoverModel | None, prepared: Any, cfg: DiagnoseConfig, see
         from groundstation.sysid.identify import IdentifyConfig, identify
 
         # the diagnosis blames whatever the base model gets wrong: a search stuck in a wrong basin
-        # would be reported as an effect, so it pays for independent searches here
-        model = identify(prepared, seed=seed, config=IdentifyConfig(search_restarts=cfg.identify_restarts), pmap=pmap)
+        # would be reported as an effect, so it pays for independent searches here. The base model keeps
+        # one configuration (no held-out choice between settings): the scans score the effects against
+        # the model the diagnosis's own windows are built for
+        model = identify(prepared, seed=seed, config=IdentifyConfig(search_restarts=cfg.identify_restarts,
+                                                                    select_candidates=""), pmap=pmap)
         notes.append("base model identified on the same data; hold-out by k-fold re-fit over windows")
     theta_given = model.theta
     ev = Evaluator(segs, dt, theta_given, avail, window_s=cfg.window_s, folds=cfg.folds, ridge=cfg.ridge)

@@ -62,3 +62,25 @@ def test_simulated_flight_keeps_the_configuration_as_given(tmp_path):
     assert [r["name"] for r in sel["candidates"]] == ["as configured", "predictive"]
     assert m.fit["window_s"] == 3.0 and m.fit["estimate_all_initial"] is True
     assert m.fit["heldout"]["k"] == 5 and len(m.fit["heldout"]["folds"]) == 5
+
+
+def test_overlapping_windows_start_every_step_and_stay_inside_their_segment():
+    import numpy as np
+
+    from groundstation.dsp.prepare import prepared_from_arrays
+    from groundstation.sysid.cost import make_windows
+
+    n = 500   # 10 s at 50 Hz
+    u = np.zeros((n, 4))
+    y = np.tile(np.arange(n, dtype=float)[:, None], (1, 8))
+    prep = prepared_from_arrays(u, y, 0.02)
+    plain = make_windows(prep.segments, prep.dt_s, 5.0)
+    over = make_windows(prep.segments, prep.dt_s, 5.0, step_s=2.5)
+    assert plain.count == 2 and over.count == 3
+    starts = over.t0_s - over.t0_s[0]
+    assert np.allclose(starts, [0.0, 2.5, 5.0])
+    # each window is the contiguous data from its start, and none runs past the segment's end
+    assert np.allclose(np.diff(over.outputs[:, :, 0], axis=1), np.diff(over.outputs[:1, :, 0], axis=1))
+    assert over.outputs.shape[1] == 250
+    with pytest.raises(SysidError, match=r"identify\.window_step_s = -1"):
+        identify(prep, config=IdentifyConfig(window_step_s=-1.0))
