@@ -82,7 +82,8 @@ def _selection(model: Any) -> dict[str, Any]:
     """The configuration the identification chose by held-out prediction on its training part."""
     sel = model.fit.get("selection") or {}
     return {"chosen": sel.get("chosen"), "scores": {r["name"]: r["mean_match"] for r in sel.get("candidates", [])},
-            "not_predicted": list((model.fit.get("heldout") or {}).get("not_predicted", []))}
+            "not_predicted": list((model.fit.get("heldout") or {}).get("not_predicted", [])),
+            "inv_tau_s": float(model.params["inv_tau_s"]), "pinned": sorted(model.pinned)}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -135,6 +136,8 @@ def _print_split(con: Any, row: dict[str, Any]) -> None:
         scores = ", ".join(f"{n} {v:.1f} %" for n, v in sel["scores"].items())
         con.print(f"  project: configuration chosen by held-out prediction on the training part: {sel['chosen']} "
                   f"(inner folds: {scores})")
+    if "inv_tau_s" in sel:
+        con.print(f"  project: 1/tau_s {sel['inv_tau_s']:.2f} /s; on a search bound: {', '.join(sel['pinned']) or 'none'}")
     if sel.get("not_predicted"):
         con.print(f"  project: its held-out check on the training part says it does not predict "
                   f"{', '.join(sel['not_predicted'])} (scored here all the same)")

@@ -84,3 +84,30 @@ def test_overlapping_windows_start_every_step_and_stay_inside_their_segment():
     assert over.outputs.shape[1] == 250
     with pytest.raises(SysidError, match=r"identify\.window_step_s = -1"):
         identify(prep, config=IdentifyConfig(window_step_s=-1.0))
+
+
+def test_bench_heldout_reports_the_choice_the_reference_and_the_lowest_channel(tmp_path, capsys):
+    """``bench heldout`` on the real log (kept short: train on the first 60 s, few iterations): both
+    fits are scored on the rest, and the project's line says which configuration its own held-out
+    check chose and which channels it says it does not predict."""
+    import json
+    from pathlib import Path
+
+    from groundstation.cli import main
+
+    ac = Path(__file__).resolve().parents[2] / "groundstation" / "configs" / "aircraft" / "trex550.toml"
+    out = tmp_path / "h.json"
+    rc = main(["bench", "heldout", str(real_log("trex550/flight1.tlog")), "--aircraft", str(ac), "--folds", "0",
+               "--reference-starts", "1", "--json", str(out), "--set", "maxiter=4", "--set", "search_restarts=1",
+               "--set", "refine_max_nfev=8", "--set", "select_folds=3"])
+    assert rc == 0
+    doc = json.loads(out.read_text())
+    (split,) = doc["splits"]
+    sel = split["project"]["selection"]
+    assert sel["chosen"] in sel["scores"] and set(sel["scores"]) == {"as configured", "window_step_s=2.5"}
+    assert set(split["project"]["match"]) == set(split["reference"]["match"]) >= {"p", "q", "r", "theta", "phi"}
+    assert 0 < sel["inv_tau_s"] and isinstance(sel["pinned"], list)
+    for k in ("project", "reference"):
+        assert abs(doc["summary"][k]["train_first_mean"] - split[k]["mean"]) < 1e-9
+    printed = capsys.readouterr().out
+    assert "configuration chosen by held-out prediction on the training part" in printed
