@@ -104,7 +104,7 @@ def test_bench_heldout_reports_the_choice_the_reference_and_the_lowest_channel(t
     doc = json.loads(out.read_text())
     (split,) = doc["splits"]
     sel = split["project"]["selection"]
-    assert sel["chosen"] in sel["scores"] and set(sel["scores"]) == {"as configured", "window_step_s=2.5"}
+    assert sel["chosen"] in sel["scores"] and set(sel["scores"]) == {"as configured", "predictive"}
     assert set(split["project"]["match"]) == set(split["reference"]["match"]) >= {"p", "q", "r", "theta", "phi"}
     assert 0 < sel["inv_tau_s"] and isinstance(sel["pinned"], list)
     for k in ("project", "reference"):
