@@ -113,22 +113,18 @@ def verification_json(v: Any, **extra: Any) -> str:
 def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
     """``identify --domain frequency|both``.
 
-    ``frequency``: the frequency-domain fit (minimum Tischler J) is written to ``--out``.
-    ``both``: the time-domain fit to ``--out`` and the frequency-domain fit to ``<out>_freq.json``;
-    each model is scored both ways (time: mean match degree on the training windows; frequency:
-    J_avg) and a table prints the four figures.
+    ``frequency``: the frequency-domain fit (global search, then refinement) is written to ``--out``.
+    ``both``: the time-domain fit to ``--out``; the frequency cost then refines it (the time fit as the
+    warm start, no search) and that model goes to ``<out>_freq.json``; each model is scored both ways
+    (time: mean match degree on the training windows; frequency: J_avg) and a table prints the four figures.
     """
     import time
 
     from rich.console import Console
 
-    from groundstation.commands.identify import print_model, write_json
     from groundstation.dsp.prepare import prepare
     from groundstation.freq.identify import FreqIdentifyConfig, identify_frequency
-    from groundstation.freq.model_response import delays_from_augmentations
     from groundstation.freq.spectra import estimate_responses
-    from groundstation.freq.verify import verify
-    from groundstation.sysid.validate import validate
 
     con = Console(stderr=True, quiet=args.quiet)
     prepared = prepare(logs, cfg.prepare)
@@ -137,14 +133,10 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
     ic = cfg.identification
     bounds = dict(cfg.bounds)
     fcfg = FreqIdentifyConfig(fit_delays=args.fit_delays, refine=ic.refine,
+                              weighting=getattr(args, "freq_weighting", "coherence"),
                               **({"maxiter": args.maxiter} if args.maxiter else {}))
     models = {}
-    t0 = time.perf_counter()
-    with con.status("frequency-domain identification"):
-        fm = identify_frequency(rs, prepared, algorithm=ic.algorithm, seed=ic.seed, bounds=bounds or None,
-                                config=fcfg)
-    fm.fit["seconds"] = round(time.perf_counter() - t0, 3)
-    models["frequency"] = fm
+    start = None
     if args.domain == "both":
         from groundstation.pipeline import identify_prepared
 
@@ -153,6 +145,27 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
             tm = identify_prepared(prepared, cfg)
         tm.fit["seconds"] = round(time.perf_counter() - t0, 3)
         models["time"] = tm
+        start = tm.theta
+    t0 = time.perf_counter()
+    with con.status("frequency-domain identification" if start is None else "frequency-domain refinement of the time fit"):
+        fm = identify_frequency(rs, prepared, algorithm=ic.algorithm, seed=ic.seed, bounds=bounds or None,
+                                config=fcfg, start=start)
+    fm.fit["seconds"] = round(time.perf_counter() - t0, 3)
+    if start is not None:
+        fm.fit["algorithm"] = "frequency refinement of the time-domain fit"
+    models["frequency"] = fm
+    return _score_and_write(args, models, rs, prepared)
+
+
+def _score_and_write(args: argparse.Namespace, models: dict[str, Any], rs: Any, prepared: Any) -> int:
+    """Score each model both ways, write them and print the table (``identify --domain``)."""
+    from rich.console import Console
+
+    from groundstation.commands.identify import print_model, write_json
+    from groundstation.freq.model_response import delays_from_augmentations
+    from groundstation.freq.verify import verify
+    from groundstation.sysid.validate import validate
+
     scores = {}
     for name, m in models.items():
         v = verify(m.theta, rs, delays_from_augmentations(m.augmentations))
@@ -194,7 +207,8 @@ def _print_freq_fit(model: Any, con: Any) -> None:
     from groundstation.sysid.model import PARAM_NAMES
 
     fit = model.fit
-    con.print(f"{fit['algorithm'].upper()} on J: J by subsystem "
+    cost = "J" if fit.get("weighting", "coherence") == "coherence" else "the random-error-weighted cost"
+    con.print(f"{fit['algorithm']} on {cost}: J by subsystem "
               + ", ".join(f"{k} {v:.1f}" for k, v in fit["J_by_subsystem"].items())
               + f"; {fit['evaluations']} evaluations, {fit['seconds']} s; "
               f"{fit['frequency_hz'][0]:.2f}-{fit['frequency_hz'][1]:.2f} Hz, windows {fit['windows_s']} s")

@@ -48,8 +48,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "held-out folds (default: all cores but one; the model is the same for any number)")
     parser.add_argument("--domain", choices=("time", "frequency", "both"), default="time",
                         help="time: the paper's output-error fit (default); frequency: minimise Tischler's J over the "
-                             "flight's frequency responses; both: fit both ways, score each both ways")
+                             "flight's frequency responses; both: the time fit, then the frequency cost as a "
+                             "refinement started from it; each scored both ways")
     parser.add_argument("--fit-delays", action="store_true", help="frequency domain: also fit one delay per input")
+    parser.add_argument("--freq-weighting", choices=("coherence", "random_error"), default="coherence",
+                        help="frequency-domain cost: coherence = Tischler's J (default); random_error = each "
+                             "coherent point weighted by its random error")
     from groundstation.commands.freq_support import add_freq_arguments
 
     add_freq_arguments(parser)

@@ -51,6 +51,24 @@ def pair_residuals(model: np.ndarray, data: np.ndarray, coherence: np.ndarray, m
     return np.where(np.isfinite(r), r, np.inf)
 
 
+def error_residuals(model: np.ndarray, data: np.ndarray, random_error: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Residuals ``(..., 2 n)`` weighted by each point's random error (the maximum-likelihood form).
+
+    ``ln|T_c/T| / eps`` and ``angle(T_c/T) / eps`` (rad) over the ``n`` points of ``mask``:
+    ``eps`` is the normalised random error of the composite (std of ``|T|/|T|``, and of the phase in
+    rad), so each residual is in standard deviations of the flight data's estimate. Infinite where
+    the model has no path.
+    """
+    m = np.asarray(mask, dtype=bool)
+    Tc = np.asarray(model)[..., m]
+    T = np.asarray(data)[m]
+    w = 1.0 / np.asarray(random_error, dtype=float)[m]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = Tc / T
+        r = np.concatenate([w * np.log(np.abs(ratio)), w * np.angle(ratio)], axis=-1)
+    return np.where(np.isfinite(r), r, np.inf)
+
+
 def tischler_cost(model: np.ndarray, data: np.ndarray, coherence: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """J of one pair (batched over the leading dimensions of ``model``); see the module docstring."""
     r = pair_residuals(model, data, coherence, mask)

@@ -14,6 +14,10 @@ minimising Tischler's J averaged over the input-output pairs with a response.
    batched cost (``searches`` independent runs), then a least-squares refinement (scipy
    ``least_squares``, trust region) of the J residuals from the ``refine_starts`` best distinct
    points each search evaluated; the lowest refined J wins;
+   The cost is Tischler's J_avg by default (``weighting="coherence"``); ``weighting="random_error"``
+   weights every coherent point by its composite random error instead (residuals in standard
+   deviations of the estimate, all pairs summed: the maximum-likelihood form, in which points the
+   leakage-bias estimate marks as unreliable count little); J is reported either way;
 4. standard errors: ``s^2 (R^T R)^-1`` with ``R`` the Jacobian of the J residuals and ``s^2`` their
    mean square per degree of freedom (Tischler's Cramér-Rao form); neighbouring frequency points
    are not independent estimates, so the figure is a lower bound - read it together with the
@@ -32,7 +36,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from groundstation.freq import FreqError
-from groundstation.freq.cost import coherence_weight, pair_residuals
+from groundstation.freq.cost import coherence_weight, error_residuals, pair_residuals
 from groundstation.freq.model_response import has_path, model_response
 from groundstation.freq.spectra import ResponseSet
 from groundstation.sysid.model import (
@@ -75,8 +79,13 @@ class FreqIdentifyConfig:
     #: far along the rotor-flapping ridge (M_a +274 %, A_lat -71 %), where the plain search stayed
     #: within 20 %; the responses up to the excitation's 4 Hz do not fix the split of M_a A_lat / (1/tau).
     varpro: bool = False
+    #: "coherence": minimise Tischler's J_avg (coherence-weighted dB and degree errors, pairs averaged);
+    #: "random_error": every coherent point weighted by its composite random error (see module docstring)
+    weighting: str = "coherence"
 
     def __post_init__(self) -> None:
+        if self.weighting not in ("coherence", "random_error"):
+            raise FreqError(f"freq_identify.weighting must be coherence or random_error, got {self.weighting!r}")
         if self.maxiter < 1 or self.refine_starts < 1 or self.searches < 1:
             raise FreqError("freq_identify.maxiter, refine_starts and searches must be >= 1")
         if not 0 < self.max_delay_s <= 1.0:
@@ -87,8 +96,9 @@ class _SubCost:
     """J_avg of one subsystem's pairs as a function of its free parameters (and delays), batched."""
 
     def __init__(self, rs: ResponseSet, pairs: list[Any], free_idx: np.ndarray, delay_inputs: list[int],
-                 theta0: np.ndarray) -> None:
+                 theta0: np.ndarray, weighting: str = "coherence") -> None:
         self.rs, self.pairs, self.free_idx, self.delay_inputs, self.theta0 = rs, pairs, free_idx, delay_inputs, theta0
+        self.weighting = weighting
         self.cols = [(OUTPUTS.index(p.output), INPUTS.index(p.input)) for p in pairs]
         self.nfev = 0
 
@@ -100,20 +110,27 @@ class _SubCost:
         d[:, self.delay_inputs] = X[:, self.free_idx.size:]
         return th, d
 
-    def residuals(self, X: np.ndarray) -> np.ndarray:
-        """(C, n_res) residuals whose sum of squares is J_avg."""
+    def residuals(self, X: np.ndarray, weighting: str | None = None) -> np.ndarray:
+        """(C, n_res) residuals whose sum of squares is the cost (J_avg with ``coherence`` weighting)."""
         th, d = self.unpack(X)
         G = model_response(th, self.rs.f_hz, dt_s=self.rs.dt_s, delays_s=d)
         self.nfev += th.shape[0]
+        if (weighting or self.weighting) == "random_error":
+            return np.concatenate([error_residuals(G[:, :, j, i], p.response, p.random_error, p.coherent)
+                                   for p, (j, i) in zip(self.pairs, self.cols, strict=True)], axis=1)
         k = np.sqrt(1.0 / len(self.pairs))
         return np.concatenate([k * pair_residuals(G[:, :, j, i], p.response, p.coherence, p.coherent)
                                for p, (j, i) in zip(self.pairs, self.cols, strict=True)], axis=1)
 
-    def __call__(self, X: np.ndarray) -> np.ndarray:
-        r = self.residuals(X)
+    def __call__(self, X: np.ndarray, weighting: str | None = None) -> np.ndarray:
+        r = self.residuals(X, weighting)
         with np.errstate(over="ignore", invalid="ignore"):
             f = np.sum(r ** 2, axis=1)
         return np.where(np.isfinite(f), f, np.inf)
+
+    def j_avg(self, x: np.ndarray) -> float:
+        """Tischler's J_avg of these pairs at one point, whatever the fit's weighting."""
+        return float(self(x[None], "coherence")[0])
 
 
 #: horizontal B-matrix parameters and the state row each enters (B_hor of eq. 8): lat, then lon.
@@ -279,7 +296,8 @@ def identify_frequency(responses: ResponseSet, prepared: Any = None, *, algorith
     fixed: list[str] = []
     reasons: list[str] = []
     fit: dict[str, Any] = {"algorithm": algorithm if start is None else "refinement from a given start",
-                           "domain": "frequency", "evaluations": 0, "history": {}, "search_cost": {}, "J_by_subsystem": {}}
+                           "domain": "frequency", "evaluations": 0, "history": {}, "search_cost": {}, "J_by_subsystem": {},
+                           "cost_by_subsystem": {}, "weighting": cfg.weighting}
     active = set(rs.conditioned_on)
     for name, params, inputs in _SUBSYSTEMS:
         pairs = [p for p in rs.with_response if p.input in inputs and has_path(p.input, p.output)]
@@ -295,7 +313,7 @@ def identify_frequency(responses: ResponseSet, prepared: Any = None, *, algorith
                 reasons.append(f"input {i} never moves: {', '.join(INPUT_PARAMS[i])} fixed at 0")
         free_idx = np.array([k for k in idx if k not in drop])
         d_in = [INPUTS.index(i) for i in inputs if cfg.fit_delays and any(p.input == i for p in pairs)]
-        cost = _SubCost(rs, pairs, free_idx, d_in, theta)
+        cost = _SubCost(rs, pairs, free_idx, d_in, theta, cfg.weighting)
         lo = np.concatenate([b_all[free_idx, 0], np.zeros(len(d_in))])
         hi = np.concatenate([b_all[free_idx, 1], np.full(len(d_in), cfg.max_delay_s)])
 
@@ -323,7 +341,8 @@ def identify_frequency(responses: ResponseSet, prepared: Any = None, *, algorith
         fit["evaluations"] += cost.nfev
         fit["history"][name] = [float(h) for h in history]
         fit["search_cost"][name] = f_s
-        fit["J_by_subsystem"][name] = best_f
+        fit["cost_by_subsystem"][name] = best_f
+        fit["J_by_subsystem"][name] = cost.j_avg(best_x)
     return _model(theta, std, delays, cfg, fit, fixed, reasons, rs, prepared, b_all)
 
 
@@ -334,7 +353,7 @@ def _model(theta: np.ndarray, std: np.ndarray, delays: np.ndarray, cfg: FreqIden
               if n not in fixed and min(theta[k] - b_all[k, 0], b_all[k, 1] - theta[k]) < 1e-3 * span[k]]
     fit.update({"fixed": fixed, "fixed_reasons": reasons, "windows_s": list(rs.windows_s),
                 "frequency_hz": [float(rs.f_hz[0]), float(rs.f_hz[-1])], "sample_interval_s": rs.dt_s,
-                "cost": float(sum(fit["J_by_subsystem"].values())), "fitness": 0.0})
+                "cost": float(sum(fit["cost_by_subsystem"].values())), "fitness": 0.0})
     fit["fitness"] = 1.0 / (1.0 + fit["cost"])
     augment = [{"name": "input_delay", "input": INPUTS[i], "delay_s": float(delays[i])}
                for i in range(4) if cfg.fit_delays and delays[i] > 0]

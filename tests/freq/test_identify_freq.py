@@ -47,6 +47,23 @@ def test_refinement_from_a_given_start_finds_the_nearest_J_minimum(flight150, tr
     assert max(err.values()) <= 0.25, err  # the responses' own minimum, not the truth: see docs/frequency.md
 
 
+def test_random_error_weighting_from_the_truth(flight150, truth_theta):
+    """Weighted by each point's random error, the minimum nearest the truth keeps all 8 key parameters
+    within 10 % (with Tischler's coherence weighting the same refinement slides A_lat and B_lon
+    15-18 % along the flapping ridge on this flight); J is still reported, and the cost is named."""
+    rs = estimate_responses(flight150)
+    cfg = FreqIdentifyConfig(weighting="random_error")
+    near = identify_frequency(rs, flight150, start=truth_theta, config=cfg)
+    err = {k: abs(near.params[k] - EXAMPLE_TRUTH[k]) / abs(EXAMPLE_TRUTH[k]) for k in KEY}
+    assert max(err.values()) <= 0.10, err
+    assert near.fit["weighting"] == "random_error"
+    hor = [p.J for p in verify(near.theta, rs).pairs if p.input in ("lat", "lon")]
+    assert near.fit["J_by_subsystem"]["horizontal"] == pytest.approx(np.mean(hor), rel=1e-6)
+    assert near.fit["cost"] != pytest.approx(sum(near.fit["J_by_subsystem"].values()))
+    with pytest.raises(ValueError, match="weighting"):
+        FreqIdentifyConfig(weighting="ols")
+
+
 def test_fitted_delay_and_other_optimiser():
     prep = flight(150.0, seed=2, delay_samples={1: 5})
     rs = estimate_responses(prep)
@@ -70,6 +87,23 @@ def test_identify_domain_frequency_cli(tmp_path, capsys):
     assert sc["frequency"]["J_avg"] is not None and np.isfinite(sc["time"]["mean_match"])
     text = capsys.readouterr().out
     assert "each fit scored both ways" in text and "no response" in text
+
+
+def test_identify_domain_both_refines_the_time_fit(tmp_path, capsys):
+    """``--domain both``: the time fit to --out, the frequency cost refining it to _freq.json (a
+    refinement only lowers J from its start)."""
+    from hil_replay.sim import write_tlog
+
+    tlog = tmp_path / "f.tlog"
+    write_tlog(tlog, seed=5, flights=1, effects=(), aircraft=None, flight_duration_s=90.0)
+    out = tmp_path / "m.json"
+    assert main(["identify", str(tlog), "--out", str(out), "--domain", "both", "--maxiter", "10",
+                 "--freq-weighting", "coherence", "--no-plot"]) == 0
+    tm = json.loads(out.read_text())
+    fm = json.loads((tmp_path / "m_freq.json").read_text())
+    assert fm["fit"]["algorithm"] == "frequency refinement of the time-domain fit"
+    assert fm["fit"]["scores"]["frequency"]["J_avg"] <= tm["fit"]["scores"]["frequency"]["J_avg"] + 1e-9
+    assert "frequency refinement of the time-domain fit on J" in capsys.readouterr().out
 
 
 def test_varpro_search_reaches_a_J_no_worse_than_the_truth(flight150):

@@ -9,7 +9,7 @@ from scipy.signal import csd as sp_csd
 from scipy.signal import lfilter
 
 from groundstation.dsp.prepare import prepared_from_arrays
-from groundstation.freq.cost import coherence_weight, tischler_cost
+from groundstation.freq.cost import coherence_weight, error_residuals, tischler_cost
 from groundstation.freq.metrics import Z95_COMPLEX, attitude_bandwidth, phase_slope_delay
 from groundstation.freq.model_response import model_response
 from groundstation.freq.spectra import FreqConfig, _miso, _window_spectra, estimate_responses
@@ -114,6 +114,18 @@ def test_tischler_cost_values():
     assert tischler_cost(model, data, np.full(20, 0.6), mask) == pytest.approx(
         20 * coherence_weight(np.array(0.6)) * 0.01745 * 100, rel=1e-9)
     assert coherence_weight(np.array(0.6)) == pytest.approx((1.58 * (1 - np.exp(-0.6))) ** 2)
+
+
+def test_error_residuals_in_standard_deviations():
+    f = np.geomspace(0.1, 10, 20)
+    data = np.exp(1j * 0.1 * f)
+    eps = np.full(20, 0.05)
+    model = data * np.exp(0.05) * np.exp(1j * 0.1)  # magnitude one std high, phase two std late
+    r = error_residuals(model, data, eps, np.ones(20, bool))
+    assert r.shape == (40,)
+    np.testing.assert_allclose(r[:20], 1.0, rtol=1e-9)
+    np.testing.assert_allclose(r[20:], 2.0, rtol=1e-9)
+    assert np.isinf(error_residuals(np.zeros(20), data, eps, np.ones(20, bool))[:20]).all()  # no path
 
 
 def test_phase_slope_and_bandwidth_on_analytic_response():
