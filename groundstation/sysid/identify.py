@@ -135,11 +135,12 @@ class IdentifyConfig:
     prior_scale: float = 1.0
     #: other configurations to compare with this one by held-out prediction, ";"-separated: a preset
     #: name (see :data:`groundstation.sysid.select.PRESETS`) or ``key=value,key=value`` overrides of
-    #: these fields. "" = no comparison. Each is refined from this configuration's model (and its
-    #: extra starts) and scored over ``select_folds`` contiguous folds; one replaces this
-    #: configuration only when it predicts the held-out blocks better by more than the folds' spread
-    #: (:mod:`groundstation.sysid.select`).
-    select_candidates: str = "predictive"
+    #: these fields. "" = no comparison. Each is refined from this configuration's model and scored
+    #: over ``select_folds`` contiguous folds; one replaces this configuration only when it predicts
+    #: the held-out blocks better by more than the folds' spread (:mod:`groundstation.sysid.select`).
+    #: "|" starts a further round, applied to the winner, that runs only when the round before it
+    #: switched: the default tries overlapping windows only once the 5-s prediction fit has won.
+    select_candidates: str = "predictive | window_step_s=2.5"
     #: contiguous folds of the selection (< 2 = no selection)
     select_folds: int = 5
 

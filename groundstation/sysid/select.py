@@ -28,6 +28,10 @@ On a 150-s simulated flight the selection adds about half the time of the identi
 candidate); on the simulated flights it keeps the configuration as given (its parameters are
 within a few per cent of the truth), on the real TREX 550 log it switches to ``predictive``.
 
+``select_candidates`` may hold rounds separated by ``|``: a round compares its candidates with the
+winner of the round before and runs only when that round switched (the default tries overlapping
+windows only once the ``predictive`` setting has won, so a simulated flight pays for one candidate).
+
 ``fit["selection"]`` reports every candidate's overrides, per-fold scores, gain and standard
 error, and the choice; ``fit["heldout"]`` holds the chosen model's cross-validation.
 Pure numpy on prepared data; no IO.
@@ -74,7 +78,7 @@ def parse_candidates(spec: str) -> list[tuple[str, dict[str, Any]]]:
 
     fields = {f.name for f in dataclasses.fields(IdentifyConfig)} - {"select_candidates", "select_folds"}
     out = []
-    for item in (s.strip() for s in spec.split(";")):
+    for item in (s.strip() for s in spec.replace("|", ";").split(";")):
         if not item:
             continue
         if "=" not in item:
@@ -195,23 +199,18 @@ def _row(name: str, c_cfg: Any, cfg: Any, cv: Any) -> dict[str, Any]:
             "fold_score": fold_scores(cv).tolist(), "mean_match": cv.mean_match, "channel_mean": cv.channel_mean}
 
 
-def select_config(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = None, bounds: dict | None = None,
-                  pmap: Map = serial_map) -> HoverModel:
-    """The model of the configuration that predicts held-out data best (see the module docstring)."""
-    cands = [("as configured", cfg, model0)]
-    for name, kw in parse_candidates(cfg.select_candidates):
+def _round(prepared: Any, base: tuple[str, Any, HoverModel, Any], cands: list[tuple[str, dict[str, Any]]],
+           cfg0: Any, prior: Any, bounds: dict | None, pmap: Map) -> tuple[int, list[tuple], list[dict[str, Any]]]:
+    """One comparison: the base (name, config, model, its cross-validation) and the candidates applied
+    to its config. Returns the winner's index (0 = the base), the entries and their report rows."""
+    name0, cfg, model0, cv0 = base
+    entries = [base]
+    for name, kw in cands:
         c_cfg = dataclasses.replace(cfg, **kw)
-        if c_cfg != cfg and all(c_cfg != c for _, c, _ in cands):
-            cands.append((name, c_cfg, fit_candidate(prepared, model0, c_cfg, prior=prior, bounds=bounds, quick=True)))
-    rows, cvs = [], []
-    for name, c_cfg, m in cands:
-        try:
-            cv = _crossvalidate(prepared, m, c_cfg, prior, pmap)
-        except ValueError as exc:   # too little data for k folds: keep the configuration as given
-            model0.fit["selection"] = {"skipped": str(exc)}
-            return model0
-        cvs.append(cv)
-        rows.append(_row(name, c_cfg, cfg, cv))
+        if all(c_cfg != e[1] for e in entries):
+            m = fit_candidate(prepared, model0, c_cfg, prior=prior, bounds=bounds, quick=True)
+            entries.append((name, c_cfg, m, _crossvalidate(prepared, m, c_cfg, prior, pmap)))
+    rows = [_row(n, c, cfg0, cv) for n, c, _, cv in entries]
     s0 = np.asarray(rows[0]["fold_score"])
     best = 0
     for i, r in enumerate(rows[1:], start=1):
@@ -220,14 +219,33 @@ def select_config(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
         r["significant"] = bool(np.isfinite(g) and g > 0 and g > GAIN_Z * se)
         if r["significant"] and (best == 0 or g > rows[best]["gain"]):
             best = i
-    model, cv = model0, cvs[0]
-    if best:   # the winner refined in full, and its held-out check for the report
-        name, c_cfg, _ = cands[best]
-        model = fit_candidate(prepared, model0, c_cfg, prior=prior, bounds=bounds)
+    return best, entries, rows
+
+
+def select_config(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = None, bounds: dict | None = None,
+                  pmap: Map = serial_map) -> HoverModel:
+    """The model of the configuration that predicts held-out data best (see the module docstring)."""
+    rounds = [parse_candidates(r) for r in cfg.select_candidates.split("|")]
+    try:
+        cur = ("as configured", cfg, model0, _crossvalidate(prepared, model0, cfg, prior, pmap))
+    except ValueError as exc:   # too little data for k folds: keep the configuration as given
+        model0.fit["selection"] = {"skipped": str(exc)}
+        return model0
+    report: list[dict[str, Any]] = []
+    for k, cands in enumerate(rounds):
+        best, entries, rows = _round(prepared, cur, cands, cfg, prior, bounds, pmap)
+        for r in rows[int(k > 0):]:
+            report.append(r | {"round": k + 1})
+        if not best:
+            break   # a later round refines a switch; with none it has nothing to refine
+        name, c_cfg, _, _ = entries[best]
+        model = fit_candidate(prepared, cur[2], c_cfg, prior=prior, bounds=bounds)
         cv = _crossvalidate(prepared, model, c_cfg, prior, pmap)
-        rows[best]["final"] = _row(name, c_cfg, cfg, cv)
-    model.fit["selection"] = {"k": int(cfg.select_folds), "chosen": rows[best]["name"], "candidates": rows,
-                              "overrides": rows[best]["overrides"],
+        report[-len(rows) + best]["final"] = _row(name, c_cfg, cfg, cv)
+        cur = (name if k == 0 else f"{cur[0]}, {name}", c_cfg, model, cv)
+    name, c_cfg, model, cv = cur
+    over = {f.name: getattr(c_cfg, f.name) for f in dataclasses.fields(cfg) if getattr(c_cfg, f.name) != getattr(cfg, f.name)}
+    model.fit["selection"] = {"k": int(cfg.select_folds), "chosen": name, "candidates": report, "overrides": over,
                               "rule": f"a candidate replaces the configuration when its mean held-out gain over the "
                                       f"folds exceeds {GAIN_Z:g} standard error(s) of that gain"}
     model.fit["heldout"] = cv.to_json()
