@@ -151,14 +151,12 @@ def run(args: argparse.Namespace) -> int:
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     con.print(f"default identification (CABC + refinement + held-out selection of the configuration): {wall:.2f} s wall "
               f"({cpu:.2f} s CPU), {model.fit['evaluations']} evaluations, cost {model.fit['cost']:.4f}")
-    t1, c1 = time.perf_counter(), time.process_time()
-    identify(train, seed=0, config=IdentifyConfig(select_candidates=""))
-    wall0, cpu0 = time.perf_counter() - t1, time.process_time() - c1
+    wall, cpu, wall0, cpu0 = _selection_cost(train, identify, IdentifyConfig, wall, cpu)
     sel = model.fit.get("selection") or {}
     scores = ", ".join(f"{r['name']} {r['mean_match']:.1f} %" for r in sel.get("candidates", []))
-    con.print(f"held-out selection over {sel.get('k')} folds chose: {sel.get('chosen')} ({scores}); without the "
-              f"selection {wall0:.2f} s wall ({cpu0:.2f} s CPU): with it {wall / wall0:.2f}x wall, {cpu / cpu0:.2f}x CPU "
-              f"(target <= 1.5x)")
+    con.print(f"held-out selection over {sel.get('k')} folds chose: {sel.get('chosen')} ({scores}); medians of two "
+              f"runs each, alternating: {wall:.2f} s wall ({cpu:.2f} s CPU) with it, {wall0:.2f} s wall ({cpu0:.2f} s CPU) "
+              f"without: {wall / wall0:.2f}x wall, {cpu / cpu0:.2f}x CPU (target <= 1.5x)")
     t = Table(title="identified vs truth")
     for c in ("param", "truth", "estimate", "err %", "std", "z"):
         t.add_column(c, justify="right")
@@ -198,6 +196,19 @@ def run(args: argparse.Namespace) -> int:
     (args.out_dir / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
     con.print(f"wrote {args.out_dir / 'summary.json'}")
     return 0
+
+
+def _selection_cost(train, identify, IdentifyConfig, wall: float, cpu: float) -> tuple[float, float, float, float]:
+    """Wall and CPU s of the default identification with and without the held-out selection of the
+    configuration: medians of two runs each, alternating (without, with, without) after the first
+    run with it (``wall``, ``cpu``), so load changes on a shared machine hit both alike."""
+    runs: dict[bool, list[tuple[float, float]]] = {True: [(wall, cpu)], False: []}
+    for with_sel in (False, True, False):
+        t0, c0 = time.perf_counter(), time.process_time()
+        identify(train, seed=0, config=IdentifyConfig() if with_sel else IdentifyConfig(select_candidates=""))
+        runs[with_sel].append((time.perf_counter() - t0, time.process_time() - c0))
+    med = {k: np.median(np.array(v), axis=0) for k, v in runs.items()}
+    return float(med[True][0]), float(med[True][1]), float(med[False][0]), float(med[False][1])
 
 
 def _compare(args, train, con, identify, IdentifyConfig, plot_convergence) -> dict[str, Any]:
