@@ -9,7 +9,9 @@ error found by data compatibility; and M flights with two catalogue effects at o
 ``--plain``, every flight is drawn from a varied simulator: aircraft (TREX-600 or R-50) with every
 eq.-8 parameter scattered (log-normal, ``--scatter``), stiff / default / loose pilot, sweep-free
 cards (3-2-1-1 multisteps only) on half the flights, attitude and velocity streams at 10-50 Hz,
-excitation amplitude 0.6-1.3x. Hides the label; reads the .tlog back through the ordinary reader,
+excitation amplitude 0.6-1.3x, nonlinear kinematics on or off (the rigid body linearised about
+hover) on half the flights each. ``--kinds`` runs only some kinds of case (the others are drawn
+and skipped, so each case is the same flight as in the full run). Hides the label; reads the .tlog back through the ordinary reader,
 prepares it and diagnoses it (identifying the model first unless ``--model-source truth``).
 
 Prints the confusion matrix, top-1 accuracy, false alarms on effect-free flights, invented second
@@ -36,6 +38,9 @@ HELP = "blind test of the gap diagnosis on simulated flights with hidden random 
 CLASSES = ("none", "input_delay", "rate_limit", "deadband", "ground_effect", "wind_gust", "quadratic_drag",
            "gyro_bias", "rotor_vibration", "velocity_latency")
 
+#: kinds of case: one catalogue effect or none, one effect outside the catalogue, two catalogue effects
+KINDS = ("single", "outside", "combined")
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cases", type=int, default=20, help="flights with one catalogue effect or none")
@@ -59,8 +64,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pilot", choices=tuple(PILOTS), default=None,
                         help="synthetic pilot: tight (stiffer loops, less input left on the excited axis), "
                              "loose, or the simulator's default (default: drawn)")
+    parser.add_argument("--kinematics", choices=("nonlinear", "linear"), default=None,
+                        help="simulator rigid body: full nonlinear equations, or linearised about hover "
+                             "(nonlinear kinematics off) (default: drawn, on or off with equal odds; "
+                             "nonlinear with --plain)")
     parser.add_argument("--excitation", type=float, default=None,
                         help="scale of the card's sweep and doublet amplitudes (e.g. 0.5: a cautious pilot)")
+    parser.add_argument("--kinds", default="single,outside,combined",
+                        help="comma-separated kinds of case to run (single, outside, combined): the others are "
+                             "drawn but not run, so each case is the same flight as in a full run of these options")
     parser.add_argument("--json", type=Path, default=None,
                         help="write every case result to this JSON file (rewritten as each case finishes)")
     parser.add_argument("--from-json", type=Path, default=None, dest="from_json",
@@ -142,11 +154,15 @@ _STREAM_HZ = (10.0, 12.5, 16.7, 25.0, 50.0)
 def draw_flight(rng: np.random.Generator, args: argparse.Namespace) -> dict[str, Any]:
     """The simulator set-up of one varied flight (what the command line fixes is kept)."""
     plain = bool(getattr(args, "plain", False))
+    kin = getattr(args, "kinematics", None)
     fl: dict[str, Any] = {"aircraft": args.aircraft, "rates": parse_rates(args.rates), "pilot": args.pilot or "default",
                           "excitation": 1.0 if args.excitation is None else args.excitation, "sweeps": True,
-                          "scatter": 0.0, "scatter_seed": int(rng.integers(2 ** 31))}
+                          "scatter": 0.0, "scatter_seed": int(rng.integers(2 ** 31)), "kinematics": kin or "nonlinear"}
     if plain:
         return fl
+    if kin is None:
+        # from the flight's own seed, not from ``rng``: every other draw of the run stays as it was
+        fl["kinematics"] = "linear" if np.random.default_rng((fl["scatter_seed"], 7)).random() < 0.5 else "nonlinear"
     fl["scatter"] = float(args.scatter)
     if args.aircraft is None:
         fl["aircraft"] = "r50" if rng.random() < 0.3 else "trex600"
@@ -194,6 +210,8 @@ def _sim_kwargs(job: dict[str, Any]) -> dict[str, Any]:
         kw["excitation_scale"] = fl["excitation"]
     if not fl.get("sweeps", True):
         kw["sweeps"] = False
+    if fl.get("kinematics", "nonlinear") == "linear":
+        kw["linear_kinematics"] = True
     return kw
 
 
@@ -241,8 +259,8 @@ def run_case(job: dict[str, Any]) -> dict[str, Any]:
         out["candidates"] = [{k: e.get(k) for k in ("effect", "input", "output", "estimate", "score", "p_value",
                                                     "shrink_pct", "evidence")} for e in rep["effects"] + rep["candidates"]]
         out["unexplained"] = rep.get("unexplained")
-        out["structure_tests"] = [{k: t[k] for k in ("kind", "input", "coefficient", "score_pct", "p_value",
-                                                     "significant")} for t in rep.get("structure_tests", [])]
+        out["structure_tests"] = [{k: t.get(k) for k in ("kind", "input", "coefficient", "score_pct", "p_value",
+                                                     "significant", "effect_to_noise")} for t in rep.get("structure_tests", [])]
         out["gap_to_noise_ratio"] = rep["gap"].get("gap_to_noise_ratio")
         if job.get("fresh") and job["effects"]:
             path2 = Path(td) / "fresh.tlog"
@@ -294,7 +312,10 @@ def run(args: argparse.Namespace) -> int:
         print_summary(sorted(saved, key=lambda r: r["case"]), classes, float("nan"))
         return 0
     parse_rates(args.rates)  # a bad --rates is reported before any flight is simulated
-    jobs = interleave(make_jobs(args, classes))
+    kinds = {k.strip() for k in args.kinds.split(",") if k.strip()}
+    if not kinds or kinds - set(KINDS):
+        raise ValueError(f"--kinds: {args.kinds!r}: allowed {', '.join(KINDS)}")
+    jobs = interleave([j for j in make_jobs(args, classes) if j["kind"] in kinds])
     t0 = time.perf_counter()
     results: list[dict[str, Any]] = []
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
@@ -348,7 +369,7 @@ def print_summary(results: list[dict], classes: list[str], wall: float) -> None:
         tr = [(t["effect"], t.get("input") or t.get("output")) for t in r.get("truth", [])]
         fl = r["flight"]
         setup = (f"{fl['aircraft']}/{fl['pilot']}/{'sweeps' if fl['sweeps'] else 'multisteps'}/"
-                 f"{(fl.get('rates') or {}).get('ATTITUDE', 50):g}Hz")
+                 f"{(fl.get('rates') or {}).get('ATTITUDE', 50):g}Hz/{fl.get('kinematics', 'nonlinear')[:3]}")
         print(f"  case {r['case']:3d} [{setup}] truth {tr} -> {r['verdict']} {got}"
               f"{' sensor ' + str(sens) if sens else ''} ({r['seconds']:.0f} s)")
     _print_singles(singles, classes)

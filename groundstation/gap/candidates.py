@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from groundstation.gap import attribute, fingerprints, hypotheses
+from groundstation.gap import attribute, fingerprints, hypotheses, structure
 from groundstation.gap.config import DiagnoseConfig
 from groundstation.gap.evaluate import Evaluator, SegmentArrays
 from groundstation.sysid.model import OUTPUTS
@@ -271,9 +271,16 @@ def conditioned_context(a: attribute.Candidate, ctx: hypotheses.Context, segs: l
     return None  # rotor vibration (raw residual only), air mass (its own protocol, see encompass)
 
 
-def rescan(b: attribute.Candidate, ctx: hypotheses.Context) -> hypotheses.Hypothesis | None:
+def rescan(b: attribute.Candidate, ctx: hypotheses.Context, channels: list[int] | None = None
+           ) -> hypotheses.Hypothesis | None:
+    """``b``'s scan again in another context: an input effect on its selected channel, or on every
+    channel in ``channels`` when given (the channel may change once another effect is in the model)."""
     e = b.hyp.effect
     if e in hypotheses.INPUT_EFFECTS:
+        if channels:
+            scan = {"input_delay": hypotheses.scan_input_delay, "rate_limit": hypotheses.scan_rate_limit,
+                    "deadband": hypotheses.scan_deadband}[e]
+            return scan(ctx, channels)
         return hypotheses.rescan_input_effect(ctx, b.hyp)
     scans = {"velocity_latency": hypotheses.scan_velocity_latency, "gyro_bias": hypotheses.scan_gyro_bias,
              "quadratic_drag": hypotheses.scan_quadratic_drag, "ground_effect": hypotheses.scan_ground_effect,
@@ -281,35 +288,88 @@ def rescan(b: attribute.Candidate, ctx: hypotheses.Context) -> hypotheses.Hypoth
     return scans[e](ctx) if e in scans else None
 
 
-def conditional_names(ranked: list[attribute.Candidate], ctx: hypotheses.Context, segs: list[SegmentArrays],
-                      rng: np.random.Generator, cfg: DiagnoseConfig, crit: float) -> None:
-    """Second and later effects are named only if they add to the first one (held-out, conditional).
+def _conditional_score(b: attribute.Candidate, cctx: hypotheses.Context, channels: list[int] | None,
+                       rng: np.random.Generator, cfg: DiagnoseConfig, floor: np.ndarray | None
+                       ) -> tuple[hypotheses.Hypothesis, attribute.Score, float] | None:
+    """``b`` scanned again in the conditioned context and scored against that context's base cost;
+    with the RMS of the residual part it explains there over the noise floor (largest over outputs)."""
+    hb = rescan(b, cctx, channels)
+    if hb is None or hb.sse is None or not hb.testable:
+        return None
+    hb.extra = {**{k: v for k, v in b.hyp.extra.items() if k not in hb.extra}, **hb.extra}
+    base = hb.extra.get("base_sse", cctx.base_sse) if hb.effect == "wind_gust" else cctx.base_sse
+    s = attribute.score(base, hb.sse, cctx.ev.energy, hb.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
+    s.p_value = p_value(hb, cctx, base, rng, cfg)
+    return hb, s, structure.effect_to_noise(base, hb.sse, cctx.ev.energy, floor)
 
-    With the top effect in the base model, each other named effect is scanned again (same channel,
-    same grid, nested selection) and must lower the held-out cost of that model significantly (at
-    the same Bonferroni level), by more than ``min_score_pct``, and shrink the gap on its own
-    channels; else it is marked not significant with the conditional p-value in its evidence.
-    Effects of different kinds that cannot be put into the model together (the spectral line,
-    the air mass) keep their own tests. Changes ``ranked`` candidates in place.
+
+def conditional_names(ranked: list[attribute.Candidate], cands: list[attribute.Candidate], ctx: hypotheses.Context,
+                      segs: list[SegmentArrays], in_channels: list[int], kin_significant: set[str],
+                      rng: np.random.Generator, cfg: DiagnoseConfig, crit: float,
+                      floor: np.ndarray | None = None) -> None:
+    """A second effect is named only if it adds to the first one (held-out, conditional).
+
+    With the top effect in the base model, every other catalogue effect is scanned again (input
+    effects over every excited input: the channel may change once the first effect is in) and must
+    lower the held-out cost of that model significantly (same Bonferroni level), by more than
+    ``min_score_pct`` of *that* model's cost, shrink the gap on its own channels, and explain a
+    residual part above the noise (``second_min_effect_to_noise``):
+
+    * an effect named on its own that fails this is withheld, with the conditional p-value;
+    * when no other effect is named beside the first, the one step of a forward selection: the
+      effect with the largest conditional gain is named if it passes (the first effect's share of
+      the residual diluted its gain: alone it explained too small a share of the base cost), and
+      nothing is named if it does not (a smaller one would be soaking up part of the larger one's
+      residual). Effects that an encompassing test set aside, that are physically implausible or
+      whose kinematic evidence is missing (a roll or pitch gyro bias) are not brought back.
+
+    Effects that cannot be put into a model (the spectral line, the air mass as first effect) keep
+    their own tests. Changes the candidates in place.
     """
-    if len(ranked) < 2:
+    if not ranked:
         return
     top = ranked[0]
     cctx = conditioned_context(top, ctx, segs)
     if cctx is None:
         return
-    for b in ranked[1:]:
-        if b.hyp.effect == "rotor_vibration":
-            continue  # raw-residual line: disjoint from every model-based effect
-        hb = rescan(b, cctx)
-        if hb is None or hb.sse is None or not hb.testable:
+    tried = []
+    for b in cands:
+        if b is top or b.hyp.effect == "rotor_vibration" or not b.hyp.testable:
             continue
-        base = hb.extra.get("base_sse", cctx.base_sse)
-        s = attribute.score(base, hb.sse, cctx.ev.energy, hb.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
-        s.p_value = p_value(hb, cctx, base, rng, cfg)
+        if not b.significant and ("adds nothing" in b.evidence or "not named" in b.evidence):
+            continue  # set aside by an encompassing test: not brought back here
+        res = _conditional_score(b, cctx, in_channels if b.hyp.effect in hypotheses.INPUT_EFFECTS else None,
+                                 rng, cfg, floor)
+        if res is None:
+            continue
+        hb, s, etn = res
         b.hyp.extra[f"p_given_{top.hyp.effect}"] = s.p_value
         b.hyp.extra[f"score_given_{top.hyp.effect}"] = s.score_pct
-        if not (s.p_value < crit and gain_ok(s, cfg) and physical(hb, cfg)):
+        b.hyp.extra[f"effect_to_noise_given_{top.hyp.effect}"] = etn
+        ok = bool(s.p_value < crit and gain_ok(s, cfg) and physical(hb, cfg) and etn > cfg.second_min_effect_to_noise)
+        if hb.effect == "gyro_bias" and hb.output in ("p", "q"):
+            ok = ok and hb.output in kin_significant
+        given = (f"adds {s.score_pct:+.1f}% held-out (p={s.p_value:.2g}, gap on its channels "
+                 f"{s.shrink_pct:+.1f}%, {etn:.1f}x the noise) once the {top.hyp.effect} is in the model")
+        if b.significant and not ok:
             b.significant = False
-            b.evidence += (f"; not named: adds {s.score_pct:+.1f}% held-out (p={s.p_value:.2g}, gap on its channels "
-                           f"{s.shrink_pct:+.1f}%) once the {top.hyp.effect} is in the model")
+            b.evidence += f"; not named: {given}"
+        elif not b.significant:
+            tried.append((b, hb, s, ok, given))
+    if any(c.significant for c in cands if c is not top and c.hyp.effect != "rotor_vibration") or not tried:
+        for b, _, _, _, given in tried:
+            b.evidence += f"; given the {top.hyp.effect}: {given}"
+        return
+    best = max(tried, key=lambda t: t[2].score_pct)
+    for b, hb, s, ok, given in tried:
+        if b is not best[0] or not ok:
+            why = "" if b is best[0] else f" (the {best[0].hyp.effect} adds more)"
+            b.evidence += f"; given the {top.hyp.effect}: {given}{why}"
+            continue
+        b.hyp.input, b.hyp.output, b.hyp.estimate = hb.input, hb.output, hb.estimate
+        b.hyp.sse, b.hyp.channels, b.hyp.extra = hb.sse, hb.channels, hb.extra
+        b.evidence = f"{evidence(b.hyp, s, {}, [])}; named as a second effect: it {given}"
+        # ranked beside the first effect by its share of the *base* model's cost (the conditional
+        # percentage is of a smaller cost and would put it above the effect it was tested after)
+        s.score_pct *= float(cctx.base_sse.sum() / max(ctx.base_sse.sum(), 1e-300))
+        b.score, b.significant = s, True

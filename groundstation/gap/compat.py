@@ -15,8 +15,16 @@ minus the integral of its measured-rate prediction is regressed on the window's 
 elapsed time (bias), the integral of the measured rate (scale factor) and the rate itself (time
 shift). Standard errors are cluster-robust over windows (the integrated gyro noise is a random
 walk inside a window; windows are nearly independent), so every statistic is referred to the noise
-the data themselves show. The yaw gyro and horizontal velocities need heading and horizontal
-position, which the prepared data do not carry: they are reported as not testable.
+the data themselves show. The yaw gyro needs the heading, which the prepared data do not carry: it
+is reported as not testable.
+
+* the horizontal velocities against the attitude (``u' = -g theta + ...``, ``v' = g phi + ...``: a
+  hovering helicopter accelerates by tilting), measured by :mod:`groundstation.dsp.velocity_check`
+  (the gravity coefficient over g is the velocity's scale, with a window-clustered standard error)
+  and passed in as ``horizontal``. A velocity sensor's scale error (a GPS or position-estimate
+  velocity scaled in the navigation frame) scales u and v alike, so a horizontal finding needs
+  both: each significantly off 1 in the same direction and the two consistent with one scale (their
+  difference within ``z_agree`` combined standard errors); the finding is their inverse-variance mean.
 
 A scale factor is a *finding* when it is significant (family-wise ``alpha`` over every estimate
 made) and matters: the error it makes on its channel (scale x rms of the channel) is above the
@@ -25,7 +33,9 @@ channel's measured white-noise level. Pure numpy/scipy; no IO.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -42,7 +52,7 @@ MAX_SLOPE = 0.5
 class Estimate:
     """One compatibility parameter: value, cluster-robust standard error, two-sided p-value."""
 
-    sensor: str  # "p", "q", "w"
+    sensor: str  # "p", "q", "w", "u", "v"
     parameter: str  # "scale", "bias", "shift_s"
     value: float
     se: float
@@ -54,7 +64,7 @@ class Finding:
     """A sensor error the kinematics show, large enough to matter."""
 
     kind: str  # "gyro_scale" | "velocity_scale"
-    channel: str  # "p", "q", "w"
+    channel: str  # "p", "q", "w", or "u,v" (horizontal velocities together)
     estimate: float  # scale error (measured = (1 + e) x true)
     se: float
     p_value: float
@@ -73,9 +83,13 @@ class Compatibility:
     def scale_corrections(self) -> dict[int, float]:
         """Output column -> factor that undoes each found scale error (velocity: u, v, w together)."""
         out: dict[int, float] = {}
-        for f in self.findings:
+        # a vertical finding stands for u and v too unless they were measured themselves (they come after)
+        for f in sorted(self.findings, key=lambda f: f.channel == "u,v"):
             fac = 1.0 / (1.0 + f.estimate)
-            cols = (U, V, W) if f.kind == "velocity_scale" else ("pq".index(f.channel) + P,)
+            if f.kind == "velocity_scale":
+                cols: tuple[int, ...] = (U, V) if f.channel == "u,v" else (U, V, W)
+            else:
+                cols = ("pq".index(f.channel) + P,)
             for c in cols:
                 out[c] = fac
         return out
@@ -164,18 +178,50 @@ def _vertical_rows(segs: list[SegmentArrays], trims: np.ndarray, dt_s: float, L:
     return rows
 
 
+def _horizontal(horizontal: Sequence[Any], segs: list[SegmentArrays], sigma_raw: np.ndarray,
+                z_agree: float) -> tuple[list[Estimate], tuple[float, float, float, float] | None]:
+    """Estimates of the u and v scale errors (``e = scale - 1``), and their pooled (e, se, p, effect to
+    noise) when both are measured and agree on one scale (None otherwise)."""
+    ests = []
+    by = {}
+    for h in horizontal:
+        if h.channel not in ("u", "v") or not (np.isfinite(h.scale) and np.isfinite(h.se) and h.se > 0):
+            continue
+        e = float(h.scale) - 1.0
+        by[h.channel] = (e, float(h.se))
+        ests.append(Estimate(h.channel, "scale", e, float(h.se), float(2 * stats.norm.sf(abs(e) / h.se))))
+    if len(by) < 2:
+        return ests, None
+    (eu, su), (evv, sv) = by["u"], by["v"]
+    if abs(eu - evv) > z_agree * np.hypot(su, sv):
+        return ests, None
+    wu, wv = 1.0 / su ** 2, 1.0 / sv ** 2
+    e = (wu * eu + wv * evv) / (wu + wv)
+    se = float(np.sqrt(1.0 / (wu + wv)))
+    x = np.concatenate([s.outputs_raw[:, [U, V]] for s in segs])
+    rms = np.sqrt(np.mean((x - x.mean(axis=0)) ** 2, axis=0))
+    etn = float(np.max(abs(e) * rms / np.maximum(sigma_raw[[U, V]], 1e-12)))
+    p = max(float(2 * stats.norm.sf(abs(eu) / su)), float(2 * stats.norm.sf(abs(evv) / sv)))  # both must be off 1
+    return ests, (float(e), se, p, etn)
+
+
 def check(segs: list[SegmentArrays], available: np.ndarray, dt_s: float, sigma_raw: np.ndarray,
           trims: np.ndarray | None = None, *, window_s: float = 4.0, alpha: float = 0.01,
-          min_windows: int = 6, min_effect_to_noise: float = 1.0) -> Compatibility:
+          min_windows: int = 6, min_effect_to_noise: float = 1.0, horizontal: Sequence[Any] = (),
+          z_agree: float = 3.0) -> Compatibility:
     """Kinematic consistency of the gyros and the vertical velocity (see the module docstring).
 
     ``segs``: in-air segments (raw outputs, trim removed, plus ``trims`` (8,) to make them absolute);
-    ``sigma_raw`` (8,) the measured white-noise level of each output (practical relevance).
+    ``sigma_raw`` (8,) the measured white-noise level of each output (practical relevance);
+    ``horizontal``: the horizontal velocity checks (objects with ``channel``, ``scale``, ``se``, as
+    :class:`groundstation.dsp.velocity_check.VelocityCheck`), empty when not made.
     """
     tr = np.zeros(8) if trims is None else np.asarray(trims, float)
     L = int(round(window_s / dt_s))
-    untestable = {"r": "yaw-rate scale needs the heading, which the prepared data do not carry",
-                  "u,v": "horizontal velocity scale needs the horizontal position, which the prepared data do not carry"}
+    untestable = {"r": "yaw-rate scale needs the heading, which the prepared data do not carry"}
+    h_ests, h_pool = _horizontal(horizontal, segs, sigma_raw, z_agree)
+    if len(h_ests) < 2:
+        untestable["u,v"] = "needs u and v both measured and checked against the attitude"
     fits: list[tuple[str, list[tuple[np.ndarray, np.ndarray]], int]] = []
     if all(available[c] for c in (P, Q, R, THETA, PHI)):
         fits += [("p", _gyro_rows(segs, tr, dt_s, L, "p"), P), ("q", _gyro_rows(segs, tr, dt_s, L, "q"), Q)]
@@ -203,8 +249,15 @@ def check(segs: list[SegmentArrays], available: np.ndarray, dt_s: float, sigma_r
         est3[1] = Estimate(sensor, "scale", s.value / (1.0 - s.value), s.se / (1.0 - s.value) ** 2, s.p_value)
         ests += est3
         scales.append((sensor, est3[1], col))
+    ests += h_ests
     crit = alpha / max(len(ests), 1)
     findings = []
+    if h_pool is not None and h_pool[2] < crit and h_pool[3] > min_effect_to_noise:
+        he, hse, hp, hetn = h_pool
+        findings.append(Finding("velocity_scale", "u,v", he, hse, hp, hetn,
+                                f"horizontal velocities against the attitude (gravity tilt): u and v agree on a scale "
+                                f"error {100 * he:+.1f} % +- {100 * hse:.1f} % (p={hp:.2g}); the error it makes is "
+                                f"{hetn:.1f}x the channels' noise"))
     for sensor, e, col in scales:
         x = np.concatenate([s.outputs_raw[:, col] for s in segs])
         rms = float(np.sqrt(np.mean((x - x.mean()) ** 2)))

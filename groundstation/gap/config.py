@@ -65,6 +65,12 @@ class DiagnoseConfig:
     #: gap that grows on the effect's own channels).
     min_score_pct: float = 1.0
 
+    #: a second (or later) named effect must, with the first in the model, explain a residual part
+    #: whose RMS is above this many times the noise floor measured on at least one output (as a
+    #: structure outside the catalogue must): what is left beside a large first effect is often the
+    #: first effect's own misfit, which a smooth air velocity or a forcing term soaks up in part
+    second_min_effect_to_noise: float = 1.0
+
     # ------------------------------------------------------------------ input effects
     #: re-identifications of the base around a significant input effect
     outer_iterations: int = 2
@@ -98,6 +104,11 @@ class DiagnoseConfig:
     #: with nothing named and the gap significant, "unexplained" needs at least this share of the
     #: excess residual energy in flagged windows (else the gap is spread evenly: "none")
     unexplained_flagged_share: float = 0.5
+    #: a structure the linear model cannot have (input asymmetry, amplitude dependence) counts only
+    #: when the residual part it explains has an RMS above this many times the noise floor measured
+    #: on at least one output (on a long flight a structure a fraction of the noise is significant
+    #: and still no departure: 1 = as large as the noise, the rule of data compatibility's findings)
+    structure_min_effect_to_noise: float = 1.0
 
     # ------------------------------------------------------------------ data compatibility
     #: window over which the kinematics are integrated (s): long enough to lever a scale factor,

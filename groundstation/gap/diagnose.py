@@ -213,7 +213,8 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
     # where and how the model departs, whatever the verdict, when the departure is above the noise
     report["departure"] = (dec.unexplained or _unexplained_evidence(base, loc, tests, cfg)) \
         if loc.gap_significant else None
-    report["structure_tests"] = [dataclasses.asdict(t) for t in tests]
+    report["structure_tests"] = [{**dataclasses.asdict(t), "effect_to_noise": round(t.effect_to_noise, 2)
+                                  if np.isfinite(t.effect_to_noise) else None} for t in tests]
     arrays = {"t_s": ev.T, "Y": ev.Y, "Yraw": ev.Yraw, "yhat": loc.yhat_ho, "mask": ev.mask, "flag": loc.flag,
               "spectra": att.spectra, "band": loc.band, "candidates": att.candidates, "evaluator": ev,
               "ctx": att.ctx}
@@ -228,7 +229,8 @@ def compat_stage(prepared: Any, cfg: DiagnoseConfig) -> tuple[compat.Compatibili
                                 cfg.noise_calibration_seed) if segs else np.full(8, np.nan)
     comp = compat.check(segs, avail, float(prepared.dt_s), sigma, _trims(prepared), window_s=cfg.compat_window_s,
                         alpha=cfg.alpha, min_windows=cfg.min_windows,
-                        min_effect_to_noise=cfg.compat_min_effect_to_noise)
+                        min_effect_to_noise=cfg.compat_min_effect_to_noise,
+                        horizontal=_horizontal_checks(prepared, cfg))
     fac = comp.scale_corrections()
     if not fac:
         return comp, prepared
@@ -249,6 +251,18 @@ def compat_stage(prepared: Any, cfg: DiagnoseConfig) -> tuple[compat.Compatibili
                  + "; ".join(f"{f.kind} on {f.channel} {100 * f.estimate:+.1f}%" for f in comp.findings))
     object.__setattr__(p2, "notes", notes)
     return comp, p2
+
+
+def _horizontal_checks(prepared: Any, cfg: DiagnoseConfig) -> list:
+    """The horizontal velocities against the attitude (:mod:`groundstation.dsp.velocity_check`) on the
+    prepared segments; empty when they do not carry what the check needs."""
+    from groundstation.dsp.velocity_check import check_horizontal
+
+    segs = [s for s in prepared.segments if hasattr(s, "available") and hasattr(s, "n")]
+    if not segs or len(segs) < len(prepared.segments):
+        return []
+    return [c for c in check_horizontal(segs, float(prepared.dt_s), window_s=cfg.compat_window_s)
+            if c.channel in ("u", "v")]
 
 
 def compat_section(comp: compat.Compatibility) -> dict[str, Any]:
@@ -412,7 +426,9 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
             c.evidence = candidates.evidence(c.hyp, c.score, kin, lines)
     candidates.encompass(cands, ctx, segs, rng, cfg, crit)
     ranked = sorted((c for c in cands if c.significant), key=lambda c: -c.score.score_pct)
-    candidates.conditional_names(ranked, ctx, segs, rng, cfg, crit)
+    kin_sig = {k for k, v in kin.items() if v.log10_p < np.log10(crit)}
+    candidates.conditional_names(ranked, cands, ctx, segs, [c for c in range(4) if loc.in_excited[c]], kin_sig,
+                                 rng, cfg, crit, np.asarray(nf["nrmse_floor"], float))
     return Attributed(ctx=ctx, hyps=hyps, candidates=cands, kin=kin, lines=lines, spectra=spectra, crit=crit)
 
 
@@ -443,9 +459,10 @@ def structure_stage(base: Base, loc: Located, att: Attributed, cfg: DiagnoseConf
     """Held-out tests of structure the linear model cannot have (input asymmetry, amplitude dependence),
     then, when both a structure and catalogue effects are significant, which of them explains the other
     (:func:`_structure_against_named`)."""
-    tests = structure.nonlinear_input_tests(att.ctx, loc.in_excited, rng, cfg)
+    floor = np.asarray(loc.nf["nrmse_floor"], float)
+    tests = structure.nonlinear_input_tests(att.ctx, loc.in_excited, rng, cfg, floor)
     if any(t.significant for t in tests) and any(c.significant for c in att.candidates):
-        _structure_against_named(base, att, tests, structure.structure_crit(loc.in_excited, cfg), cfg, rng)
+        _structure_against_named(base, att, tests, structure.structure_crit(loc.in_excited, cfg), cfg, rng, floor)
     return tests
 
 
@@ -492,7 +509,7 @@ def _effect_given_structure(c: attribute.Candidate, t: structure.StructureTest, 
 
 
 def _structure_against_named(base: Base, att: Attributed, tests: list[structure.StructureTest], crit_s: float,
-                             cfg: DiagnoseConfig, rng: np.random.Generator) -> None:
+                             cfg: DiagnoseConfig, rng: np.random.Generator, floor: np.ndarray | None = None) -> None:
     """Encompassing tests between the significant structures and the best named catalogue effect.
 
     A structure the linear model cannot have (an asymmetric or amplitude-dependent input gain) and a
@@ -521,7 +538,7 @@ def _structure_against_named(base: Base, att: Attributed, tests: list[structure.
             why = (f"the {sig[0].input} {sig[0].kind.replace('_', ' ')} (outside the catalogue) explains "
                    f"{sig[0].score_pct:+.1f}% of the held-out cost, the {top.hyp.effect} {top.score.score_pct:+.1f}%")
         else:
-            left = [t for t in structure.retest(cctx, sig, rng, cfg, crit_s) if t.significant]
+            left = [t for t in structure.retest(cctx, sig, rng, cfg, crit_s, floor) if t.significant]
             if not left:
                 keep, why = True, f"it removes the {sig[0].input} {sig[0].kind.replace('_', ' ')} (outside the catalogue)"
             else:

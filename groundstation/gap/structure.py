@@ -23,7 +23,11 @@ k-fold re-fit, so the model gets every chance to absorb the structure linearly f
 
 A structure test counts when it is significant (Bonferroni over the structure tests at the
 configured family-wise alpha) and practically significant (held-out cost down by more than
-``min_score_pct`` and the gap on the outputs smaller), exactly as a catalogue effect must be.
+``min_score_pct`` and the gap on the outputs smaller), exactly as a catalogue effect must be, and
+when the part of the residual it explains stands out of the noise: on at least one output its RMS
+(from the held-out cost it removes) exceeds ``structure_min_effect_to_noise`` times that channel's
+noise floor measured in the data (:mod:`groundstation.gap.noise`). On a long flight a structure a
+fraction of the noise in size is significant and still no departure anyone could act on.
 Pure numpy/scipy.
 """
 
@@ -53,6 +57,8 @@ class StructureTest:
     p_value: float
     significant: bool
     description: str
+    #: largest over the outputs of the RMS of the residual part it explains over the channel's noise floor
+    effect_to_noise: float = float("inf")
 
 
 def _feature(u: np.ndarray, kind: str, mean_abs: float, sd: float) -> np.ndarray:
@@ -75,9 +81,24 @@ def _feature_columns(ctx: hypotheses.Context, c: int, kind: str) -> tuple[np.nda
     return X[..., None], (1.0 if kind == "input_asymmetry" else sd)
 
 
+def effect_to_noise(base_sse: np.ndarray, sse: np.ndarray, energy: np.ndarray, floor: np.ndarray | None) -> float:
+    """Largest over the outputs of the RMS of the residual part a change explains (held-out cost
+    removed, ``base_sse - sse`` (W, 8)) over the channel's noise floor (normalised RMS, as
+    ``floor`` (8,) of :func:`groundstation.gap.noise.noise_floor`); inf without a floor."""
+    if floor is None:
+        return float("inf")
+    gain = np.maximum(base_sse.sum(axis=0) - sse.sum(axis=0), 0.0)
+    e = energy.sum(axis=0)
+    ok = (e > 0) & np.isfinite(floor) & (floor > 0)
+    if not ok.any():
+        return float("inf")
+    return float(np.max(np.sqrt(gain[ok] / e[ok]) / floor[ok]))
+
+
 def _one_test(ctx: hypotheses.Context, c: int, kind: str, rng: np.random.Generator, cfg: DiagnoseConfig,
-              crit: float) -> StructureTest:
-    """One held-out structure test on input ``c`` against ``ctx``'s base model."""
+              crit: float, floor: np.ndarray | None = None) -> StructureTest:
+    """One held-out structure test on input ``c`` against ``ctx``'s base model (``floor``: the outputs'
+    noise floors, the effect-size gate; None: no gate)."""
     ev = ctx.ev
     out_ch = tuple(int(k) for k in np.flatnonzero(ev.available))
     X, _ = _feature_columns(ctx, c, kind)
@@ -86,14 +107,17 @@ def _one_test(ctx: hypotheses.Context, c: int, kind: str, rng: np.random.Generat
     s.p_value = attribute.combined_p(ctx.base_sse.sum(1), sse.sum(1), rng, cfg.n_boot, cfg.window_alpha,
                                      ctx.base_blocks, ctx.blocks[f"{kind}_{c}"])
     coef = float(np.mean(coefs[0][:, 0]))
-    sig = bool(s.p_value < crit and s.score_pct > cfg.min_score_pct and s.shrink_pct > 0)
+    etn = effect_to_noise(ctx.base_sse, sse, ev.energy, floor)
+    sig = bool(s.p_value < crit and s.score_pct > cfg.min_score_pct and s.shrink_pct > 0
+               and etn > cfg.structure_min_effect_to_noise)
     if kind == "input_asymmetry":
         what = (f"{INPUTS[c]} response asymmetric: gain {100 * coef:+.0f} % for deflections above trim, "
                 f"{-100 * coef:+.0f} % below")
     else:
         what = f"{INPUTS[c]} gain changes with deflection: {100 * coef:+.0f} % per input std"
+    size = f", {etn:.1f}x the noise" if np.isfinite(etn) else ""
     return StructureTest(kind, INPUTS[c], coef, float(s.score_pct), float(s.shrink_pct), float(s.p_value), sig,
-                         f"{what}; held-out cost {s.score_pct:+.1f}% (p={s.p_value:.2g})")
+                         f"{what}; held-out cost {s.score_pct:+.1f}% (p={s.p_value:.2g}{size})", etn)
 
 
 def structure_crit(in_excited: np.ndarray, cfg: DiagnoseConfig) -> float:
@@ -102,18 +126,19 @@ def structure_crit(in_excited: np.ndarray, cfg: DiagnoseConfig) -> float:
 
 
 def nonlinear_input_tests(ctx: hypotheses.Context, in_excited: np.ndarray, rng: np.random.Generator,
-                          cfg: DiagnoseConfig) -> list[StructureTest]:
-    """Asymmetry and amplitude-dependence tests on every excited input (see the module docstring)."""
+                          cfg: DiagnoseConfig, floor: np.ndarray | None = None) -> list[StructureTest]:
+    """Asymmetry and amplitude-dependence tests on every excited input (see the module docstring);
+    ``floor`` (8,): the outputs' noise floors (normalised RMS) of the effect-size gate."""
     crit = structure_crit(in_excited, cfg)
-    return [_one_test(ctx, c, kind, rng, cfg, crit) for c in range(4) if in_excited[c]
+    return [_one_test(ctx, c, kind, rng, cfg, crit, floor) for c in range(4) if in_excited[c]
             for kind in ("input_asymmetry", "amplitude_dependence")]
 
 
 def retest(ctx: hypotheses.Context, tests: list[StructureTest], rng: np.random.Generator, cfg: DiagnoseConfig,
-           crit: float) -> list[StructureTest]:
+           crit: float, floor: np.ndarray | None = None) -> list[StructureTest]:
     """The same structure tests against another base model (one with a catalogue effect in it):
     does the structure survive once that effect is in the model?"""
-    return [_one_test(ctx, INPUTS.index(t.input), t.kind, rng, cfg, crit) for t in tests]
+    return [_one_test(ctx, INPUTS.index(t.input), t.kind, rng, cfg, crit, floor) for t in tests]
 
 
 def apply_structure(t: StructureTest, segments: list[SegmentArrays], ev: Any) -> list[SegmentArrays]:

@@ -205,9 +205,11 @@ def eq8_matrices(params: Mapping[str, float]) -> tuple[list[list[float]], list[l
 _NAMES12 = ("u", "v", "w", "p", "q", "r", "ph", "th", "ps", "as_", "bs", "rfb", "pn", "pe", "pd")
 
 
-def _deriv_source(P: dict[str, float], *, wind: bool, drag: float, ge: bool, Ic: tuple[float, float, float]) -> str:
+def _deriv_source(P: dict[str, float], *, wind: bool, drag: float, ge: bool, Ic: tuple[float, float, float],
+                  linear: bool = False) -> str:
     """Source lines of the derivative (same equations as :func:`make_derivative`) with ``{i}``
-    marking the stage's state suffix and ``{o}`` the derivative suffix."""
+    marking the stage's state suffix and ``{o}`` the derivative suffix; ``linear``: the rigid body
+    linearised about hover (see :func:`make_stepper`)."""
     c = {k: repr(float(v)) for k, v in P.items()}
     c["N_fb"] = repr(-float(P["N_ped"]))
     c["k_fb"] = repr(-2.0 * float(P["N_r"]))
@@ -227,27 +229,44 @@ def _deriv_source(P: dict[str, float], *, wind: bool, drag: float, ge: bool, Ic:
     L += [f"T = {g} - {c['Z_w']} * wa - {c['Z_r']} * r{{i}} - {c['Z_col']} * dc - {c['Z_ped']} * dp"]
     if ge:
         L += ["T *= 1.0 + ge_gain * ge_fn(-pd{i}, radius, hub)"]
-    L += [f"fx = -T * sin(as_{{i}}) + {c['X_u']} * ua + {c['X_lat']} * dl",
-          f"fy = T * sin(bs{{i}}) + {c['Y_v']} * va + {c['Y_lon']} * dn",
-          "fz = -T * cos(as_{i}) * cos(bs{i})"]
+    if linear:  # rotor tilt to first order about the trim thrust g
+        L += [f"fx = -{g} * as_{{i}} + {c['X_u']} * ua + {c['X_lat']} * dl",
+              f"fy = {g} * bs{{i}} + {c['Y_v']} * va + {c['Y_lon']} * dn",
+              "fz = -T"]
+    else:
+        L += [f"fx = -T * sin(as_{{i}}) + {c['X_u']} * ua + {c['X_lat']} * dl",
+              f"fy = T * sin(bs{{i}}) + {c['Y_v']} * va + {c['Y_lon']} * dn",
+              "fz = -T * cos(as_{i}) * cos(bs{i})"]
     if drag:
         d = repr(float(drag))
         L += [f"fx -= {d} * abs(ua) * ua", f"fy -= {d} * abs(va) * va", f"fz -= {d} * abs(wa) * wa"]
-    cpx, cqy, crz = (repr(v) for v in Ic)
+    cpx, cqy, crz = (repr(v) for v in ((0.0, 0.0, 0.0) if linear else Ic))
+    if linear:  # small angles, no velocity-rate products, Euler rates = body rates
+        L += [
+            f"ku{{o}} = -{g} * th{{i}} + fx",
+            f"kv{{o}} = {g} * ph{{i}} + fy",
+            f"kw{{o}} = {g} + fz",
+        ]
+    else:
+        L += [
+            f"ku{{o}} = r{{i}} * v{{i}} - q{{i}} * w{{i}} - {g} * sth + fx",
+            f"kv{{o}} = p{{i}} * w{{i}} - r{{i}} * u{{i}} + {g} * r32 + fy",
+            f"kw{{o}} = q{{i}} * u{{i}} - p{{i}} * v{{i}} + {g} * r33 + fz",
+        ]
     L += [
         "qsrc = q{i} * sph + r{i} * cph",
-        f"ku{{o}} = r{{i}} * v{{i}} - q{{i}} * w{{i}} - {g} * sth + fx",
-        f"kv{{o}} = p{{i}} * w{{i}} - r{{i}} * u{{i}} + {g} * r32 + fy",
-        f"kw{{o}} = q{{i}} * u{{i}} - p{{i}} * v{{i}} + {g} * r33 + fz",
         f"kp{{o}} = {c['L_u']} * ua + {c['L_v']} * va + {c['L_p']} * p{{i}} + {c['L_a']} * as_{{i}} + {c['L_b']} * bs{{i}}"
         f" + {c['L_lat']} * dl + {c['L_lon']} * dn + {cpx} * q{{i}} * r{{i}}",
         f"kq{{o}} = {c['M_u']} * ua + {c['M_v']} * va + {c['M_q']} * q{{i}} + {c['M_a']} * as_{{i}} + {c['M_b']} * bs{{i}}"
         f" + {c['M_lat']} * dl + {c['M_lon']} * dn + {cqy} * p{{i}} * r{{i}}",
         f"kr{{o}} = {c['N_w']} * wa + {c['N_r']} * r{{i}} + {c['N_fb']} * rfb{{i}} + {c['N_col']} * dc"
         f" + {c['N_ped']} * dp + {crz} * p{{i}} * q{{i}}",
-        "kph{o} = p{i} + qsrc * sth / cth",
-        "kth{o} = q{i} * cph - r{i} * sph",
-        "kps{o} = qsrc / cth",
+    ]
+    if linear:
+        L += ["kph{o} = p{i}", "kth{o} = q{i}", "kps{o} = r{i}"]
+    else:
+        L += ["kph{o} = p{i} + qsrc * sth / cth", "kth{o} = q{i} * cph - r{i} * sph", "kps{o} = qsrc / cth"]
+    L += [
         f"kas_{{o}} = -q{{i}} + {c['k1']} * p{{i}} - {c['inv_tau_s']} * as_{{i}} + {c['A_lat']} * dl",
         f"kbs{{o}} = -{c['k1']} * q{{i}} - p{{i}} - {c['inv_tau_s']} * bs{{i}} + {c['B_lon']} * dn",
         f"krfb{{o}} = {c['k_r']} * r{{i}} - {c['k_fb']} * rfb{{i}}",
@@ -259,17 +278,25 @@ def _deriv_source(P: dict[str, float], *, wind: bool, drag: float, ge: bool, Ic:
 
 
 def make_stepper(ac: Aircraft, *, drag_c_per_m: float = 0.0, ground_effect_gain: float = 0.0,
-                 wind: bool = False) -> Callable[..., list[float]]:
+                 wind: bool = False, linear_kinematics: bool = False) -> Callable[..., list[float]]:
     """A fused RK4 step ``step(x, dt, d_lat, d_lon, d_col, d_ped, wn, we, wd) -> x_next``.
 
     The same equations and arithmetic as ``rk4_step(make_derivative(ac, ...), ...)``, generated as
     one straight-line function of scalars (no per-stage lists or calls): about twice as fast,
     which is what makes ten minutes of flight take seconds. ``wind=False`` drops the air-mass terms.
+
+    ``linear_kinematics=True``: the rigid body linearised about hover, i.e. nonlinear kinematics
+    off: gravity to first order in the attitude (``-g theta``, ``g phi``), no velocity-rate products
+    (``r v - q w``, ...), no inertia coupling (``(Iyy - Izz)/Ixx q r``, ...), Euler rates equal to
+    the body rates, rotor tilt forces to first order about the trim thrust (``-g a_s``, ``g b_s``).
+    The rotor, control and stability terms, the effects (drag, ground effect, wind) and the position
+    (full rotation to NED, which the sensors read) are unchanged.
     """
     Ixx, Iyy, Izz = (float(v) for v in ac.inertia_kg_m2)
     Ic = ((Iyy - Izz) / Ixx, (Izz - Ixx) / Iyy, (Ixx - Iyy) / Izz)
     P = {k: float(v) for k, v in ac.parameters.items()}
-    body = _deriv_source(P, wind=wind, drag=float(drag_c_per_m), ge=bool(ground_effect_gain), Ic=Ic)
+    body = _deriv_source(P, wind=wind, drag=float(drag_c_per_m), ge=bool(ground_effect_gain), Ic=Ic,
+                         linear=linear_kinematics)
     n = _NAMES12
     src = ["def step(x, h, dl, dn, dc, dp, wn=0.0, we=0.0, wd=0.0):",
            "    h2 = 0.5 * h",

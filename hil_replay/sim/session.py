@@ -85,13 +85,15 @@ class SimulatedSession:
     pause_s : disarmed time between flights (heartbeats continue, FC clock keeps running)
     flight_duration_s : armed time per flight (default: the card's ~150-200 s)
     pre_arm_s, post_s : disarmed time before the first flight and after the last
+    linear_kinematics : nonlinear kinematics off: the rigid body linearised about hover (see
+        :func:`hil_replay.sim.dynamics.make_stepper`); default False (the full nonlinear equations)
     """
 
     def __init__(self, seed: int = 0, flights: int = 1, effects: Sequence[Effect | str] = (),
                  aircraft: Aircraft | str | os.PathLike[str] | None = None, pause_s: float = 10.0, *,
                  flight_duration_s: float | None = None, pre_arm_s: float = 3.0, post_s: float = 2.0,
                  noise: NoiseConfig | None = None, pilot: PilotConfig | None = None,
-                 excitation_scale: float = 1.0, sweeps: bool = True) -> None:
+                 excitation_scale: float = 1.0, sweeps: bool = True, linear_kinematics: bool = False) -> None:
         if int(flights) < 1:
             raise ValueError(f"flights: {flights} must be >= 1")
         if not pause_s >= 0 or not pre_arm_s >= 0 or not post_s >= 0:
@@ -101,6 +103,7 @@ class SimulatedSession:
         self.pilot_config = pilot or PilotConfig()
         self.excitation_scale = float(excitation_scale)
         self.sweeps = bool(sweeps)
+        self.linear_kinematics = bool(linear_kinematics)
         self.seed = int(seed)
         self.n_flights = int(flights)
         base = resolve_aircraft(aircraft)  # type: ignore[arg-type]
@@ -170,6 +173,7 @@ class SimulatedSession:
             "pilot": asdict(self.pilot_config),
             "excitation_scale": self.excitation_scale,
             "sweeps": self.sweeps,
+            "linear_kinematics": self.linear_kinematics,
             "field_origin": {"lat_deg": FIELD_ORIGIN[0], "lon_deg": FIELD_ORIGIN[1], "alt_m": FIELD_ORIGIN[2]},
         }
 
@@ -183,7 +187,8 @@ class SimulatedSession:
         ac = self.aircraft
         dt = 1.0 / FRAME_RATE_HZ
         fx = _EffectState.of(self.effects, ac, dt, np.random.default_rng(self._seeds[4]))
-        step = make_stepper(ac, drag_c_per_m=fx.drag_c, ground_effect_gain=fx.ge_gain, wind=fx.wind)
+        step = make_stepper(ac, drag_c_per_m=fx.drag_c, ground_effect_gain=fx.ge_gain, wind=fx.wind,
+                            linear_kinematics=self.linear_kinematics)
         sf = make_specific_force(ac, drag_c_per_m=fx.drag_c, ground_effect_gain=fx.ge_gain)
         pilot = Pilot(ac, np.random.default_rng(self._seeds[1]), dt_s=dt, config=self.pilot_config)
         noise_rng = np.random.default_rng(self._seeds[2])
@@ -517,7 +522,7 @@ def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
                effects: Sequence[Effect | str] = (), aircraft: Aircraft | str | os.PathLike[str] | None = None,
                flight_duration_s: float | None = None, rates_hz: Mapping[str, float] | None = None,
                pause_s: float = 10.0, packet_loss: float = 0.002, pilot: PilotConfig | None = None,
-               excitation_scale: float = 1.0, sweeps: bool = True) -> dict[str, Any]:
+               excitation_scale: float = 1.0, sweeps: bool = True, linear_kinematics: bool = False) -> dict[str, Any]:
     """Simulate a session and write ``path`` (.tlog) and ``path.with_suffix('.truth.json')``.
 
     MAVLink 2 frames from sysid 1 compid 1 with a proper sequence number; host timestamps are
@@ -542,7 +547,7 @@ def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
     period = {n: max(1, int(round(FRAME_RATE_HZ / r))) for n, r in rates.items() if r > 0}
     sess = SimulatedSession(seed=seed, flights=flights, effects=effects, aircraft=aircraft, pause_s=pause_s,
                             flight_duration_s=flight_duration_s, pilot=pilot, excitation_scale=excitation_scale,
-                            sweeps=sweeps)
+                            sweeps=sweeps, linear_kinematics=linear_kinematics)
     truth = sess.truth()
     truth["tlog_rates_hz"] = {n: rates[n] for n in MESSAGE_NAMES}
     truth["packet_loss"] = packet_loss

@@ -8,9 +8,10 @@ from groundstation.gap.diagnose import _trims, segments_from_prepared
 from groundstation.sysid.model import OUTPUTS
 
 
-def _check(tmp_path, seed, effects, **kw):
+def _check(tmp_path, seed, effects, horizontal=False, **kw):
     from firmware_interface.readers import load_log
     from groundstation.dsp.prepare import prepare
+    from groundstation.dsp.velocity_check import check_horizontal
     from hil_replay.sim import write_tlog
 
     path = tmp_path / f"c{seed}.tlog"
@@ -18,7 +19,8 @@ def _check(tmp_path, seed, effects, **kw):
     prep = prepare([load_log(path)])
     segs, avail = segments_from_prepared(prep)
     sigma = noise.raw_noise_std([s.outputs_raw for s in segs], prep.native_stride(OUTPUTS))
-    return compat.check(segs, avail, prep.dt_s, sigma, _trims(prep))
+    hor = [c for c in check_horizontal(prep.segments, prep.dt_s) if c.channel in ("u", "v")] if horizontal else ()
+    return compat.check(segs, avail, prep.dt_s, sigma, _trims(prep), horizontal=hor)
 
 
 def test_effect_free_flight_has_no_finding_and_small_estimates(tmp_path):
@@ -52,3 +54,44 @@ def test_gyro_bias_is_estimated_but_not_a_scale_finding(tmp_path):
     bias = next(e for e in c.estimates if e.sensor == "p" and e.parameter == "bias")
     assert abs(bias.value - 0.01) < 0.002 and bias.p_value < 1e-6
     assert c.findings == ()
+
+
+def test_horizontal_velocity_scale_found_from_the_attitude(tmp_path):
+    # 10 Hz streams: the height check alone is too coarse to see a 10 % scale error here
+    c = _check(tmp_path, 44, ["velocity_scale:scale_error=-0.1"], horizontal=True,
+               rates_hz={"ATTITUDE": 10.0, "LOCAL_POSITION_NED": 10.0})
+    uv = [f for f in c.findings if f.channel == "u,v"]
+    assert [f.kind for f in uv] == ["velocity_scale"]
+    assert abs(uv[0].estimate - -0.1) < max(4 * uv[0].se, 0.02)
+    assert "u,v" not in c.untestable
+    assert {e.sensor for e in c.estimates if e.parameter == "scale"} >= {"u", "v"}
+    fac = c.scale_corrections()
+    assert np.isclose(fac[0], 1.0 / (1.0 + uv[0].estimate)) and np.isclose(fac[1], fac[0])
+
+
+def test_effect_free_flight_has_no_horizontal_finding(tmp_path):
+    c = _check(tmp_path, 41, [], horizontal=True, rates_hz={"ATTITUDE": 12.5, "LOCAL_POSITION_NED": 10.0})
+    assert c.findings == ()
+    for e in c.estimates:
+        if e.sensor in ("u", "v"):
+            assert abs(e.value) < 0.03  # the simulator's velocities read their true scale
+
+
+def test_horizontal_finding_needs_u_and_v_to_agree():
+    from types import SimpleNamespace as NS
+
+    segs, avail = [], np.ones(8, bool)
+    rng = np.random.default_rng(0)
+    from groundstation.gap.evaluate import SegmentArrays
+
+    n = 400
+    y = rng.standard_normal((n, 8))
+    segs.append(SegmentArrays(t_s=np.arange(n) * 0.02, inputs=np.zeros((n, 4)), outputs=y, outputs_raw=y,
+                              alt_m=np.full(n, np.nan), flight=0))
+    sigma = np.full(8, 0.01)
+    agree = [NS(channel="u", scale=0.8, se=0.01), NS(channel="v", scale=0.81, se=0.01)]
+    one_off = [NS(channel="u", scale=0.8, se=0.01), NS(channel="v", scale=1.0, se=0.01)]
+    ests, pooled = compat._horizontal(agree, segs, sigma, 3.0)
+    assert pooled is not None and abs(pooled[0] - -0.195) < 1e-9 and pooled[2] < 1e-9
+    assert [e.sensor for e in ests] == ["u", "v"]
+    assert compat._horizontal(one_off, segs, sigma, 3.0)[1] is None

@@ -179,3 +179,36 @@ def test_fused_stepper_is_rk4_of_the_tested_derivative(kw: dict, wind: bool) -> 
     for _ in range(400):
         x2 = step(x2, 0.0025, 0.02, -0.01, 0.01, 0.0)
     assert np.abs(np.array(x1) - np.array(x2)).max() < 1e-6
+
+
+def test_linear_kinematics_is_the_hover_linearisation() -> None:
+    """Nonlinear kinematics off: the same model to first order about hover, different at large attitude."""
+    from hil_replay.sim.dynamics import make_stepper
+
+    ac = resolve_aircraft(None)
+    nonlin = make_stepper(ac)
+    lin = make_stepper(ac, linear_kinematics=True)
+    hover = [0.0] * 14 + [-5.0]
+    assert np.allclose(lin(hover, 0.005, 0, 0, 0, 0), nonlin(hover, 0.005, 0, 0, 0, 0), atol=1e-12)
+    rng = np.random.default_rng(5)
+    for scale in (1e-3, 1e-2):
+        x = list(rng.uniform(-scale, scale, 15))
+        x[14] = -5.0
+        d = rng.uniform(-scale, scale, 4)
+        a = np.array(nonlin(x, 0.005, *d)) - x
+        b = np.array(lin(x, 0.005, *d)) - x
+        # the step differs by second-order terms only: 100x smaller state, ~10^4x smaller difference
+        assert np.max(np.abs(a - b)) < 0.1 * scale ** 2
+    x = [0.0] * 15
+    x[6], x[14] = 0.6, -5.0  # 0.6 rad of roll: g sin(phi) against g phi
+    a, b = nonlin(x, 0.005, 0, 0, 0, 0), lin(x, 0.005, 0, 0, 0, 0)
+    assert abs(a[1] - b[1]) > 1e-4
+
+
+def test_session_with_linear_kinematics_flies_and_says_so(tmp_path) -> None:
+    from hil_replay.sim import write_tlog
+
+    t1 = write_tlog(tmp_path / "lin.tlog", seed=3, effects=[], flight_duration_s=30.0, linear_kinematics=True)
+    t0 = write_tlog(tmp_path / "non.tlog", seed=3, effects=[], flight_duration_s=30.0)
+    assert t1["linear_kinematics"] is True and t0["linear_kinematics"] is False
+    assert (tmp_path / "lin.tlog").read_bytes() != (tmp_path / "non.tlog").read_bytes()
