@@ -312,12 +312,12 @@ def conditional_names(ranked: list[attribute.Candidate], cands: list[attribute.C
     With the top effect in the base model, every other catalogue effect is scanned again (input
     effects over every excited input: the channel may change once the first effect is in) and must
     lower the held-out cost of that model significantly (same Bonferroni level), by more than
-    ``min_score_pct`` of *that* model's cost, shrink the gap on its own channels, and explain a
-    residual part above the noise (``second_min_effect_to_noise``):
+    ``min_score_pct`` of *that* model's cost, and shrink the gap on its own channels (the RMS of the
+    residual part it explains over the noise floor is reported with it):
 
     * an effect named on its own that fails this is withheld, with the conditional p-value;
-    * when no other effect is named beside the first, the one step of a forward selection: the
-      effect with the largest conditional gain is named if it passes (the first effect's share of
+    * when no other effect is named beside the first, the one step of a forward selection: of the
+      physically plausible effects, the one with the largest conditional gain is named if it passes (the first effect's share of
       the residual diluted its gain: alone it explained too small a share of the base cost), and
       nothing is named if it does not (a smaller one would be soaking up part of the larger one's
       residual). Effects that an encompassing test set aside, that are physically implausible or
@@ -346,14 +346,16 @@ def conditional_names(ranked: list[attribute.Candidate], cands: list[attribute.C
         b.hyp.extra[f"p_given_{top.hyp.effect}"] = s.p_value
         b.hyp.extra[f"score_given_{top.hyp.effect}"] = s.score_pct
         b.hyp.extra[f"effect_to_noise_given_{top.hyp.effect}"] = etn
-        ok = bool(s.p_value < crit and gain_ok(s, cfg) and physical(hb, cfg) and etn > cfg.second_min_effect_to_noise)
-        if hb.effect == "gyro_bias" and hb.output in ("p", "q"):
-            ok = ok and hb.output in kin_significant
+        plausible = physical(hb, cfg) and not (hb.effect == "gyro_bias" and hb.output in ("p", "q")
+                                               and hb.output not in kin_significant)
+        ok = bool(s.p_value < crit and gain_ok(s, cfg) and plausible)
         given = (f"adds {s.score_pct:+.1f}% held-out (p={s.p_value:.2g}, gap on its channels "
                  f"{s.shrink_pct:+.1f}%, {etn:.1f}x the noise) once the {top.hyp.effect} is in the model")
         if b.significant and not ok:
             b.significant = False
             b.evidence += f"; not named: {given}"
+        elif not b.significant and not plausible:
+            b.evidence += f"; given the {top.hyp.effect}: {given}, not physically plausible"
         elif not b.significant:
             tried.append((b, hb, s, ok, given))
     if any(c.significant for c in cands if c is not top and c.hyp.effect != "rotor_vibration") or not tried:

@@ -65,12 +65,6 @@ class DiagnoseConfig:
     #: gap that grows on the effect's own channels).
     min_score_pct: float = 1.0
 
-    #: a second (or later) named effect must, with the first in the model, explain a residual part
-    #: whose RMS is above this many times the noise floor measured on at least one output (as a
-    #: structure outside the catalogue must): what is left beside a large first effect is often the
-    #: first effect's own misfit, which a smooth air velocity or a forcing term soaks up in part
-    second_min_effect_to_noise: float = 1.0
-
     # ------------------------------------------------------------------ input effects
     #: re-identifications of the base around a significant input effect
     outer_iterations: int = 2
