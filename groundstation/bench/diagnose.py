@@ -312,10 +312,7 @@ def run(args: argparse.Namespace) -> int:
         print_summary(sorted(saved, key=lambda r: r["case"]), classes, float("nan"))
         return 0
     parse_rates(args.rates)  # a bad --rates is reported before any flight is simulated
-    kinds = {k.strip() for k in args.kinds.split(",") if k.strip()}
-    if not kinds or kinds - set(KINDS):
-        raise ValueError(f"--kinds: {args.kinds!r}: allowed {', '.join(KINDS)}")
-    jobs = interleave([j for j in make_jobs(args, classes) if j["kind"] in kinds])
+    jobs = interleave(select_jobs(args, classes))
     t0 = time.perf_counter()
     results: list[dict[str, Any]] = []
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
@@ -326,6 +323,14 @@ def run(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t0
     print_summary(sorted(results, key=lambda r: r["case"]), classes, wall)
     return 0
+
+
+def select_jobs(args: argparse.Namespace, classes: list[str]) -> list[dict[str, Any]]:
+    """The jobs of the kinds in ``--kinds``, each the same flight as in a run of every kind."""
+    kinds = {k.strip() for k in args.kinds.split(",") if k.strip()}
+    if not kinds or kinds - set(KINDS):
+        raise ValueError(f"--kinds: {args.kinds!r}: allowed {', '.join(KINDS)}")
+    return [j for j in make_jobs(args, classes) if j["kind"] in kinds]
 
 
 def interleave(jobs: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -46,3 +46,34 @@ def test_summary_of_a_missing_file_is_one_clear_error(tmp_path, capsys):
     assert main(["bench", "diagnose", "--from-json", str(tmp_path / "nope.json")]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--from-json" in err[0] and "nope.json" in err[0]
+
+
+def _args(*extra):
+    import argparse
+
+    from groundstation.bench.diagnose import add_arguments
+
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    return p.parse_args(["--cases", "10", "--out-of-catalogue", "4", "--combined", "3", "--seed", "5", *extra])
+
+
+def test_kinds_select_cases_without_changing_their_flights():
+    from groundstation.bench.diagnose import CLASSES, select_jobs
+
+    every = select_jobs(_args(), list(CLASSES))
+    combined = select_jobs(_args("--kinds", "combined"), list(CLASSES))
+    assert [j["kind"] for j in combined] == ["combined"] * 3
+    assert combined == [j for j in every if j["kind"] == "combined"]
+    # nonlinear kinematics on and off are both drawn; --kinematics fixes it without moving the other draws
+    assert {j["flight"]["kinematics"] for j in every} == {"linear", "nonlinear"}
+    fixed = select_jobs(_args("--kinematics", "linear"), list(CLASSES))
+    assert {j["flight"]["kinematics"] for j in fixed} == {"linear"}
+    strip = [{**j, "flight": {k: v for k, v in j["flight"].items() if k != "kinematics"}} for j in every]
+    assert strip == [{**j, "flight": {k: v for k, v in j["flight"].items() if k != "kinematics"}} for j in fixed]
+
+
+def test_unknown_kind_is_one_clear_error(capsys):
+    assert main(["bench", "diagnose", "--kinds", "pairs"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--kinds" in err[0] and "pairs" in err[0]

@@ -80,14 +80,13 @@ def test_effect_free_flight_has_no_horizontal_finding(tmp_path):
 def test_horizontal_finding_needs_u_and_v_to_agree():
     from types import SimpleNamespace as NS
 
-    segs, avail = [], np.ones(8, bool)
-    rng = np.random.default_rng(0)
     from groundstation.gap.evaluate import SegmentArrays
 
+    rng = np.random.default_rng(0)
     n = 400
     y = rng.standard_normal((n, 8))
-    segs.append(SegmentArrays(t_s=np.arange(n) * 0.02, inputs=np.zeros((n, 4)), outputs=y, outputs_raw=y,
-                              alt_m=np.full(n, np.nan), flight=0))
+    segs = [SegmentArrays(t_s=np.arange(n) * 0.02, inputs=np.zeros((n, 4)), outputs=y, outputs_raw=y,
+                          alt_m=np.full(n, np.nan), flight=0)]
     sigma = np.full(8, 0.01)
     agree = [NS(channel="u", scale=0.8, se=0.01), NS(channel="v", scale=0.81, se=0.01)]
     one_off = [NS(channel="u", scale=0.8, se=0.01), NS(channel="v", scale=1.0, se=0.01)]
