@@ -355,7 +355,9 @@ def conditional_names(ranked: list[attribute.Candidate], cands: list[attribute.C
             b.significant = False
             b.evidence += f"; not named: {given}"
         elif not b.significant and not plausible:
-            b.evidence += f"; given the {top.hyp.effect}: {given}, not physically plausible"
+            why = ("no Euler-kinematics offset on " + str(hb.output) if hb.effect == "gyro_bias"
+                   and physical(hb, cfg) else "not physically plausible")
+            b.evidence += f"; given the {top.hyp.effect}: {given}, {why}"
         elif not b.significant:
             tried.append((b, hb, s, ok, given))
     if any(c.significant for c in cands if c is not top and c.hyp.effect != "rotor_vibration") or not tried:
@@ -375,3 +377,4 @@ def conditional_names(ranked: list[attribute.Candidate], cands: list[attribute.C
         # percentage is of a smaller cost and would put it above the effect it was tested after)
         s.score_pct *= float(cctx.base_sse.sum() / max(ctx.base_sse.sum(), 1e-300))
         b.score, b.significant = s, True
+        b.hyp.extra["second_to"] = top.hyp.effect  # ranked after the effect it was tested given

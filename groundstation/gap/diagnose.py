@@ -425,11 +425,18 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
                     break
             c.evidence = candidates.evidence(c.hyp, c.score, kin, lines)
     candidates.encompass(cands, ctx, segs, rng, cfg, crit)
-    ranked = sorted((c for c in cands if c.significant), key=lambda c: -c.score.score_pct)
+    ranked = rank_named(cands)
     kin_sig = {k for k, v in kin.items() if v.log10_p < np.log10(crit)}
     candidates.conditional_names(ranked, cands, ctx, segs, [c for c in range(4) if loc.in_excited[c]], kin_sig,
                                  rng, cfg, crit, np.asarray(nf["nrmse_floor"], float))
     return Attributed(ctx=ctx, hyps=hyps, candidates=cands, kin=kin, lines=lines, spectra=spectra, crit=crit)
+
+
+def rank_named(cands: list[attribute.Candidate]) -> list[attribute.Candidate]:
+    """The named candidates, best first: by held-out gain, an effect named as a second one (given a
+    first, see :func:`groundstation.gap.candidates.conditional_names`) after the others."""
+    return sorted((c for c in cands if c.significant),
+                  key=lambda c: (bool(c.hyp.extra.get("second_to")), -c.score.score_pct))
 
 
 def _significance(results: list, kin: dict, lines: list, crit: float, cfg: DiagnoseConfig) -> list[attribute.Candidate]:
@@ -523,7 +530,7 @@ def _structure_against_named(base: Base, att: Attributed, tests: list[structure.
     cannot be put into the model the structure is tested in: for them the larger held-out gain decides.
     Changes the candidates in place (``significant``, ``evidence``).
     """
-    ranked = sorted((c for c in att.candidates if c.significant), key=lambda c: -c.score.score_pct)
+    ranked = rank_named(att.candidates)
     sig = sorted((t for t in tests if t.significant), key=lambda t: -t.score_pct)
     top = ranked[0]
     if top.hyp.effect == "rotor_vibration":
@@ -590,7 +597,7 @@ def decide_stage(base: Base, loc: Located, att: Attributed, comp: compat.Compati
     ``unexplained`` when a structure the linear model cannot have is significant, or the gap is
     significant and localised in flagged windows; else ``none``.
     """
-    ranked = sorted((c for c in att.candidates if c.significant), key=lambda c: -c.score.score_pct)
+    ranked = rank_named(att.candidates)
     unexplained = None
     if ranked:
         verdict = ranked[0].hyp.effect

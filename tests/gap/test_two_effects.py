@@ -53,3 +53,17 @@ def test_effect_to_noise_is_the_explained_rms_over_the_noise_floor():
     assert np.isclose(effect_to_noise(base, alt, energy, floor), 2.0)
     assert np.isclose(effect_to_noise(base, base + 0.01, energy, floor), 0.0)  # a worse fit explains nothing
     assert effect_to_noise(base, alt, energy, None) == float("inf")
+
+
+def test_an_effect_named_second_never_outranks_the_first():
+    from groundstation.gap.attribute import Candidate, Score
+    from groundstation.gap.diagnose import rank_named
+    from groundstation.gap.hypotheses import Hypothesis
+
+    def cand(name, pct, second_to=None, significant=True):
+        extra = {"second_to": second_to} if second_to else {}
+        return Candidate(Hypothesis(name, extra=extra), Score(pct, 0.0, 1.0, 0.5, 50.0, (40.0, 60.0), {}),
+                         significant, "")
+
+    first, second, off = cand("input_delay", 19.4), cand("deadband", 20.2, "input_delay"), cand("rate_limit", 30, None, False)
+    assert [c.hyp.effect for c in rank_named([second, off, first])] == ["input_delay", "deadband"]
