@@ -121,3 +121,8 @@ def test_identify_real_log_with_aircraft_file_reports_heldout_prior_and_closed_l
     assert isinstance(fit["closed_loop"], list) and isinstance(fit["unstable_modes"], list)
     printed = capsys.readouterr().err
     assert "held-out match over 3 contiguous folds" in printed and "the model predicts" in printed
+    # the configuration was compared with the aircraft file's candidate over 5 folds, and the printed
+    # 3-fold check is of the configuration it chose
+    sel = fit["selection"]
+    assert sel["k"] == 5 and {r["name"] for r in sel["candidates"]} == {"as configured", "predictive"}
+    assert "configuration chosen by held-out prediction over 5 folds" in printed and sel["chosen"] in printed
