@@ -9,11 +9,14 @@ Pure numpy.
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 
 from groundstation.gap import attribute, fingerprints, hypotheses, structure
 from groundstation.gap.config import DiagnoseConfig
 from groundstation.gap.evaluate import Evaluator, SegmentArrays
+from groundstation.parallel import Map, serial_map
 from groundstation.sysid.model import OUTPUTS
 
 
@@ -288,12 +291,19 @@ def rescan(b: attribute.Candidate, ctx: hypotheses.Context, channels: list[int] 
     return scans[e](ctx) if e in scans else None
 
 
-def _conditional_score(b: attribute.Candidate, cctx: hypotheses.Context, channels: list[int] | None,
+def rescan_one(cctx: hypotheses.Context, channels: list[int], b: attribute.Candidate
+               ) -> tuple[hypotheses.Hypothesis | None, dict, dict]:
+    """:func:`rescan` of ``b`` in ``cctx`` (input effects over ``channels``) and what it cached on
+    ``cctx`` (module-level, so worker processes can run it on their copy of ``cctx``)."""
+    hb = rescan(b, cctx, channels if b.hyp.effect in hypotheses.INPUT_EFFECTS else None)
+    return hb, dict(cctx.change), dict(cctx.blocks)
+
+
+def _conditional_score(b: attribute.Candidate, hb: hypotheses.Hypothesis | None, cctx: hypotheses.Context,
                        rng: np.random.Generator, cfg: DiagnoseConfig, floor: np.ndarray | None
                        ) -> tuple[hypotheses.Hypothesis, attribute.Score, float] | None:
-    """``b`` scanned again in the conditioned context and scored against that context's base cost;
-    with the RMS of the residual part it explains there over the noise floor (largest over outputs)."""
-    hb = rescan(b, cctx, channels)
+    """``b`` scanned again in the conditioned context (``hb``) and scored against that context's base
+    cost; with the RMS of the residual part it explains there over the noise floor (largest over outputs)."""
     if hb is None or hb.sse is None or not hb.testable:
         return None
     hb.extra = {**{k: v for k, v in b.hyp.extra.items() if k not in hb.extra}, **hb.extra}
@@ -306,12 +316,13 @@ def _conditional_score(b: attribute.Candidate, cctx: hypotheses.Context, channel
 def conditional_names(ranked: list[attribute.Candidate], cands: list[attribute.Candidate], ctx: hypotheses.Context,
                       segs: list[SegmentArrays], in_channels: list[int], kin_significant: set[str],
                       rng: np.random.Generator, cfg: DiagnoseConfig, crit: float,
-                      floor: np.ndarray | None = None) -> None:
+                      floor: np.ndarray | None = None, pmap: Map = serial_map) -> None:
     """A second effect is named only if it adds to the first one (held-out, conditional).
 
     With the top effect in the base model, every other catalogue effect is scanned again (input
     effects over every excited input: the channel may change once the first effect is in) and must
-    lower the held-out cost of that model significantly (same Bonferroni level), by more than
+    lower the held-out cost of that model significantly (at Holm's second step-down level: the
+    family-wise ``alpha`` over the candidates that enter this test, :func:`second_level`), by more than
     ``min_score_pct`` of *that* model's cost, and shrink the gap on its own channels (the RMS of the
     residual part it explains over the noise floor is reported with it):
 
@@ -324,7 +335,8 @@ def conditional_names(ranked: list[attribute.Candidate], cands: list[attribute.C
       whose kinematic evidence is missing (a roll or pitch gyro bias) are not brought back.
 
     Effects that cannot be put into a model (the spectral line, the air mass as first effect) keep
-    their own tests. Changes the candidates in place.
+    their own tests. The conditional scans are independent: ``pmap`` may run them in worker
+    processes. Changes the candidates in place.
     """
     if not ranked:
         return
@@ -332,14 +344,16 @@ def conditional_names(ranked: list[attribute.Candidate], cands: list[attribute.C
     cctx = conditioned_context(top, ctx, segs)
     if cctx is None:
         return
-    tried = []
-    for b in cands:
-        if b is top or b.hyp.effect == "rotor_vibration" or not b.hyp.testable:
-            continue
-        if not b.significant and ("adds nothing" in b.evidence or "not named" in b.evidence):
-            continue  # set aside by an encompassing test: not brought back here
-        res = _conditional_score(b, cctx, in_channels if b.hyp.effect in hypotheses.INPUT_EFFECTS else None,
-                                 rng, cfg, floor)
+    # set aside by an encompassing test: not brought back here
+    todo = [b for b in cands if b is not top and b.hyp.effect != "rotor_vibration" and b.hyp.testable
+            and (b.significant or ("adds nothing" not in b.evidence and "not named" not in b.evidence))]
+    scans = pmap(partial(rescan_one, cctx, in_channels), todo)
+    for _hb, change, blocks in scans:
+        cctx.change.update(change)
+        cctx.blocks.update(blocks)
+    entries = []
+    for b, (hb, _, _) in zip(todo, scans, strict=True):
+        res = _conditional_score(b, hb, cctx, rng, cfg, floor)
         if res is None:
             continue
         hb, s, etn = res
@@ -348,8 +362,12 @@ def conditional_names(ranked: list[attribute.Candidate], cands: list[attribute.C
         b.hyp.extra[f"effect_to_noise_given_{top.hyp.effect}"] = etn
         plausible = physical(hb, cfg) and not (hb.effect == "gyro_bias" and hb.output in ("p", "q")
                                                and hb.output not in kin_significant)
-        ok = bool(s.p_value < crit and gain_ok(s, cfg) and plausible)
-        given = (f"adds {s.score_pct:+.1f}% held-out (p={s.p_value:.2g}, gap on its channels "
+        entries.append((b, hb, s, etn, plausible))
+    crit2 = second_level(crit, sum(e[4] for e in entries), cfg)
+    tried = []
+    for b, hb, s, etn, plausible in entries:
+        ok = bool(s.p_value < crit2 and gain_ok(s, cfg) and plausible)
+        given = (f"adds {s.score_pct:+.1f}% held-out (p={s.p_value:.2g} against {crit2:.2g}, gap on its channels "
                  f"{s.shrink_pct:+.1f}%, {etn:.1f}x the noise) once the {top.hyp.effect} is in the model")
         if b.significant and not ok:
             b.significant = False
@@ -360,6 +378,22 @@ def conditional_names(ranked: list[attribute.Candidate], cands: list[attribute.C
             b.evidence += f"; given the {top.hyp.effect}: {given}, {why}"
         elif not b.significant:
             tried.append((b, hb, s, ok, given))
+    _name_second(top, tried, cands, cctx, ctx)
+
+
+def second_level(crit: float, n_remaining: int, cfg: DiagnoseConfig) -> float:
+    """Per-test level of the conditional step (Holm's step-down): the first effect was named at the
+    Bonferroni level over every candidate; given it, the ``n_remaining`` candidates that enter the
+    conditional test (physically plausible, not set aside by an encompassing test: a screening
+    that does not look at the held-out gain) share the family-wise ``alpha``. Never stricter than
+    ``crit``."""
+    return max(crit, cfg.alpha / max(n_remaining, 1))
+
+
+def _name_second(top: attribute.Candidate, tried: list, cands: list[attribute.Candidate],
+                 cctx: hypotheses.Context, ctx: hypotheses.Context) -> None:
+    """The forward-selection step of :func:`conditional_names`: of the candidates not named on their
+    own, the one with the largest conditional gain is named when it passes."""
     if any(c.significant for c in cands if c is not top and c.hyp.effect != "rotor_vibration") or not tried:
         for b, _, _, _, given in tried:
             b.evidence += f"; given the {top.hyp.effect}: {given}"

@@ -28,7 +28,9 @@ is reported as not testable.
 
 A scale factor is a *finding* when it is significant (family-wise ``alpha`` over every estimate
 made) and matters: the error it makes on its channel (scale x rms of the channel) is above the
-channel's measured white-noise level. Pure numpy/scipy; no IO.
+channel's measured white-noise level, or, for a rate gyro, the error it makes where it is tested
+(scale x the rms of the rate integrated over a window: the attitude drift) is above the angle's
+measured white-noise level. Pure numpy/scipy; no IO.
 """
 
 from __future__ import annotations
@@ -127,6 +129,12 @@ def _regress(rows: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.
     # small-sample correction of the cluster-robust (CR1) estimator
     corr = G / max(G - 1, 1) * (ya.size - 1) / max(ya.size - k - G, 1)
     return beta, corr * inv @ meat @ inv, G
+
+
+def _lever(rows: list[tuple[np.ndarray, np.ndarray]]) -> float:
+    """RMS over windows of the integrated measured rate (the scale regressor, window means removed)."""
+    x = np.concatenate([X[:, 1] - X[:, 1].mean() for _, X in rows])
+    return float(np.sqrt(np.mean(x ** 2))) if x.size else 0.0
 
 
 def _estimates(sensor: str, names: tuple[str, ...], beta: np.ndarray, cov: np.ndarray, G: int) -> list[Estimate]:
@@ -232,7 +240,7 @@ def check(segs: list[SegmentArrays], available: np.ndarray, dt_s: float, sigma_r
     else:
         untestable["w"] = "needs u, v, w, the attitude and the height all measured"
     ests: list[Estimate] = []
-    scales: list[tuple[str, Estimate, int]] = []
+    scales: list[tuple[str, Estimate, int, float]] = []
     for sensor, rows, col in fits:
         if len(rows) < min_windows:
             untestable[sensor] = f"fewer than {min_windows} windows of {window_s:g} s"
@@ -248,7 +256,7 @@ def check(segs: list[SegmentArrays], available: np.ndarray, dt_s: float, sigma_r
             continue
         est3[1] = Estimate(sensor, "scale", s.value / (1.0 - s.value), s.se / (1.0 - s.value) ** 2, s.p_value)
         ests += est3
-        scales.append((sensor, est3[1], col))
+        scales.append((sensor, est3[1], col, _lever(rows)))
     ests += h_ests
     crit = alpha / max(len(ests), 1)
     findings = []
@@ -258,10 +266,15 @@ def check(segs: list[SegmentArrays], available: np.ndarray, dt_s: float, sigma_r
                                 f"horizontal velocities against the attitude (gravity tilt): u and v agree on a scale "
                                 f"error {100 * he:+.1f} % +- {100 * hse:.1f} % (p={hp:.2g}); the error it makes is "
                                 f"{hetn:.1f}x the channels' noise"))
-    for sensor, e, col in scales:
+    for sensor, e, col, lever in scales:
         x = np.concatenate([s.outputs_raw[:, col] for s in segs])
         rms = float(np.sqrt(np.mean((x - x.mean()) ** 2)))
         etn = abs(e.value) * rms / max(float(sigma_raw[col]), 1e-12)
+        if sensor in ("p", "q"):
+            # the same error seen where it is tested: the attitude the scaled rate integrates to
+            # drifts from the measured angle by e x (integral of the rate over a window)
+            ang = PHI if sensor == "p" else THETA
+            etn = max(etn, abs(e.value) * lever / max(float(sigma_raw[ang]), 1e-12))
         if e.p_value < crit and etn > min_effect_to_noise:
             kind = "velocity_scale" if sensor == "w" else "gyro_scale"
             what = "vertical velocity against the height" if sensor == "w" else f"{sensor} gyro against the Euler angles"

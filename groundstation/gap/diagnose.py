@@ -428,7 +428,7 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
     ranked = rank_named(cands)
     kin_sig = {k for k, v in kin.items() if v.log10_p < np.log10(crit)}
     candidates.conditional_names(ranked, cands, ctx, segs, [c for c in range(4) if loc.in_excited[c]], kin_sig,
-                                 rng, cfg, crit, np.asarray(nf["nrmse_floor"], float))
+                                 rng, cfg, crit, np.asarray(nf["nrmse_floor"], float), pmap)
     return Attributed(ctx=ctx, hyps=hyps, candidates=cands, kin=kin, lines=lines, spectra=spectra, crit=crit)
 
 
@@ -538,9 +538,9 @@ def _structure_against_named(base: Base, att: Attributed, tests: list[structure.
         why = f"the structure explains more of the held-out cost ({sig[0].score_pct:+.1f}% vs {top.score.score_pct:+.1f}%)"
     else:
         cctx = candidates.conditioned_context(top, att.ctx, base.segs)
-        if cctx is None:
-            # an air mass cannot be put into the model the structure is tested in (its own within-window
-            # protocol): the larger held-out gain decides, as for the rotor line
+        if top.hyp.effect == "wind_gust":
+            keep, why = _air_mass_against_structure(top, sig[0], base, att, cfg, rng)
+        elif cctx is None:
             keep = top.score.score_pct >= sig[0].score_pct
             why = (f"the {sig[0].input} {sig[0].kind.replace('_', ' ')} (outside the catalogue) explains "
                    f"{sig[0].score_pct:+.1f}% of the held-out cost, the {top.hyp.effect} {top.score.score_pct:+.1f}%")
@@ -558,9 +558,52 @@ def _structure_against_named(base: Base, att: Attributed, tests: list[structure.
     if keep:
         top.evidence += f"; kept beside a structure outside the catalogue: {why}"
         return
+    if top.hyp.effect == "wind_gust":
+        # the air mass was the structure's own drift: the effects named beside it on their own
+        # evidence face the same test with the next one on top (none was named given the air mass)
+        top.significant = False
+        top.evidence += f"; not named: {why}"
+        if any(c.significant for c in att.candidates):
+            _structure_against_named(base, att, tests, crit_s, cfg, rng, floor)
+        return
     for c in ranked:
         c.significant = False
         c.evidence += f"; not named: {why}"
+
+
+def _air_mass_against_structure(gust: attribute.Candidate, t: structure.StructureTest, base: Base, att: Attributed,
+                                cfg: DiagnoseConfig, rng: np.random.Generator) -> tuple[bool, str]:
+    """Is the air mass still there once the input structure ``t`` is in the model, and the other way round?
+
+    An input asymmetry is a response that depends on the sign of the stick; an air mass moves the
+    aircraft whatever the stick does. A per-window air velocity can soak up the slow drift an
+    asymmetric (or amplitude-dependent) gain leaves, so the larger gain alone does not tell them
+    apart. The four models of the air-mass protocol (within-window chunk cross-validation) decide:
+    base, + air mass, + structure (base re-identified around it), + both. The air mass is kept when
+    it still lowers the cost significantly with the structure in the model (``crit``, and physically
+    resolvable); it is withheld when it adds nothing once the stick-sign dependence is modelled.
+    """
+    ctx_s = _structure_context(t, base, att, cfg, rng)
+    hg = hypotheses.scan_wind_gust(ctx_s)
+    if hg.sse is None or not hg.testable or gust.hyp.sse is None:
+        return True, "the air mass cannot be re-tested with the structure in the model"
+    hg.extra["resolvable_m_s"] = gust.hyp.extra.get("resolvable_m_s", 0.0)
+    m_s, m_sg, m_g = hg.extra["base_sse"], hg.sse, gust.hyp.sse
+    p_g = candidates.p_value(hg, None, m_s, rng, cfg)
+    p_s = attribute.paired_bootstrap(m_g.sum(1), m_sg.sum(1), rng, cfg.n_boot)
+    gain_g = 100.0 * float((m_s - m_sg).sum() / max(m_s.sum(), 1e-300))
+    gain_s = 100.0 * float((m_g - m_sg).sum() / max(m_g.sum(), 1e-300))
+    ev = base.ev
+    p_sign, share = structure.air_mass_sign_dependence(gust.hyp.extra["air_knots"], ev.U[:, :, INPUTS.index(t.input)])
+    gust.hyp.extra.update(p_given_structure=p_g, score_given_structure=gain_g, p_stick_sign=p_sign)
+    follows = p_sign < structure.structure_crit(np.ones(4, bool), cfg)
+    g_ok = p_g < att.crit and gain_g > cfg.min_score_pct and candidates.physical(hg, cfg) and not follows
+    name = f"{t.input} {t.kind.replace('_', ' ')} (outside the catalogue)"
+    why = (f"with the {name} in the model the air mass adds {gain_g:+.1f}% (p={p_g:.2g}); with the air mass in, "
+           f"the {name} adds {gain_s:+.1f}% (p={p_s:.2g}), air-mass protocol; the fitted air velocity "
+           f"{'follows' if follows else 'does not follow'} the sign-even part of the {t.input} stick "
+           f"(p={p_sign:.2g}, {100 * share:.0f} % of its variance): an air mass does not know the stick's sign")
+    return bool(g_ok), why
 
 
 def _unexplained_evidence(base: Base, loc: Located, tests: list[structure.StructureTest],

@@ -511,6 +511,6 @@ def scan_wind_gust(ctx: Context, chunk_s: float = 0.5, refine_iterations: int = 
     rms = float(np.sqrt((air ** 2).sum(axis=1).mean()))
     return Hypothesis("wind_gust", estimate={"air_velocity_rms_m_s": rms}, sse=sse_g,
                       channels=GUST_CHANNELS,
-                      extra={"base_sse": sse_b, "theta": thetas[best], "n_knots": n_knots,
+                      extra={"base_sse": sse_b, "theta": thetas[best], "n_knots": n_knots, "air_knots": air,
                              "reidentified": [bool(k) for k in picks]})
 

@@ -121,25 +121,38 @@ def simulate(
     yhat = np.moveaxis(ys[..., OUT_STATE], 0, 2)  # (C, W, L, 8)
     if not fit_initial:
         return yhat
-    S = np.moveaxis(fs[..., OUT_STATE], 0, 2)  # (C, nu, L, 8)
-    S = np.broadcast_to(S[:, None], (C, Wn, nu, L, 8))
-    if nuisance is not None:
-        Nn = np.moveaxis(nuisance, 3, 1)  # (W, K, L, 8)
-        S = np.concatenate([S, np.broadcast_to(Nn[None], (C,) + Nn.shape)], axis=2)
+    S = np.moveaxis(fs[..., OUT_STATE], 0, 2)  # (C, nu, L, 8): the same in every window
     r = outputs[None] - yhat  # (C, W, L, 8)
     sel = slice(start, stop) if fit_mask is None else np.flatnonzero(fit_mask)
-    Sw = (S * w8)[:, :, :, sel, :].reshape(C, Wn, S.shape[2], -1)
-    rw = (r * w8)[:, :, sel, :].reshape(C, Wn, -1)
-    G = np.einsum("cwil,cwjl->cwij", Sw, Sw)
-    h = np.einsum("cwil,cwl->cwi", Sw, rw)
+    # normal equations in blocks: the free responses S do not depend on the window, so their Gram
+    # matrix is formed once and never broadcast over the windows (the nuisance columns do)
+    Sw = (S[:, :, sel, :] * w8).reshape(C, nu, -1)  # (C, nu, n)
+    rw = (r[:, :, sel, :] * w8).reshape(C, Wn, -1)  # (C, W, n)
+    Gss = np.einsum("cil,cjl->cij", Sw, Sw)
+    hs = np.einsum("cil,cwl->cwi", Sw, rw)
+    if nuisance is None:
+        G = np.broadcast_to(Gss[:, None], (C, Wn, nu, nu))
+        h = hs
+    else:
+        K = nuisance.shape[-1]
+        Nw = (np.moveaxis(nuisance, 3, 1)[:, :, sel, :] * w8).reshape(Wn, K, -1)  # (W, K, n)
+        Gsn = np.einsum("cil,wkl->cwik", Sw, Nw)
+        Gnn = np.einsum("wkl,wml->wkm", Nw, Nw)
+        G = np.empty((C, Wn, nu + K, nu + K))
+        G[:, :, :nu, :nu] = Gss[:, None]
+        G[:, :, :nu, nu:] = Gsn
+        G[:, :, nu:, :nu] = np.swapaxes(Gsn, 2, 3)
+        G[:, :, nu:, nu:] = Gnn[None]
+        h = np.concatenate([hs, np.einsum("wkl,cwl->cwk", Nw, rw)], axis=2)
     ridge = 1e-9 * np.trace(G, axis1=2, axis2=3)[..., None, None] / G.shape[-1] + 1e-12
     Gr = G + ridge * np.eye(G.shape[-1])
     if nuisance is not None and nuisance_prec is not None:
-        K = nuisance.shape[-1]
         idx = np.arange(G.shape[-1] - K, G.shape[-1])
         Gr[..., idx, idx] += np.asarray(nuisance_prec, float)
     a = np.linalg.solve(Gr, h[..., None])[..., 0]
-    yhat = yhat + np.einsum("cwi,cwilk->cwlk", a, S)
+    yhat = yhat + np.einsum("cwi,cilk->cwlk", a[..., :nu], S)
+    if nuisance is not None:
+        yhat = yhat + np.einsum("cwk,wlmk->cwlm", a[..., nu:], nuisance)
     if return_coef:
         return yhat, a
     return yhat

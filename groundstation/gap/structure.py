@@ -155,6 +155,50 @@ def apply_structure(t: StructureTest, segments: list[SegmentArrays], ev: Any) ->
     return out
 
 
+def air_mass_sign_dependence(air: np.ndarray, u: np.ndarray) -> tuple[float, float]:
+    """Does a fitted air velocity follow the sign-even part of one stick's deflection?
+
+    ``air`` (W, 2, K): the per-window air-velocity knots of the air-mass fit (m/s, piecewise linear
+    over the window); ``u`` (W, L): the input over the same windows. An air mass moves the aircraft
+    whatever the stick does; the pilot's answers to it are odd in the stick (a push one way for a gust
+    one way) and so are uncorrelated with the even part ``|u| - mean|u|``. A response that differs
+    for deflections above and below trim soaks a fitted air velocity that follows that even part.
+    Each knot's air velocity is regressed on the even and the odd part of the input averaged under
+    the knot's hat function (intercept per component); the even coefficients of both components are
+    tested together (Wald, chi-square with 2 degrees of freedom) with a cluster-robust covariance over
+    windows, so the noise of the air-velocity estimates is the data's own.
+    Returns (p-value, the even part's share of the air velocity's variance).
+    """
+    W, _, K = air.shape
+    L = u.shape[1]
+    tt = np.linspace(0.0, 1.0, L)
+    hats = np.stack([np.maximum(0.0, 1.0 - np.abs(tt - c) * (K - 1)) for c in np.linspace(0.0, 1.0, K)])
+    hats /= hats.sum(axis=1, keepdims=True)
+    even = (np.abs(u) - np.abs(u).mean()) @ hats.T  # (W, K)
+    odd = (u - u.mean()) @ hats.T
+    X1 = np.column_stack([np.ones(W * K), even.ravel(), odd.ravel()])
+    # both components stacked, each with its own three coefficients
+    X = np.zeros((2 * W * K, 6))
+    X[: W * K, :3] = X1
+    X[W * K:, 3:] = X1
+    y = np.concatenate([air[:, 0].ravel(), air[:, 1].ravel()])
+    cl = np.concatenate([np.repeat(np.arange(W), K)] * 2)
+    XtX_inv = np.linalg.pinv(X.T @ X)
+    beta = XtX_inv @ X.T @ y
+    e = y - X @ beta
+    meat = np.zeros((6, 6))
+    for w in range(W):
+        g = X[cl == w].T @ e[cl == w]
+        meat += np.outer(g, g)
+    cov = XtX_inv @ meat @ XtX_inv * W / max(W - 1, 1)
+    idx = [1, 4]
+    b = beta[idx]
+    stat = float(b @ np.linalg.pinv(cov[np.ix_(idx, idx)]) @ b)
+    fitted = X[:, idx] @ b
+    share = float(fitted.var() / max(y.var(), 1e-300))
+    return float(stats.chi2.sf(stat, 2)), share
+
+
 def _n_eff(x: np.ndarray, max_lag: int) -> float:
     """Effective sample size of a series from its autocorrelation (Bartlett)."""
     x = x - x.mean()
