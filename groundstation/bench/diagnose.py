@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -219,6 +220,23 @@ def _sim_kwargs(job: dict[str, Any]) -> dict[str, Any]:
     return kw
 
 
+def tree_cpu_s() -> float:
+    """CPU time (s) of this process and of its live child processes (the worker processes of a
+    diagnosis's ``--jobs``), read from /proc where there is one; this process alone elsewhere."""
+    t = time.process_time()
+    try:
+        pids: set[str] = set()
+        for task in Path("/proc/self/task").iterdir():
+            pids.update((task / "children").read_text().split())
+        tick = os.sysconf("SC_CLK_TCK")
+        for pid in pids:
+            f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            t += (int(f[11]) + int(f[12])) / tick  # utime, stime
+    except (OSError, ValueError, IndexError):
+        pass
+    return t
+
+
 def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
     """Simulate, read back, prepare, diagnose one case (runs in a worker process; ``pmap``: a map over
     worker processes for the diagnosis's independent pieces, None: serial)."""
@@ -239,7 +257,7 @@ def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
         truth = write_tlog(path, seed=job["seed"], flights=1, effects=effects, **kw)
         out["truth"] = truth.get("effects", [])
         t0 = time.perf_counter()
-        c0 = time.process_time()
+        c0 = tree_cpu_s()
         prepared = prepare([load_log(path)])
         model = None
         if job["model_source"] == "truth":
@@ -247,11 +265,12 @@ def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
         try:
             diag = run_diagnosis(model, prepared, seed=job["seed"], **({"pmap": pmap} if pmap else {}))
         except ValueError as exc:  # a flight the diagnosis refuses (too little data): counted, not hidden
-            out.update(seconds=time.perf_counter() - t0, cpu_s=time.process_time() - c0, flight_s=0.0, verdict="refused", effects=[], sensor_errors=[],
+            out.update(seconds=time.perf_counter() - t0, cpu_s=tree_cpu_s() - c0, flight_s=0.0, verdict="refused", effects=[], sensor_errors=[],
                        candidates=[], error=str(exc))
             return out
         out["seconds"] = time.perf_counter() - t0
-        out["cpu_s"] = time.process_time() - c0
+        out["cpu_s"] = tree_cpu_s() - c0
+        out["load_1min"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
         out["flight_s"] = float(sum(s.t_s[-1] - s.t_s[0] for s in prepared.segments))
         rep = diag.report
         out["verdict"] = rep["verdict"]
@@ -413,8 +432,12 @@ def print_summary(results: list[dict], classes: list[str], wall: float) -> None:
     if secs:
         print(f"diagnosis wall per case: median {np.median(secs):.1f} s (max {np.max(secs):.1f} s) for median "
               f"{np.median(fl):.0f} s of in-air data; total bench wall {wall:.0f} s")
-        print(f"diagnosis CPU time per case (this process only; worker processes of --jobs not counted): "
+        print(f"diagnosis CPU time per case (all its processes; independent of other load on the machine): "
               f"median {np.median(cpu):.1f} s (max {np.max(cpu):.1f} s)")
+        load = [r["load_1min"] for r in results if r.get("load_1min") is not None]
+        if load:
+            print(f"machine load (1-min average, runnable processes) at the end of each case: median "
+                  f"{np.median(load):.1f} on {os.cpu_count()} cores")
         per150 = [r["seconds"] * 150.0 / r["flight_s"] for r in results if r.get("flight_s")]
         jobs = {r.get("jobs", 1) for r in results}
         if per150:

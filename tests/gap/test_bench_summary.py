@@ -40,6 +40,28 @@ def test_summary_of_a_saved_run(tmp_path, capsys):
     assert "false alarms on effect-free flights: 0/1" in out
     assert "unexplained or the right sensor finding 0/1; a catalogue name with shrink > 10 %: 1/1" in out
     assert "both effects named: 1/1" in out
+    # 10 s of wall for 150 s of in-air data on every case
+    assert "diagnosis wall per 150 s of in-air data: median 10.0 s" in out
+
+
+def test_cpu_time_of_a_case_counts_its_worker_processes():
+    import subprocess
+    import sys
+
+    from groundstation.bench.diagnose import tree_cpu_s
+
+    # a child that burns a fixed amount of CPU, says so, and stays alive until its stdin closes
+    code = ("import sys, time\nt = time.process_time()\nwhile time.process_time() - t < 0.5: pass\n"
+            "print('done', flush=True)\nsys.stdin.read()")
+    c0 = tree_cpu_s()
+    child = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout is not None and child.stdout.readline().strip() == "done"
+        assert tree_cpu_s() - c0 >= 0.4
+    finally:
+        assert child.stdin is not None
+        child.stdin.close()
+        child.wait()
 
 
 def test_summary_of_a_missing_file_is_one_clear_error(tmp_path, capsys):
