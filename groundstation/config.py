@@ -108,6 +108,7 @@ class OnboardLogsSection:
     dir: str = ""                   # default: <record_dir>/onboard
     after_disarm_s: float = 2.0     # let the FC close its log before listing
     give_up_s: float = 8.0          # the FC sends nothing this long: keep what came, resume after the next disarm
+    list_timeout_s: float = 1.5     # no answer to a list request this long: ask again (three times in all)
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,10 @@ class TeeService(Service):
 def test_service_downloads_the_flight_log_between_flights(tmp_path):
     cfg = service_config(tmp_path, service={"exit_after_flights": 1}, sim={"speed": 20.0, "flights": 1, "seed": 6},
                          identification={"enabled": False},
-                         onboard_logs={"download": True, "after_disarm_s": 0.5})
+                         # the FC answers within milliseconds; timeouts far beyond that keep a starved
+                         # test machine from being mistaken for a silent FC (the defaults stay 1.5 s / 8 s)
+                         onboard_logs={"download": True, "after_disarm_s": 0.5,
+                                       "list_timeout_s": 60.0, "give_up_s": 120.0})
     lines: list[str] = []
     service = TeeService(cfg, sim_options={"flight_duration_s": 40.0, "pause_s": 2.0}, log=lines.append)
     report = asyncio.run(asyncio.wait_for(service.run(), 240))
