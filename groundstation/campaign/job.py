@@ -182,7 +182,7 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
     date, date_src = log_date_utc(job.log)
     base = {"aircraft": job.aircraft, "log": job.log, "log_name": Path(job.log).name, "sha256": job.sha256,
             "settings_key": job.settings.key(), "date_utc": date, "date_source": date_src, "error": None}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         from groundstation.pipeline import prepare_logs
 
@@ -204,6 +204,8 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
                     rows.append({**base, **_flight_row(job, sub, flight, ref)})
                 except Exception as exc:  # noqa: BLE001 - one flight's failure is its row
                     rows.append({**base, "flight_index": flight, "error": _one_line(job, exc)})
+            for r in rows:  # the job's CPU (this process's, all threads), shared by its flights
+                r["cpu_s"] = round((time.process_time() - c0) / len(rows), 3)
             return rows
     except Exception as exc:  # noqa: BLE001 - reported as a row, the campaign goes on
         return [{**base, "flight_index": 0, "error": _one_line(job, exc), "seconds": round(time.perf_counter() - t0, 3)}]

@@ -1,22 +1,48 @@
 """Runs campaign jobs in-process, on a local process pool, or on a Dask distributed cluster.
 
 ``run(jobs, workers=N, scheduler=None | "local" | "tcp://host:8786", on_result=cb)`` submits one
-task per log (:func:`groundstation.campaign.job.analyse`) and calls ``on_result(job, rows)`` in the
-calling process as each completes (in completion order; the store orders flights by date). No job
-distribution of our own: a ``concurrent.futures.ProcessPoolExecutor`` (spawned workers) on one
-machine, Dask's scheduler on a cluster. With ``scheduler="local"`` a ``distributed.LocalCluster`` on
-loopback with ``workers`` single-threaded worker processes is started and closed here.
+task per log (:func:`groundstation.campaign.job.analyse`, which reads the log by its path: only the
+path crosses to a worker, and only the table rows come back) and calls ``on_result(job, rows)`` in
+the calling process as each completes (in completion order; the store orders flights by date). No
+job distribution of our own: a ``concurrent.futures.ProcessPoolExecutor`` on one machine, Dask's
+scheduler on a cluster. With ``scheduler="local"`` a ``distributed.LocalCluster`` on loopback with
+``workers`` single-threaded worker processes is started and closed here.
+
+Local worker processes (the pool's and the local cluster's) are forked from one fork server that
+has imported the analysis once (:data:`PRELOAD`, see :func:`start_fork_server`): a worker starts
+without importing anything, and its first flight costs what any other does, so a pool of N does the
+CPU work of one process. :func:`open_executor` keeps the workers for several runs (a bench starts
+and warms them once, outside its clock).
 """
 
 from __future__ import annotations
 
+import importlib
+import logging
+import multiprocessing
 import os
-from collections.abc import Callable, Sequence
-from typing import Any
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from typing import Any, Protocol
 
 from groundstation.campaign.job import FlightJob, analyse
 
 OnResult = Callable[[FlightJob, list[dict[str, Any]]], None]
+
+#: every module a job imports, including those imported lazily on the first log (readers, the
+#: MAVLink dialect, the configuration selection): imported once by the fork server
+PRELOAD = ("numpy", "scipy.optimize", "threadpoolctl", "pymavlink.dialects.v20.ardupilotmega",
+           "firmware_interface.readers", "groundstation.campaign.job", "groundstation.pipeline",
+           "groundstation.dsp.split", "groundstation.dsp.velocity_check", "groundstation.sysid.select",
+           "groundstation.sysid.heldout", "groundstation.gap.diagnose")
+
+
+#: a local cluster's monitoring paced for tasks of seconds (a flight each), not milliseconds: the
+#: statistical profiler (every 10 ms), the event-loop tick (20 ms) and the memory and system
+#: monitors cost a worker several per cent of a core at Dask's defaults
+LOCAL_DASK = {"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "500ms",
+              "distributed.worker.memory.monitor-interval": "1s", "distributed.admin.system-monitor.interval": "2s",
+              "distributed.admin.system-monitor.gil.enabled": False}
 
 
 def default_workers() -> int:
@@ -24,64 +50,166 @@ def default_workers() -> int:
     return max(1, (os.cpu_count() or 2) - 1)
 
 
-def run(jobs: Sequence[FlightJob], *, workers: int = 1, scheduler: str | None = None,
-        on_result: OnResult | None = None, local_processes: bool = True) -> list[list[dict[str, Any]]]:
-    """Analyse every job; returns the rows per job in job order (see module docstring)."""
+def warm() -> int:
+    """Import :data:`PRELOAD` in this process (a worker's initializer; free when forked from the
+    fork server); returns the process id."""
+    for m in PRELOAD:
+        importlib.import_module(m)
+    return os.getpid()
+
+
+def start_fork_server(dask: bool = False) -> Any:
+    """The ``forkserver`` multiprocessing context, its server started with :data:`PRELOAD` imported
+    (and ``distributed`` when ``dask``) unless it already runs. The import is paid once per calling
+    process, whatever the number of workers and of runs."""
+    from multiprocessing import forkserver
+
+    ctx = multiprocessing.get_context("forkserver")
+    if dask:
+        import distributed.utils
+
+        distributed.utils.get_mp_context()  # Dask's own preload list, then ours below (ours wins)
+    ctx.set_forkserver_preload([*(("distributed",) if dask else ()), *PRELOAD])
+    forkserver.ensure_running()
+    p = ctx.Process(target=os.getpid)  # answered once the server has imported everything
+    p.start()
+    p.join()
+    return ctx
+
+
+class Executor(Protocol):
+    workers: int
+
+    def warm(self) -> None: ...
+
+    def results(self, jobs: Sequence[FlightJob]) -> Iterator[tuple[int, list[dict[str, Any]]]]: ...
+
+
+class _Serial:
+    workers = 1
+
+    def warm(self) -> None:
+        warm()
+
+    def results(self, jobs: Sequence[FlightJob]) -> Iterator[tuple[int, list[dict[str, Any]]]]:
+        for i, j in enumerate(jobs):
+            yield i, analyse(j)
+
+
+class _Pool:
+    def __init__(self, workers: int) -> None:
+        from concurrent.futures import ProcessPoolExecutor
+
+        self.workers = workers
+        self.ex = ProcessPoolExecutor(max_workers=workers, mp_context=start_fork_server(), initializer=warm)
+
+    def warm(self) -> None:
+        """Every worker started (each submit starts one while none is idle)."""
+        list(self.ex.map(warm_task, range(self.workers)))
+
+    def results(self, jobs: Sequence[FlightJob]) -> Iterator[tuple[int, list[dict[str, Any]]]]:
+        from concurrent.futures import as_completed
+
+        futs = {self.ex.submit(analyse, j): i for i, j in enumerate(jobs)}
+        for f in as_completed(futs):
+            yield futs[f], f.result()
+
+
+def warm_task(_: Any) -> int:
+    import time
+
+    time.sleep(0.05)  # held long enough that the next task finds this worker busy and starts another
+    return os.getpid()
+
+
+class _Dask:
+    def __init__(self, client: Any, workers: int) -> None:
+        self.client = client
+        self.workers = workers
+
+    def warm(self) -> None:
+        if self.workers:
+            self.client.wait_for_workers(self.workers, timeout=120)
+        self.client.run(warm)
+
+    def results(self, jobs: Sequence[FlightJob]) -> Iterator[tuple[int, list[dict[str, Any]]]]:
+        from distributed import as_completed
+
+        futs = [self.client.submit(analyse, j, pure=False, key=f"campaign-{i}-{j.sha256[:12]}")
+                for i, j in enumerate(jobs)]
+        index = {f.key: i for i, f in enumerate(futs)}
+        for f in as_completed(futs):
+            yield index[f.key], f.result()
+
+
+@contextmanager
+def open_executor(workers: int = 1, scheduler: str | None = None, local_processes: bool = True) -> Iterator[Executor]:
+    """Workers that stay up for several :func:`run` calls (see module docstring)."""
     if workers < 1:
         raise ValueError(f"--jobs: {workers} must be >= 1")
-    results: dict[int, list[dict[str, Any]]] = {}
-
-    def done(i: int, rows: list[dict[str, Any]]) -> None:
-        results[i] = rows
-        if on_result is not None:
-            on_result(jobs[i], rows)
-
     if scheduler:
-        _run_dask(jobs, workers, scheduler, done, local_processes)
-    elif workers == 1 or len(jobs) <= 1:
-        for i, j in enumerate(jobs):
-            done(i, analyse(j))
+        with _dask_client(workers, scheduler, local_processes) as (client, n):
+            yield _Dask(client, n)
+    elif workers == 1:
+        yield _Serial()
     else:
-        _run_pool(jobs, workers, done)
-    return [results[i] for i in range(len(jobs))]
+        pool = _Pool(workers)
+        try:
+            yield pool
+        finally:
+            pool.ex.shutdown()
 
 
-def _run_pool(jobs: Sequence[FlightJob], workers: int, done: Callable[[int, list], None]) -> None:
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=mp.get_context("spawn")) as ex:
-        futs = {ex.submit(analyse, j): i for i, j in enumerate(jobs)}
-        for f in as_completed(futs):
-            done(futs[f], f.result())
-
-
-def _run_dask(jobs: Sequence[FlightJob], workers: int, scheduler: str, done: Callable[[int, list], None],
-              local_processes: bool) -> None:
+@contextmanager
+def _dask_client(workers: int, scheduler: str, local_processes: bool) -> Iterator[tuple[Any, int]]:
     try:
-        from distributed import Client, LocalCluster, as_completed
+        import dask
+        from distributed import Client, LocalCluster
     except ImportError:
         raise ValueError("--scheduler needs dask distributed (pip install 'distributed>=2024.1')") from None
     cluster = None
     if scheduler == "local":
-        # worker processes talk tcp on loopback; in-process workers (tests) use Dask's inproc comm
+        # worker processes forked from the fork server talk tcp on loopback; in-process workers
+        # (tests) use Dask's inproc comm
         net = {"host": "127.0.0.1", "scheduler_port": 0} if local_processes else {}
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=local_processes,
-                               dashboard_address=None, **net)
+        if local_processes:
+            start_fork_server(dask=True)
+        with dask.config.set({"distributed.worker.multiprocessing-method": "forkserver", **LOCAL_DASK}):
+            # silence_logs: a worker's heartbeat to a scheduler already closing is not news (a task's
+            # failure comes back as its row)
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=local_processes,
+                                   dashboard_address=None, silence_logs=logging.CRITICAL, **net)
         client = Client(cluster)
     elif scheduler.startswith("tcp://"):
         try:
             client = Client(scheduler, timeout="20s")
         except OSError as exc:
             raise OSError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({exc})") from None
+        workers = 0  # the cluster's own
     else:
         raise ValueError(f"--scheduler {scheduler!r}: expected 'local' or tcp://host:port")
     try:
-        futs = [client.submit(analyse, j, pure=False, key=f"campaign-{i}-{j.sha256[:12]}") for i, j in enumerate(jobs)]
-        index = {f.key: i for i, f in enumerate(futs)}
-        for f in as_completed(futs):
-            done(index[f.key], f.result())
+        yield client, workers
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def run(jobs: Sequence[FlightJob], *, workers: int = 1, scheduler: str | None = None,
+        on_result: OnResult | None = None, local_processes: bool = True,
+        executor: Executor | None = None) -> list[list[dict[str, Any]]]:
+    """Analyse every job; returns the rows per job in job order (see module docstring). ``executor``:
+    workers opened by :func:`open_executor` (then ``workers`` and ``scheduler`` are not used)."""
+    if executor is None:
+        if workers > 1 and len(jobs) <= 1 and not scheduler:
+            workers = 1  # one log: no pool to start
+        with open_executor(min(workers, max(len(jobs), 1)) if not scheduler else workers, scheduler,
+                           local_processes) as ex:
+            return run(jobs, on_result=on_result, executor=ex)
+    results: dict[int, list[dict[str, Any]]] = {}
+    for i, rows in executor.results(jobs):
+        results[i] = rows
+        if on_result is not None:
+            on_result(jobs[i], rows)
+    return [results[i] for i in range(len(jobs))]

@@ -96,3 +96,29 @@ def test_bad_scheduler_and_jobs_are_one_line(logs, tmp_path, capsys):
     assert "--jobs: 0" in capsys.readouterr().err
     assert main(["campaign", str(tmp_path / "nothing"), "--db", str(tmp_path / "c.sqlite"), *FAST]) == 2
     assert "nothing: no such file or directory" in capsys.readouterr().err
+
+
+def test_pool_and_local_cluster_processes_share_one_fork_server_and_give_the_same_rows(logs):
+    """Workers of the pool and of a local Dask cluster (separate processes on loopback) are forked
+    from the fork server that imported the analysis; each log is analysed in a worker and gives the
+    serial rows."""
+    import os
+
+    from groundstation.campaign import runner
+    from groundstation.campaign.job import FlightJob, Settings, file_sha256, find_logs
+    from groundstation.config import ServiceConfig
+
+    s = Settings(config=ServiceConfig().replace("identify", maxiter=4, search_restarts=1), diagnose=False)
+    jobs = [FlightJob(str(p), file_sha256(p), "aircraft", s, None) for p in find_logs([logs])]
+    serial = runner.run(jobs, workers=1)
+    with runner.open_executor(2) as ex:
+        ex.warm()
+        pids = set(ex.ex.map(runner.warm_task, range(2)))  # type: ignore[attr-defined]
+        parent = ex.ex.submit(os.getppid).result()  # type: ignore[attr-defined]
+        pool = runner.run(jobs, executor=ex)
+    assert len(pids) == 2 and os.getpid() not in pids
+    assert parent != os.getpid()  # forked by the fork server, not by this process
+    dask = runner.run(jobs, workers=2, scheduler="local")
+    for a, b, c in zip(serial, pool, dask, strict=True):
+        assert [r["model"] for r in a] == [r["model"] for r in b] == [r["model"] for r in c]
+        assert all(r["cpu_s"] > 0 for r in b + c)
