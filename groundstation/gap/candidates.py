@@ -341,6 +341,9 @@ def conditional_names(ranked: list[attribute.Candidate], cands: list[attribute.C
     if not ranked:
         return
     top = ranked[0]
+    if top.hyp.effect == "wind_gust":
+        second_given_air_mass(top, cands, ctx, segs, rng, cfg, crit, pmap)
+        return
     cctx = conditioned_context(top, ctx, segs)
     if cctx is None:
         return
@@ -412,3 +415,85 @@ def _name_second(top: attribute.Candidate, tried: list, cands: list[attribute.Ca
         s.score_pct *= float(cctx.base_sse.sum() / max(ctx.base_sse.sum(), 1e-300))
         b.score, b.significant = s, True
         b.hyp.extra["second_to"] = top.hyp.effect  # ranked after the effect it was tested given
+
+
+def _with_effect_removed(b: attribute.Candidate, ctx: hypotheses.Context, segs: list[SegmentArrays]
+                         ) -> hypotheses.Context | None:
+    """A context whose data have effect ``b`` taken out (its segments changed, or, for an effect entering
+    as forcing columns, its fitted response subtracted from the windows' outputs); None when it cannot be."""
+    h = b.hyp
+    if h.effect in ("ground_effect", "quadratic_drag"):
+        X = h.extra.get("X")
+        if X is None:
+            return None
+        c = (np.array([-float(h.estimate.get("accel_m_s2", 0.0))]) if h.effect == "ground_effect"
+             else np.array([float(v) for v in h.estimate.values()]))
+        if X.shape[-1] != c.size:
+            return None
+        ev = ctx.ev
+        ev_b = Evaluator(segs, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds,
+                         ridge=ev.ridge)
+        w = np.where(ev.w8 > 0, ev.w8, 1.0)
+        ev_b.Y = ev.Y - np.einsum("wlck,k->wlc", X, c) / w
+        ev_b.set_theta(ev.theta0)
+        return hypotheses.Context(ev_b, segs)
+    return conditioned_context(b, ctx, segs)
+
+
+def _air_mass_given(b: attribute.Candidate, ctx: hypotheses.Context, segs: list[SegmentArrays]
+                    ) -> hypotheses.Hypothesis | None:
+    """The air-mass scan on the data with ``b`` taken out (module-level: runs in worker processes)."""
+    cb = _with_effect_removed(b, ctx, segs)
+    return None if cb is None else hypotheses.scan_wind_gust(cb)
+
+
+def second_given_air_mass(top: attribute.Candidate, cands: list[attribute.Candidate], ctx: hypotheses.Context,
+                          segs: list[SegmentArrays], rng: np.random.Generator, cfg: DiagnoseConfig, crit: float,
+                          pmap: Map = serial_map) -> None:
+    """The conditional step when the first effect is an air mass (which has its own protocol).
+
+    An air mass cannot be put into the base model of the ordinary held-out scans, so the other way
+    round: each candidate with a positive gain of its own and physically plausible is taken out of
+    the data (its segments changed, or its fitted response subtracted) and the air-mass scan is run
+    again there. In the air-mass protocol (within-window chunk cross-validation) that gives the
+    models "air mass" (``top``) and "air mass + candidate"; the candidate adds to the air mass when
+    the second lowers the cost significantly at Holm's second level (:func:`second_level` over the
+    candidates that enter), by more than ``min_score_pct``, and shrinks the gap on its own channels.
+    The best one passing is named second. Changes the candidates in place.
+    """
+    todo = [b for b in cands if b is not top and b.hyp.effect != "rotor_vibration" and b.hyp.testable
+            and b.hyp.sse is not None and b.score.score_pct > 0 and physical(b.hyp, cfg)
+            and "adds nothing" not in b.evidence and "not named" not in b.evidence]
+    m_g = top.hyp.sse
+    if not todo or m_g is None:
+        return
+    crit2 = second_level(crit, len(todo), cfg)
+    scans = pmap(partial(_air_mass_given, ctx=ctx, segs=segs), todo)
+    tried = []
+    for b, hg in zip(todo, scans, strict=True):
+        if hg is None or hg.sse is None:
+            continue
+        s = attribute.score(m_g, hg.sse, ctx.ev.energy, b.hyp.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
+        s.p_value = attribute.paired_bootstrap(m_g.sum(1), hg.sse.sum(1), rng, cfg.n_boot)
+        b.hyp.extra["p_given_wind_gust"] = s.p_value
+        b.hyp.extra["score_given_wind_gust"] = s.score_pct
+        ok = bool(s.p_value < crit2 and gain_ok(s, cfg))
+        given = (f"adds {s.score_pct:+.1f}% (p={s.p_value:.2g} against {crit2:.2g}, gap on its channels "
+                 f"{s.shrink_pct:+.1f}%) to the air mass, air-mass protocol with the {b.hyp.effect} taken out of the data")
+        if b.significant and not ok:
+            b.significant = False
+            b.evidence += f"; not named: {given}"
+        elif not b.significant:
+            tried.append((b, s, ok, given))
+    if any(c.significant for c in cands if c is not top and c.hyp.effect != "rotor_vibration") or not tried:
+        for b, _, _, given in tried:
+            b.evidence += f"; given the wind_gust: {given}"
+        return
+    best = max(tried, key=lambda t: t[1].score_pct)
+    for b, _s, ok, given in tried:
+        if b is not best[0] or not ok:
+            b.evidence += f"; given the wind_gust: {given}" + ("" if b is best[0] else f" (the {best[0].hyp.effect} adds more)")
+            continue
+        b.evidence = f"{evidence(b.hyp, b.score, {}, [])}; named as a second effect: it {given}"
+        b.significant = True
+        b.hyp.extra["second_to"] = "wind_gust"

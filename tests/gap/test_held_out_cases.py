@@ -93,3 +93,15 @@ def test_input_asymmetry_soaked_up_by_an_air_mass_is_unexplained():
     assert all((e.get("shrink_pct") or 0) <= 10 for e in r["effects"])
     gust = next(c for c in r["candidates"] if c["effect"] == "wind_gust")
     assert "follows the sign-even part of the lat stick" in gust["evidence"]
+
+
+def test_effects_beside_an_air_mass_are_tested_given_it():
+    # a gust flight: the air mass comes first; every other candidate with a gain of its own is taken
+    # out of the data and the air-mass scan run again; none adds to the air mass here
+    r = bd.run_case(_job(1, 5))
+    assert r["truth_effects"] == ["wind_gust"]
+    assert [e["effect"] for e in r["effects"]] == ["wind_gust"]
+    given = [c for c in r["candidates"] if "to the air mass, air-mass protocol" in (c["evidence"] or "")]
+    assert given, [c["evidence"] for c in r["candidates"]]
+    gust = r["candidates"][0]
+    assert "does not follow the sign-even part" in gust["evidence"]
