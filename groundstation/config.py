@@ -98,6 +98,9 @@ class IdentificationSection:
     refine: bool = True
     diagnose: bool = True
     plots: bool = True
+    #: aircraft file (TOML) applied between flights: its channel map and outputs prepare each flight,
+    #: its ``[identify]`` settings and prior model identify it; "" = none
+    aircraft: str = ""
 
 
 @dataclass(frozen=True)

@@ -75,6 +75,13 @@ def with_aircraft(cfg: ServiceConfig, aircraft: Any) -> ServiceConfig:
                                identify=aircraft.identify_config(cfg.identify))
 
 
+def with_aircraft_file(cfg: ServiceConfig) -> tuple[ServiceConfig, Any]:
+    """(``cfg`` with the aircraft file ``[identification] aircraft`` applied, the aircraft or None): the
+    service's flights are prepared and identified as ``groundstation identify --aircraft`` would."""
+    aircraft = load_aircraft(cfg.identification.aircraft or None)
+    return with_aircraft(cfg, aircraft), aircraft
+
+
 def prepare_logs(paths: Sequence[str | os.PathLike[str]], cfg: ServiceConfig, segments: str = "flights",
                  aircraft: Any = None, pmap: Map = serial_map) -> Any:
     """Read the logs and prepare them with ``cfg.prepare`` (a :class:`groundstation.dsp.prepare.PreparedData`),

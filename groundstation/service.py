@@ -119,6 +119,9 @@ class Service:
         self.link_opener = link_opener
         self.runner: Any = None              # firmware_interface.link.LinkRunner
         self.job_fn = job_fn
+        from groundstation.pipeline import with_aircraft_file
+
+        config = with_aircraft_file(config)[0]   # one configuration: the live path uses the aircraft's channel map too
         self.config = config
         self.log = log
         self.sim_options = sim_options
@@ -571,6 +574,9 @@ class Service:
         flight, model, gap = res.flight, res.model or {}, res.gap
         table = " ".join(f"{k}={v:.1f}" for k, v in res.match_degree.items())
         self.log(f"flight {flight}: model {res.model_path} ({res.seconds:.1f} s); match % {table}")
+        line = cross_flight_line(flight, (model.get("fit") or {}).get("cross_flight") or {})
+        if line:
+            self.log(line)
         trim = model.get("input_trim_pwm") or {}
         if self.config.prepare.input_trim_pwm is None and all(k in trim for k in ("lat", "lon", "col", "ped")):
             self.live.set_trim((float(trim["lat"]), float(trim["lon"]), float(trim["col"]), float(trim["ped"])))
@@ -714,3 +720,18 @@ def _worker_init() -> None:
     except ImportError:
         pass
 
+
+def cross_flight_line(flight: int | None, cross: dict[str, Any]) -> str:
+    """One log line of the worker's cross-flight check (``fit.cross_flight``): is the aircraft the same
+    as on the previous flight? "" without a previous flight."""
+    prev = cross.get("previous_flight")
+    if prev is None:
+        return ""
+    if cross.get("error"):
+        return f"flight {flight}: not compared with flight {prev}: {cross['error']}"
+    parts = []
+    for key, what in (("new_model_on_previous_flight", f"this model on flight {prev}"),
+                      ("previous_model_on_new_flight", f"flight {prev}'s model on this flight")):
+        if key in cross:
+            parts.append(f"{what} {float(cross[key]['mean_match']):.1f} %")
+    return f"flight {flight}: same aircraft as flight {prev}? held-out match: {'; '.join(parts) or 'not scored'}"

@@ -162,16 +162,20 @@ def _cross_flight(job: IdentifyJob, model: Any, prepared: Any) -> dict[str, Any]
 
 
 def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
-    from groundstation.pipeline import identify_prepared, prepare_logs
+    import dataclasses
+
+    from groundstation.pipeline import identify_prepared, prepare_logs, with_aircraft_file
     from groundstation.sysid.validate import validate
 
-    cfg, out_dir = job.config, Path(job.out_dir)
+    cfg, aircraft = with_aircraft_file(job.config)
+    job = dataclasses.replace(job, config=cfg)
+    out_dir = Path(job.out_dir)
     prepared = prepare_logs(job.tlogs, cfg)
     if not prepared.segments:
         notes = "; ".join(prepared.notes) or "no in-air data"
         return JobResult(flight=job.flight, tlogs=job.tlogs, error=f"flight {job.flight}: nothing to identify ({notes})",
                          seconds=time.perf_counter() - t0)
-    model = identify_prepared(prepared, cfg)
+    model = identify_prepared(prepared, cfg, aircraft=aircraft)
     cross = _cross_flight(job, model, prepared)
     if cross:
         model.fit["cross_flight"] = cross

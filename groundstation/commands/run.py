@@ -38,6 +38,8 @@ def add_common(parser: argparse.ArgumentParser) -> None:
                         help="stop after K flights (and their identification)")
     parser.add_argument("--scope", choices=("last", "all"), help="identify the last flight or all so far")
     parser.add_argument("--no-identify", action="store_true", help="do not identify between flights")
+    parser.add_argument("--aircraft", metavar="FILE.toml",
+                        help="aircraft file: channel map, measured outputs and prior model of the flights identified")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -84,6 +86,8 @@ def config_from_args(args: argparse.Namespace, base: ServiceConfig | None = None
         cfg = cfg.replace("identification", scope=args.scope)
     if args.no_identify:
         cfg = cfg.replace("identification", enabled=False)
+    if getattr(args, "aircraft", None):
+        cfg = cfg.replace("identification", aircraft=str(args.aircraft))
     return cfg
 
 

@@ -78,3 +78,39 @@ def test_the_channel_map_matters(remapped_flight):
     assert not np.allclose(u_mapped[:n], u_default[:n], atol=1e-3)
     # the collective is on servo 4: it is what the mapped col channel reads (same PWM, own trim/scale)
     assert mapped.input_trim_pwm == dict(zip(("lat", "lon", "col", "ped"), TRIM, strict=True))
+
+
+def test_service_worker_takes_the_aircraft_file(remapped_flight, tmp_path):
+    """``[identification] aircraft`` (``run --aircraft``): the worker prepares the flight with the aircraft
+    file's channel map and identifies it with its prior, as ``identify --aircraft`` does; the service's
+    live path reads the same map."""
+    from groundstation.config import ServiceConfig
+    from groundstation.service import Service
+
+    log, _ = remapped_flight
+    ac = tmp_path / "remap.aircraft.toml"
+    ac.write_text('name = "remap"\n[inputs]\nlat = 2\nlon = 1\ncol = 4\nped = 3\npwm_per_unit = 400.0\n'
+                  '[identify]\nmaxiter = 4\nsearch_restarts = 1\nrefine_passes = 1\nrefine_max_nfev = 8\n'
+                  'select_candidates = ""\n[prior]\nsource = "test prior"\ninv_tau_s = [9.0, 3.0]\n')
+    gs = tmp_path / "gs.toml"
+    gs.write_text("[identification]\nseed = 3\ndiagnose = false\nplots = false\n")
+    out = tmp_path / "cli" / "model.json"
+    assert main(["identify", str(log), "--out", str(out), "--config", str(gs), "--aircraft", str(ac),
+                 "--no-plot", "--quiet", "--folds", "0"]) == 0
+    cli = json.loads(out.read_text())
+
+    cfg = load_config(gs).replace("identification", aircraft=str(ac))
+    assert Service(cfg, log=lambda _: None).config.live.servo_numbers == (2, 1, 4, 3)
+    (tmp_path / "svc").mkdir()
+    res = run_job(IdentifyJob(flight=1, tlogs=(str(log),), out_dir=str(tmp_path / "svc"), config=cfg))
+    assert res.ok, res.error
+    svc = res.model
+    assert svc["fit"]["prior"]["source"] == cli["fit"]["prior"]["source"] == "test prior"
+    assert svc["pwm_per_unit"] == 400.0
+    assert svc["parameters"] == pytest.approx(cli["parameters"], rel=1e-9, abs=1e-12)
+    # without the file the worker reads the default servos and has no prior: another model
+    plain = run_job(IdentifyJob(flight=1, tlogs=(str(log),), out_dir=str(tmp_path / "svc"), config=ServiceConfig()
+                                .replace("identify", maxiter=4, search_restarts=1, select_candidates="")
+                                .replace("identification", diagnose=False, plots=False)))
+    assert plain.ok and not plain.model["fit"]["prior"]
+    assert plain.model["parameters"] != pytest.approx(svc["parameters"], rel=1e-3)

@@ -31,3 +31,14 @@ def test_cross_flight_scores_both_ways(tmp_path):
     assert np.isfinite(new_on_prev["mean_match"]) and np.isfinite(prev_on_new["mean_match"])
     assert prev_on_new["match"]["r"] < new_on_prev["match"]["r"]  # the diverging yaw is seen
     assert _cross_flight(IdentifyJob(flight=1, tlogs=(tlog,), out_dir=str(tmp_path)), new_model, prepared) == {}
+
+
+def test_the_service_logs_the_cross_flight_check():
+    from groundstation.service import cross_flight_line
+
+    line = cross_flight_line(3, {"previous_flight": 2, "new_model_on_previous_flight": {"mean_match": 31.24, "match": {}},
+                                 "previous_model_on_new_flight": {"mean_match": -12.0, "match": {}}})
+    assert line == ("flight 3: same aircraft as flight 2? held-out match: this model on flight 2 31.2 %; "
+                    "flight 2's model on this flight -12.0 %")
+    assert "bad log" in cross_flight_line(3, {"previous_flight": 2, "error": "ValueError: bad log"})
+    assert cross_flight_line(1, {}) == ""
