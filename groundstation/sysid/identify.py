@@ -208,6 +208,29 @@ class _Run:
     histories_nfev: dict[str, list[int]] = field(default_factory=dict)
     search_by_sub: dict[str, float] = field(default_factory=dict)
     search_alg: dict[str, str] = field(default_factory=dict)
+    #: parameter index -> (index of the parameter its estimate trades off with most, correlation)
+    partner: dict[int, tuple[int, float]] = field(default_factory=dict)
+
+
+def record_tradeoffs(run: _Run, sub_free: np.ndarray, ref: Any, prior_std: np.ndarray | None) -> None:
+    """Into ``run.partner``: for each free parameter of a refinement, the one its estimate is most
+    correlated with (the data's information ``J^T J`` plus the prior's, inverted), when ``ref`` has a
+    Jacobian. A parameter that ends on a bound is reported with it: the pair, not each alone, is
+    what the flight determines."""
+    J = getattr(ref, "jac", None)
+    if J is None or J.shape[1] < 2:
+        return
+    H = J.T @ J
+    if prior_std is not None:
+        H = H + np.diag(1.0 / np.asarray(prior_std, dtype=float) ** 2)
+    cov = np.linalg.pinv(H)
+    d = np.sqrt(np.maximum(np.diag(cov), 1e-300))
+    corr = cov / np.outer(d, d)
+    np.fill_diagonal(corr, 0.0)
+    idx = np.flatnonzero(sub_free)
+    for a in range(idx.size):
+        b = int(np.argmax(np.abs(corr[a])))
+        run.partner[int(idx[a])] = (int(idx[b]), float(corr[a, b]))
 
 
 @dataclass(frozen=True, eq=False)
@@ -421,6 +444,7 @@ def _identify_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], pl
     run.histories[sub_name] = [float(h) for h in opt.history]
     run.histories_nfev[sub_name] = [int(h) for h in opt.history_nfev]
     if ref is not None:
+        record_tradeoffs(run, sub_free, ref, None if pr is None else pr[1])
         run.std[np.flatnonzero(sub_free)] = ref.std
         run.share[np.flatnonzero(sub_free)] = ref.prior_share if plan.prior is not None else 0.0
         run.sigma[cost.used] = ref.sigma[cost.used]
@@ -447,16 +471,21 @@ def _in_sample_match(plan: _Plan, cfg: IdentifyConfig, theta: np.ndarray, trim: 
     return match, full_cost.used
 
 
-def _pinned(theta: np.ndarray, free: np.ndarray, b: np.ndarray) -> dict[str, str]:
-    """Free parameters within 0.1 % of a search bound, with the reason the report gives."""
+def _pinned(theta: np.ndarray, free: np.ndarray, b: np.ndarray,
+            partner: dict[int, tuple[int, float]] | None = None) -> dict[str, str]:
+    """Free parameters within 0.1 % of a search bound, with the reason the report gives: the data pull
+    it past the bound, and the parameter it trades off with most (``partner``, when known)."""
     span = b[:, 1] - b[:, 0]
     out = {}
     for i in range(N_PARAMS):
         for side, edge in (("lower", 0), ("upper", 1)):
             if free[i] and abs(theta[i] - b[i, edge]) < 1e-3 * span[i]:
+                j, r = (partner or {}).get(i, (-1, 0.0))
+                pair = (f"its estimate trades off with {PARAM_NAMES[j]} (correlation {r:+.2f}): the flight determines "
+                        f"the two together, not each alone, and " if j >= 0 and abs(r) >= 0.5 else "")
                 out[PARAM_NAMES[i]] = (f"ended on its {side} search bound {b[i, edge]:g}: the data pull it further than "
-                                       f"the bounds allow (a correlated parameter or model-structure error takes up "
-                                       f"what eq. 8 cannot explain); the value is not an estimate")
+                                       f"the bounds allow; {pair}a model-structure error (what eq. 8 cannot explain, "
+                                       f"e.g. a flight controller's loop) is taken up by it; the value is not an estimate")
     return out
 
 
@@ -522,7 +551,7 @@ def _model(prepared: Any, plan: _Plan, cfg: IdentifyConfig, run: _Run, match: di
     from groundstation.sysid.heldout import unstable_modes
 
     theta = run.theta
-    pinned = _pinned(theta, plan.free, plan.bounds)
+    pinned = _pinned(theta, plan.free, plan.bounds, run.partner)
     std: dict[str, float | None] = {n: (float(run.std[i]) if np.isfinite(run.std[i]) else None)
                                     for i, n in enumerate(PARAM_NAMES)}
     if plan.prior is not None:  # fixed at the prior: published with the prior's uncertainty

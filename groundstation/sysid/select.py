@@ -107,7 +107,15 @@ def fit_candidate(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
     """``cfg``'s model of ``prepared``: refinements from ``model0``'s parameters and ``cfg.extra_starts``,
     the lowest refined (MAP) objective per subsystem; standard errors and report as :func:`identify`'s.
     ``quick``: one refinement pass from ``model0``'s parameters only (the selection's screening fit)."""
-    from groundstation.sysid.identify import _SUBS_INPUTS, _costs, _in_sample_match, _model, _plan, _Run
+    from groundstation.sysid.identify import (
+        _SUBS_INPUTS,
+        _costs,
+        _in_sample_match,
+        _model,
+        _plan,
+        _Run,
+        record_tradeoffs,
+    )
 
     with threadpool_limits(1):
         plan = _plan(prepared, cfg, True, bounds, prior)
@@ -120,6 +128,7 @@ def fit_candidate(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
             if not cost.used.any():
                 continue
             x, ref = _best_refinement(cost, run.theta[sub_free], plan, cfg, sub_free, quick)
+            record_tradeoffs(run, sub_free, ref, None if plan.prior is None else plan.prior[1][sub_free])
             run.std[np.flatnonzero(sub_free)] = ref.std
             run.share[np.flatnonzero(sub_free)] = ref.prior_share if plan.prior is not None else 0.0
             run.sigma[cost.used] = ref.sigma[cost.used]

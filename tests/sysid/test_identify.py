@@ -67,6 +67,34 @@ def test_pinned_parameters_are_flagged(flights):
     _, train, _ = flights
     m = identify(train, seed=1, maxiter=30, bounds={"M_a": (10.0, 40.0)})
     assert "M_a" in m.pinned
+    assert "search bound" in m.fit["pinned_reasons"]["M_a"]
+
+
+def test_a_bound_reason_names_the_parameter_it_trades_off_with():
+    """Two parameters whose effects on the outputs are nearly the same: the one on a bound is reported
+    with the other (and the correlation's sign); an independent one is not named."""
+    from types import SimpleNamespace
+
+    from groundstation.sysid.identify import _pinned, _Run, record_tradeoffs
+    from groundstation.sysid.model import N_PARAMS, PARAM_INDEX, bounds_array
+
+    rng = np.random.default_rng(0)
+    a, c = rng.normal(size=400), rng.normal(size=400)
+    J = np.column_stack([a, a + 0.05 * rng.normal(size=400), c])   # M_q, M_a nearly collinear; L_p not
+    sub_free = np.zeros(N_PARAMS, dtype=bool)
+    names = ("M_q", "M_a", "L_p")
+    sub_free[[PARAM_INDEX[n] for n in names]] = True
+    order = np.argsort([PARAM_INDEX[n] for n in names])
+    run = _Run(theta=np.zeros(N_PARAMS))
+    record_tradeoffs(run, sub_free, SimpleNamespace(jac=J[:, order]), None)
+    b = bounds_array()
+    theta = np.zeros(N_PARAMS)
+    theta[PARAM_INDEX["M_q"]] = b[PARAM_INDEX["M_q"], 0]
+    theta[PARAM_INDEX["L_p"]] = b[PARAM_INDEX["L_p"], 1]
+    why = _pinned(theta, sub_free, b, run.partner)
+    assert set(why) == {"M_q", "L_p"}
+    assert "trades off with M_a (correlation -" in why["M_q"]   # same effect: the estimates anti-correlate
+    assert "trades off" not in why["L_p"] and "lower search bound" in why["M_q"]
 
 
 def test_missing_velocities_fix_their_parameters():
