@@ -489,17 +489,20 @@ def _pinned(theta: np.ndarray, free: np.ndarray, b: np.ndarray,
     return out
 
 
-def _prior_report(plan: _Plan, run: _Run, prior: Any) -> dict[str, Any]:
+def _prior_report(plan: _Plan, run: _Run, prior: Any, pinned: dict[str, str] | None = None) -> dict[str, Any]:
     """Which free parameters the flight determines and which stay at their prior (share > 0.5); the
-    parameters the data cannot move at all (``fixed_at_prior``) keep the prior's value and std."""
+    parameters the data cannot move at all (``fixed_at_prior``) keep the prior's value and std. A
+    parameter on a search bound (``pinned``) is in neither list: the data pulled it away from the
+    prior as far as the bounds allow, and its value is not an estimate (``on_bound``)."""
     if plan.prior is None:
         return {}
     det: list[str] = []
     undet: list[str] = []
     for i, n in enumerate(PARAM_NAMES):
-        if plan.free[i] and np.isfinite(run.share[i]):
+        if plan.free[i] and np.isfinite(run.share[i]) and n not in (pinned or {}):
             (undet if run.share[i] > 0.5 else det).append(n)
     return {"source": str(getattr(prior, "source", "given")), "determined": det, "prior_dominated": undet,
+            "on_bound": sorted(pinned or {}),
             "fixed_at_prior": [n for i, n in enumerate(PARAM_NAMES) if not plan.free[i]],
             "prior_share": {n: float(run.share[i]) for i, n in enumerate(PARAM_NAMES) if np.isfinite(run.share[i])},
             "nominal": {n: float(plan.prior[0][i]) for i, n in enumerate(PARAM_NAMES)},
@@ -575,7 +578,7 @@ def _model(prepared: Any, plan: _Plan, cfg: IdentifyConfig, run: _Run, match: di
                                       for j, k in enumerate(prepared.input_trim_pwm)},
         "pinned_reasons": pinned,
         "unstable_modes": [m.describe() for m in unstable_modes(theta)],
-        "prior": _prior_report(plan, run, prior),
+        "prior": _prior_report(plan, run, prior, pinned),
     }
     return HoverModel(
         params={n: float(v) for n, v in zip(PARAM_NAMES, theta, strict=True)},

@@ -54,9 +54,10 @@ from groundstation.sysid.model import HOR_PARAMS, N_PARAMS, PARAM_INDEX, VER_PAR
 #: named candidate configurations (overrides of IdentifyConfig fields)
 PRESETS: dict[str, dict[str, Any]] = {
     # fit what the model is asked to do on a real flight: 5-s windows from the measured states,
-    # channels weighted by their signal (eq. 11), no trim or heave-kinematics terms, refinements also
-    # started from the prior and from zero
-    "predictive": {"window_s": 5.0, "window_step_s": 0.0, "estimate_all_initial": False, "channel_weighting": "signal",
+    # channels weighted by their residual (the real TREX 550 log: 5-fold held-out 32.4 % against 31.0 %
+    # weighting by the signal, eq. 11; roll rate no longer below zero in any fold), no trim or
+    # heave-kinematics terms, refinements also started from the prior and from zero
+    "predictive": {"window_s": 5.0, "window_step_s": 0.0, "estimate_all_initial": False, "channel_weighting": "noise",
                    "kinematic_forcing": "", "estimate_trim": False, "extra_starts": "prior,zero"},
     # the simulator's setting: 3-s windows, every initial state estimated, residual weighting
     "all_initial": {"window_s": 3.0, "window_step_s": 0.0, "estimate_all_initial": True, "channel_weighting": "noise",

@@ -117,7 +117,7 @@ def test_identify_real_log_with_aircraft_file_reports_heldout_prior_and_closed_l
     assert set(ho["predicted"]) | set(ho["not_predicted"]) == set(ho["channel_mean"])
     assert fit["usable"] == (not ho["unusable_subsystems"])
     assert fit["prior"]["source"].startswith("wide defaults")
-    assert set(fit["prior"]["determined"]) | set(fit["prior"]["prior_dominated"]) | set(fit["fixed"]) >= {"inv_tau_s", "N_r"}
+    assert set(fit["prior"]["determined"]) | set(fit["prior"]["prior_dominated"]) | set(fit["prior"]["on_bound"]) | set(fit["fixed"]) >= {"inv_tau_s", "N_r"}
     assert isinstance(fit["closed_loop"], list) and isinstance(fit["unstable_modes"], list)
     printed = capsys.readouterr().err
     assert "held-out match over 3 contiguous folds" in printed and "the model predicts" in printed

@@ -65,9 +65,14 @@ def test_identified_matches_truth_on_another_flight(flights, model):
 
 def test_pinned_parameters_are_flagged(flights):
     _, train, _ = flights
-    m = identify(train, seed=1, maxiter=30, bounds={"M_a": (10.0, 40.0)})
+    from groundstation.aircraft import wide_prior
+
+    m = identify(train, seed=1, maxiter=30, bounds={"M_a": (10.0, 40.0)}, prior=wide_prior())
     assert "M_a" in m.pinned
     assert "search bound" in m.fit["pinned_reasons"]["M_a"]
+    # not an estimate: neither "determined" nor "held near the prior", but on a bound
+    pr = m.fit["prior"]
+    assert "M_a" in pr["on_bound"] and "M_a" not in pr["determined"] + pr["prior_dominated"]
 
 
 def test_a_bound_reason_names_the_parameter_it_trades_off_with():
