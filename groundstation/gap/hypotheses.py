@@ -43,6 +43,10 @@ RATE_OF_MAX = (0.05, 0.1, 0.2, 0.35, 0.5, 0.7)
 DEADBAND_QUANTILES = (0.1, 0.2, 0.35, 0.5, 0.7, 0.85)
 #: ... and as multiples of the channel's input standard deviation.
 DEADBAND_STD = (0.1, 0.25, 0.5, 0.75, 1.0)
+#: Deadzone centres relative to the input trim, as fractions of the half-width: the trim is the
+#: median input in the air, and inside a wide band the pilot's stick rests anywhere (nothing
+#: answers it there), so the median need not be the band's centre
+DEADBAND_CENTRE = (-0.5, 0.0, 0.5)
 #: Ground-effect decay heights relative to the smallest height flown (m, added to it).
 GROUND_DECAY_M = (0.25, 0.5, 1.0, 2.0)
 
@@ -92,8 +96,11 @@ def rate_limit(x: np.ndarray, max_step: np.ndarray) -> np.ndarray:
     return out
 
 
-def deadzone(x: np.ndarray, b: float) -> np.ndarray:
-    return np.sign(x) * np.maximum(np.abs(x) - b, 0.0)
+def deadzone(x: np.ndarray, b: float, centre: float = 0.0) -> np.ndarray:
+    """No output within ``b`` of ``centre``; outside, the input less ``b`` (zero at zero input when
+    ``|centre| < b``: the trim stays the trim)."""
+    d = x - centre
+    return np.sign(d) * np.maximum(np.abs(d) - b, 0.0)
 
 
 def backlash(x: np.ndarray, b: float) -> np.ndarray:
@@ -259,13 +266,11 @@ def scan_deadband(ctx: Context, channels: list[int]) -> Hypothesis:
         au = np.concatenate([np.abs(s.inputs[:, c]) for s in segs])
         widths = np.unique(np.round(np.concatenate([np.quantile(au, DEADBAND_QUANTILES),
                                                     np.array(DEADBAND_STD) * au.std()]), 6))
-        for kind, fn in (("deadzone", deadzone), ("backlash", backlash)):
-            for b in widths:
-                Us = [s.inputs.copy() for s in segs]
-                for u in Us:
-                    u[:, c] = fn(u[:, c], float(b))
-                U_list.append(ev.cut(Us))
-                labels.append({"channel": c, "width": float(b), "kind": kind})
+        for b in widths:
+            for kind, off in [("deadzone", f) for f in DEADBAND_CENTRE] + [("backlash", 0.0)]:
+                lab: dict[str, Any] = {"channel": c, "width": float(b), "kind": kind, "centre": float(off * b)}
+                U_list.append(ev.cut(apply_deadband(segs, lab)))
+                labels.append(lab)
     yh = ctx.variants_residual(U_list=U_list)
     variants = [(lab, ev.residual(y), None) for lab, y in zip(labels, yh, strict=True)]
     sse, best, _ = ctx.nested("deadband", variants)
@@ -294,11 +299,25 @@ def apply_input_effect(h: Hypothesis, segments: list[SegmentArrays], dt_s: float
         elif h.effect == "rate_limit":
             u[:, c] = rate_limit(u[:, c], np.array([lab["rate_per_s"] * dt_s]))[:, 0]
         elif h.effect == "deadband":
-            u[:, c] = (deadzone if lab["kind"] == "deadzone" else backlash)(u[:, c], float(lab["width"]))
+            u = apply_deadband([s], lab)[0]
         else:
             raise GapError(f"not an input effect: {h.effect}")
         out.append(SegmentArrays(t_s=s.t_s, inputs=u, outputs=s.outputs, outputs_raw=s.outputs_raw,
                                  alt_m=s.alt_m, flight=s.flight))
+    return out
+
+
+def apply_deadband(segments: Sequence[SegmentArrays], lab: dict[str, Any]) -> list[np.ndarray]:
+    """Each segment's inputs with the deadband variant ``lab`` (channel, width, kind, centre) applied."""
+    c, b = int(lab["channel"]), float(lab["width"])
+    out = []
+    for s in segments:
+        u = s.inputs.copy()
+        if lab["kind"] == "deadzone":
+            u[:, c] = deadzone(u[:, c], b, float(lab.get("centre", 0.0)))
+        else:
+            u[:, c] = backlash(u[:, c], b)
+        out.append(u)
     return out
 
 

@@ -15,8 +15,9 @@ The test at flight ``k`` (sequential: only flights ``1..k`` are used, as it woul
 day) compares the value with the baseline (the mean of the first ``baseline`` flights):
 ``z_k = (v_k - ref) / sqrt(sigma_k^2 + sigma_ref^2)``. The quantity has *moved* at the first flight
 where ``|z|`` exceeds the critical value on two consecutive flights, or on one flight together with a
-significant weighted linear trend over ``1..k`` (a steadily growing deadband is caught at the flight
-where it leaves the band; a one-off outlier is not called a change). The critical value is
+significant weighted linear trend the same way over the flights before it, ``1..k-1`` (a steadily
+growing deadband is caught at the flight where it leaves the band; a one-off outlier, even on the
+latest flight, is not called a change: it cannot confirm itself). The critical value is
 Bonferroni-corrected over the series tested (``n_tests``), a Student t with the degrees of freedom
 of the scatter estimate; the repeated looks at one series are covered by asking for two
 consecutive flights (or a significant trend) beyond it. A campaign of many unchanged parameters
@@ -179,8 +180,9 @@ def assess(name: str, values, std=None, *, n_tests: int = 1, config: TrendConfig
         above = abs(z[k]) > crit
         if above and changed_at is None:
             idx = fin[fin <= k]
-            _, bz = _slope(v[idx], sig[idx])
-            if above_prev or abs(bz) > crit:
+            before = fin[fin < k]  # the trend that confirms flight k is the one before it: an outlier
+            _, bz = _slope(v[before], sig[before])  # at the end of a series does not confirm itself
+            if above_prev or (abs(bz) > crit and np.sign(bz) == np.sign(z[k])):
                 changed_at, direction = int(k), int(np.sign(z[k]))
                 kind = "trend" if _steady(v[idx]) else "step"
         above_prev = above

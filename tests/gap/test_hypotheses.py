@@ -20,6 +20,8 @@ def _segment(n=400, seed=0):
     ("rate_limit", {"channel": 2, "rate_per_s": 0.5}, lambda x: rate_limit(x, np.array([0.01]))[:, 0]),
     ("deadband", {"channel": 0, "width": 0.02, "kind": "deadzone"}, lambda x: deadzone(x, 0.02)),
     ("deadband", {"channel": 3, "width": 0.02, "kind": "backlash"}, lambda x: backlash(x, 0.02)),
+    ("deadband", {"channel": 2, "width": 0.03, "kind": "deadzone", "centre": -0.015},
+     lambda x: deadzone(x, 0.03, -0.015)),
 ])
 def test_apply_input_effect_transforms_only_its_channel(effect, label, fn):
     seg = _segment()
@@ -30,6 +32,19 @@ def test_apply_input_effect_transforms_only_its_channel(effect, label, fn):
     others = [k for k in range(4) if k != c]
     np.testing.assert_array_equal(out.inputs[:, others], seg.inputs[:, others])
     assert not np.allclose(out.inputs[:, c], seg.inputs[:, c])  # the transform did something
+
+
+def test_deadzone_off_the_trim_is_silent_around_its_centre_and_keeps_the_trim():
+    """A band centred off the input trim (the pilot rested inside it, so the median input is not its
+    centre): nothing within the half-width of the centre, the input less the half-width outside,
+    and zero input still gives zero."""
+    x = np.linspace(-0.2, 0.2, 401)
+    y = deadzone(x, 0.08, -0.05)
+    inside = np.abs(x + 0.05) <= 0.08
+    assert np.all(y[inside] == 0.0) and np.all(y[~inside] != 0.0)
+    np.testing.assert_allclose(y[x > 0.03], x[x > 0.03] - 0.03)
+    np.testing.assert_allclose(y[x < -0.13], x[x < -0.13] + 0.13)
+    assert deadzone(np.array([0.0]), 0.08, -0.05)[0] == 0.0
 
 
 def test_apply_input_effect_rejects_other_effects():

@@ -42,6 +42,18 @@ def test_growing_effect_flagged_by_the_flight_it_doubles():
     assert not any(tr.changed for k, tr in trends.items() if k.startswith("p"))
 
 
+def test_one_outlier_on_the_latest_flight_is_not_a_change():
+    """A search in a wrong basin on the newest flight: far beyond the band, but nothing before it
+    moved, so it is not called (it would be if the next flight stayed there)."""
+    rng = np.random.default_rng(5)
+    v, s = _noisy(rng, 12, 0.3, 0.05)
+    v[-1] = 3.0
+    t = assess("effect:wind_gust.air_velocity_rms_m_s", v, None, n_tests=40)
+    assert abs(t.z[-1]) > t.z_crit and not t.changed
+    t2 = assess("effect:wind_gust.air_velocity_rms_m_s", np.r_[v, 3.1], None, n_tests=40)
+    assert t2.changed and t2.changed_at == 12 and t2.kind == "step"
+
+
 def test_step_after_repair_is_a_step_and_only_after_it():
     rng = np.random.default_rng(11)
     v = np.r_[np.full(8, -0.5), np.full(8, -0.8)] + 0.01 * rng.standard_normal(16)
