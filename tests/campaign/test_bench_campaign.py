@@ -19,3 +19,22 @@ def test_makespan_hands_each_task_to_the_first_free_worker():
     assert _makespan([4.0, 3.0, 3.0, 4.0], 2) == 8.0  # 4, then 4 | 3, then 3: in submission order
     assert _makespan([5.0, 1.0, 1.0, 1.0], 2) == 5.0
     assert _makespan([1.0, 2.0, 3.0], 1) == 6.0
+
+
+def test_trend_verdict_names_the_flagged_flight_and_skips_too_short_campaigns(capsys):
+    import numpy as np
+
+    from groundstation.bench.campaign import _print_trends
+    from groundstation.trends.change import assess_all
+
+    rng = np.random.default_rng(0)
+    widths = np.linspace(0.01, 0.07, 16)
+    v = widths + 0.001 * rng.standard_normal(16)
+    steady = (1.0 + 0.1 * rng.standard_normal(16), np.full(16, 0.1))
+    _print_trends(assess_all({"effect:deadband[lon].deadband": (v, None), "X_u": steady}), widths, "lon")
+    out = capsys.readouterr().out
+    doubled = int(np.flatnonzero(v > 2 * v[0])[0]) + 1
+    assert f"exceeds twice its first estimate at flight {doubled}; flagged at flight" in out
+    assert "(trend): PASS" in out and "other series flagged: none of 1 tested: PASS" in out
+    _print_trends(assess_all({"effect:deadband[lon].deadband": (v[:2], None)}), widths[:2], "lon")
+    assert "2 flights: the change test judges from 4 on (not run)" in capsys.readouterr().out
