@@ -8,11 +8,12 @@ Frequency-domain figures on simulated flights with known truth:
    window lengths, the truth's J, delays and bandwidths), median of repeats, BLAS on one thread;
 3. a 100 ms transport delay on the lon input after the log: the delay recovered from the phase
    slope of the data against the delay-free truth;
-4. frequency-domain identification (CABC + refinement): the 8 key parameters' errors against truth;
+4. frequency-domain identification (CABC on J + refinement, then the output-error step): the 8 key parameters' errors against truth;
    the time-domain fit and the frequency-domain refinement started from it (``identify --domain
-   both``: the time fit as warm start, J only as refinement); and the same refinement started at the
+   both``: the time fit as warm start, the frequency cost only as refinement); and the same refinement started at the
    truth (the J minimum nearest it): when that minimum is itself off, the responses (not the search)
-   put J's minimum there. The summary gives the median and minimum count over the flights.
+   put J's minimum there. The summary gives the median and minimum count over the flights. Each
+   model is also scored on the next seed's flight (held-out mean match, eq. 19).
 
 Flights: ``linear`` = the eq.-8 model under a state-feedback pilot (:mod:`groundstation.sysid.synthetic`;
 the delay is a shift of the logged input), ``sim`` = the nonlinear simulator (hil_replay)
@@ -43,7 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeats", type=int, default=5, help="timing repeats")
     parser.add_argument("--skip-identify", action="store_true")
     parser.add_argument("--algorithm", default="cabc")
-    parser.add_argument("--weighting", choices=("coherence", "random_error"), default=None,
+    parser.add_argument("--weighting", choices=("coherence", "random_error", "output_error"), default=None,
                         help="frequency-domain fit cost (default: the fit's default)")
     parser.add_argument("--skip-time", action="store_true",
                         help="skip the time-domain fit and the frequency refinement warm-started from it")
@@ -117,12 +118,14 @@ def _key_errors(params: dict[str, float], truth: dict[str, float]) -> tuple[int,
 
 
 def _identification(con: Any, args: argparse.Namespace, rs: Any, prep: Any, truth: dict[str, float], seed: int,
-                    counts: dict[str, list[int]]) -> None:
+                    counts: dict[str, list[int]], heldout: Any = None) -> None:
     """Key-parameter counts of the frequency fit, the time fit, the refinement warm-started from the
-    time fit and the refinement from the truth, appended to ``counts`` and printed."""
+    time fit and the refinement from the truth, appended to ``counts`` and printed; with ``heldout``
+    (another flight of the same aircraft) each model's mean match on it (eq. 19) too."""
     from groundstation.freq.identify import FreqIdentifyConfig, identify_frequency
     from groundstation.freq.verify import verify
     from groundstation.sysid.model import theta_from_dict
+    from groundstation.sysid.validate import validate
 
     fc = FreqIdentifyConfig(**({"weighting": args.weighting} if args.weighting else {}))
     fits: list[tuple[str, Any]] = [("frequency-domain identification",
@@ -135,13 +138,14 @@ def _identification(con: Any, args: argparse.Namespace, rs: Any, prep: Any, trut
                                                                                         seed=seed))),
                  ("frequency refinement from the time fit",
                   lambda: identify_frequency(rs, prep, start=tm["m"].theta, config=fc))]
-    fits.append(("J minimum nearest the truth (refined from it)",
+    fits.append(("cost minimum nearest the truth (refined from it)",
                  lambda: identify_frequency(rs, prep, start=theta_from_dict(truth), config=fc)))
     for label, fit in fits:
         m = fit()
         n, worst = _key_errors(m.params, truth)
         counts.setdefault(label, []).append(n)
-        con.print(f"    {label}: {n}/8 key parameters within 10 % (worst {worst}), J_avg {verify(m.theta, rs).J_avg:.1f}")
+        ho = "" if heldout is None else f", held-out match on the next flight {validate(m, heldout)['mean_match']:.1f} %"
+        con.print(f"    {label}: {n}/8 key parameters within 10 % (worst {worst}), J_avg {verify(m.theta, rs).J_avg:.1f}{ho}")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -179,7 +183,8 @@ def run(args: argparse.Namespace) -> int:
                 delays.append(np.nan if d is None else d.delay_s)
                 con.print(f"    100 ms lon delay: {1000 * delays[-1]:.1f} ms from the phase slope")
                 if not args.skip_identify:
-                    _identification(con, args, rs, prep, truth, seed, counts)
+                    nxt = _linear(seed + 1, args.duration_s) if src == "linear" else _sim(seed + 1, args.duration_s, tmp)
+                    _identification(con, args, rs, prep, truth, seed, counts, nxt[0])
             con.print(f"  median: {100 * np.median(inside):.1f} % inside the bound (min {100 * np.min(inside):.1f} %), "
                       f"true-model J_avg {np.nanmedian(J_true):.1f} (max {np.nanmax(J_true):.1f}), "
                       f"delay error {1000 * np.nanmedian(np.abs(np.array(delays) - 0.1)):.1f} ms "

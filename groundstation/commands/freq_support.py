@@ -133,7 +133,7 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
     ic = cfg.identification
     bounds = dict(cfg.bounds)
     fcfg = FreqIdentifyConfig(fit_delays=args.fit_delays, refine=ic.refine,
-                              weighting=getattr(args, "freq_weighting", "coherence"),
+                              weighting=getattr(args, "freq_weighting", "output_error"),
                               **({"maxiter": args.maxiter} if args.maxiter else {}))
     models = {}
     start = None

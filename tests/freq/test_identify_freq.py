@@ -25,7 +25,7 @@ def test_fit_reaches_the_truths_J_and_key_parameters(flight150):
     truth = np.array([EXAMPLE_TRUTH[k] for k in EXAMPLE_TRUTH])
     for cfg, bound in ((FreqConfig(), 0.25), (FreqConfig(window_s=(8.0, 15.0, 30.0)), 0.10)):
         rs = estimate_responses(flight150, cfg)
-        m = identify_frequency(rs, flight150, algorithm="cabc", seed=0)
+        m = identify_frequency(rs, flight150, algorithm="cabc", seed=0, config=FreqIdentifyConfig(weighting="coherence"))
         err = {k: abs(m.params[k] - EXAMPLE_TRUTH[k]) / abs(EXAMPLE_TRUTH[k]) for k in KEY}
         assert max(err.values()) <= bound, err
         assert verify(m.theta, rs).J_avg <= verify(truth, rs).J_avg
@@ -40,7 +40,7 @@ def test_refinement_from_a_given_start_finds_the_nearest_J_minimum(flight150, tr
     """``start``: no search, the refinement only; from the truth it ends at a J no higher than the
     truth's, at the responses' own minimum near it."""
     rs = estimate_responses(flight150)
-    near = identify_frequency(rs, flight150, start=truth_theta)
+    near = identify_frequency(rs, flight150, start=truth_theta, config=FreqIdentifyConfig(weighting="coherence"))
     assert near.fit["algorithm"] == "refinement from a given start" and not any(near.fit["history"].values())
     assert verify(near.theta, rs).J_avg <= verify(truth_theta, rs).J_avg
     err = {k: abs(near.params[k] - EXAMPLE_TRUTH[k]) / abs(EXAMPLE_TRUTH[k]) for k in KEY}
@@ -62,6 +62,50 @@ def test_random_error_weighting_from_the_truth(flight150, truth_theta):
     assert near.fit["cost"] != pytest.approx(sum(near.fit["J_by_subsystem"].values()))
     with pytest.raises(ValueError, match="weighting"):
         FreqIdentifyConfig(weighting="ols")
+
+
+def test_output_error_transform_is_exact_on_noise_free_data(truth_theta):
+    """The windows' transforms obey the model exactly once the end states are solved: the true model
+    leaves no residual on a noise-free flight; a model with another flapping time constant does."""
+    from groundstation.dsp.prepare import prepared_from_arrays
+    from groundstation.freq.fdoe import FdoeCost
+    from groundstation.sysid.model import PARAM_INDEX
+    from groundstation.sysid.synthetic import simulate_flight
+
+    u, y, _ = simulate_flight(truth_theta, 30.0, 0.02, seed=4)
+    prep = prepared_from_arrays(u, y, 0.02)
+
+    def unpack(X):
+        return np.atleast_2d(X), np.zeros((np.atleast_2d(X).shape[0], 4))
+
+    other = truth_theta.copy()
+    other[PARAM_INDEX["inv_tau_s"]] *= 1.2
+    for sub in (0, 1):
+        cost = FdoeCost(prep.segments, 0.02, sub, unpack, window_s=3.0)
+        f_true, f_other = cost(np.stack([truth_theta, other]))
+        scale = float(cost(np.zeros((1, truth_theta.size)))[0])   # no model: the outputs' own energy
+        assert f_true < 1e-12 * scale
+        if sub == 0:
+            assert f_other > 1e-4 * scale
+
+
+def test_output_error_fit_gets_the_key_parameters_and_predicts_another_flight(flight150, truth_theta):
+    """The default frequency-domain fit (J search, then output error on the windows' transforms) puts
+    the 8 key parameters within 10 % where J alone slides along the flapping ridge, and its model
+    predicts another flight as well as the truth does."""
+    from groundstation.sysid.model import HoverModel
+    from groundstation.sysid.validate import validate
+
+    rs = estimate_responses(flight150)
+    m = identify_frequency(rs, flight150, algorithm="cabc", seed=0)
+    assert m.fit["weighting"] == "output_error" and m.fit["J_by_subsystem"]["horizontal"] > 0
+    err = {k: abs(m.params[k] - EXAMPLE_TRUTH[k]) / abs(EXAMPLE_TRUTH[k]) for k in KEY}
+    assert max(err.values()) <= 0.10, err
+    other = flight(150.0, seed=7)
+    truth = HoverModel(params=dict(EXAMPLE_TRUTH))
+    assert validate(m, other)["mean_match"] >= 0.99 * validate(truth, other)["mean_match"]
+    # responses only (no flight records): Tischler's J, and the model says so
+    assert identify_frequency(rs, None, start=truth_theta).fit["weighting"] == "coherence"
 
 
 def test_fitted_delay_and_other_optimiser():
