@@ -223,6 +223,19 @@ class _VarProCost:
         return self.base(self.complete(Xs))
 
 
+class _Partial:
+    """``cost`` over its first ``k`` variables, the others held at ``x_full``'s (residuals only)."""
+
+    def __init__(self, cost: Any, x_full: np.ndarray, k: int) -> None:
+        self.cost, self.x_full, self.k = cost, np.asarray(x_full, float), k
+
+    def residuals(self, X: np.ndarray) -> np.ndarray:
+        X = np.atleast_2d(X)
+        full = np.repeat(self.x_full[None], X.shape[0], axis=0)
+        full[:, : self.k] = X
+        return self.cost.residuals(full)
+
+
 def _distinct_best(opt: Any, k: int, span: np.ndarray, min_dist: float = 0.2) -> list[np.ndarray]:
     X, f = getattr(opt, "archive_x", None), getattr(opt, "archive_f", None)
     if X is None or f is None:
@@ -354,8 +367,10 @@ def identify_frequency(responses: ResponseSet, prepared: Any = None, *, algorith
                     best_x, best_f, best_res = res.x, f, res
         if cfg.refine and cost is not jcost:   # channels weighted by their residual at the J fit, then refined
             cost.set_noise_weights(best_x)
-            best_res = _refine(cost, best_x, lo, hi, cfg.refine_max_nfev)
-            best_x, best_f = best_res.x, float(cost(best_res.x[None])[0])
+            k = free_idx.size   # the delays stay at the J fit's (a phase slope J measures well; windows cut a delay)
+            best_res = _refine(_Partial(cost, best_x, k), best_x[:k], lo[:k], hi[:k], cfg.refine_max_nfev)
+            best_x = np.concatenate([best_res.x, best_x[k:]])
+            best_f = float(cost(best_x[None])[0])
         th, d = cost.unpack(best_x[None])
         theta = th[0]
         delays[d_in] = d[0, d_in]
