@@ -249,7 +249,7 @@ def _distinct_best(opt: Any, k: int, span: np.ndarray, min_dist: float = 0.2) ->
     return out or [np.asarray(opt.x, float)]
 
 
-def _refine(cost: _SubCost, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_nfev: int) -> Any:
+def _refine(cost: Any, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_nfev: int) -> Any:
     span = hi - lo
     x0 = np.clip(x0, lo + 1e-9 * span, hi - 1e-9 * span)
 
