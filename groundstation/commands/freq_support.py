@@ -164,6 +164,7 @@ def _score_and_write(args: argparse.Namespace, models: dict[str, Any], rs: Any, 
     from groundstation.commands.identify import print_model, write_json
     from groundstation.freq.model_response import delays_from_augmentations
     from groundstation.freq.verify import verify
+    from groundstation.sysid.heldout import SUBSYSTEM_CHANNELS
     from groundstation.sysid.validate import validate
 
     scores = {}
@@ -174,6 +175,7 @@ def _score_and_write(args: argparse.Namespace, models: dict[str, Any], rs: Any, 
                         "J": {f"{p.input}->{p.output}": p.J for p in v.pairs}}
         m.fit["scores"] = {"frequency": {k: scores[name][k] for k in ("J_avg", "J_avg_good", "J")},
                            "time": {"mean_match": t["mean_match"]}}
+        mark_unsupported(m, prepared)
         m.source["logs"] = [str(p) for p in args.logs]
     outs = {"frequency": args.out} if args.domain == "frequency" else {
         "time": args.out, "frequency": args.out.with_name(args.out.stem + "_freq.json")}
@@ -198,7 +200,28 @@ def _score_and_write(args: argparse.Namespace, models: dict[str, Any], rs: Any, 
         out.print(tab)
         for p in rs.without_response:
             out.print(f"no response {p.input}->{p.output}: {p.reason}")
+        for name, m in models.items():
+            for u in m.fit["unstable_modes"]:
+                out.print(f"[yellow]unstable[/] ({name}-domain fit): {u}")
+            for sub in m.fit["unusable_subsystems"]:
+                own = [c for c in m.fit["runaway_channels"] if c in SUBSYSTEM_CHANNELS[sub]]
+                out.print(f"[red]unusable[/] ({name}-domain fit): the {sub} subsystem's prediction of this flight "
+                          f"runs away ({', '.join(own)}): not a model of the aircraft")
     return 0
+
+
+def mark_unsupported(model: Any, prepared: Any, runaway_factor: float = 3.0) -> None:
+    """Record in ``model.fit`` what the flight does not support: ``unstable_modes`` (with their time
+    constants), ``runaway_channels`` (eq. 19 prediction of the flight it was fitted to, 5-s windows from
+    the measured states, error above ``runaway_factor`` times the signal), ``unusable_subsystems`` and
+    ``usable``. A frequency fit never sees the time histories whole, so this is its first check in time."""
+    from groundstation.sysid.heldout import SUBSYSTEM_CHANNELS, predict, runaway_channels, unstable_modes
+
+    ran = runaway_channels(predict(model, prepared), runaway_factor)
+    model.fit["unstable_modes"] = [u.describe() for u in unstable_modes(model.theta)]
+    model.fit["runaway_channels"] = ran
+    model.fit["unusable_subsystems"] = [s for s, cs in SUBSYSTEM_CHANNELS.items() if any(c in ran for c in cs)]
+    model.fit["usable"] = not model.fit["unusable_subsystems"]
 
 
 def _print_freq_fit(model: Any, con: Any) -> None:

@@ -159,3 +159,20 @@ def test_varpro_search_reaches_a_J_no_worse_than_the_truth(flight150):
     assert verify(m.theta, rs).J_avg <= verify(truth, rs).J_avg
     for k in ("Z_col", "N_ped", "N_r"):  # the vertical subsystem is not affected
         assert abs(m.params[k] - EXAMPLE_TRUTH[k]) <= 0.1 * abs(EXAMPLE_TRUTH[k])
+
+
+def test_a_frequency_model_the_flight_does_not_support_is_marked(flight150):
+    """A frequency fit is checked in time on its own flight: an unstable yaw mode is reported with its
+    time constant and, as its yaw-rate prediction runs away, the vertical subsystem is marked unusable;
+    the true model passes the same check."""
+    from groundstation.commands.freq_support import mark_unsupported
+    from groundstation.sysid.model import HoverModel
+
+    good = HoverModel(params=dict(EXAMPLE_TRUTH))
+    mark_unsupported(good, flight150)
+    assert good.fit["usable"] and not good.fit["unstable_modes"] and not good.fit["runaway_channels"]
+    bad = HoverModel(params={**EXAMPLE_TRUTH, "N_r": 3.0})
+    mark_unsupported(bad, flight150)
+    assert any(u.startswith("vertical subsystem unstable") and "time constant" in u for u in bad.fit["unstable_modes"])
+    assert "r" in bad.fit["runaway_channels"] and bad.fit["unusable_subsystems"] == ["vertical"]
+    assert not bad.fit["usable"]
