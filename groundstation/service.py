@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from firmware_interface.errors import LinkError
 from firmware_interface.samples import (
     FcRebooted,
     LinkLost,
@@ -694,6 +695,7 @@ class Service:
         # 4. link and built-in simulator
         link = self.runner.link if self.runner is not None else None
         if link is not None:
+            await self._send_what_is_queued(link)
             try:
                 await asyncio.wait_for(link.close(), 0.5)
             except (OSError, TimeoutError):
@@ -704,6 +706,18 @@ class Service:
                 await asyncio.to_thread(self.sim.stop, 1.0)
             except (OSError, TimeoutError, RuntimeError) as exc:
                 self._warn(f"stopping the simulator: {exc}")
+
+    async def _send_what_is_queued(self, link: Any) -> None:
+        """Messages the session still holds (a LOG_REQUEST_END queued as a download finished) are
+        written before the port closes, so the FC is not left with a log transfer open."""
+        if self.session is None or self.runner is None:
+            return
+        try:
+            out = self.session.data_to_send(self.runner.clock())
+            if out:
+                await asyncio.wait_for(link.write(out), 0.5)
+        except (LinkError, OSError, TimeoutError) as exc:
+            self._warn(f"{getattr(link, 'url', 'link')}: last messages not sent ({exc})")
 
 
 def _worker_init() -> None:

@@ -596,7 +596,17 @@ class SimulatedFlightController:
                 await reader
             except asyncio.CancelledError:
                 pass
+            self._hear_the_rest()
         return self.stats
+
+    def _hear_the_rest(self) -> None:
+        """Bytes the ground station wrote before the end are still heard (a last LOG_REQUEST_END
+        written just before it closed its port), as a real FC would have read them."""
+        try:
+            while data := self.port.read_nowait():
+                self.protocol.receive_data(data)
+        except (PortUnplugged, OSError):
+            pass
 
 
 def _make_session(seed: int, flights: int, effects: Sequence[Any], aircraft: Any,
