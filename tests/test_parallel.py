@@ -97,3 +97,54 @@ def test_reused_jacobian_array_equals_a_fresh_one():
     again = _fd_jacobian(cost, x * 1.01, h, sigma, central=False, reuse=True)
     assert np.shares_memory(again, reused)              # the same array, overwritten
     assert "_jac_buffer" not in cost.__getstate__()     # not shipped to worker processes
+
+
+def _parent_pid(_: int) -> int:
+    import os
+
+    return os.getppid()
+
+
+def test_worker_map_workers_are_forked_from_the_shared_fork_server():
+    """``identify --jobs`` workers come from the fork server that imported the analysis once (the
+    campaign's pool uses the same one), not spawned and importing everything again."""
+    import os
+    from multiprocessing import forkserver
+
+    with worker_map(2) as pmap:
+        parents = set(pmap(_parent_pid, range(4)))
+    server = forkserver._forkserver._forkserver_pid
+    assert server is not None and server != os.getpid()
+    assert parents == {server}
+
+
+_FAULTS = """
+import resource, sys
+import numpy as np
+from groundstation.parallel import keep_freed_memory
+keep = sys.argv[1] == "keep"
+if keep:
+    assert keep_freed_memory()
+def rounds(n):
+    for _ in range(n):   # a fit's pattern: a few MB temporaries, all freed before the next step
+        xs = [np.ones(500_000) for _ in range(12)]
+        del xs
+rounds(1)
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+rounds(5)
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+def test_freed_memory_is_kept_for_the_next_allocations():
+    """Temporaries freed and allocated again are not returned to the system and faulted back in."""
+    import subprocess
+    import sys
+
+    faults = {}
+    for mode in ("default", "keep"):
+        out = subprocess.run([sys.executable, "-c", _FAULTS, mode], check=True, capture_output=True, text=True)
+        faults[mode] = int(out.stdout.split()[-1])
+    pages = 5 * 12 * 500_000 * 8 // 4096  # every round's 48 MB faulted anew without it
+    assert faults["default"] > 0.5 * pages
+    assert faults["keep"] < 0.05 * pages, faults

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import struct
 import time
 import traceback
@@ -176,9 +177,17 @@ def _mean(d: dict) -> float | None:
 
 
 def analyse(job: FlightJob) -> list[dict[str, Any]]:
-    """Rows (one per flight of the log) for the campaign table; errors as rows with ``error`` set."""
+    """Rows (one per flight of the log) for the campaign table; errors as rows with ``error`` set.
+
+    Besides the table's columns each row carries the job's ``cpu_s`` (shared by its flights), and
+    ``worker_pid``, ``task_start_s``, ``task_end_s`` (``time.monotonic``, one clock for every process
+    of a machine): how the work was spread over the workers (the store keeps none of these)."""
     from threadpoolctl import threadpool_limits
 
+    from groundstation.parallel import keep_freed_memory
+
+    start_s = time.monotonic()
+    keep_freed_memory()
     date, date_src = log_date_utc(job.log)
     base = {"aircraft": job.aircraft, "log": job.log, "log_name": Path(job.log).name, "sha256": job.sha256,
             "settings_key": job.settings.key(), "date_utc": date, "date_source": date_src, "error": None}
@@ -204,8 +213,9 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
                     rows.append({**base, **_flight_row(job, sub, flight, ref)})
                 except Exception as exc:  # noqa: BLE001 - one flight's failure is its row
                     rows.append({**base, "flight_index": flight, "error": _one_line(job, exc)})
+            timing = {"worker_pid": os.getpid(), "task_start_s": start_s, "task_end_s": time.monotonic()}
             for r in rows:  # the job's CPU (this process's, all threads), shared by its flights
-                r["cpu_s"] = round((time.process_time() - c0) / len(rows), 3)
+                r.update(cpu_s=round((time.process_time() - c0) / len(rows), 3), **timing)
             return rows
     except Exception as exc:  # noqa: BLE001 - reported as a row, the campaign goes on
         return [{**base, "flight_index": 0, "error": _one_line(job, exc), "seconds": round(time.perf_counter() - t0, 3)}]

@@ -9,33 +9,28 @@ scheduler on a cluster. With ``scheduler="local"`` a ``distributed.LocalCluster`
 ``workers`` single-threaded worker processes is started and closed here.
 
 Local worker processes (the pool's and the local cluster's) are forked from one fork server that
-has imported the analysis once (:data:`PRELOAD`, see :func:`start_fork_server`): a worker starts
-without importing anything, and its first flight costs what any other does, so a pool of N does the
-CPU work of one process. :func:`open_executor` keeps the workers for several runs (a bench starts
-and warms them once, outside its clock).
+has imported the analysis once (:data:`groundstation.parallel.PRELOAD`, see :func:`start_fork_server`):
+a worker starts without importing anything, and its first flight costs what any other does, so a
+pool of N does the CPU work of one process. :func:`open_executor` keeps the workers for several runs
+(a bench starts and warms them once, outside its clock). With more than one worker the logs are
+submitted largest first (:func:`submission_order`), so that no worker is left with a long flight
+while the others have finished.
 """
 
 from __future__ import annotations
 
-import importlib
 import logging
-import multiprocessing
 import os
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any, Protocol
 
 from groundstation.campaign.job import FlightJob, analyse
+from groundstation.parallel import PRELOAD as PRELOAD  # noqa: F401 - re-exported
+from groundstation.parallel import fork_context, init_worker
+from groundstation.parallel import warm as warm
 
 OnResult = Callable[[FlightJob, list[dict[str, Any]]], None]
-
-#: every module a job imports, including those imported lazily on the first log (readers, the
-#: MAVLink dialect, the configuration selection): imported once by the fork server
-PRELOAD = ("numpy", "scipy.optimize", "threadpoolctl", "pymavlink.dialects.v20.ardupilotmega",
-           "firmware_interface.readers", "groundstation.campaign.job", "groundstation.pipeline",
-           "groundstation.dsp.split", "groundstation.dsp.velocity_check", "groundstation.sysid.select",
-           "groundstation.sysid.heldout", "groundstation.gap.diagnose")
-
 
 #: a local cluster's monitoring paced for tasks of seconds (a flight each), not milliseconds: the
 #: statistical profiler (every 10 ms), the event-loop tick (20 ms) and the memory and system
@@ -50,31 +45,14 @@ def default_workers() -> int:
     return max(1, (os.cpu_count() or 2) - 1)
 
 
-def warm() -> int:
-    """Import :data:`PRELOAD` in this process (a worker's initializer; free when forked from the
-    fork server); returns the process id."""
-    for m in PRELOAD:
-        importlib.import_module(m)
-    return os.getpid()
-
-
 def start_fork_server(dask: bool = False) -> Any:
-    """The ``forkserver`` multiprocessing context, its server started with :data:`PRELOAD` imported
-    (and ``distributed`` when ``dask``) unless it already runs. The import is paid once per calling
-    process, whatever the number of workers and of runs."""
-    from multiprocessing import forkserver
-
-    ctx = multiprocessing.get_context("forkserver")
+    """The fork server's context (:func:`groundstation.parallel.fork_context`), with ``distributed``
+    imported too when ``dask`` (for a local cluster's workers)."""
     if dask:
         import distributed.utils
 
-        distributed.utils.get_mp_context()  # Dask's own preload list, then ours below (ours wins)
-    ctx.set_forkserver_preload([*(("distributed",) if dask else ()), *PRELOAD])
-    forkserver.ensure_running()
-    p = ctx.Process(target=os.getpid)  # answered once the server has imported everything
-    p.start()
-    p.join()
-    return ctx
+        distributed.utils.get_mp_context()  # Dask's own preload list, then ours (ours wins)
+    return fork_context(("distributed",) if dask else ())
 
 
 class Executor(Protocol):
@@ -101,7 +79,7 @@ class _Pool:
         from concurrent.futures import ProcessPoolExecutor
 
         self.workers = workers
-        self.ex = ProcessPoolExecutor(max_workers=workers, mp_context=start_fork_server(), initializer=warm)
+        self.ex = ProcessPoolExecutor(max_workers=workers, mp_context=start_fork_server(), initializer=init_worker)
 
     def warm(self) -> None:
         """Every worker started (each submit starts one while none is idle)."""
@@ -196,6 +174,18 @@ def _dask_client(workers: int, scheduler: str, local_processes: bool) -> Iterato
             cluster.close()
 
 
+def submission_order(jobs: Sequence[FlightJob]) -> list[int]:
+    """Indices of ``jobs`` largest log first (the longest task first: the last tasks to start are
+    the short ones, and the workers finish together); equal sizes keep their order."""
+    def size(i: int) -> int:
+        try:
+            return os.path.getsize(jobs[i].log)
+        except OSError:  # analysed into an error row, quickly
+            return 0
+
+    return sorted(range(len(jobs)), key=lambda i: -size(i))
+
+
 def run(jobs: Sequence[FlightJob], *, workers: int = 1, scheduler: str | None = None,
         on_result: OnResult | None = None, local_processes: bool = True,
         executor: Executor | None = None) -> list[list[dict[str, Any]]]:
@@ -207,8 +197,10 @@ def run(jobs: Sequence[FlightJob], *, workers: int = 1, scheduler: str | None = 
         with open_executor(min(workers, max(len(jobs), 1)) if not scheduler else workers, scheduler,
                            local_processes) as ex:
             return run(jobs, on_result=on_result, executor=ex)
+    order = list(range(len(jobs))) if executor.workers == 1 else submission_order(jobs)
     results: dict[int, list[dict[str, Any]]] = {}
-    for i, rows in executor.results(jobs):
+    for k, rows in executor.results([jobs[i] for i in order]):
+        i = order[k]
         results[i] = rows
         if on_result is not None:
             on_result(jobs[i], rows)
