@@ -121,11 +121,13 @@ def _speedup(paths: list[Path], settings: Any) -> dict[str, dict[str, float]]:
             c2, t2 = _tree_cpu_s(), time.monotonic()
         per_task = [sum(float(r.get("cpu_s") or 0.0) for r in rows) for rows in res]
         task = sum(per_task)
+        faults = [sum(int(r.get("page_faults") or 0) for r in rows) for rows in res]
         order = runner.submission_order(jobs) if ex.workers != 1 else range(len(jobs))
         out[label] = {"start_wall_s": t1 - t0, "start_cpu_s": c1 - c0, "wall_s": t2 - t1, "cpu_s": c2 - c1,
                       "task_cpu_s": task, "idle_wall_s": _makespan([per_task[i] for i in order], ex.workers)}
         print(f"  {label}: workers up and warm in {t1 - t0:.1f} s wall ({c1 - c0:.1f} s CPU); "
-              f"campaign {t2 - t1:.1f} s wall, {c2 - c1:.1f} s CPU ({task:.1f} s of it in the tasks)", flush=True)
+              f"campaign {t2 - t1:.1f} s wall, {c2 - c1:.1f} s CPU ({task:.1f} s of it in the tasks; "
+              f"{np.mean(faults) / 1e3:.0f}k page faults per flight)", flush=True)
         if ex.workers != 1:
             print(f"    {_balance([rows[0] for rows in res if rows], t1, t2)}", flush=True)
     out["fork server"] = fork

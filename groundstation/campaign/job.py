@@ -179,9 +179,10 @@ def _mean(d: dict) -> float | None:
 def analyse(job: FlightJob) -> list[dict[str, Any]]:
     """Rows (one per flight of the log) for the campaign table; errors as rows with ``error`` set.
 
-    Besides the table's columns each row carries the job's ``cpu_s`` (shared by its flights), and
-    ``worker_pid``, ``task_start_s``, ``task_end_s`` (``time.monotonic``, one clock for every process
-    of a machine): how the work was spread over the workers (the store keeps none of these)."""
+    Besides the table's columns each row carries the job's ``cpu_s`` and ``page_faults`` (minor
+    faults; None off Unix), shared by its flights, and ``worker_pid``, ``task_start_s``,
+    ``task_end_s`` (``time.monotonic``, one clock for every process of a machine): what the work
+    cost and how it was spread over the workers (the store keeps none of these)."""
     from threadpoolctl import threadpool_limits
 
     from groundstation.parallel import keep_freed_memory
@@ -191,7 +192,7 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
     date, date_src = log_date_utc(job.log)
     base = {"aircraft": job.aircraft, "log": job.log, "log_name": Path(job.log).name, "sha256": job.sha256,
             "settings_key": job.settings.key(), "date_utc": date, "date_source": date_src, "error": None}
-    t0, c0 = time.perf_counter(), time.process_time()
+    t0, c0, f0 = time.perf_counter(), time.process_time(), _minor_faults()
     try:
         from groundstation.pipeline import prepare_logs
 
@@ -214,11 +215,21 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
                 except Exception as exc:  # noqa: BLE001 - one flight's failure is its row
                     rows.append({**base, "flight_index": flight, "error": _one_line(job, exc)})
             timing = {"worker_pid": os.getpid(), "task_start_s": start_s, "task_end_s": time.monotonic()}
-            for r in rows:  # the job's CPU (this process's, all threads), shared by its flights
-                r.update(cpu_s=round((time.process_time() - c0) / len(rows), 3), **timing)
+            f1 = _minor_faults()
+            for r in rows:  # the job's CPU (this process's, all threads) and faults, shared by its flights
+                r.update(cpu_s=round((time.process_time() - c0) / len(rows), 3), **timing,
+                         page_faults=None if f0 is None or f1 is None else (f1 - f0) // len(rows))
             return rows
     except Exception as exc:  # noqa: BLE001 - reported as a row, the campaign goes on
         return [{**base, "flight_index": 0, "error": _one_line(job, exc), "seconds": round(time.perf_counter() - t0, 3)}]
+
+
+def _minor_faults() -> int | None:
+    try:
+        import resource
+    except ImportError:  # not Unix
+        return None
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_minflt)
 
 
 def _one_line(job: FlightJob, exc: BaseException) -> str:
