@@ -38,3 +38,16 @@ def test_trend_verdict_names_the_flagged_flight_and_skips_too_short_campaigns(ca
     assert "(trend): PASS" in out and "other series flagged: none of 1 tested: PASS" in out
     _print_trends(assess_all({"effect:deadband[lon].deadband": (v[:2], None)}), widths[:2], "lon")
     assert "2 flights: the change test judges from 4 on (not run)" in capsys.readouterr().out
+
+
+def test_balance_gives_each_workers_busy_and_tail_idle_time():
+    from groundstation.bench.campaign import _balance
+
+    rows = [{"worker_pid": 1, "task_start_s": 10.0, "task_end_s": 14.0},
+            {"worker_pid": 2, "task_start_s": 10.0, "task_end_s": 13.0},
+            {"worker_pid": 2, "task_start_s": 13.0, "task_end_s": 16.0},
+            {"worker_pid": 1, "task_start_s": 14.0, "task_end_s": 15.0},
+            {"error": "x.tlog: ValueError: bad"}]   # an error row before the timing: not counted
+    out = _balance(rows, 10.0, 16.5)
+    assert out == ("per worker (6.5 s campaign): 2 tasks busy 5.0 s, idle 1.5 s at the tail; "
+                   "2 tasks busy 6.0 s, idle 0.5 s at the tail")
