@@ -21,19 +21,26 @@ from groundstation.sysid.model import OUTPUTS
 
 
 def p_value(h: hypotheses.Hypothesis, ctx: hypotheses.Context | None, base: np.ndarray, rng: np.random.Generator,
-            cfg: DiagnoseConfig) -> float:
-    """One-sided p-value that hypothesis ``h`` (scanned in ``ctx``) does not lower the held-out cost."""
+            cfg: DiagnoseConfig, conditional: bool = False) -> float:
+    """One-sided p-value that hypothesis ``h`` (scanned in ``ctx``) does not lower the held-out cost.
+
+    ``conditional``: the test of a second effect given a first (signed-rank, :func:`attribute.conditional_p`)
+    instead of the bootstrap of the first step."""
     assert h.sse is not None
     blocks = ctx is not None and h.effect in ctx.blocks
-    p = attribute.combined_p(base.sum(1), h.sse.sum(1), rng, cfg.n_boot, cfg.window_alpha,
-                             ctx.base_blocks if blocks and ctx else None,
-                             ctx.blocks[h.effect] if blocks and ctx else None)
+    bb = ctx.base_blocks if blocks and ctx else None
+    ab = ctx.blocks[h.effect] if blocks and ctx else None
+    if conditional:
+        p = attribute.conditional_p(base.sum(1), h.sse.sum(1), cfg.window_alpha, bb, ab)
+    else:
+        p = attribute.combined_p(base.sum(1), h.sse.sum(1), rng, cfg.n_boot, cfg.window_alpha, bb, ab)
     if h.effect == "wind_gust":
         # an air-mass motion moves the attitude too (speed-stability moments): demand that of the
         # attitude angles, which integrate those moments; the body rates also carry the air
         # velocity's rough part, which no smooth air-velocity model predicts between its knots
         att = [6, 7]
-        p_att = attribute.paired_bootstrap(base[:, att].sum(1), h.sse[:, att].sum(1), rng, cfg.n_boot)
+        p_att = (attribute.signed_rank_p(base[:, att].sum(1), h.sse[:, att].sum(1)) if conditional else
+                 attribute.paired_bootstrap(base[:, att].sum(1), h.sse[:, att].sum(1), rng, cfg.n_boot))
         h.extra["p_attitude"] = p_att
         p = max(p, p_att)
     return p
@@ -309,7 +316,7 @@ def _conditional_score(b: attribute.Candidate, hb: hypotheses.Hypothesis | None,
     hb.extra = {**{k: v for k, v in b.hyp.extra.items() if k not in hb.extra}, **hb.extra}
     base = hb.extra.get("base_sse", cctx.base_sse) if hb.effect == "wind_gust" else cctx.base_sse
     s = attribute.score(base, hb.sse, cctx.ev.energy, hb.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
-    s.p_value = p_value(hb, cctx, base, rng, cfg)
+    s.p_value = p_value(hb, cctx, base, rng, cfg, conditional=True)
     return hb, s, structure.effect_to_noise(base, hb.sse, cctx.ev.energy, floor)
 
 
@@ -474,7 +481,7 @@ def second_given_air_mass(top: attribute.Candidate, cands: list[attribute.Candid
         if hg is None or hg.sse is None:
             continue
         s = attribute.score(m_g, hg.sse, ctx.ev.energy, b.hyp.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
-        s.p_value = attribute.paired_bootstrap(m_g.sum(1), hg.sse.sum(1), rng, cfg.n_boot)
+        s.p_value = attribute.signed_rank_p(m_g.sum(1), hg.sse.sum(1))
         b.hyp.extra["p_given_wind_gust"] = s.p_value
         b.hyp.extra["score_given_wind_gust"] = s.score_pct
         ok = bool(s.p_value < crit2 and gain_ok(s, cfg))
