@@ -24,7 +24,7 @@ def p_value(h: hypotheses.Hypothesis, ctx: hypotheses.Context | None, base: np.n
             cfg: DiagnoseConfig, conditional: bool = False) -> float:
     """One-sided p-value that hypothesis ``h`` (scanned in ``ctx``) does not lower the held-out cost.
 
-    ``conditional``: the test of a second effect given a first (signed-rank, :func:`attribute.conditional_p`)
+    ``conditional``: the test of a second effect given a first (analytic paired tests, :func:`attribute.conditional_p`)
     instead of the bootstrap of the first step."""
     assert h.sse is not None
     blocks = ctx is not None and h.effect in ctx.blocks
@@ -39,7 +39,7 @@ def p_value(h: hypotheses.Hypothesis, ctx: hypotheses.Context | None, base: np.n
         # attitude angles, which integrate those moments; the body rates also carry the air
         # velocity's rough part, which no smooth air-velocity model predicts between its knots
         att = [6, 7]
-        p_att = (attribute.signed_rank_p(base[:, att].sum(1), h.sse[:, att].sum(1)) if conditional else
+        p_att = (attribute.paired_p(base[:, att].sum(1), h.sse[:, att].sum(1)) if conditional else
                  attribute.paired_bootstrap(base[:, att].sum(1), h.sse[:, att].sum(1), rng, cfg.n_boot))
         h.extra["p_attitude"] = p_att
         p = max(p, p_att)
@@ -481,7 +481,7 @@ def second_given_air_mass(top: attribute.Candidate, cands: list[attribute.Candid
         if hg is None or hg.sse is None:
             continue
         s = attribute.score(m_g, hg.sse, ctx.ev.energy, b.hyp.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
-        s.p_value = attribute.signed_rank_p(m_g.sum(1), hg.sse.sum(1))
+        s.p_value = attribute.paired_p(m_g.sum(1), hg.sse.sum(1))
         b.hyp.extra["p_given_wind_gust"] = s.p_value
         b.hyp.extra["score_given_wind_gust"] = s.score_pct
         ok = bool(s.p_value < crit2 and gain_ok(s, cfg))
