@@ -31,7 +31,7 @@ def p_value(h: hypotheses.Hypothesis, ctx: hypotheses.Context | None, base: np.n
     bb = ctx.base_blocks if blocks and ctx else None
     ab = ctx.blocks[h.effect] if blocks and ctx else None
     if conditional:
-        p = attribute.conditional_p(base.sum(1), h.sse.sum(1), cfg.window_alpha, bb, ab)
+        p = attribute.conditional_p(base.sum(1), h.sse.sum(1), rng, cfg.n_boot, cfg.window_alpha, bb, ab)
     else:
         p = attribute.combined_p(base.sum(1), h.sse.sum(1), rng, cfg.n_boot, cfg.window_alpha, bb, ab)
     if h.effect == "wind_gust":
@@ -48,8 +48,8 @@ def p_value(h: hypotheses.Hypothesis, ctx: hypotheses.Context | None, base: np.n
 
 def p_pair(base: np.ndarray, base_blocks: np.ndarray, alt: np.ndarray, alt_blocks: np.ndarray,
            rng: np.random.Generator, cfg: DiagnoseConfig) -> float:
-    """The block/window p-value of :func:`p_value` for two held-out costs (W, 8) and blocks (W, n)."""
-    return attribute.combined_p(base.sum(1), alt.sum(1), rng, cfg.n_boot, cfg.window_alpha, base_blocks, alt_blocks)
+    """The conditional block/window p-value of :func:`p_value` for two held-out costs (W, 8) and blocks (W, n)."""
+    return attribute.conditional_p(base.sum(1), alt.sum(1), rng, cfg.n_boot, cfg.window_alpha, base_blocks, alt_blocks)
 
 
 def refit_input_effect(c: attribute.Candidate, ctx: hypotheses.Context, segs: list[SegmentArrays],
@@ -96,7 +96,8 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
     can in turn soak up part of an input effect's error. Each pair is decided by conditional tests,
     both on held-out data: does the input effect still lower the cost once the other effect is in
     the model (same channel, same grid, nested selection), and does the other effect still lower it
-    once the input effect is in? An effect that adds nothing given the other is not significant.
+    once the input effect is in? (the analytic paired tests of the conditional step,
+    :func:`attribute.conditional_p`). An effect that adds nothing given the other is not significant.
     When both stay (each adds to the other), both are reported, ranked by their own held-out score.
     Changes ``cands`` in place (``significant``, ``evidence``, ``hyp.extra``: conditional p-values
     and the share of each gain retained given the other).
@@ -117,8 +118,8 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
             assert hg.sse is not None and gust.hyp.sse is not None
             m0, mg = gust.hyp.extra["base_sse"], gust.hyp.sse
             ma, mag = hg.extra["base_sse"], hg.sse
-            p_a = attribute.paired_bootstrap(mg.sum(1), mag.sum(1), rng, cfg.n_boot)
-            p_g = p_value(hg, None, ma, rng, cfg)
+            p_a = attribute.paired_p(mg.sum(1), mag.sum(1))
+            p_g = p_value(hg, None, ma, rng, cfg, conditional=True)
             ret_a = float((mg - mag).sum() / max((m0 - ma).sum(), 1e-300))
             ret_g = float((ma - mag).sum() / max((m0 - mg).sum(), 1e-300))
             a.hyp.extra.update(p_given_air_mass=p_a, retained_given_air_mass=ret_a)
@@ -142,7 +143,7 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
             ctx_b = hypotheses.Context(ev, segs, given=Xb)
             ha = hypotheses.rescan_input_effect(ctx_b, a.hyp)
             assert ha.sse is not None
-            p = p_value(ha, ctx_b, ctx_b.base_sse, rng, cfg)
+            p = p_value(ha, ctx_b, ctx_b.base_sse, rng, cfg, conditional=True)
             a.hyp.extra[f"p_given_{b.hyp.effect}"] = p
             ra = a.hyp.extra["r_best"]
             s0, _, _ = ev.heldout(ra)

@@ -105,3 +105,40 @@ def test_effects_beside_an_air_mass_are_tested_given_it():
     assert given, [c["evidence"] for c in r["candidates"]]
     gust = r["candidates"][0]
     assert "does not follow the sign-even part" in gust["evidence"]
+
+
+def _blocks(rng: np.random.Generator, W: int, n: int) -> np.ndarray:
+    """Held-out cost (W, n) of ``n`` blocks per window, window levels spread over a decade."""
+    return np.exp(rng.normal(0.0, 1.0, (W, 1))) * rng.chisquare(30, (W, n)) / 30
+
+
+def test_second_effect_test_is_not_floored_and_keeps_its_level_on_noise():
+    from groundstation.gap.attribute import conditional_p, paired_bootstrap
+
+    cfg = DiagnoseConfig()
+    level = second_level(cfg.alpha / 10, 7, cfg)  # Holm's second level with seven candidates entering: 0.0014
+    W, n = 12, 6  # few windows of six ~0.5 s blocks
+    # a gain in most blocks with a few large losses (a resampled sum gets heavy tails)
+    rng = np.random.default_rng(4)
+    base = _blocks(rng, W, n)
+    alt = base * (0.75 + 0.1 * rng.standard_normal((W, n)))
+    alt.flat[rng.choice(W * n, 3, replace=False)] *= 2.5
+    assert 100 * (1 - alt.sum() / base.sum()) > 15
+    assert paired_bootstrap(base.sum(1), alt.sum(1), np.random.default_rng(0), 2000) >= 1 / 2001  # its floor
+    assert conditional_p(base.sum(1), alt.sum(1), np.random.default_rng(1), 2000, 0.1, base, alt) < 1e-6
+    # a large gain in three windows only, the others unchanged but for noise
+    rng = np.random.default_rng(0)
+    base = _blocks(rng, W, n)
+    alt = base * (1 + 0.05 * rng.standard_normal((W, n)))
+    act = rng.choice(W, 3, replace=False)
+    alt[act] = base[act] * 0.4 * (1 + 0.2 * rng.standard_normal((3, n)))
+    assert conditional_p(base.sum(1), alt.sum(1), np.random.default_rng(1), 2000, 0.1, base, alt) < level
+    # differences that are noise (symmetric, heavy-tailed): about the nominal rate, never at the level
+    p = []
+    for k in range(200):
+        r = np.random.default_rng(1000 + k)
+        base = _blocks(r, W, n)
+        alt = base * (1 + 0.1 * r.standard_t(2, (W, n)))
+        p.append(conditional_p(base.sum(1), alt.sum(1), np.random.default_rng(1), 2000, 0.1, base, alt))
+    assert np.mean(np.array(p) < 0.05) <= 0.08
+    assert np.sum(np.array(p) < level) == 0
