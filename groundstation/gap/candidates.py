@@ -105,11 +105,15 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
     ev = ctx.ev
     by = {c.hyp.effect: c for c in cands}
     gust = by.get("wind_gust")
-    for a in [c for c in cands if c.hyp.effect in hypotheses.INPUT_EFFECTS and c.significant]:
+    gust_explained = False  # the air mass adds nothing once a (larger) input effect is in
+    for a in sorted((c for c in cands if c.hyp.effect in hypotheses.INPUT_EFFECTS and c.significant),
+                    key=lambda c: -c.score.score_pct):
         # --- air mass: the four models (base, +A, +air mass, +both) in the air-mass protocol
         # (within-window chunk cross-validation, where a per-window smooth air velocity cannot
-        # follow the fast, input-linked error of an input effect)
-        if gust is not None and gust.score.score_pct > 0 and "base_sse" in gust.hyp.extra and physical(gust.hyp, cfg):
+        # follow the fast, input-linked error of an input effect). Input effects go largest first:
+        # an air mass that one of them explains cannot set aside the next (it is that input effect)
+        if (gust is not None and not gust_explained and gust.score.score_pct > 0 and "base_sse" in gust.hyp.extra
+                and physical(gust.hyp, cfg)):
             segs_a = hypotheses.apply_input_effect(a.hyp, segs, ev.dt_s)
             ev_a = Evaluator(segs_a, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s,
                              folds=ev.folds, ridge=ev.ridge)
@@ -131,7 +135,7 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
                 a.evidence += f"; adds nothing once an air-mass motion is allowed (p={p_a:.2g})"
                 continue
             if gust.significant and not g_ok:
-                gust.significant = False
+                gust.significant, gust_explained = False, True
                 gust.evidence += f"; adds nothing once the {a.hyp.input} {a.hyp.effect} is in the model (p={p_g:.2g})"
         # --- effects entering as forcing columns (ground effect, drag)
         for b in cands:
