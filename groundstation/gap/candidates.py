@@ -39,7 +39,7 @@ def p_value(h: hypotheses.Hypothesis, ctx: hypotheses.Context | None, base: np.n
         # attitude angles, which integrate those moments; the body rates also carry the air
         # velocity's rough part, which no smooth air-velocity model predicts between its knots
         att = [6, 7]
-        p_att = (attribute.paired_p(base[:, att].sum(1), h.sse[:, att].sum(1)) if conditional else
+        p_att = (attribute.paired_t_p(base[:, att].sum(1), h.sse[:, att].sum(1)) if conditional else
                  attribute.paired_bootstrap(base[:, att].sum(1), h.sse[:, att].sum(1), rng, cfg.n_boot))
         h.extra["p_attitude"] = p_att
         p = max(p, p_att)
@@ -96,7 +96,7 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
     can in turn soak up part of an input effect's error. Each pair is decided by conditional tests,
     both on held-out data: does the input effect still lower the cost once the other effect is in
     the model (same channel, same grid, nested selection), and does the other effect still lower it
-    once the input effect is in? (the analytic paired tests of the conditional step,
+    once the input effect is in? (the analytic tests of the conditional step,
     :func:`attribute.conditional_p`). An effect that adds nothing given the other is not significant.
     When both stay (each adds to the other), both are reported, ranked by their own held-out score.
     Changes ``cands`` in place (``significant``, ``evidence``, ``hyp.extra``: conditional p-values
@@ -122,7 +122,7 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
             assert hg.sse is not None and gust.hyp.sse is not None
             m0, mg = gust.hyp.extra["base_sse"], gust.hyp.sse
             ma, mag = hg.extra["base_sse"], hg.sse
-            p_a = attribute.paired_p(mg.sum(1), mag.sum(1))
+            p_a = attribute.paired_t_p(mg.sum(1), mag.sum(1))
             p_g = p_value(hg, None, ma, rng, cfg, conditional=True)
             ret_a = float((mg - mag).sum() / max((m0 - ma).sum(), 1e-300))
             ret_g = float((ma - mag).sum() / max((m0 - mg).sum(), 1e-300))
@@ -486,7 +486,7 @@ def second_given_air_mass(top: attribute.Candidate, cands: list[attribute.Candid
         if hg is None or hg.sse is None:
             continue
         s = attribute.score(m_g, hg.sse, ctx.ev.energy, b.hyp.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
-        s.p_value = attribute.paired_p(m_g.sum(1), hg.sse.sum(1))
+        s.p_value = attribute.paired_t_p(m_g.sum(1), hg.sse.sum(1))
         b.hyp.extra["p_given_wind_gust"] = s.p_value
         b.hyp.extra["score_given_wind_gust"] = s.score_pct
         ok = bool(s.p_value < crit2 and gain_ok(s, cfg))
