@@ -1,4 +1,5 @@
-"""Fixtures: seeded closed-loop flights of the linear eq.-8 model with known truth."""
+"""Fixtures: seeded closed-loop flights of the linear eq.-8 model with known truth, and their
+frequency responses, each made once per test process and shared read-only by the tests."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import numpy as np
 import pytest
 
 from groundstation.dsp.prepare import prepared_from_arrays
+from groundstation.freq.spectra import estimate_responses
 from groundstation.sysid.model import theta_from_dict
 from groundstation.sysid.synthetic import EXAMPLE_TRUTH, simulate_flight
 
@@ -31,3 +33,17 @@ def truth_theta() -> np.ndarray:
 @pytest.fixture(scope="session")
 def flight150():
     return flight(150.0, seed=1)
+
+
+@pytest.fixture(scope="session")
+def responses150(flight150):
+    """Frequency responses of ``flight150`` with the default analysis settings."""
+    return estimate_responses(flight150)
+
+
+@pytest.fixture(scope="session")
+def lon_delayed150():
+    """A 150 s flight whose lon input reaches the aircraft 5 samples (100 ms) after it was logged,
+    and its default frequency responses: ``(prepared, responses)``."""
+    prep = flight(150.0, seed=2, delay_samples={1: 5})
+    return prep, estimate_responses(prep)

@@ -18,13 +18,13 @@ from tests.freq.conftest import flight
 KEY = ("M_a", "L_b", "inv_tau_s", "A_lat", "B_lon", "Z_col", "N_ped", "N_r")
 
 
-def test_fit_reaches_the_truths_J_and_key_parameters(flight150):
+def test_fit_reaches_the_truths_J_and_key_parameters(flight150, responses150):
     """The search + refinement find a J at least as low as the truth's. Key parameters: with the
     default 5/10/20 s windows the rotor-flapping group (M_a, A_lat, B_lon) trades off along a
     ridge of J (errors up to ~20 %); with 8/15/30 s windows all 8 are within 10 % (measured, seed 1)."""
     truth = np.array([EXAMPLE_TRUTH[k] for k in EXAMPLE_TRUTH])
-    for cfg, bound in ((FreqConfig(), 0.25), (FreqConfig(window_s=(8.0, 15.0, 30.0)), 0.10)):
-        rs = estimate_responses(flight150, cfg)
+    for cfg, bound in ((None, 0.25), (FreqConfig(window_s=(8.0, 15.0, 30.0)), 0.10)):
+        rs = responses150 if cfg is None else estimate_responses(flight150, cfg)
         m = identify_frequency(rs, flight150, algorithm="cabc", seed=0, config=FreqIdentifyConfig(weighting="coherence"))
         err = {k: abs(m.params[k] - EXAMPLE_TRUTH[k]) / abs(EXAMPLE_TRUTH[k]) for k in KEY}
         assert max(err.values()) <= bound, err
@@ -36,10 +36,10 @@ def test_fit_reaches_the_truths_J_and_key_parameters(flight150):
     assert m.input_trim_pwm == flight150.input_trim_pwm
 
 
-def test_refinement_from_a_given_start_finds_the_nearest_J_minimum(flight150, truth_theta):
+def test_refinement_from_a_given_start_finds_the_nearest_J_minimum(flight150, truth_theta, responses150):
     """``start``: no search, the refinement only; from the truth it ends at a J no higher than the
     truth's, at the responses' own minimum near it."""
-    rs = estimate_responses(flight150)
+    rs = responses150
     near = identify_frequency(rs, flight150, start=truth_theta, config=FreqIdentifyConfig(weighting="coherence"))
     assert near.fit["algorithm"] == "refinement from a given start" and not any(near.fit["history"].values())
     assert verify(near.theta, rs).J_avg <= verify(truth_theta, rs).J_avg
@@ -47,11 +47,11 @@ def test_refinement_from_a_given_start_finds_the_nearest_J_minimum(flight150, tr
     assert max(err.values()) <= 0.25, err  # the responses' own minimum, not the truth: see docs/frequency.md
 
 
-def test_random_error_weighting_from_the_truth(flight150, truth_theta):
+def test_random_error_weighting_from_the_truth(flight150, truth_theta, responses150):
     """Weighted by each point's random error, the minimum nearest the truth keeps all 8 key parameters
     within 10 % (with Tischler's coherence weighting the same refinement slides A_lat and B_lon
     15-18 % along the flapping ridge on this flight); J is still reported, and the cost is named."""
-    rs = estimate_responses(flight150)
+    rs = responses150
     cfg = FreqIdentifyConfig(weighting="random_error")
     near = identify_frequency(rs, flight150, start=truth_theta, config=cfg)
     err = {k: abs(near.params[k] - EXAMPLE_TRUTH[k]) / abs(EXAMPLE_TRUTH[k]) for k in KEY}
@@ -89,14 +89,14 @@ def test_output_error_transform_is_exact_on_noise_free_data(truth_theta):
             assert f_other > 1e-4 * scale
 
 
-def test_output_error_fit_gets_the_key_parameters_and_predicts_another_flight(flight150, truth_theta):
+def test_output_error_fit_gets_the_key_parameters_and_predicts_another_flight(flight150, truth_theta, responses150):
     """The default frequency-domain fit (J search, then output error on the windows' transforms) puts
     the 8 key parameters within 10 % where J alone slides along the flapping ridge, and its model
     predicts another flight as well as the truth does."""
     from groundstation.sysid.model import HoverModel
     from groundstation.sysid.validate import validate
 
-    rs = estimate_responses(flight150)
+    rs = responses150
     m = identify_frequency(rs, flight150, algorithm="cabc", seed=0)
     assert m.fit["weighting"] == "output_error" and m.fit["J_by_subsystem"]["horizontal"] > 0
     err = {k: abs(m.params[k] - EXAMPLE_TRUTH[k]) / abs(EXAMPLE_TRUTH[k]) for k in KEY}
@@ -108,9 +108,8 @@ def test_output_error_fit_gets_the_key_parameters_and_predicts_another_flight(fl
     assert identify_frequency(rs, None, start=truth_theta).fit["weighting"] == "coherence"
 
 
-def test_fitted_delay_and_other_optimiser():
-    prep = flight(150.0, seed=2, delay_samples={1: 5})
-    rs = estimate_responses(prep)
+def test_fitted_delay_and_other_optimiser(lon_delayed150):
+    prep, rs = lon_delayed150
     m = identify_frequency(rs, prep, algorithm="de", seed=1, config=FreqIdentifyConfig(fit_delays=True, maxiter=60))
     d = {a["input"]: a["delay_s"] for a in m.augmentations}
     assert abs(d["lon"] - 0.1) <= 0.015 and d.get("lat", 0.0) <= 0.015
@@ -118,11 +117,18 @@ def test_fitted_delay_and_other_optimiser():
         identify_frequency(rs, prep, algorithm="pso")
 
 
-def test_identify_domain_frequency_cli(tmp_path, capsys):
+@pytest.fixture(scope="module")
+def sim_tlog(tmp_path_factory):
+    """One 90 s flight of the built-in simulator (read-only: each test writes its models elsewhere)."""
     from hil_replay.sim import write_tlog
 
-    tlog = tmp_path / "f.tlog"
+    tlog = tmp_path_factory.mktemp("freq_cli") / "f.tlog"
     write_tlog(tlog, seed=5, flights=1, effects=(), aircraft=None, flight_duration_s=90.0)
+    return tlog
+
+
+def test_identify_domain_frequency_cli(sim_tlog, tmp_path, capsys):
+    tlog = sim_tlog
     out = tmp_path / "m.json"
     assert main(["identify", str(tlog), "--out", str(out), "--domain", "frequency", "--maxiter", "20"]) == 0
     doc = json.loads(out.read_text())
@@ -133,13 +139,10 @@ def test_identify_domain_frequency_cli(tmp_path, capsys):
     assert "each fit scored both ways" in text and "no response" in text
 
 
-def test_identify_domain_both_refines_the_time_fit(tmp_path, capsys):
+def test_identify_domain_both_refines_the_time_fit(sim_tlog, tmp_path, capsys):
     """``--domain both``: the time fit to --out, the frequency cost refining it to _freq.json (a
     refinement only lowers J from its start)."""
-    from hil_replay.sim import write_tlog
-
-    tlog = tmp_path / "f.tlog"
-    write_tlog(tlog, seed=5, flights=1, effects=(), aircraft=None, flight_duration_s=90.0)
+    tlog = sim_tlog
     out = tmp_path / "m.json"
     assert main(["identify", str(tlog), "--out", str(out), "--domain", "both", "--maxiter", "10",
                  "--freq-weighting", "coherence", "--no-plot"]) == 0
@@ -150,10 +153,10 @@ def test_identify_domain_both_refines_the_time_fit(tmp_path, capsys):
     assert "frequency refinement of the time-domain fit on J" in capsys.readouterr().out
 
 
-def test_varpro_search_reaches_a_J_no_worse_than_the_truth(flight150):
+def test_varpro_search_reaches_a_J_no_worse_than_the_truth(flight150, responses150):
     """With the gains solved inside the cost the search still ends (after refinement) at or below the
     truth's J: the option works; what it cannot do is pick a point on J's flat rotor ridge."""
-    rs = estimate_responses(flight150)
+    rs = responses150
     truth = np.array([EXAMPLE_TRUTH[k] for k in EXAMPLE_TRUTH])
     m = identify_frequency(rs, flight150, seed=0, config=FreqIdentifyConfig(varpro=True, maxiter=60, refine_starts=2))
     assert verify(m.theta, rs).J_avg <= verify(truth, rs).J_avg

@@ -61,8 +61,8 @@ def test_conditioning_separates_correlated_inputs():
     assert np.nanmax(sp_coherence(b, out[:, 4], fs=1 / dt, nperseg=250)[1]) > 0.5
 
 
-def test_truth_within_random_error_and_low_J(flight150, truth_theta):
-    rs = estimate_responses(flight150)
+def test_truth_within_random_error_and_low_J(responses150, truth_theta):
+    rs = responses150
     G = model_response(truth_theta, rs.f_hz, dt_s=rs.dt_s)
     inside = total = 0
     for p in rs.with_response:
@@ -82,24 +82,24 @@ def test_truth_within_random_error_and_low_J(flight150, truth_theta):
     assert all({"input", "output", "J", "coherent_points", "delay_s"} <= set(p) for p in doc["pairs"])
 
 
-def test_wrong_model_fails_J(flight150, truth_theta):
+def test_wrong_model_fails_J(responses150, truth_theta):
     from groundstation.sysid.model import PARAM_INDEX
 
     th = truth_theta.copy()
     th[PARAM_INDEX["L_b"]] *= 0.5  # roll flapping stiffness: lon -> p, phi
     th[PARAM_INDEX["M_a"]] *= 0.5  # pitch flapping stiffness: lat -> q, theta
-    v = verify(th, estimate_responses(flight150))
+    v = verify(th, responses150)
     bad = {(p.input, p.output) for p in v.pairs if not p.passed}
     assert {("lon", "p"), ("lat", "q")} <= bad and v.J_avg > 100 and not v.good
     assert any(p.deviations for p in v.pairs if p.input == "lon")
 
 
-def test_input_delay_from_phase_slope(truth_theta):
-    prep = flight(150.0, seed=2, delay_samples={1: 5})  # 100 ms on lon
-    v = verify(truth_theta, estimate_responses(prep))
+def test_input_delay_from_phase_slope(truth_theta, lon_delayed150):
+    _, rs = lon_delayed150  # 100 ms on lon
+    v = verify(truth_theta, rs)
     assert abs(v.input_delays["lon"].delay_s - 0.100) <= 0.015
     assert abs(v.input_delays["lat"].delay_s) <= 0.015
-    v2 = verify(truth_theta, estimate_responses(prep), delays_s=np.array([0.0, 0.1, 0.0, 0.0]))
+    v2 = verify(truth_theta, rs, delays_s=np.array([0.0, 0.1, 0.0, 0.0]))
     assert v2.J_avg < v.J_avg / 5
 
 
