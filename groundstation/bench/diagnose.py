@@ -221,20 +221,35 @@ def _sim_kwargs(job: dict[str, Any]) -> dict[str, Any]:
 
 
 def tree_cpu_s() -> float:
-    """CPU time (s) of this process and of its live child processes (the worker processes of a
-    diagnosis's ``--jobs``), read from /proc where there is one; this process alone elsewhere."""
+    """CPU time (s) of this process and of its live descendants (the worker processes of a
+    diagnosis's ``--jobs``, which a fork server forks: grandchildren), read from /proc where there is
+    one; this process alone elsewhere."""
     t = time.process_time()
     try:
-        pids: set[str] = set()
-        for task in Path("/proc/self/task").iterdir():
-            pids.update((task / "children").read_text().split())
         tick = os.sysconf("SC_CLK_TCK")
-        for pid in pids:
+        todo, seen = _child_pids("self"), set()
+    except (OSError, ValueError):
+        return t
+    while todo:
+        pid = todo.pop()
+        if pid in seen:
+            continue
+        seen.add(pid)
+        try:
             f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
             t += (int(f[11]) + int(f[12])) / tick  # utime, stime
-    except (OSError, ValueError, IndexError):
-        pass
+            todo.extend(_child_pids(pid))
+        except (OSError, ValueError, IndexError):  # exited between the listing and the reading
+            continue
     return t
+
+
+def _child_pids(pid: str) -> list[str]:
+    """The child process ids of ``pid`` ("self" for this process), from /proc."""
+    out: list[str] = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        out.extend((task / "children").read_text().split())
+    return out
 
 
 def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:

@@ -99,3 +99,23 @@ def test_unknown_kind_is_one_clear_error(capsys):
     assert main(["bench", "diagnose", "--kinds", "pairs"]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--kinds" in err[0] and "pairs" in err[0]
+
+
+def _burn(seconds: float) -> float:
+    import time
+
+    t = time.process_time()
+    while time.process_time() - t < seconds:
+        pass
+    return seconds
+
+
+def test_cpu_time_of_a_case_counts_the_workers_a_fork_server_forked():
+    # --jobs workers are forked by a fork server: grandchildren of the bench process
+    from groundstation.bench.diagnose import tree_cpu_s
+    from groundstation.parallel import worker_map
+
+    with worker_map(2) as pmap:
+        c0 = tree_cpu_s()
+        pmap(_burn, [0.3, 0.3])
+        assert tree_cpu_s() - c0 >= 0.5
