@@ -116,18 +116,20 @@ def _speedup(paths: list[Path], settings: Any) -> dict[str, dict[str, float]]:
         c0, t0 = _tree_cpu_s(), time.monotonic()
         with runner.open_executor(**kw) as ex:
             ex.warm()
-            c1, t1 = _tree_cpu_s(), time.monotonic()
+            c1, t1, b1 = _tree_cpu_s(), time.monotonic(), _machine_busy_s()
             res = runner.run(jobs, executor=ex)
-            c2, t2 = _tree_cpu_s(), time.monotonic()
+            c2, t2, b2 = _tree_cpu_s(), time.monotonic(), _machine_busy_s()
         per_task = [sum(float(r.get("cpu_s") or 0.0) for r in rows) for rows in res]
         task = sum(per_task)
         faults = [sum(int(r.get("page_faults") or 0) for r in rows) for rows in res]
         order = runner.submission_order(jobs) if ex.workers != 1 else range(len(jobs))
         out[label] = {"start_wall_s": t1 - t0, "start_cpu_s": c1 - c0, "wall_s": t2 - t1, "cpu_s": c2 - c1,
-                      "task_cpu_s": task, "idle_wall_s": _makespan([per_task[i] for i in order], ex.workers)}
+                      "task_cpu_s": task, "idle_wall_s": _makespan([per_task[i] for i in order], ex.workers),
+                      "others_cores": max(0.0, (b2 - b1) - (c2 - c1)) / max(t2 - t1, 1e-9)}
         print(f"  {label}: workers up and warm in {t1 - t0:.1f} s wall ({c1 - c0:.1f} s CPU); "
               f"campaign {t2 - t1:.1f} s wall, {c2 - c1:.1f} s CPU ({task:.1f} s of it in the tasks; "
               f"{np.mean(faults) / 1e3:.0f}k page faults per flight)", flush=True)
+        print(f"    other work on the machine meanwhile: {out[label]['others_cores']:.2f} cores on average", flush=True)
         if ex.workers != 1:
             print(f"    {_balance([rows[0] for rows in res if rows], t1, t2)}", flush=True)
     out["fork server"] = fork
@@ -156,6 +158,15 @@ def _makespan(task_cpu_s: list[float], workers: int) -> float:
         k = min(range(len(free)), key=free.__getitem__)
         free[k] += c
     return max(free)
+
+
+def _machine_busy_s() -> float:
+    """CPU seconds every core of the machine has spent busy since boot (all processes, and time
+    the hypervisor gave to other machines)."""
+    import psutil
+
+    t = psutil.cpu_times()
+    return float(sum(t) - t.idle - getattr(t, "iowait", 0.0) - getattr(t, "guest", 0.0) - getattr(t, "guest_nice", 0.0))
 
 
 def _tree_cpu_s() -> float:
@@ -245,6 +256,9 @@ def _print_speedup(sp: dict[str, dict[str, float]]) -> None:
     print(f"  Dask / pool: CPU {dc:.2f}, wall {dw:.2f} (targets <= 1.10): "
           f"{'PASS' if dc <= 1.10 and dw <= 1.10 else 'FAIL'}; cluster start-up {dask['start_wall_s']:.1f} s wall, "
           f"{dask['start_cpu_s']:.1f} s CPU (warm start, outside the clock)")
+    others = max(one["others_cores"], pool["others_cores"])
+    print(f"  other work took up to {others:.2f} cores during the runs: the wall speed-up is "
+          f"{'a measurement' if others < 0.1 else 'depressed by it, not a measurement of the pool'}")
     print(f"  load average now {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (other work depresses the wall speed-up;"
           " the CPU ratios far less)")
 
