@@ -256,11 +256,14 @@ class VirtualSerialPort:
         finally:
             os.close(fd)
 
-    def drain(self, timeout_s: float = 2.0, *, quiet_s: float = 0.03, poll_s: float = 0.005) -> bool:
+    def drain(self, timeout_s: float = 2.0, *, quiet_s: float = 0.25, poll_s: float = 0.005) -> bool:
         """Wait until the reader has read everything written (True) or ``timeout_s`` passes.
 
-        The kernel moves written bytes to the reader's queue from a work queue, so an empty queue
-        must stay empty for ``quiet_s`` before the bytes count as read.
+        The reader's queue (what FIONREAD counts) holds at most 4 KB; the rest of what was written
+        waits in the pty's buffer, which the kernel moves into that queue from a work queue after
+        each read. The queue can therefore read empty while bytes are still on their way, for as
+        long as that work is delayed on a busy machine: it must stay empty for ``quiet_s`` before
+        the bytes count as read.
         """
         deadline = time.monotonic() + timeout_s
         empty_since: float | None = None

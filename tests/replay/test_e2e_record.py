@@ -33,6 +33,7 @@ def _wait_recorded(rec_dir: Path, n: int, timeout_s: float = 60.0) -> None:
         if files and sum(_src(p) == (1, 1) for _, p in scan_tlog(files[0].read_bytes())) >= n:
             return
         time.sleep(0.05)
+    raise AssertionError(f"{rec_dir}: fewer than {n} packets from the FC recorded after {timeout_s} s")
 
 
 def test_corrupted_unplugged_replay_into_record(tmp_path):
