@@ -171,7 +171,8 @@ def _best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_fr
         x0 = np.clip(x0, bfree[:, 0] + 1e-6 * span, bfree[:, 1] - 1e-6 * span)
         ref = refine_ls(cost, x0, bfree, passes=1 if quick else cfg.refine_passes, prior=prior,
                         max_nfev=min(int(cfg.refine_max_nfev), SELECT_REFIT_NFEV) if quick else cfg.refine_max_nfev,
-                        weighting=cfg.channel_weighting, prior_colour=cfg.prior_weighting == "effective")
+                        weighting=cfg.channel_weighting, prior_colour=cfg.prior_weighting == "effective",
+                        with_std=False)
         if prior is not None:
             sig_ref = ref.sig_eff if sig_ref is None else sig_ref
             F = map_objective(cost, ref.x, sig_ref, prior)
@@ -180,6 +181,10 @@ def _best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_fr
         if best is None or F < best[0]:
             best = (F, ref.x, ref)
     assert best is not None
+    if not quick:   # standard errors of the winner only; the screening fit's model is only cross-validated
+        from groundstation.sysid.refine import with_standard_errors
+
+        with_standard_errors(cost, best[2], bfree, prior)
     return best[1], best[2]
 
 
