@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
-import json
 import time
 from pathlib import Path
 
@@ -90,10 +89,9 @@ SEGMENTS_HELP = ("which data to use: 'flights' (every in-air interval, default) 
 
 
 def write_json(path: Path, doc: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(doc, indent=1, allow_nan=False))
-    tmp.replace(path)
+    from groundstation.jsonio import write_atomic
+
+    write_atomic(path, doc)
 
 
 def run(args: argparse.Namespace) -> int:
