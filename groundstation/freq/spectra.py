@@ -35,8 +35,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.signal import detrend as sp_detrend
-from scipy.signal import get_window
 
 from groundstation.freq import FreqError
 from groundstation.sysid.model import INPUTS, OUTPUTS
@@ -176,6 +174,8 @@ def _window_spectra(segments: list[tuple[np.ndarray, np.ndarray]], length: int, 
                     dt_s: float, cfg: FreqConfig) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """DFT of every window: X (K, n_freq, 12) scaled so that conj(X_a) X_b averages to the one-sided
     density; valid (K, 12) channel finite over the window; windows per segment."""
+    from scipy.signal import get_window  # imported here: scipy.signal costs ~1 s of CPU at every start
+
     taper = get_window(cfg.taper, length)
     E = np.exp(-2j * np.pi * np.outer(np.arange(length) * dt_s, f_hz))  # (L, nf)
     scale = np.sqrt(2.0 * dt_s / np.sum(taper ** 2))
@@ -188,6 +188,8 @@ def _window_spectra(segments: list[tuple[np.ndarray, np.ndarray]], length: int, 
         data = np.concatenate([u, y], axis=1)
         frames = np.lib.stride_tricks.sliding_window_view(data, length, axis=0)[::step]  # (K, 12, L)
         ok = np.isfinite(frames).all(axis=2)
+        from scipy.signal import detrend as sp_detrend
+
         fr = sp_detrend(np.nan_to_num(frames), axis=2, type=cfg.detrend) * taper
         Xs.append(np.einsum("kcl,lf->kfc", fr, E) * scale)
         valid.append(ok)
@@ -231,6 +233,8 @@ def _one_window(segments, win_s: float, f_hz: np.ndarray, dt_s: float, active: l
     length = int(round(win_s / dt_s))
     step = max(1, int(round(length * (1.0 - cfg.overlap))))
     X, valid, counts = _window_spectra(segments, length, step, f_hz, dt_s, cfg)
+    from scipy.signal import get_window  # imported here: scipy.signal costs ~1 s of CPU at every start
+
     taper = get_window(cfg.taper, length)
     q = len(active)
     resolved = f_hz >= 2.0 / win_s
@@ -258,6 +262,8 @@ def _enough(segments, win_s: float, dt_s: float, q: int, cfg: FreqConfig, notes:
     """Whether the segments give a window length enough averages (else a note says why not)."""
     length = int(round(win_s / dt_s))
     step = max(1, int(round(length * (1.0 - cfg.overlap))))
+    from scipy.signal import get_window  # imported here: scipy.signal costs ~1 s of CPU at every start
+
     taper = get_window(cfg.taper, length)
     n_d = sum(effective_averages((s[0].shape[0] - length) // step + 1, length, step, taper)
               for s in segments if s[0].shape[0] >= length) - (max(q, 1) - 1)

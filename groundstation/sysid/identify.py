@@ -61,7 +61,7 @@ from groundstation.sysid.model import (
     bounds_array,
 )
 from groundstation.sysid.optimizers import ALGORITHMS
-from groundstation.sysid.refine import map_objective
+from groundstation.sysid.refine import map_objective, with_standard_errors
 from groundstation.sysid.refine import refine as refine_ls
 from groundstation.sysid.simulate import kinematic_forcing
 
@@ -359,8 +359,8 @@ def _search_once(alg: str, it: int, label: str, costs: tuple, plan: _Plan, cfg: 
         nfev_round *= 2
     _progress(callback, f"refine {sub_name}{label}", screen_f, cost_s.nfev + cost.nfev)
     ref = refine_ls(cost, starts[0], bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev, prior=prior,
-                    weighting=cfg.channel_weighting,
-                        prior_colour=cfg.prior_weighting == "effective")
+                    weighting=cfg.channel_weighting, with_std=False,
+                    prior_colour=cfg.prior_weighting == "effective")
     return float(ref.fun), ref.x, opt, ref
 
 
@@ -388,7 +388,7 @@ def _extra_starts(best: tuple, costs: tuple, plan: _Plan, cfg: IdentifyConfig, s
         x0 = prior[0] if n == "prior" and prior is not None else np.zeros(int(sub_free.sum()))
         x0 = np.clip(x0, bfree[:, 0] + 1e-6 * span, bfree[:, 1] - 1e-6 * span)
         ref = refine_ls(costs[0], x0, bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev, prior=prior,
-                        weighting=cfg.channel_weighting,
+                        weighting=cfg.channel_weighting, with_std=False,
                         prior_colour=cfg.prior_weighting == "effective")
         F = float(ref.fun) if prior is None or sig_ref is None else map_objective(costs[0], ref.x, sig_ref, prior)
         if F < best[0]:
@@ -438,6 +438,8 @@ def _identify_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], pl
     if refine:
         best = _extra_starts(best, costs, plan, cfg, sub_free, sig_ref)
     F, x, opt, ref, won = best
+    if ref is not None:   # the standard errors of the winner only (each restart's refinement skips them)
+        ref = with_standard_errors(cost, ref, plan.bounds[sub_free], pr)
     run.search_alg[sub_name] = won
     run.F_search += float(opt.fun)
     run.search_by_sub[sub_name] = float(opt.fun)

@@ -250,7 +250,7 @@ class WindowSimulator:
             pre["X"]["R"] = R
         return R[:cc]
 
-    def _lifted(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, *, explicit: bool):
+    def _lifted(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, *, explicit: bool | str):
         """Windowed simulation with per-window least-squares initial states, in the lifted layout.
 
         Blocks of b samples: the block-start states come from the recursion
@@ -258,7 +258,8 @@ class WindowSimulator:
         sample of every block from ONE product per candidate, ``Y = [Ob | T] [x; U]`` (``Ob`` rows
         ``C_h A^j``, ``T`` the block-Toeplitz Markov parameters), laid out channel-major so that the
         initial-state least squares needs only per-channel products ``Phi_h^T r_h``. ``explicit``:
-        return the output errors ``e = yhat - y`` (C, W, L, nch); else the per-channel sums of squared
+        return the output errors ``e = yhat - y`` (C, W, L, nch) (``"native"``: in the lifted layout
+        (C, nch, Lp, W), padding zero); else the per-channel sums of squared
         errors over windows, from the quadratic form ``||r||^2 - 2 z.g + z^T H z`` (no error
         array), recomputed explicitly for any candidate where that form loses more than ~8 digits.
         Returns ``(e or sse, x0)``.
@@ -317,7 +318,7 @@ class WindowSimulator:
         H = np.matmul(np.swapaxes(Phi, -1, -2), Phi)  # (C, nch, n+nt, n+nt), the same for every window
         # candidates in chunks of ~2 MB of output: the chunk stays in cache from product to reduction
         cc = max(1, min(C, int(self.chunk_bytes // (8 * nch * b * nb * W))))
-        res = np.empty((C, W, L, nch) if explicit else (C, nch))
+        res = np.empty(((C, nch, Lp, W) if explicit == "native" else (C, W, L, nch)) if explicit else (C, nch))
         z = np.empty((C, W, n))
         beta = np.zeros((C, nt))
         for c0 in range(0, C, cc):
@@ -326,7 +327,7 @@ class WindowSimulator:
                                                                   explicit, n)
         return res, pre["xm"][None] + z, -beta  # input offsets: the model sees u - delta, e = ... - F delta
 
-    def _lifted_chunk(self, pre: dict, M: np.ndarray, X: np.ndarray, Phi: np.ndarray, H: np.ndarray, explicit: bool,
+    def _lifted_chunk(self, pre: dict, M: np.ndarray, X: np.ndarray, Phi: np.ndarray, H: np.ndarray, explicit: bool | str,
                       n: int):
         """Least squares and errors of one chunk of candidates.
 
@@ -376,6 +377,8 @@ class WindowSimulator:
         if explicit:
             e = np.matmul(Phi, np.swapaxes(v, 1, 2)[:, None])  # (k, nch, Lp, W)
             e -= R4
+            if explicit == "native":
+                return z, beta, e
             return z, beta, e.reshape(k, nch, b, nb, W).transpose(0, 4, 3, 2, 1).reshape(k, W, Lp, nch)[:, :, :L]
         rr = np.einsum("chkw,chkw->chw", R4, R4)
         vHv = np.einsum("chwn,cwn->chw", np.matmul(v[:, None], H), v)
@@ -396,7 +399,7 @@ class WindowSimulator:
             sse[c] = np.einsum("hkw,hkw->h", e, e)
         return z, beta, sse
 
-    def _lifted_vp(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, Gam: np.ndarray, *, explicit: bool):
+    def _lifted_vp(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, Gam: np.ndarray, *, explicit: bool | str):
         """Lifted simulation with the ``linear`` B entries solved by least squares (variable projection).
 
         For a given A the output is linear in those entries: each has a unit response ``F_p`` (input
@@ -463,7 +466,7 @@ class WindowSimulator:
         Phi = Phi.reshape(C, nch, Lp, n)
         H = np.matmul(np.swapaxes(Phi, -1, -2), Phi)
         cc = max(1, min(C, int(self.chunk_bytes // (8 * (P + 1) * nch * b * N))))
-        res = np.empty((C, W, L, nch) if explicit else (C, nch))
+        res = np.empty(((C, nch, Lp, W) if explicit == "native" else (C, W, L, nch)) if explicit else (C, nch))
         z = np.empty((C, W, n))
         beta = np.empty((C, P))
         for c0 in range(0, C, cc):
@@ -498,6 +501,8 @@ class WindowSimulator:
         e = np.matmul(beta[:, None, :], F.reshape(k, P, -1)).reshape(k, nch, Lp, W)
         e -= R4
         e += np.matmul(Phi, np.swapaxes(z, 1, 2)[:, None])
+        if explicit == "native":
+            return z, beta, e
         if explicit:
             return z, beta, e.reshape(k, nch, b, nb, W).transpose(0, 4, 3, 2, 1).reshape(k, W, Lp, nch)[:, :, :L]
         if not pre["full_mask"]:
@@ -509,9 +514,12 @@ class WindowSimulator:
         """State updates (one x[k+1] = A x[k] + B u[k]) per candidate per call."""
         return self.W * self.L
 
-    def _run(self, theta: np.ndarray, *, sse: bool = False):
+    def _run(self, theta: np.ndarray, *, sse: bool = False, native: bool = False):
         """Per subsystem ``(i, (e, x0[, beta]))``; e (C, W, L*nch) output errors, or with ``sse`` and no
-        projected B entries the per-channel sums of squared errors (C, nch) in place of e."""
+        projected B entries the per-channel sums of squared errors (C, nch) in place of e; with
+        ``native`` the output errors in the simulation's own layout (C, nch, Lp, W) (see
+        :meth:`residuals_native`)."""
+        mode: bool | str = "native" if native else not sse
         th = np.atleast_2d(np.asarray(theta, dtype=float))
         Ah, Bh, Av, Bv = build_matrices(th)
         out = []
@@ -524,8 +532,8 @@ class WindowSimulator:
                     # Ad and Gamma = int_0^dt e^(A s) ds in one exponential; Bd = Gamma B (exact ZOH)
                     Ad, Gam = discretize(A, np.broadcast_to(np.eye(n), A.shape), self.dt_s)
                     Bd = np.matmul(Gam, B)
-                    e, x0, beta = self._lifted_vp(_SUBS[i], pre, Ad, Bd, Gam, explicit=not sse)
-                    if not sse:
+                    e, x0, beta = self._lifted_vp(_SUBS[i], pre, Ad, Bd, Gam, explicit=mode)
+                    if not sse and not native:
                         e = e.reshape(e.shape[0], self.W, self.L * pre["nch"])
                     out.append((i, (e, x0, beta, None)))
                     continue
@@ -535,8 +543,8 @@ class WindowSimulator:
                         E[..., st, c] = 1.0
                     B = np.concatenate([B, E], axis=-1)
                 Ad, Bd = discretize(A, B, self.dt_s)
-                e, x0, delta = self._lifted(_SUBS[i], pre, Ad, Bd, explicit=not sse)
-                if not sse:
+                e, x0, delta = self._lifted(_SUBS[i], pre, Ad, Bd, explicit=mode)
+                if not sse and not native:
                     e = e.reshape(e.shape[0], self.W, self.L * pre["nch"])
                 out.append((i, (e, x0, None, delta if self.estimate_trim else None)))
         return out
@@ -580,6 +588,26 @@ class WindowSimulator:
             nch = pre["nch"]
             out[:, pre["o_idx"]] = e.reshape(C, self.W, self.L * nch).sum(axis=1).reshape(C, self.L, nch).sum(axis=1)
         return np.where(np.isfinite(out), out, 1e300)
+
+    def residuals_native(self, theta: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+        """Weighted output errors ``(yhat - y) / sigma_ch`` of C candidates as flat vectors (C, N), in
+        the simulation's own layout (per subsystem: channel, padded sample, window) instead of
+        :meth:`errors`' (window, sample, channel): no transpose and no 8-channel array. Unused samples
+        (unavailable channel, padding of the last lifted block) are zero. For what does not depend on
+        the order of the rows (``J^T J``, ``J^T r``, ``||r||``: the refinement's normal equations)."""
+        s = np.asarray(sigma, dtype=float)
+        res = self._run(theta, native=True)
+        C = res[0][1][0].shape[0]
+        parts = []
+        for i, (e, *_rest) in res:
+            pre = self._prep[i]
+            w = pre["mask_hw"] / s[pre["o_idx"]][:, None]  # (nch, W): mask and channel weight
+            e *= w[None, :, None, :]
+            parts.append(e.reshape(C, -1))
+        out = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+        if not np.isfinite(out).all():
+            out = np.where(np.isfinite(out), out, 1e6)
+        return out
 
     def errors(self, theta: np.ndarray) -> np.ndarray:
         """Output errors ``yhat - y`` (C, W, L, 8), zero where a channel is unused."""
