@@ -52,7 +52,10 @@ def plot_fit(series: dict[str, Any], metrics: dict[str, dict[str, float]], path:
     axes[-1, 0].set_xlabel("FC time [s] (windows, each restarted from its initial state)")
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
+    # fixed margins (inches) instead of tight_layout, which draws the figure once more to measure it
+    h = fig.get_figheight()
+    fig.subplots_adjust(left=1.0 / 11, right=1 - 0.2 / 11, bottom=0.55 / h, top=1 - (0.55 if title else 0.3) / h,
+                        hspace=0.45)
     p = Path(path)
     fig.savefig(p, dpi=90)
     plt.close(fig)

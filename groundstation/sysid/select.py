@@ -116,22 +116,22 @@ def fit_candidate(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
     ``quick``: one refinement pass from ``model0``'s parameters only (the selection's screening fit)."""
     from groundstation.sysid.identify import (
         _SUBS_INPUTS,
-        _costs,
         _in_sample_match,
         _model,
         _plan,
+        _refine_cost,
         _Run,
         record_tradeoffs,
     )
 
     with threadpool_limits(1):
-        plan = _plan(prepared, cfg, True, bounds, prior)
+        plan = _plan(prepared, cfg, True, bounds, prior, search=False)
         run = _Run(theta=np.clip(model0.theta, plan.bounds[:, 0], plan.bounds[:, 1]))
         for sub, sub_params in ((0, HOR_PARAMS), (1, VER_PARAMS)):
             idx = np.array([PARAM_INDEX[p] for p in sub_params])
             sub_free = np.zeros(N_PARAMS, dtype=bool)
             sub_free[idx] = plan.free[idx]
-            cost = _costs(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim)[0]
+            cost = _refine_cost(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim)
             if not cost.used.any():
                 continue
             x, ref = _best_refinement(cost, run.theta[sub_free], plan, cfg, sub_free, quick)

@@ -88,9 +88,16 @@ def _schur_solve(G: np.ndarray, E: np.ndarray, rhs: np.ndarray, FF: np.ndarray,
                  rb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Block least squares with per-window unknowns ``z`` (k, W, n) and shared ones ``beta`` (k, P):
     ``[[G_w, E_w], [E_w^T, FF]] [z_w; beta] = [rhs_w; rb]``, by the Schur complement over the windows
-    (variable projection; a 1e-10 relative ridge keeps S solvable). Returns ``(z, beta)``."""
+    (variable projection; a 1e-10 relative ridge keeps S solvable). ``G`` (k, n, n) instead of
+    (k, W, n, n): the same matrix in every window (one factorisation for all). Returns ``(z, beta)``."""
     P = E.shape[-1]
-    sol = np.linalg.solve(G, np.concatenate([E, rhs[..., None]], axis=-1))
+    Bm = np.concatenate([E, rhs[..., None]], axis=-1)  # (k, W, n, P + 1)
+    if G.ndim == 3:
+        k, W, n, q = Bm.shape
+        sol = np.linalg.solve(G, Bm.transpose(0, 2, 1, 3).reshape(k, n, W * q))
+        sol = sol.reshape(k, n, W, q).transpose(0, 2, 1, 3)
+    else:
+        sol = np.linalg.solve(G, Bm)
     GiE, Gia = sol[..., :P], sol[..., P]
     S = FF - np.einsum("cwnp,cwnq->cpq", E, GiE)
     dS = np.einsum("cpp->cp", S)
@@ -361,7 +368,9 @@ class WindowSimulator:
             G += np.where(uk[None] > 0, self.ridge * scale, 1.0)[..., :, None] * np.eye(n)
             z = np.swapaxes(np.linalg.solve(G, np.swapaxes(rhs, 1, 2)), 1, 2)  # (k, W, n)
         else:
-            G = _window_gram(w_ch, Hzz, unk, self.ridge)
+            # with global columns too: one G for every window when the windows are alike
+            G = _window_gram(w_ch[:1], Hzz, unk[:1], self.ridge)[:, 0] if pre["same_G"] else \
+                _window_gram(w_ch, Hzz, unk, self.ridge)
             if nt:
                 # global columns: Schur complement over the windows (variable projection)
                 E = np.matmul(w_ch[None], np.ascontiguousarray(H[:, :, :n, n:]).reshape(k, nch, n * nt))
@@ -496,7 +505,9 @@ class WindowSimulator:
         Fw = F5 * w_ch.T[None, None, :, None, :]
         FF = np.matmul(F.reshape(k, P, -1), np.swapaxes(Fw.reshape(k, P, -1), 1, 2))  # (k, P, P)
         rb = np.matmul(Fw.reshape(k, P, -1), R.reshape(k, -1, 1))[..., 0]  # (k, P)
-        z, beta = _schur_solve(_window_gram(w_ch, H, unk, self.ridge), E, rhs, FF, rb)
+        # the same normal matrix in every window when every window has the same channels and unknowns
+        G = _window_gram(w_ch[:1], H, unk[:1], self.ridge)[:, 0] if pre["same_G"] else _window_gram(w_ch, H, unk, self.ridge)
+        z, beta = _schur_solve(G, E, rhs, FF, rb)
         # e = Phi z + F beta - r, explicitly (no cancellation to guard)
         e = np.matmul(beta[:, None, :], F.reshape(k, P, -1)).reshape(k, nch, Lp, W)
         e -= R4
