@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from groundstation.config import ServiceConfig
+from groundstation.jsonio import dumps
 
 OUTPUTS = ("u", "v", "w", "p", "q", "r", "theta", "phi")
 
@@ -183,7 +184,7 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
     val = validate(model, prepared, return_series=True)
     series = val.pop("series")
     model_path = out_dir / f"model-flight{job.flight:02d}.json"
-    model_path.write_text(json.dumps(doc, indent=1, default=float))
+    model_path.write_text(dumps(doc, indent=1))
     overlay = _overlay(series, prepared.output_trim)
     png: tuple[str, ...] = ()
     if cfg.identification.plots and len(overlay["t_fc_s"]):
@@ -238,7 +239,7 @@ def _freq_check(job: IdentifyJob, model: Any) -> tuple[Any, Any, Any, Any]:
         return None, None, f"flight {job.flight}: frequency check: {type(exc).__name__}: {exc}".splitlines()[0], None
     doc = {**v.to_json(), "vehicle": job.vehicle, "flight": job.flight}
     path = Path(job.out_dir) / f"freq-flight{job.flight:02d}.json"
-    path.write_text(json.dumps(doc, indent=1, allow_nan=False))
+    path.write_text(dumps(doc, indent=1))
     from groundstation.sinks.rerun_sink import freq_pairs
 
     return doc, str(path), None, freq_pairs(v)
@@ -257,5 +258,5 @@ def _diagnose(job: IdentifyJob, model: Any, prepared: Any) -> tuple[Any, Any, An
     except Exception as exc:
         return None, None, f"flight {job.flight}: diagnosis: {type(exc).__name__}: {exc}".splitlines()[0], None
     gap_path = Path(job.out_dir) / f"gap-flight{job.flight:02d}.json"
-    gap_path.write_text(json.dumps(diag.report, indent=1, default=float))
+    gap_path.write_text(dumps(diag.report, indent=1))
     return diag.report, str(gap_path), None, pictures

@@ -64,10 +64,9 @@ def _run(args: argparse.Namespace, pmap) -> int:
         unfold_rotor_line(report, native, cfg.prepare.rate_hz)
     report["source"] = {"logs": [str(p) for p in args.logs], "model": str(args.model) if args.model else None}
     report["frequency"] = frequency_report(logs, cfg, model, report)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(args.out.suffix + ".tmp")
-    tmp.write_text(json.dumps(report, indent=1, allow_nan=False))
-    tmp.replace(args.out)
+    from groundstation.jsonio import write_atomic
+
+    write_atomic(args.out, report)
     if args.plots:
         from groundstation.gap.plots import write_all
 

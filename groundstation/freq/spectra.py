@@ -37,7 +37,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.signal import get_window
 
 from groundstation.freq import FreqError
 from groundstation.sysid.model import INPUTS, OUTPUTS
@@ -177,6 +176,8 @@ def _frequency_grid(cfg: FreqConfig, dt_s: float, longest_s: float) -> np.ndarra
 
 def _window_geometry(win_s: float, dt_s: float, cfg: FreqConfig) -> tuple[int, int, np.ndarray]:
     """(samples per window, samples between window starts, taper) of one window length."""
+    from scipy.signal import get_window  # imported here: scipy.signal costs ~1 s of CPU at every start
+
     length = int(round(win_s / dt_s))
     step = max(1, int(round(length * (1.0 - cfg.overlap))))
     return length, step, get_window(cfg.taper, length)
@@ -301,6 +302,8 @@ def _window_spectra(segments: list[tuple[np.ndarray, np.ndarray]], length: int, 
                     dt_s: float, cfg: FreqConfig) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """DFT of every window: X (K, n_freq, C) scaled so that conj(X_a) X_b averages to the one-sided
     density; valid (K, C) channel finite over the window; windows per segment."""
+    from scipy.signal import get_window  # imported here: scipy.signal costs ~1 s of CPU at every start
+
     taper = get_window(cfg.taper, length)
     op = window_operator(length, dt_s, f_hz, taper, cfg.detrend)
     Xs, valid, counts = [], [], []

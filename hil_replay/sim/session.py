@@ -522,12 +522,16 @@ def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
                effects: Sequence[Effect | str] = (), aircraft: Aircraft | str | os.PathLike[str] | None = None,
                flight_duration_s: float | None = None, rates_hz: Mapping[str, float] | None = None,
                pause_s: float = 10.0, packet_loss: float = 0.002, pilot: PilotConfig | None = None,
-               excitation_scale: float = 1.0, sweeps: bool = True, linear_kinematics: bool = False) -> dict[str, Any]:
+               excitation_scale: float = 1.0, sweeps: bool = True, linear_kinematics: bool = False,
+               loss_burst: float = 1.0) -> dict[str, Any]:
     """Simulate a session and write ``path`` (.tlog) and ``path.with_suffix('.truth.json')``.
 
     MAVLink 2 frames from sysid 1 compid 1 with a proper sequence number; host timestamps are
     :data:`TLOG_EPOCH_S` + FC time + a few ms of link latency with jitter; ``packet_loss`` of the
-    packets are dropped after encoding (the seq gap shows). Returns the truth dict (also written).
+    packets are dropped after encoding (the seq gap shows). ``loss_burst`` > 1 makes the loss bursty
+    as a radio fade is: a two-state (Gilbert) channel whose lost runs are ``loss_burst`` packets long
+    on average (geometric), every message type alike, with the same long-run loss rate
+    ``packet_loss``; 1 drops packets independently. Returns the truth dict (also written).
     Same arguments, same bytes.
     """
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -544,6 +548,12 @@ def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
             rates[name] = float(r)
     if not 0.0 <= packet_loss < 1.0:
         raise ValueError(f"packet_loss: {packet_loss} not in [0, 1)")
+    if not loss_burst >= 1.0:
+        raise ValueError(f"loss_burst: {loss_burst} must be >= 1 (mean lost run, packets)")
+    # Gilbert channel: good -> bad with p_enter, bad -> good with 1/loss_burst; stationary loss = packet_loss
+    p_leave = 1.0 / loss_burst
+    p_enter = packet_loss * p_leave / max(1.0 - packet_loss, 1e-12)
+    in_fade = False
     period = {n: max(1, int(round(FRAME_RATE_HZ / r))) for n, r in rates.items() if r > 0}
     sess = SimulatedSession(seed=seed, flights=flights, effects=effects, aircraft=aircraft, pause_s=pause_s,
                             flight_duration_s=flight_duration_s, pilot=pilot, excitation_scale=excitation_scale,
@@ -551,6 +561,7 @@ def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
     truth = sess.truth()
     truth["tlog_rates_hz"] = {n: rates[n] for n in MESSAGE_NAMES}
     truth["packet_loss"] = packet_loss
+    truth["loss_burst"] = loss_burst
     path = Path(path)
     mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
     link_rng = np.random.default_rng(sess._seeds[5])
@@ -572,7 +583,12 @@ def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
                     msg = frame.build(n, mav)
                 buf = msg.pack(mav)
                 mav.seq = (mav.seq + 1) % 256
-                if rv < packet_loss:
+                if loss_burst > 1.0:
+                    in_fade = rv >= p_leave if in_fade else rv < p_enter
+                    drop = in_fade
+                else:
+                    drop = rv < packet_loss
+                if drop:
                     lost += 1
                     continue
                 t_host = max(t_host, t_last + 2e-5)
