@@ -9,9 +9,9 @@ One :class:`Service` per run, one ``asyncio.TaskGroup``:
   events goes to the :class:`firmware_interface.recorder.Recorder` first (recording never depends on
   anything after it), then to :class:`groundstation.dsp.live.LivePipeline`; windows to zenoh, rows to
   Rerun (both through their own threads: the loop never blocks on a sink). The in-air rows of the
-  current flight also feed :class:`groundstation.dsp.excitation.ExcitationMonitor` on a thread of its
-  own (the loop only hands the rows over), whose verdict (is each axis excited enough yet?) goes to
-  zenoh, Rerun and the status about once per FC second while armed. Reading waits while a batch is processed: back-pressure onto the link, nothing dropped;
+  current flight also feed :class:`groundstation.dsp.excitation.ExcitationMonitor` (its transforms and
+  verdicts run half a hop after a window went out), whose verdict (is each axis excited enough yet?)
+  goes to zenoh, Rerun and the status about once per FC second while armed. Reading waits while a batch is processed: back-pressure onto the link, nothing dropped;
 * ``timer``     -- recorder flushes, the status record at ``status_rate_hz``;
 * ``stopper``   -- waits for Ctrl-C/SIGTERM, ``exit_after_flights`` or :meth:`Service.request_stop`.
 
@@ -165,8 +165,8 @@ class Service:
         self.on_window: Callable[[Window], None] | None = None     # test/bench hook (loop thread)
         ex = config.excitation
         self.excitation = ExcitationMonitor(ex, 1.0 / config.live.grid_rate_hz) if ex.enabled else None
-        self._excitation_calls: BackgroundCalls | None = None     # the monitor's thread (started with the sinks)
-        self._loop: asyncio.AbstractEventLoop | None = None
+        self._excite_window_row = 0          # live row count at the last window / the monitor's last step
+        self._excite_step_row = 0
         self.excitation_last: ExcitationReport | None = None
         self.on_excitation: Callable[[ExcitationReport], None] | None = None   # test hook (loop thread)
         self.onboard: Any = None             # groundstation.onboard.OnboardLogs when [onboard_logs] download
@@ -197,10 +197,6 @@ class Service:
         self.report.session_tlog = str(getattr(self.recorder, "session_path", "") or "") or None
 
     def _open_sinks(self, loop: asyncio.AbstractEventLoop) -> None:
-        self._loop = loop
-        if self.excitation is not None:
-            # rows of a few minutes can wait; a batch dropped beyond that is a gap the monitor sees
-            self._excitation_calls = BackgroundCalls("excitation", maxsize=4096)
         zc = self.config.zenoh
         if zc.enabled:
             from groundstation.sinks.zenoh_sink import ZenohSink, ZenohSinkError
@@ -409,46 +405,38 @@ class Service:
             self._on_flight_event(fe)
 
     def _excite(self, events: list[Any], out: Any) -> None:
-        """Hand a batch to the excitation monitor's thread (after the windows, and off the loop: a
-        window's latency never waits for a verdict)."""
-        calls = self._excitation_calls
-        if calls is None or (not len(out.t_fc_s) and not out.flight_events and not events):
-            return
-        ft = self.live.flights
-        calls.submit(self._excite_on_thread, tuple(events), tuple(out.flight_events), out.t_fc_s, out.inputs,
-                     out.outputs_raw, ft.armed, ft.in_air)
-
-    def _excite_on_thread(self, events: tuple[Any, ...], flight_events: tuple[Any, ...], t_fc_s: np.ndarray,
-                          inputs: np.ndarray, outputs: np.ndarray, armed: bool, in_air: bool) -> None:
-        """The monitor's thread: accumulate, judge, publish (zenoh and Rerun take calls from any thread;
-        the log, the status and the hook get the verdict on the loop)."""
+        """Feed the excitation monitor. Rows are only gathered here; the transforms and the verdict run
+        half a hop after a window went out, so that a window never waits for them."""
         mon = self.excitation
         assert mon is not None
-        for fe in flight_events:
+        for fe in out.flight_events:
             if isinstance(fe, FlightStarted):
                 mon.flight_started(fe.flight, fe.t_fc_s)
-        mon.events(list(events))
-        verdicts = []
-        rep = mon.rows(t_fc_s, inputs, outputs, armed=armed, in_air=in_air)
-        if rep is not None:
-            verdicts.append((rep, False))
-        for fe in flight_events:
+        mon.events(events)
+        ft = self.live.flights
+        mon.rows(out.t_fc_s, out.inputs, out.outputs_raw, armed=ft.armed, in_air=ft.in_air, work=False)
+        rows, hop = self.live.rows, self.live.windows.hop
+        if out.windows:
+            self._excite_window_row = rows
+        # half a hop after the last window; in a fast replay (a window in every batch) every two hops
+        if (rows - self._excite_window_row >= max(1, hop // 2) and rows - self._excite_step_row >= hop) \
+                or rows - self._excite_step_row >= 2 * hop:
+            self._excite_step_row = rows
+            rep = mon.step()
+            if rep is not None:
+                self._publish_excitation(rep, False)
+        for fe in out.flight_events:
             if isinstance(fe, FlightEnded):
                 last = mon.flight_ended()
                 if last is not None:
-                    verdicts.append((last, True))
-        for rep, final in verdicts:
-            if self.zenoh is not None:
-                vehicle = self.vehicle
-                self.zenoh.publish_excitation(
-                    functools.partial(_excitation_doc, vehicle, rep, final))
-            if self.rerun is not None and self._rerun_calls is not None:
-                self._rerun_calls.submit(self.rerun.log_excitation, rep)
-            if self._loop is not None:
-                try:
-                    self._loop.call_soon_threadsafe(self._on_excitation, rep, final)
-                except RuntimeError:      # the loop has closed (end of the run)
-                    pass
+                    self._publish_excitation(last, True)
+
+    def _publish_excitation(self, rep: ExcitationReport, final: bool) -> None:
+        if self.zenoh is not None:
+            self.zenoh.publish_excitation(functools.partial(_excitation_doc, self.vehicle, rep, final))
+        if self.rerun is not None and self._rerun_calls is not None:
+            self._rerun_calls.submit(self.rerun.log_excitation, rep)
+        self._on_excitation(rep, final)
 
     def _on_excitation(self, rep: ExcitationReport, final: bool) -> None:
         """A verdict, on the loop: the status, a line per axis that has just become enough and one with
@@ -760,13 +748,7 @@ class Service:
                 p.join(0.5)
                 if p.is_alive():
                     p.kill()
-        # 3. sinks (bounded waits): the excitation monitor's last verdicts first
-        if self._excitation_calls is not None:
-            calls, self._excitation_calls = self._excitation_calls, None
-            calls.close(1.0)
-            await asyncio.sleep(0)             # its verdicts' log lines and status, on the loop
-            if calls.error:
-                self._warn(f"excitation monitor: {calls.error} (recording goes on)")
+        # 3. sinks (bounded waits)
         self._flush_rows_to_rerun()
         self._close_rerun()
         if self.zenoh is not None:
