@@ -787,7 +787,7 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
         e = _effect_entry(c)
         e.update(per_effect[id(c)])
         partial_entries.append(e)
-    rep = {"shares": share_block, "partial_findings": partial_entries,
+    rep: dict[str, Any] = {"shares": share_block, "partial_findings": partial_entries,
            "through_flight": {"checked": bool(cons) and not any(v.get("why") == "flight too short to split in halves"
                                                                for v in cons.values()),
                               **over_time, "changes": changes},
