@@ -403,6 +403,8 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
     # position estimate resampled to the grid, whose interpolation images are not vibration
     line_ch = avail & (np.arange(8) >= 3)
     lines, spectra = fingerprints.spectral_lines(resid_raw, ev.U[:, ev.start:], dt, line_ch, alpha=cfg.alpha)
+    # a line above the Nyquist frequency of the stream a channel was sent at is an interpolation image
+    lines = fingerprints.resolvable_lines(lines, loc.out_stride, dt)
     kin = fingerprints.kinematic_rate_offsets(ev.Y, dt, avail, trims=_trims(prepared))
 
     for h in hyps:
@@ -710,7 +712,7 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
             if any(c.hyp.effect == "rotor_vibration" for c in ranked):
                 yfit = ev.simulate(ev.theta0)[0]
                 arrays = {"resid_raw": (ev.Yraw - yfit)[:, ev.start:], "U": ev.U[:, ev.start:],
-                          "line_channels": base.avail & (np.arange(8) >= 3)}
+                          "line_channels": base.avail & (np.arange(8) >= 3), "stride": loc.out_stride}
             for c in ranked:
                 cons[id(c)] = shares.consistency(
                     c, segs_h, ev, np.asarray(c.hyp.extra.get("theta_refit", ev.theta0)), level,

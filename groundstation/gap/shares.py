@@ -386,6 +386,7 @@ def _line_consistency(c: attribute.Candidate, ev: Evaluator, arrays: dict[str, A
             out["why"] = "a half of the flight is too short"
             return out
         lines, sp = fingerprints.spectral_lines(resid[sel], U[sel], dt, ch, alpha=level)
+        lines = fingerprints.resolvable_lines(lines, arrays.get("stride"), dt)
         f = sp["f_hz"] if isinstance(sp, dict) and "f_hz" in sp else None
         tol = max(0.3, 2.0 * float(f[1] - f[0])) if f is not None and len(f) > 1 else 0.3
         near = [ln.frequency_hz for ln in lines if abs(ln.frequency_hz - f0) <= tol]
