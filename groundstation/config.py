@@ -98,6 +98,9 @@ class IdentificationSection:
     refine: bool = True
     diagnose: bool = True
     plots: bool = True
+    #: held-out check after the fit: refit on k-1 contiguous blocks of the in-air time and predict the
+    #: left-out one, for each block (``usable``, ``closed_loop`` in the model file); 0 = skip
+    heldout_folds: int = 5
     #: aircraft file (TOML) applied between flights: its channel map and outputs prepare each flight,
     #: its ``[identify]`` settings and prior model identify it; "" = none
     aircraft: str = ""
@@ -191,6 +194,8 @@ def validate(cfg: ServiceConfig, where: str = "config") -> None:
          "must be last or all"),
         (cfg.identification.algorithm in ("cabc", "abc", "ga", "de"), "identification.algorithm",
          cfg.identification.algorithm, "must be cabc, abc, ga or de"),
+        (cfg.identification.heldout_folds == 0 or cfg.identification.heldout_folds >= 2,
+         "identification.heldout_folds", cfg.identification.heldout_folds, "must be 0 (skip) or >= 2"),
         (cfg.identify.search_restarts >= 1, "identify.search_restarts", cfg.identify.search_restarts, "must be >= 1"),
         (cfg.sim.speed > 0, "sim.speed", cfg.sim.speed, "must be > 0"),
         (cfg.sim.flights >= 1, "sim.flights", cfg.sim.flights, "must be >= 1"),

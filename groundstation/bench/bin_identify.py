@@ -42,7 +42,7 @@ def one_seed(seed: int, effects: tuple[str, ...], keep: Path | None) -> dict[str
 
     from firmware_interface.readers import load_log
     from groundstation.cli import main as cli_main
-    from groundstation.commands.diagnose import native_vibration
+    from groundstation.analysis import native_vibration
     from hil_replay.dataflash import write_bin
     from hil_replay.sim import write_tlog
 

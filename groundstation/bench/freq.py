@@ -67,7 +67,7 @@ def _linear(seed: int, duration_s: float, delay_s: float = 0.0) -> tuple[Any, di
 
 def _sim(seed: int, duration_s: float, tmp: Path, delay_s: float = 0.0) -> tuple[Any, dict[str, float]]:
     from firmware_interface.readers import load_log
-    from groundstation.commands.freq_support import prepare_native
+    from groundstation.pipeline import prepare_native
     from groundstation.dsp.prepare import PrepConfig
     from hil_replay.sim import write_tlog
 

@@ -6,9 +6,10 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
+
+from groundstation.pipeline import prepare_native
 
 
 def add_freq_arguments(parser: argparse.ArgumentParser) -> None:
@@ -26,18 +27,6 @@ def load_freq_config(path: Path | None, cfg: Any = None) -> Any:
     if path is not None:
         return load_config(path).freq
     return (cfg if cfg is not None else ServiceConfig()).freq
-
-
-def prepare_native(logs: list[Any], prep_cfg: Any, *, grid_only: bool = False) -> Any:
-    """Prepared data at the log's native rate where that is faster than the grid (else the grid)."""
-    from groundstation.dsp.prepare import prepare
-    from groundstation.freq.spectra import native_rate_hz
-
-    prepared = prepare(logs, prep_cfg)
-    rate = None if grid_only else native_rate_hz(prepared, prep_cfg.rate_hz)
-    if rate is None:
-        return prepared
-    return prepare(logs, replace(prep_cfg, rate_hz=rate))
 
 
 def j_table(v: Any, title: str):
