@@ -38,7 +38,7 @@ from groundstation.parallel import Map, serial_map
 from groundstation.pipeline import load_aircraft, load_logs, load_model, prepare_native, with_aircraft
 
 __all__ = ["STEPS", "AnalysisError", "AnalysisResult", "DataSummary", "GapReport", "Progress", "analyse",
-           "analyse_prepared"]
+           "analyse_prepared", "diagnose", "identify"]
 
 #: the steps after loading and preparing, in the order they run
 STEPS = ("identify", "heldout", "validate", "freq", "diagnose")
@@ -98,6 +98,10 @@ class GapReport:
     def verdict(self) -> str:
         return str(self.report["verdict"])
 
+    def __repr__(self) -> str:
+        effects = ", ".join(e["effect"] for e in self.report.get("effects", [])) or "none"
+        return f"GapReport(verdict={self.verdict!r}, effects=[{effects}])"
+
     @property
     def arrays(self) -> dict[str, Any]:
         return self.diagnosis.arrays if self.diagnosis is not None else {}
@@ -138,6 +142,23 @@ class AnalysisResult:
     prepared: Any = field(default=None, repr=False, compare=False)     # groundstation.dsp.prepare.PreparedData
     #: validate()'s windowed series (t_s, y, yhat), for plots
     validation_series: dict[str, Any] | None = field(default=None, repr=False, compare=False)
+
+    def __repr__(self) -> str:
+        parts = [f"{self.data.duration_s:g} s in air in {self.data.segments} segments"]
+        if self.model is not None:
+            ho = self.heldout or {}
+            parts.append(f"model (usable={self.usable}, held-out mean match "
+                         f"{ho['mean_match']:.1f} %)" if "mean_match" in ho else f"model (usable={self.usable})")
+        if self.validation is not None:
+            parts.append(f"validation mean match {self.validation['mean_match']:.1f} %")
+        if self.freq is not None:
+            ja = self.freq.J_avg
+            parts.append("frequency check J_avg " + ("-" if ja is None else f"{ja:.0f}"))
+        if self.gap is not None:
+            parts.append(f"gap verdict {self.gap.verdict!r}")
+        if self.errors:
+            parts.append(f"errors in {sorted(self.errors)}")
+        return f"AnalysisResult({'; '.join(parts)})"
 
     @property
     def heldout(self) -> dict[str, Any] | None:
@@ -190,6 +211,7 @@ def analyse(logs: Any, aircraft: Any = None, config: ServiceConfig | str | os.Pa
     keep_going : a failed ``freq`` or ``diagnose`` step is recorded in ``errors`` instead of raised
     pmap : map over worker processes (:func:`groundstation.parallel.worker_map`); results do not depend on it
     """
+    steps = _steps(steps)
     cfg = _config(config)
     ac = load_aircraft(aircraft) if _is_path(aircraft) else aircraft
     if ac is None and cfg.identification.aircraft:
@@ -292,6 +314,25 @@ def analyse_prepared(prepared: Any, config: ServiceConfig | None = None, aircraf
     return AnalysisResult(data=summarize(prepared, log_paths), model=model, validation=validation, freq=freq,
                           gap=gap, steps=run, errors=errors, seconds=seconds, config=cfg, aircraft=aircraft,
                           prepared=prepared, validation_series=series)
+
+
+def identify(logs: Any, aircraft: Any = None, config: ServiceConfig | str | os.PathLike[str] | None = None, *,
+             heldout: bool = True, segments: str = "flights", progress: Callable[[Progress], Any] | None = None,
+             pmap: Map = serial_map) -> Any:
+    """The hover model of the logs (a :class:`groundstation.HoverModel`), as ``groundstation identify``
+    writes it: with ``heldout`` its ``fit`` carries the held-out verdict (``heldout``, ``usable``,
+    ``closed_loop``). Arguments as :func:`analyse`."""
+    steps = ("identify", "heldout") if heldout else ("identify",)
+    return analyse(logs, aircraft, config, steps=steps, segments=segments, progress=progress, pmap=pmap).model
+
+
+def diagnose(logs: Any, model: Any = None, aircraft: Any = None,
+             config: ServiceConfig | str | os.PathLike[str] | None = None, *, segments: str = "flights",
+             progress: Callable[[Progress], Any] | None = None, pmap: Map = serial_map) -> GapReport:
+    """The gap report of ``model`` (a HoverModel or a model file; None: the diagnosis identifies its own
+    base model) on the logs, as ``groundstation diagnose`` writes it (frequency section included)."""
+    return analyse(logs, aircraft, config, steps=("freq", "diagnose"), model=model, segments=segments,
+                   progress=progress, pmap=pmap).gap  # type: ignore[return-value]
 
 
 def summarize(prepared: Any, log_paths: Sequence[str] = ()) -> DataSummary:

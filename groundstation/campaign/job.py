@@ -157,6 +157,7 @@ def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[st
     res = analyse_prepared(prepared, cfg, job.settings.aircraft, log_paths=[job.log],
                            steps=("identify", "diagnose") if job.settings.diagnose else ("identify",))
     model = res.model
+    model.fit.pop("seconds", None)   # the row has its own; a stored row is the same whichever backend ran it
     report = res.gap.report if res.gap is not None else None
     row = {"flight_index": flight, **model_row(model, report, prepared), "cross_log": None, "cross_match_pct": None}
     if ref is not None:
