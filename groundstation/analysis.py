@@ -89,7 +89,7 @@ class DataSummary:
 
 @dataclass(frozen=True)
 class GapReport:
-    """The gap report (``heli-gap-report/1``, docs/gap-report.md) and the arrays behind it (for plots)."""
+    """The gap report (``heli-gap-report/N``, docs/gap-report.md) and the arrays behind it (for plots)."""
 
     report: dict[str, Any]
     diagnosis: Any = field(default=None, repr=False, compare=False)   # groundstation.gap.diagnose.Diagnosis
@@ -112,7 +112,7 @@ class GapReport:
 
     @classmethod
     def from_json(cls, doc: dict[str, Any]) -> GapReport:
-        if doc.get("schema") != "heli-gap-report/1":
+        if not str(doc.get("schema", "")).startswith("heli-gap-report/"):
             raise AnalysisError(f"not a gap report: schema {doc.get('schema')!r}")
         return cls(report=copy.deepcopy(doc))
 

@@ -26,6 +26,7 @@ import numpy as np
 
 from groundstation.analysis import AnalysisError
 from groundstation.config import ServiceConfig
+from groundstation.jsonio import dumps
 
 OUTPUTS = ("u", "v", "w", "p", "q", "r", "theta", "phi")
 
@@ -192,7 +193,7 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
         model.fit["cross_flight"] = cross
     doc = model.to_json()
     model_path = out_dir / f"model-flight{job.flight:02d}.json"
-    model_path.write_text(json.dumps(doc, indent=1, default=float))
+    model_path.write_text(dumps(doc, indent=1))
     overlay = _overlay(res.validation_series, prepared.output_trim)
     png: tuple[str, ...] = ()
     if cfg.identification.plots and len(overlay["t_fc_s"]):
@@ -240,7 +241,7 @@ def _freq_files(job: IdentifyJob, res: Any) -> tuple[Any, Any, Any, Any]:
 
         doc = {**res.freq.to_json(), "vehicle": job.vehicle, "flight": job.flight}
         path = Path(job.out_dir) / f"freq-flight{job.flight:02d}.json"
-        path.write_text(json.dumps(doc, indent=1, allow_nan=False))
+        path.write_text(dumps(doc, indent=1))
         return doc, str(path), None, freq_pairs(res.freq)
     except Exception as exc:
         return None, None, f"flight {job.flight}: frequency check: {type(exc).__name__}: {exc}".splitlines()[0], None
@@ -260,5 +261,5 @@ def _gap_files(job: IdentifyJob, res: Any, model_path: Path) -> tuple[Any, Any, 
     except Exception as exc:
         return None, None, f"flight {job.flight}: diagnosis: {type(exc).__name__}: {exc}".splitlines()[0], None
     gap_path = Path(job.out_dir) / f"gap-flight{job.flight:02d}.json"
-    gap_path.write_text(json.dumps(report, indent=1, default=float))
+    gap_path.write_text(dumps(report, indent=1))
     return report, str(gap_path), None, pictures

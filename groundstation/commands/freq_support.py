@@ -5,7 +5,6 @@ Bode and Rerun outputs. Not a command itself."""
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Any
 
@@ -96,7 +95,9 @@ def write_rerun(v: Any, mode: list[str], app: str) -> Path | None:
 def verification_json(v: Any, **extra: Any) -> str:
     doc = v.to_json()
     doc.update(extra)
-    return json.dumps(doc, indent=1, allow_nan=False)
+    from groundstation.jsonio import dumps
+
+    return dumps(doc, indent=1)
 
 
 def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:

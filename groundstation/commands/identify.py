@@ -10,7 +10,6 @@ a summary. Options override the configuration file (``[prepare]``, ``[identify]`
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
@@ -91,10 +90,9 @@ SEGMENTS_HELP = ("which data to use: 'flights' (every in-air interval, default) 
 
 
 def write_json(path: Path, doc: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(doc, indent=1, allow_nan=False))
-    tmp.replace(path)
+    from groundstation.jsonio import write_atomic
+
+    write_atomic(path, doc)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -231,5 +229,9 @@ def selection_lines(sel: dict) -> list[str]:
     out = [f"configuration chosen by held-out prediction over {sel['k']} folds: {sel['chosen']} ({sel['rule']})"]
     for r in rows:
         gain = "" if "gain" not in r else f", gain {r['gain']:+.1f} +- {r['gain_se']:.1f} points per fold"
-        out.append(f"  {r['name']}: held-out mean {r['mean_match']:.1f} %{gain}")
+        if "gain_folds" in r:
+            gain += f" (better on {r['gain_folds']} of {len(r['fold_score'])} folds)"
+        why = f"; {r['reason']}" if r.get("reason") else ""
+        ran = "" if not r.get("runaway") or r.get("reason") else "; runs away on " + ", ".join(r["runaway"])
+        out.append(f"  {r['name']}: held-out mean {r['mean_match']:.1f} %{gain}{why}{ran}")
     return out

@@ -38,6 +38,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="--out: message rate in the .tlog, e.g. LOCAL_POSITION_NED=10 (0 = not written; "
                              "default: 50 Hz SERVO_OUTPUT_RAW/ATTITUDE/LOCAL_POSITION_NED, 10 Hz GLOBAL_POSITION_INT/"
                              "RAW_IMU, 5 Hz GPS/EXTENDED_SYS_STATE, 1 Hz HEARTBEAT/SYS_STATUS)")
+    parser.add_argument("--packet-loss", type=float, default=0.002, metavar="P",
+                        help="--out .tlog: share of packets the simulated link loses (default 0.002)")
+    parser.add_argument("--loss-burst", type=float, default=1.0, metavar="N",
+                        help="--out .tlog: mean length of a lost run, packets of every type alike, as a radio fade "
+                             "(default 1: independent losses; 8 is a typical fade at range)")
     parser.add_argument("--speed", type=float, default=1.0, help="--serve: N times real time")
     parser.add_argument("--link-path", default=None, help="--serve: symlink path for the port")
 
@@ -83,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
         if not 0.0 <= hz <= 50.0:
             raise ValueError(f"--rate {name}={hz:g}: allowed 0..50 Hz (the simulator's 50 Hz frames)")
     truth = write_tlog(out, seed=args.seed, flights=args.flights, effects=effects, aircraft=aircraft,
-                       flight_duration_s=args.duration_s, pause_s=args.pause_s, rates_hz=rates or None)
+                       flight_duration_s=args.duration_s, pause_s=args.pause_s, rates_hz=rates or None,
+                       packet_loss=args.packet_loss, loss_burst=args.loss_burst)
     fl = truth["flights"]
     total = fl[-1]["end_fc_s"] + 2.0
     print(f"wrote {out} ({out.stat().st_size} bytes, {truth['packets_written']} packets, "

@@ -79,7 +79,9 @@ def _run(args: argparse.Namespace) -> int:
     if args.rrd is not None and series is not None:
         write_rrd(series, res["channels"], args.rrd, "groundstation-validate")
     if args.json:
-        print(json.dumps(res, indent=1, allow_nan=False))
+        from groundstation.jsonio import dumps
+
+        print(dumps(res, indent=1))
         return 0
     from rich.console import Console
     from rich.table import Table

@@ -58,7 +58,7 @@ def test_the_documented_example_runs(tmp_path, monkeypatch):
     model_doc = json.loads((tmp_path / "model.json").read_text())
     assert {"usable", "closed_loop", "heldout", "seconds"} <= set(model_doc["fit"])
     gap_doc = json.loads((tmp_path / "gap.json").read_text())
-    assert gap_doc["schema"] == "heli-gap-report/1" and "frequency" in gap_doc
+    assert gap_doc["schema"].startswith("heli-gap-report/") and "frequency" in gap_doc
     # the JSON round trips
     from groundstation.analysis import DataSummary, GapReport
 
