@@ -12,6 +12,8 @@ import argparse
 import json
 from pathlib import Path
 
+from groundstation.analysis import native_vibration, unfold_rotor_line  # noqa: F401 - their home is the analysis
+
 HELP = "diagnose where and why the hover model departs from flight data (gap report JSON)"
 
 

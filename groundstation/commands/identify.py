@@ -160,6 +160,13 @@ def _run(args: argparse.Namespace, pmap) -> int:
     return 0
 
 
+def held_out(model, prepared, cfg, aircraft, k: int, con=None, pmap=None) -> None:
+    """The held-out check (:func:`groundstation.analysis.held_out`; ``con`` is not used any more)."""
+    from groundstation.analysis import held_out as _held_out
+
+    _held_out(model, prepared, cfg, aircraft, k, pmap)
+
+
 def print_model(model, con=None) -> None:
     from rich.console import Console
     from rich.table import Table
