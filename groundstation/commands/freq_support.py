@@ -151,7 +151,7 @@ def _score_and_write(args: argparse.Namespace, models: dict[str, Any], rs: Any, 
     """Score each model both ways, write them and print the table (``identify --domain``)."""
     from rich.console import Console
 
-    from groundstation.commands.identify import print_model, write_json
+    from groundstation.commands.model_summary import print_model, write_json
     from groundstation.freq.model_response import delays_from_augmentations
     from groundstation.freq.verify import verify
     from groundstation.sysid.heldout import SUBSYSTEM_CHANNELS

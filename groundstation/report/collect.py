@@ -113,7 +113,7 @@ def collect(logs: Sequence[str | os.PathLike[str]], *, config: Any = None, aircr
     except Exception as exc:  # the page still says what could not be read
         errors["logs"] = _line(exc)
         return FlightReportData(**parts, errors=errors)
-    from groundstation.commands.log_info import summarise
+    from groundstation.loginfo import summarise
 
     parts["log_info"] = tuple(summarise(log) for log in raw)
     parts["timelines"] = tuple(timeline(log) for log in raw)
@@ -148,7 +148,7 @@ def assemble(logs: Sequence[str | os.PathLike[str]], cfg: Any, *, prepared: Any,
     """A :class:`FlightReportData` from results already computed elsewhere (the service's worker, a
     campaign job): reads the logs again for their data quality and timeline, validates the model on
     its training windows when ``validation`` is not given; nothing else is recomputed."""
-    from groundstation.commands.log_info import summarise
+    from groundstation.loginfo import summarise
     from groundstation.pipeline import load_logs
 
     errs = {k: v for k, v in (errors or {}).items() if v}
