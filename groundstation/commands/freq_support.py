@@ -5,6 +5,7 @@ Bode and Rerun outputs. Not a command itself."""
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -113,7 +114,7 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
     from rich.console import Console
 
     from groundstation.dsp.prepare import prepare
-    from groundstation.freq.identify import FreqIdentifyConfig, identify_frequency
+    from groundstation.freq.identify import identify_frequency
     from groundstation.freq.spectra import estimate_responses
 
     con = Console(stderr=True, quiet=args.quiet)
@@ -122,9 +123,14 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
     rs = estimate_responses(fast, load_freq_config(args.freq_config, cfg))
     ic = cfg.identification
     bounds = dict(cfg.bounds)
-    fcfg = FreqIdentifyConfig(fit_delays=args.fit_delays, refine=ic.refine,
-                              weighting=getattr(args, "freq_weighting", "output_error"),
-                              **({"maxiter": args.maxiter} if args.maxiter else {}))
+    over: dict[str, Any] = {"refine": ic.refine}   # [freq_identify] of the configuration, the options over it
+    if getattr(args, "fit_delays", False):
+        over["fit_delays"] = True
+    if getattr(args, "freq_weighting", None) is not None:
+        over["weighting"] = args.freq_weighting
+    if args.maxiter:
+        over["maxiter"] = args.maxiter
+    fcfg = replace(cfg.freq_identify, **over)
     models = {}
     start = None
     if args.domain == "both":

@@ -54,9 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "flight's frequency responses; both: the time fit, then the frequency cost as a "
                              "refinement started from it; each scored both ways")
     parser.add_argument("--fit-delays", action="store_true", help="frequency domain: also fit one delay per input")
-    parser.add_argument("--freq-weighting", choices=("output_error", "coherence", "random_error"), default="output_error",
+    parser.add_argument("--freq-weighting", choices=("output_error", "coherence", "random_error"), default=None,
                         help="frequency-domain cost: output_error = the Fourier transforms of 3-s windows of the "
-                             "flight against the model's, from the J fit (default); coherence = Tischler's J only; "
+                             "flight against the model's, from the J fit (default: [freq_identify] weighting); coherence = Tischler's J only; "
                              "random_error = each coherent point weighted by its random error")
     from groundstation.commands.freq_support import add_freq_arguments
 
