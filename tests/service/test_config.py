@@ -173,3 +173,15 @@ def test_a_renamed_key_says_what_replaced_it(tmp_path):
         config_from_dict({"inputs": {"trim_pwm": [1500, 1500, 1500, 1500]}}, "old.toml")
     cfg = config_from_dict({"trends": {"alpha": 0.01}, "freq_identify": {"weighting": "coherence"}})
     assert cfg.trends.alpha == 0.01 and cfg.freq_identify.weighting == "coherence"
+
+
+def test_every_analysis_command_takes_an_aircraft_file():
+    import argparse
+
+    from groundstation.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    analysis = [c for c in ("identify", "validate", "diagnose", "campaign", "run", "report") if c in sub.choices]
+    assert {"identify", "validate", "diagnose", "campaign", "run"} <= set(analysis)
+    missing = [c for c in analysis if "--aircraft" not in sub.choices[c]._option_string_actions]
+    assert not missing, f"commands without --aircraft: {missing}"
