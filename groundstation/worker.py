@@ -7,7 +7,8 @@ file(s) and identifies the hover model exactly as ``groundstation identify --con
 held-out verdict included), validates it, writes
 ``model-flightNN.json`` next to the recording, checks the model in the frequency domain
 (``freq-flightNN.json``: Tischler J per input-output pair, published on ``heli/{vehicle}/flight/{n}/freq``),
-diagnoses the gap (``gap-flightNN.json``), draws a model-vs-measured PNG, and returns a :class:`JobResult` for the service
+diagnoses the gap (``gap-flightNN.json``), draws a model-vs-measured PNG and the flight's self-contained HTML page
+(``report-flightNN.html``, :mod:`groundstation.report`), and returns a :class:`JobResult` for the service
 to publish. Errors come back as ``JobResult.error`` (one line) so a bad flight never stops the service.
 
 The chain is :mod:`groundstation.analysis`'s; this module only writes its files and returns them.
@@ -81,6 +82,9 @@ class JobResult:
     freq_pairs: Any = None                          # Bode arrays per scored pair (data, model, coherence), for Rerun
     trends: dict[str, Any] | None = None            # heli-trends/1 over the vehicle's flights ([service] campaign_db)
     trends_error: str | None = None                 # the campaign table failed (the model is still good)
+    report_path: str | None = None                  # report-flightNN.html: the flight's self-contained page
+    report_summary: str | None = None               # what the page says, one line
+    report_error: str | None = None                 # the page failed (the model is still good)
     identify_s: float | None = None
     seconds: float = 0.0
 
@@ -205,6 +209,10 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
     gap, gap_path, gap_error, pictures = (_gap_files(job, res, model_path) if cfg.identification.diagnose
                                           else (None, None, None, None))
     trends, trends_error = _trends(job, model, gap, prepared, time.perf_counter() - t0)
+    report_path, report_summary, report_error = (
+        _report(job, prepared, model, val, res.validation_series, res.freq, gap, pictures,
+                {"freq": freq_error, "gap": gap_error, "history": trends_error})
+        if cfg.identification.plots else (None, None, None))
     return JobResult(
         flight=job.flight, tlogs=job.tlogs, model=doc, model_path=str(model_path),
         match_degree={c: float(v["match"]) for c, v in val["channels"].items()}, validation=val, png=png,
@@ -212,6 +220,7 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
         overlay=Overlay(*(np.asarray(overlay[k], dtype=float) for k in ("t_fc_s", "model", "measured"))),
         gap=gap, gap_path=gap_path, gap_error=gap_error, gap_pictures=pictures, identify_s=identify_s,
         freq=freq, freq_path=freq_path, freq_error=freq_error, freq_pairs=bode, trends=trends, trends_error=trends_error,
+        report_path=report_path, report_summary=report_summary, report_error=report_error,
         seconds=time.perf_counter() - t0)
 
 
@@ -228,6 +237,28 @@ def _trends(job: IdentifyJob, model: Any, gap: Any, prepared: Any, seconds: floa
                              model, gap, prepared, cfg, seconds), None
     except Exception as exc:  # the model and the gap report stand on their own
         return None, f"flight {job.flight}: trends: {type(exc).__name__}: {exc}".splitlines()[0]
+
+
+def _report(job: IdentifyJob, prepared: Any, model: Any, val: dict[str, Any], series: Any, verification: Any,
+            gap: Any, pictures: Any, errors: dict[str, str | None]) -> tuple[Any, Any, Any]:
+    """(``report-flightNN.html`` path, one-line summary, None) of the flight's page, drawn from what this
+    job computed, or (None, None, one-line error): the model stands on its own."""
+    try:
+        from groundstation.report import one_line_summary, render_report, write_html
+        from groundstation.report.collect import assemble, load_history
+
+        cfg = job.config
+        history: tuple[dict[str, Any], ...] = ()
+        label = ""
+        if cfg.service.campaign_db and (Path(job.out_dir) / cfg.service.campaign_db).exists():
+            history, label = load_history(Path(job.out_dir) / cfg.service.campaign_db, job.vehicle)
+        data = assemble(job.tlogs, cfg, prepared=prepared, model=model, validation={**val, "series": series},
+                        freq=verification, gap=gap, pictures=pictures, history=history, history_label=label,
+                        errors=errors, title=f"{job.vehicle} flight {job.flight}", aircraft=job.vehicle)
+        path = write_html(Path(job.out_dir) / f"report-flight{job.flight:02d}.html", render_report(data))
+        return str(path), one_line_summary(data), None
+    except Exception as exc:
+        return None, None, f"flight {job.flight}: report: {type(exc).__name__}: {exc}".splitlines()[0]
 
 
 def _freq_files(job: IdentifyJob, res: Any) -> tuple[Any, Any, Any, Any]:

@@ -41,6 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-diagnose", action="store_true", help="identify only (no gap verdicts or effects)")
     parser.add_argument("--no-cross", action="store_true", help="do not score each model on the previous flight")
     parser.add_argument("--trends-dir", type=Path, default=None, help="where trends.json/png/rrd go (default: --db's dir)")
+    parser.add_argument("--report-dir", type=Path, default=None,
+                        help="write an HTML page per analysed flight and DIR/campaign.html (table, trends, links)")
     parser.add_argument("--alpha", type=float, default=None,
                         help="family-wise false-alarm level of the trend test (default: [trends] alpha, 0.05)")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True, help="progress bar")
@@ -77,7 +79,8 @@ def build_jobs(args: argparse.Namespace, store: Any) -> tuple[list, list[Path], 
             skipped.append(p)
             continue
         ref = None if args.no_cross or k == 0 else str(logs[k - 1])
-        jobs.append(FlightJob(str(p), h, name, s, ref))
+        jobs.append(FlightJob(str(p), h, name, s, ref,
+                              str(args.report_dir) if getattr(args, "report_dir", None) is not None else None))
     return jobs, skipped, s
 
 
@@ -118,6 +121,9 @@ def run(args: argparse.Namespace) -> int:
             out = store.write_parquet(name, args.parquet / f"{name}.parquet")
             con.print(f"wrote {out}")
         summary = write_trends(store, name, settings.key(), args, settings.service_config().trends)
+        if args.report_dir is not None:
+            page = write_campaign_page(store, name, settings.key(), summary, args.report_dir)
+            con.print(f"wrote {page}")
         if not args.quiet:
             _print(store.rows(name, settings.key()), summary, con)
         con.print(f"{len(jobs)} log(s) analysed in {wall:.1f} s; table {args.db} ({name})")
@@ -151,6 +157,21 @@ def write_trends(store: Any, aircraft: str, settings_key: str, args: argparse.Na
         plot_trends(trends, labels, out_dir / "trends.png", title=f"{aircraft}: trends over {len(rows)} flights")
         write_trends_rrd(trends, labels, out_dir / "trends.rrd")
     return summary
+
+
+def write_campaign_page(store: Any, aircraft: str, settings_key: str, summary: dict, report_dir: Path) -> Path:
+    """``report_dir/campaign.html``: the aircraft's flights (every row, errors included) linked to the flight
+    pages that exist in ``report_dir``, the trend test's changes and figure."""
+    from groundstation.campaign.job import page_name
+    from groundstation.report import render_campaign, write_html
+
+    rows = store.rows(aircraft, settings_key) + [{**e, "flight_index": 0} for e in store.errors(aircraft)]
+    links = {}
+    for r in rows:
+        name = page_name(r["log_name"], int(r.get("flight_index") or 0))
+        if (report_dir / name).exists():
+            links[f"{r['log_name']}#{int(r.get('flight_index') or 0)}"] = name
+    return write_html(report_dir / "campaign.html", render_campaign(aircraft, rows, summary, links))
 
 
 def _print(rows: list[dict], summary: dict, con: Any) -> None:
