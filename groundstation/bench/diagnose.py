@@ -326,6 +326,10 @@ def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
         out["gap_to_noise_ratio"] = rep["gap"].get("gap_to_noise_ratio")
         sh = rep.get("shares") or {}
         out["explained_pct"] = sh.get("explained_pct")
+        out["partial_explained_pct"] = sh.get("partial_explained_pct")
+        out["headline"] = sh.get("headline")
+        out["partial_findings"] = [{k: e.get(k) for k in ("effect", "input", "output", "share_pct", "consistency")}
+                                   for e in rep.get("partial_findings", [])]
         out["consistency"] = [{k: e.get("consistency", {}).get(k) for k in ("status", "parameter", "first", "second")}
                               for e in rep["effects"]]
         if job.get("fresh") and job["effects"]:
