@@ -657,6 +657,9 @@ class Service:
                 self.zenoh.publish_freq(flight, res.freq)
             if res.trends is not None:
                 self.zenoh.publish_trends(res.trends)
+            if res.report_path is not None:
+                self.zenoh.publish_report(flight, {"vehicle": self.vehicle, "flight": flight, "path": res.report_path,
+                                                   "summary": res.report_summary})
         if res.freq is not None:
             ja = res.freq.get("J_avg")
             self.log(f"flight {flight}: frequency check {res.freq_path} J_avg "
@@ -667,6 +670,10 @@ class Service:
             self._warn(res.trends_error)
         if gap is not None:
             self.log(f"flight {flight}: gap report {res.gap_path} verdict {gap.get('verdict')}")
+        if res.report_path is not None:
+            self.log(f"flight {flight}: report {res.report_path}: {res.report_summary}")
+        if res.report_error:
+            self._warn(res.report_error)
         if res.gap_error:
             self._warn(res.gap_error)
 
