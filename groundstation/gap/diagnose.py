@@ -343,7 +343,7 @@ def locate_stage(base: Base, prepared: Any, cfg: DiagnoseConfig) -> Located:
     windows_s = locate.merge_intervals([(float(ev.T[i, 0]), float(ev.T[i, -1] + dt)) for i in np.flatnonzero(flag)])
     noise_psd = 2 * dt * nf["sigma_smoothed"] ** 2
     band = locate.worst_band(e[:, ev.start:], ev.U[:, ev.start:], dt, noise_psd, ev.w8)
-    cond = locate.conditions(energy_w, _window_features(ev))
+    cond = locate.conditions(energy_w, _window_features(ev), alpha=cfg.conditions_alpha)
     ho_nrmse = np.array([np.sqrt((e_w[:, ev.start:, c] ** 2).sum() / ev.energy[:, c].sum())
                          if ev.energy[:, c].sum() > 0 else np.nan for c in range(8)])
     gap_ratio = ho_nrmse / np.where(nf["nrmse_floor"] > 0, nf["nrmse_floor"], np.nan)
