@@ -8,19 +8,25 @@ prints one JSON object (``--json``) or the same as readable tables (rich)::
      "gaps": [{"message", "start_s", "duration_s"}], "gaps_total": n,
      "corrupt_bytes": n, "truncated_tail_bytes": n, "fc_reboots": n,
      "packet_loss": {"lost": n, "by_source": {"sysid:compid": n}},
+     "link": {"loss_pct", "outages", "outages_per_min", "median_outage_s", "longest_outage_s",
+              "lost_per_outage", "bridge_limit_s", "outages_split"},
      "dropouts": [{"start_s", "duration_s"}], "notes": [str],
      "chirps": [{"index", "axis", "sid_axis", "magnitude", "f_start_hz", "f_stop_hz", "start_s", "duration_s"}]}
 
 Times are on the FC clock (s). ``rate_hz`` is the mean rate over the message's own span (series
 types) or over the log span (other types). A gap is an interval longer than 3 median sample periods
 of that series (a GPS outage shows as a GPS_RAW_INT gap). ``dropouts`` are the intervals the FC's own
-logger says it lost (ULog); empty for other logs. Leaves analysis beyond this to ``groundstation.dsp``.
+logger says it lost (ULog); empty for other logs. ``link``: the link as a radio delivers it - packets
+lost (MAVLink sequence numbers), outages (no telemetry stream message for longer than 3 periods of
+the fastest one), their length and packets lost per outage (the burst length), and how many are
+longer than the input bridge of data preparation (``[prepare] max_input_bridge_s``: those split the
+data; shorter ones are bridged and their samples not counted). Leaves analysis beyond this to
+``groundstation.dsp``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from typing import Any
 
@@ -81,6 +87,7 @@ def summarise(log: Any) -> dict[str, Any]:
         "truncated_tail_bytes": int(st.truncated_tail_bytes),
         "fc_reboots": int(st.fc_reboots),
         "packet_loss": {"lost": int(st.packets_lost), "by_source": dict(st.loss_by_source)},
+        "link": link_summary(log),
         "dropouts": [{"start_s": _num(a), "duration_s": _num(d)} for a, d in getattr(log, "dropouts_s", [])],
         "notes": list(getattr(log, "notes", [])),
         "chirps": [{"index": c.index, "axis": c.axis_name, "sid_axis": c.axis, "magnitude": _num(c.magnitude),
@@ -88,6 +95,54 @@ def summarise(log: Any) -> dict[str, Any]:
                     "start_s": _num(c.start_fc_s), "duration_s": _num(c.duration_s)}
                    for c in getattr(log, "chirps", [])],
     }
+
+
+#: the telemetry streams an analysis needs: their common outages are the link's
+_STREAMS = ("ATTITUDE", "SERVO_OUTPUT_RAW", "LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "RC_CHANNELS")
+
+
+def link_summary(log: Any, bridge_limit_s: float | None = None) -> dict[str, Any]:
+    """Loss rate, outages (bursts) and what data preparation does with them (see the module docstring)."""
+    from groundstation.dsp.prepare import PrepConfig
+
+    limit = PrepConfig().max_input_bridge_s if bridge_limit_s is None else bridge_limit_s
+    st = log.stats
+    total = int(st.packets) + int(st.packets_lost)
+    loss = 100.0 * st.packets_lost / total if total and st.packets_lost else (0.0 if total else math.nan)
+    streams = [log.series[n] for n in _STREAMS if n in log.series and len(log.series[n]) > 3]
+    out: dict[str, Any] = {"loss_pct": _num(loss), "outages": 0, "outages_per_min": None, "median_outage_s": None,
+                           "longest_outage_s": None, "lost_per_outage": None, "bridge_limit_s": limit,
+                           "outages_split": 0}
+    if not streams:
+        return out
+    # a stream's hole: an interval over 1.5 of its periods (a message lost); outages: the holes of
+    # the streams merged where they overlap (a fade takes out every type at once)
+    iv: list[tuple[float, float]] = []
+    t_lo, t_hi = math.inf, -math.inf
+    for s in streams:
+        t = s.t_fc_s[np.isfinite(s.t_fc_s)]
+        d = np.diff(t)
+        if not (d > 0).any():
+            continue
+        period = float(np.median(d[d > 0]))
+        t_lo, t_hi = min(t_lo, float(t[0])), max(t_hi, float(t[-1]))
+        k = np.flatnonzero(d > 1.5 * period)
+        iv += list(zip(t[k].tolist(), t[k + 1].tolist(), strict=True))
+    iv.sort()
+    merged: list[list[float]] = []
+    for a, b in iv:
+        if merged and a <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], b)
+        else:
+            merged.append([a, b])
+    hole = np.array([b - a for a, b in merged])
+    span_min = (t_hi - t_lo) / 60.0 if t_hi > t_lo else 0.0
+    out.update(outages=int(hole.size), outages_per_min=_num(hole.size / span_min) if span_min > 0 else None,
+               median_outage_s=_num(float(np.median(hole))) if hole.size else None,
+               longest_outage_s=_num(float(hole.max())) if hole.size else None,
+               lost_per_outage=_num(st.packets_lost / hole.size) if hole.size else None,
+               outages_split=int((hole > limit).sum()))
+    return out
 
 
 def _ground_evidence(log: Any, flight: Any) -> str | None:
@@ -134,6 +189,13 @@ def _print_tables(info: dict[str, Any]) -> None:
     pl = info["packet_loss"]
     con.print(f"corrupt bytes {info['corrupt_bytes']}, truncated tail {info['truncated_tail_bytes']} B, "
               f"packets lost {pl['lost']} {pl['by_source'] or ''}, FC reboots {info['fc_reboots']}")
+    lk = info.get("link") or {}
+    if lk.get("outages"):
+        con.print(f"link: {lk['loss_pct'] if lk['loss_pct'] is not None else float('nan'):.1f} % of packets lost in "
+                  f"{lk['outages']} outages ({lk['outages_per_min']:.1f}/min, median {lk['median_outage_s']:.2f} s, "
+                  f"longest {lk['longest_outage_s']:.2f} s, ~{lk['lost_per_outage']:.1f} packets each); "
+                  f"{lk['outages'] - lk['outages_split']} bridged by data preparation (not counted in any cost), "
+                  f"{lk['outages_split']} longer than the {lk['bridge_limit_s']:g} s bridge ([prepare] max_input_bridge_s)")
     if info["chirps"]:
         ct = Table(title="system-identification chirps (SYSID mode)")
         for c in ("#", "axis", "from Hz", "to Hz", "start s", "duration s", "magnitude"):
@@ -151,7 +213,9 @@ def run(args: argparse.Namespace) -> int:
 
     info = summarise(load_log(args.log, all_topics=True))
     if args.json:
-        print(json.dumps(info))
+        from groundstation.jsonio import dumps
+
+        print(dumps(info))
     else:
         _print_tables(info)
     return 0
