@@ -11,6 +11,7 @@ once and every command reads the same file (``--config FILE.toml``)::
     [bounds]                                   search bounds, NAME = [low, high] (paper parameter names)
     [diagnose]                                 gap.config.DiagnoseConfig
     [freq]                                     freq.spectra.FreqConfig (``validate --freq``)
+    [excitation]                               dsp.excitation.ExcitationConfig (live excitation monitor)
     [identification]                           what the service does between flights (and the
                                                defaults of ``groundstation identify``'s options)
 
@@ -37,6 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
+from groundstation.dsp.excitation import ExcitationConfig
 from groundstation.dsp.live import LiveConfig
 from groundstation.dsp.prepare import PrepConfig
 from groundstation.errors import GroundstationError
@@ -141,6 +143,7 @@ class ServiceConfig:
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
     diagnose: DiagnoseConfig = field(default_factory=DiagnoseConfig)
     freq: FreqConfig = field(default_factory=FreqConfig)
+    excitation: ExcitationConfig = field(default_factory=ExcitationConfig)
     identification: IdentificationSection = field(default_factory=IdentificationSection)
     zenoh: ZenohSection = field(default_factory=ZenohSection)
     rerun: RerunSection = field(default_factory=RerunSection)

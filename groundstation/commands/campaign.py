@@ -2,7 +2,7 @@
 
 Finds every log (.tlog, .bin, .ulg, .px4log) under the given directories, skips those already in
 the table with the same content hash and settings, identifies and diagnoses the others - one task
-per log on a local process pool (``--jobs``, default all cores but one) or on a Dask cluster
+per log on a local process pool (``--jobs``, default every core) or on a Dask cluster
 (``--scheduler``) - stores one row per flight in the aircraft's table, then runs the trend test over
 all of the aircraft's flights and writes ``trends.json``, ``trends.png`` and ``trends.rrd`` next to
 the table (or where ``--trends-dir`` says).
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -28,7 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--vehicle", default=None, help="aircraft name for the table (default: from --aircraft)")
     parser.add_argument("--config", type=Path, default=None,
                         help="configuration TOML ([prepare], [identify], [bounds], [identification], [diagnose])")
-    parser.add_argument("--jobs", type=int, default=None, help="worker processes (default: all cores but one)")
+    parser.add_argument("--jobs", type=int, default=None, help="worker processes (default: every core)")
     parser.add_argument("--scheduler", default=None,
                         help="run on Dask distributed: tcp://host:8786, or 'local' for a LocalCluster on loopback")
     parser.add_argument("--algorithm", choices=("cabc", "abc", "ga", "de"), default=None,
@@ -94,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
         jobs, skipped, settings = build_jobs(args, store)
         name = jobs[0].aircraft if jobs else _aircraft(args)[0]
         con.print(f"{len(jobs) + len(skipped)} log(s): {len(skipped)} already done, {len(jobs)} to analyse on "
-                  f"{'Dask ' + args.scheduler if args.scheduler else f'{workers} process(es)'}")
+                  f"{'Dask ' + args.scheduler if args.scheduler else f'{workers} process(es)'}"
+                  f"{'' if args.scheduler or args.jobs is not None else f' (every core of {os.cpu_count()}; --jobs to change)'}")
         t0 = time.perf_counter()
         with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
                       TimeElapsedColumn(), console=con, transient=True, disable=not args.progress) as prog:

@@ -163,12 +163,20 @@ def print_summary(report: dict) -> None:
     for r in rows["channels"]:
         t.add_row(*r)
     con.print(t)
-    t2 = Table(title="effects (ranked) and best rejected candidates")
-    for col in ("effect", "channel", "significant", "score %", "gap before -> after", "shrink %", "evidence"):
+    sh = report.get("shares") or {}
+    if sh.get("headline"):
+        con.print(f"[bold]{sh['headline']}[/bold]")
+    t2 = Table(title="effects (ranked), partial findings and best rejected candidates")
+    for col in ("effect", "channel", "named", "share of gap above noise", "score %", "gap before -> after",
+                "shrink %", "through the flight", "evidence"):
         t2.add_column(col)
     for r in rows["effects"]:
         t2.add_row(*r)
     con.print(t2)
+    from groundstation.gap.report import through_flight_lines
+
+    for line in through_flight_lines(report):
+        con.print(line)
     nat = report.get("vibration_native")
     if nat:
         lines = ", ".join(f"{ln['frequency_hz']:.2f} Hz ({'/'.join(ln['channels'])})" for ln in nat["lines"]) or "none"
@@ -237,6 +245,12 @@ def write_rrd(arrays: dict, report: dict, path: Path) -> None:
                            ("residual", Y[:, mask, c] - yh[:, mask, c])):
             rec.send_columns(f"/gap/{name}/{kind}", indexes=[rr.TimeColumn("fc_time", duration=t[order])],
                              columns=rr.Scalars.columns(scalars=data.ravel()[order]))
-    rec.log("/gap/verdict", rr.TextDocument(json.dumps({"verdict": report["verdict"],
-                                                        "effects": report["effects"][:3]}, indent=1)), static=True)
+    sh = report.get("shares") or {}
+    rec.log("/gap/verdict", rr.TextDocument(json.dumps({"verdict": report["verdict"], "headline": sh.get("headline"),
+                                                        "explained_pct": sh.get("explained_pct"),
+                                                        "interval_pct": sh.get("interval_pct"),
+                                                        "effects": report["effects"][:3],
+                                                        "partial_findings": (report.get("partial_findings") or [])[:3],
+                                                        "through_flight": report.get("through_flight")},
+                                                       indent=1, default=str)), static=True)
     rec.flush()

@@ -272,5 +272,9 @@ def selection_lines(sel: dict) -> list[str]:
     out = [f"configuration chosen by held-out prediction over {sel['k']} folds: {sel['chosen']} ({sel['rule']})"]
     for r in rows:
         gain = "" if "gain" not in r else f", gain {r['gain']:+.1f} +- {r['gain_se']:.1f} points per fold"
-        out.append(f"  {r['name']}: held-out mean {r['mean_match']:.1f} %{gain}")
+        if "gain_folds" in r:
+            gain += f" (better on {r['gain_folds']} of {len(r['fold_score'])} folds)"
+        why = f"; {r['reason']}" if r.get("reason") else ""
+        ran = "" if not r.get("runaway") or r.get("reason") else "; runs away on " + ", ".join(r["runaway"])
+        out.append(f"  {r['name']}: held-out mean {r['mean_match']:.1f} %{gain}{why}{ran}")
     return out

@@ -3,7 +3,8 @@
 Reads .tlog, dataflash .bin, PX4 .px4log or PX4 .ulg through :func:`firmware_interface.readers.load_log` and
 prints one JSON object (``--json``) or the same as readable tables (rich)::
 
-    {"source": ..., "flights": [{"index", "start_s", "end_s", "duration_s", "in_air_s"}],
+    {"source": ..., "flights": [{"index", "start_s", "end_s", "duration_s", "in_air_s", "on_ground_evidence",
+                                 "in_air_by_height_s" (only where the evidence overrules height)}],
      "messages": {TYPE: {"count", "rate_hz"}},
      "gaps": [{"message", "start_s", "duration_s"}], "gaps_total": n,
      "corrupt_bytes": n, "truncated_tail_bytes": n, "fc_reboots": n,
@@ -15,13 +16,15 @@ prints one JSON object (``--json``) or the same as readable tables (rich)::
 
 Times are on the FC clock (s). ``rate_hz`` is the mean rate over the message's own span (series
 types) or over the log span (other types). A gap is an interval longer than 3 median sample periods
-of that series (a GPS outage shows as a GPS_RAW_INT gap). ``dropouts`` are the intervals the FC's own
+of that series (a GPS outage shows as a GPS_RAW_INT gap). A flight "in the air" by height alone whose
+accelerometers and body rates show no rotor running and no motion (a ground run) has ``in_air_s`` 0
+and says why in ``on_ground_evidence``. ``dropouts`` are the intervals the FC's own
 logger says it lost (ULog); empty for other logs. ``link``: the link as a radio delivers it - packets
-lost (MAVLink sequence numbers), outages (no telemetry stream message for longer than 3 periods of
-the fastest one), their length and packets lost per outage (the burst length), and how many are
-longer than the input bridge of data preparation (``[prepare] max_input_bridge_s``: those split the
-data; shorter ones are bridged and their samples not counted). Leaves analysis beyond this to
-``groundstation.dsp``.
+lost (MAVLink sequence numbers), outages (the holes of the telemetry streams merged where they
+overlap: a fade takes every type at once), their length and packets lost per outage (the burst
+length), and how many are longer than the input bridge of data preparation (``[prepare]
+max_input_bridge_s``; shorter ones are bridged and their samples not counted). Leaves analysis
+beyond this to ``groundstation.dsp``.
 """
 
 from __future__ import annotations
@@ -77,9 +80,7 @@ def summarise(log: Any) -> dict[str, Any]:
     st = log.stats
     return {
         "source": log.source,
-        "flights": [{"index": f.index, "start_s": _num(f.start_fc_s), "end_s": _num(f.end_fc_s),
-                     "duration_s": _num(f.duration_s), "in_air_s": _num(f.in_air_s),
-                     "on_ground_evidence": _ground_evidence(log, f)} for f in log.flights],
+        "flights": [_flight(log, f) for f in log.flights],
         "messages": messages,
         "gaps": gaps[:MAX_GAPS_LISTED],
         "gaps_total": len(gaps),
@@ -145,6 +146,19 @@ def link_summary(log: Any, bridge_limit_s: float | None = None) -> dict[str, Any
     return out
 
 
+def _flight(log: Any, f: Any) -> dict[str, Any]:
+    """One row of ``flights``. Where height alone says "in the air" and the IMU and body rates say the
+    aircraft never left the ground, ``in_air_s`` is 0, the height's figure is kept as
+    ``in_air_by_height_s`` and ``on_ground_evidence`` says why."""
+    evidence = _ground_evidence(log, f)
+    row = {"index": f.index, "start_s": _num(f.start_fc_s), "end_s": _num(f.end_fc_s),
+           "duration_s": _num(f.duration_s), "in_air_s": _num(f.in_air_s), "on_ground_evidence": evidence}
+    if evidence is not None:
+        row["in_air_by_height_s"] = row["in_air_s"]
+        row["in_air_s"] = 0.0
+    return row
+
+
 def _ground_evidence(log: Any, flight: Any) -> str | None:
     """Where only height says "in the air": why the aircraft did not fly (no rotor vibration, no body
     motion), else None."""
@@ -172,7 +186,9 @@ def _print_tables(info: dict[str, Any]) -> None:
     con.print(ft)
     for f in info["flights"]:
         if f.get("on_ground_evidence"):
-            con.print(f"flight {f['index']}: {f['on_ground_evidence']}")
+            by_h = f.get("in_air_by_height_s")
+            height = f" (height alone said {by_h:.1f} s)" if by_h is not None else ""
+            con.print(f"flight {f['index']}: 0 s in the air{height}; {f['on_ground_evidence']}")
     mt = Table(title="messages")
     for c in ("type", "count", "rate Hz"):
         mt.add_column(c, justify="right" if c != "type" else "left")

@@ -104,6 +104,17 @@ class DiagnoseConfig:
     #: and still no departure: 1 = as large as the noise, the rule of data compatibility's findings)
     structure_min_effect_to_noise: float = 1.0
 
+    # ------------------------------------------------------------------ shares and consistency
+    #: the verdict names effects unless, together, they remove less than this share (percent) of
+    #: the held-out gap above the noise floor with the whole 5-95 % interval (bootstrap over
+    #: held-out windows) below it; then the verdict is ``unexplained`` and they are partial findings
+    explained_share_min_pct: float = 50.0
+    #: bootstrap resamples (over held-out windows) of every share interval
+    share_n_boot: int = 1000
+    #: a named effect "changes through the flight" only when the other half's value gives up more
+    #: than this fraction of the effect's own gain in a half (besides being rejected at the level)
+    consistency_min_loss: float = 0.25
+
     # ------------------------------------------------------------------ data compatibility
     #: window over which the kinematics are integrated (s): long enough to lever a scale factor,
     #: short enough that the integrated gyro noise (a random walk) stays near the angle noise

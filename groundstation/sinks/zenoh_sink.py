@@ -4,6 +4,7 @@ Keys (JSON payloads, encoding ``application/json``):
 
 * ``heli/{vehicle}/status``                 about 1 Hz (congestion control DROP)
 * ``heli/{vehicle}/telemetry/window``       smoothed windows, a few Hz (DROP)
+* ``heli/{vehicle}/excitation``             the live excitation verdict per axis, about 1 Hz while armed (DROP)
 * ``heli/{vehicle}/flight/{n}/model``       once per identified flight (BLOCK, reliable)
 * ``heli/{vehicle}/flight/{n}/gap``         once per diagnosed flight (BLOCK, reliable)
 * ``heli/{vehicle}/flight/{n}/freq``        the model's frequency-domain check (Tischler J per
@@ -166,7 +167,7 @@ class ZenohSink:
         self._windows_waiting = 0
         self._lock = threading.Lock()
         self.latest: dict[str, dict | None] = {"model": None, "gap": None, "trends": None}
-        self.sent: dict[str, int] = {"status": 0, "window": 0, "model": 0, "gap": 0, "freq": 0, "trends": 0}
+        self.sent: dict[str, int] = {"status": 0, "window": 0, "excitation": 0, "model": 0, "gap": 0, "freq": 0, "trends": 0}
         self.windows_dropped = 0
         self.queries_served = 0
         #: (seq, t_host_last_s, t_published_s) of recent windows, for latency measurement
@@ -202,6 +203,8 @@ class ZenohSink:
                                                 congestion_control=zenoh.CongestionControl.DROP),
             "window": session.declare_publisher(f"{p}/telemetry/window", encoding=json_enc,
                                                 congestion_control=zenoh.CongestionControl.DROP),
+            "excitation": session.declare_publisher(f"{p}/excitation", encoding=json_enc,
+                                                    congestion_control=zenoh.CongestionControl.DROP),
         }
         self._entities = [
             session.declare_queryable(f"{p}/model/latest", self._make_handler("model")),
@@ -235,6 +238,11 @@ class ZenohSink:
 
     def publish_status(self, doc: dict) -> None:
         self._q.put_nowait(("status", None, doc))
+
+    def publish_excitation(self, doc: dict | Callable[[], dict]) -> None:
+        """The live excitation verdict (``heli/{vehicle}/excitation``; a dict, or a callable making it on
+        the publisher thread); dropped, like the status, under congestion."""
+        self._q.put_nowait(("excitation", None, doc))
 
     def publish_window(self, doc: dict | Callable[[], dict], *, seq: int = -1,
                        t_host_last_s: float = math.nan) -> bool:
@@ -302,8 +310,8 @@ class ZenohSink:
             if kind == "window":
                 payload = dumps_numeric(doc() if callable(doc) else doc)
             else:
-                payload = dumps(doc)
-            if kind in ("status", "window"):
+                payload = dumps(doc() if callable(doc) else doc)
+            if kind in ("status", "window", "excitation"):
                 self._pub[kind].put(payload)
                 if kind == "window":
                     seq, t_host = extra

@@ -16,10 +16,16 @@ fitted to:
    :func:`groundstation.sysid.heldout.crossvalidate`); a fold's score is the mean over channels of
    the eq.-19 match, each channel's floored at -100 % (a prediction that runs away counts as one
    twice as bad as predicting no motion, so one fold cannot swamp the others);
-3. a candidate replaces the configuration only when its paired gain over the folds is positive by
-   more than one standard error of that gain (the one-standard-error rule of cross-validated model
-   choice; the error is the folds' own spread: a difference inside the noise of the held-out data
-   keeps the configuration as given); among several such, the largest
+3. a configuration whose held-out prediction runs away on any fold (a channel's error more than
+   three times the signal: :func:`groundstation.sysid.heldout.runaway_channels`) never wins over one
+   that does not: a runaway model is not a usable model however well it predicts the other folds.
+   Between two that both run away or both do not, a candidate replaces the configuration when its
+   paired gain over the folds is positive by more than one standard error of that gain (the
+   one-standard-error rule of cross-validated model choice; the error is the folds' own spread: a
+   difference inside the noise of the held-out data keeps the configuration as given), or when it
+   gains on every fold (a sign test: 5 of 5 folds has a chance of 1/32 under no difference; this
+   keeps one catastrophic fold of the configuration, whose floored score swells the spread, from
+   hiding a candidate that is better everywhere); among several such, the largest
    mean gain wins, and only the winner is refined in full (from the configuration's model and its
    own ``extra_starts``, the lowest refined (MAP) objective per subsystem), then cross-validated
    again for the report.
@@ -110,22 +116,22 @@ def fit_candidate(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
     ``quick``: one refinement pass from ``model0``'s parameters only (the selection's screening fit)."""
     from groundstation.sysid.identify import (
         _SUBS_INPUTS,
-        _costs,
         _in_sample_match,
         _model,
         _plan,
+        _refine_cost,
         _Run,
         record_tradeoffs,
     )
 
     with threadpool_limits(1):
-        plan = _plan(prepared, cfg, True, bounds, prior)
+        plan = _plan(prepared, cfg, True, bounds, prior, search=False)
         run = _Run(theta=np.clip(model0.theta, plan.bounds[:, 0], plan.bounds[:, 1]))
         for sub, sub_params in ((0, HOR_PARAMS), (1, VER_PARAMS)):
             idx = np.array([PARAM_INDEX[p] for p in sub_params])
             sub_free = np.zeros(N_PARAMS, dtype=bool)
             sub_free[idx] = plan.free[idx]
-            cost = _costs(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim)[0]
+            cost = _refine_cost(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim)
             if not cost.used.any():
                 continue
             x, ref = _best_refinement(cost, run.theta[sub_free], plan, cfg, sub_free, quick)
@@ -171,7 +177,8 @@ def _best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_fr
         x0 = np.clip(x0, bfree[:, 0] + 1e-6 * span, bfree[:, 1] - 1e-6 * span)
         ref = refine_ls(cost, x0, bfree, passes=1 if quick else cfg.refine_passes, prior=prior,
                         max_nfev=min(int(cfg.refine_max_nfev), SELECT_REFIT_NFEV) if quick else cfg.refine_max_nfev,
-                        weighting=cfg.channel_weighting, prior_colour=cfg.prior_weighting == "effective")
+                        weighting=cfg.channel_weighting, prior_colour=cfg.prior_weighting == "effective",
+                        with_std=False)
         if prior is not None:
             sig_ref = ref.sig_eff if sig_ref is None else sig_ref
             F = map_objective(cost, ref.x, sig_ref, prior)
@@ -180,6 +187,10 @@ def _best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_fr
         if best is None or F < best[0]:
             best = (F, ref.x, ref)
     assert best is not None
+    if not quick:   # standard errors of the winner only; the screening fit's model is only cross-validated
+        from groundstation.sysid.refine import with_standard_errors
+
+        with_standard_errors(cost, best[2], bfree, prior)
     return best[1], best[2]
 
 
@@ -208,7 +219,8 @@ def _crossvalidate(prepared: Any, model: HoverModel, cfg: Any, prior: Any, pmap:
 def _row(name: str, c_cfg: Any, cfg: Any, cv: Any) -> dict[str, Any]:
     return {"name": name, "overrides": {f.name: getattr(c_cfg, f.name) for f in dataclasses.fields(cfg)
                                         if getattr(c_cfg, f.name) != getattr(cfg, f.name)},
-            "fold_score": fold_scores(cv).tolist(), "mean_match": cv.mean_match, "channel_mean": cv.channel_mean}
+            "fold_score": fold_scores(cv).tolist(), "mean_match": cv.mean_match, "channel_mean": cv.channel_mean,
+            "runaway": {k: list(v) for k, v in cv.runaway.items()}}
 
 
 def _round(prepared: Any, base: tuple[str, Any, HoverModel, Any], cands: list[tuple[str, dict[str, Any]]],
@@ -223,15 +235,37 @@ def _round(prepared: Any, base: tuple[str, Any, HoverModel, Any], cands: list[tu
             m = fit_candidate(prepared, model0, c_cfg, prior=prior, bounds=bounds, quick=True)
             entries.append((name, c_cfg, m, _crossvalidate(prepared, m, c_cfg, prior, pmap)))
     rows = [_row(n, c, cfg0, cv) for n, c, _, cv in entries]
+    return choose(rows), entries, rows
+
+
+def choose(rows: list[dict[str, Any]]) -> int:
+    """Index of the winning row (0 = the base, ``rows[0]``) by the rule of the module docstring; fills
+    each candidate row's ``gain``, ``gain_se``, ``gain_folds`` (folds it gains on) and ``significant``."""
     s0 = np.asarray(rows[0]["fold_score"])
+    ran0 = bool(rows[0].get("runaway"))
     best = 0
     for i, r in enumerate(rows[1:], start=1):
-        g, se = _gain(np.asarray(r["fold_score"]), s0)
-        r["gain"], r["gain_se"] = g, se
-        r["significant"] = bool(np.isfinite(g) and g > 0 and g > GAIN_Z * se)
-        if r["significant"] and (best == 0 or g > rows[best]["gain"]):
+        s = np.asarray(r["fold_score"])
+        g, se = _gain(s, s0)
+        wins = int(np.sum(s > s0)) if s.size == s0.size else 0
+        r["gain"], r["gain_se"], r["gain_folds"] = g, se, wins
+        ran = bool(r.get("runaway"))
+        if ran != ran0:   # a prediction that runs away never beats one that does not
+            r["significant"] = ran0
+            r["reason"] = ("the configuration's prediction runs away on " if ran0 else "runs away on ") + \
+                ", ".join(f"{k} ({', '.join(v)})" for k, v in (rows[0] if ran0 else r)["runaway"].items())
+        else:
+            r["significant"] = bool(np.isfinite(g) and g > 0 and (g > GAIN_Z * se or (s.size >= 3 and wins == s.size)))
+        if not r["significant"]:
+            continue
+        if best == 0:
             best = i
-    return best, entries, rows
+            continue
+        # among winners: one that does not run away first, then the larger mean gain
+        key = (not ran, g)
+        if key > (not bool(rows[best].get("runaway")), rows[best]["gain"]):
+            best = i
+    return best
 
 
 def select_config(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = None, bounds: dict | None = None,
@@ -258,7 +292,9 @@ def select_config(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
     name, c_cfg, model, cv = cur
     over = {f.name: getattr(c_cfg, f.name) for f in dataclasses.fields(cfg) if getattr(c_cfg, f.name) != getattr(cfg, f.name)}
     model.fit["selection"] = {"k": int(cfg.select_folds), "chosen": name, "candidates": report, "overrides": over,
-                              "rule": f"a candidate replaces the configuration when its mean held-out gain over the "
-                                      f"folds exceeds {GAIN_Z:g} standard error(s) of that gain"}
+                              "rule": f"a prediction that runs away on some fold never wins over one that does "
+                                      f"not; otherwise a candidate replaces the configuration when its mean held-out "
+                                      f"gain over the folds exceeds {GAIN_Z:g} standard error(s) of that gain or it "
+                                      f"gains on every fold"}
     model.fit["heldout"] = cv.to_json()
     return model

@@ -84,3 +84,19 @@ def test_log_info_says_the_ground_run_never_flew(groundrun):
     from groundstation.commands.log_info import _ground_evidence
 
     assert "on the ground" in _ground_evidence(groundrun, groundrun.flights[0])
+
+
+def test_log_info_says_the_ground_run_spent_no_time_in_the_air(capsys):
+    import json
+
+    from groundstation.cli import main as cli_main
+
+    path = str(real_log("px4/trex550_groundrun.px4log"))
+    assert cli_main(["log-info", path, "--json"]) == 0
+    f = json.loads(capsys.readouterr().out)["flights"][0]
+    assert f["in_air_s"] == 0.0 and f["in_air_by_height_s"] > 40  # the barometer's drift said 45 s
+    assert "vibration" in f["on_ground_evidence"] and "body-rate" in f["on_ground_evidence"]
+    assert cli_main(["log-info", path]) == 0
+    out = capsys.readouterr().out
+    table, _, note = out.partition("0 s in the air")
+    assert note and "45.4" not in table and "0.0" in table  # the table says 0, the note says why

@@ -34,7 +34,7 @@ def test_real_trex550_diagnosis(tmp_path, capsys):
     out = tmp_path / "gap.json"
     assert main(["diagnose", str(path), "--out", str(out), "--quiet"]) == 0
     rep = json.loads(out.read_text())
-    assert rep["schema"] == "heli-gap-report/1"
+    assert rep["schema"] == "heli-gap-report/2"
     assert rep["verdict"] in VERDICTS
     # what the log can test and what it cannot, said explicitly
     assert "ground_effect" not in rep["tested"] and "input_delay" in rep["tested"]

@@ -115,3 +115,28 @@ def test_bench_heldout_reports_the_choice_the_reference_and_the_lowest_channel(t
         assert abs(doc["summary"][k]["train_first_mean"] - split[k]["mean"]) < 1e-9
     printed = capsys.readouterr().out
     assert "configuration chosen by held-out prediction on the training part" in printed
+
+
+def _rows(base, cand, base_runaway=None, cand_runaway=None):
+    return [{"name": "as configured", "fold_score": base, "runaway": base_runaway or {}},
+            {"name": "predictive", "fold_score": cand, "runaway": cand_runaway or {}}]
+
+
+def test_a_runaway_configuration_never_wins_over_one_that_does_not():
+    from groundstation.sysid.select import choose
+
+    # the case: one catastrophic fold of the configuration swells the spread of the gain
+    rows = _rows([20.0, -100.0, 25.0, 18.0, 22.0], [22.0, 30.0, 21.0, 15.0, 20.0], base_runaway={"fold 2": ["r"]})
+    assert choose(rows) == 1 and rows[1]["significant"] and "runs away on fold 2 (r)" in rows[1]["reason"]
+    # and a candidate that runs away never replaces one that does not, however large its mean gain
+    rows = _rows([20.0, 20.0, 20.0, 20.0, 20.0], [60.0, 60.0, 60.0, 60.0, 19.0], cand_runaway={"fold 5": ["w"]})
+    assert choose(rows) == 0 and not rows[1]["significant"]
+
+
+def test_a_candidate_better_on_every_fold_wins_even_with_a_wide_spread():
+    from groundstation.sysid.select import choose
+
+    rows = _rows([-90.0, 20.0, 20.0, 20.0, 20.0], [30.0, 21.0, 20.5, 21.0, 20.2])
+    assert rows and choose(rows) == 1 and rows[1]["gain_folds"] == 5
+    rows = _rows([20.0, 20.0, 20.0, 20.0, 20.0], [21.0, 19.0, 20.5, 20.0, 20.2])  # inside the noise
+    assert choose(rows) == 0
