@@ -9,9 +9,9 @@ One :class:`Service` per run, one ``asyncio.TaskGroup``:
   events goes to the :class:`firmware_interface.recorder.Recorder` first (recording never depends on
   anything after it), then to :class:`groundstation.dsp.live.LivePipeline`; windows to zenoh, rows to
   Rerun (both through their own threads: the loop never blocks on a sink). The in-air rows of the
-  current flight also feed :class:`groundstation.dsp.excitation.ExcitationMonitor`, whose verdict
-  (is each axis excited enough yet?) goes to zenoh, Rerun and the status about once per FC second
-  while armed. Reading waits while a batch is processed: back-pressure onto the link, nothing dropped;
+  current flight also feed :class:`groundstation.dsp.excitation.ExcitationMonitor` (its transforms and
+  verdicts run half a hop after a window went out), whose verdict (is each axis excited enough yet?)
+  goes to zenoh, Rerun and the status about once per FC second while armed. Reading waits while a batch is processed: back-pressure onto the link, nothing dropped;
 * ``timer``     -- recorder flushes, the status record at ``status_rate_hz``;
 * ``stopper``   -- waits for Ctrl-C/SIGTERM, ``exit_after_flights`` or :meth:`Service.request_stop`.
 
@@ -49,6 +49,8 @@ import numpy as np
 from firmware_interface.errors import LinkError
 from firmware_interface.samples import (
     FcRebooted,
+    Heartbeat,
+    Imu,
     LinkLost,
     LinkRestored,
     RawPacket,
@@ -168,6 +170,8 @@ class Service:
         self.on_window: Callable[[Window], None] | None = None     # test/bench hook (loop thread)
         ex = config.excitation
         self.excitation = ExcitationMonitor(ex, 1.0 / config.live.grid_rate_hz) if ex.enabled else None
+        self._excite_window_row = 0          # live row count at the last window / the monitor's last step
+        self._excite_step_row = 0
         self.excitation_last: ExcitationReport | None = None
         self.on_excitation: Callable[[ExcitationReport], None] | None = None   # test hook (loop thread)
         self.onboard: Any = None             # groundstation.onboard.OnboardLogs when [onboard_logs] download
@@ -380,10 +384,13 @@ class Service:
                 self._warn(f"live path: {type(exc).__name__}: {exc} (recording goes on)".splitlines()[0])
 
     def _live(self, events: list[Any], now: float) -> None:
+        mon_events = []            # what the excitation monitor reads besides the rows
         for ev in events:
             if isinstance(ev, RawPacket):
                 self.packets += 1
                 self.rates.add(ev.msg_type, now)
+            elif isinstance(ev, Imu | Heartbeat):
+                mon_events.append(ev)
             elif isinstance(ev, LinkLost):
                 self.link_up = False
                 self._rerun_event(f"link lost: {ev.reason}", "WARN")
@@ -401,31 +408,51 @@ class Service:
         for w in out.windows:
             self._on_window(w)
         if self.excitation is not None:
-            self._excite(events, out)
+            self._excite(mon_events, out)
         for fe in out.flight_events:
             self._on_flight_event(fe)
 
     def _excite(self, events: list[Any], out: Any) -> None:
-        """Feed the excitation monitor (after the windows: their latency never waits for a verdict)."""
+        """Feed the excitation monitor. Rows are only gathered here; the transforms and the verdict run
+        half a hop after a window went out, so that a window never waits for them."""
         mon = self.excitation
         assert mon is not None
         for fe in out.flight_events:
             if isinstance(fe, FlightStarted):
                 mon.flight_started(fe.flight, fe.t_fc_s)
-        mon.events(events)
+        if events:
+            mon.events(events)
+        if mon.flight is None:
+            return
         ft = self.live.flights
-        rep = mon.rows(out.t_fc_s, out.inputs, out.outputs_raw, armed=ft.armed, in_air=ft.in_air)
-        if rep is not None:
-            self._publish_excitation(rep)
+        if len(out.t_fc_s):
+            mon.rows(out.t_fc_s, out.inputs, out.outputs_raw, armed=ft.armed, in_air=ft.in_air, work=False)
+        rows, hop = self.live.rows, self.live.windows.hop
+        if out.windows:
+            self._excite_window_row = rows
+        # half a hop after the last window; in a fast replay (a window in every batch) every two hops
+        if (rows - self._excite_window_row >= max(1, hop // 2) and rows - self._excite_step_row >= hop) \
+                or rows - self._excite_step_row >= 2 * hop:
+            self._excite_step_row = rows
+            rep = mon.step()
+            if rep is not None:
+                self._publish_excitation(rep, False)
         for fe in out.flight_events:
             if isinstance(fe, FlightEnded):
                 last = mon.flight_ended()
                 if last is not None:
-                    self._publish_excitation(last, final=True)
+                    self._publish_excitation(last, True)
 
-    def _publish_excitation(self, rep: ExcitationReport, final: bool = False) -> None:
-        """A verdict: zenoh (JSON built on the publisher thread), Rerun, the status, a line per axis that
-        has just become enough and one with the whole verdict at the end of the flight."""
+    def _publish_excitation(self, rep: ExcitationReport, final: bool) -> None:
+        if self.zenoh is not None:
+            self.zenoh.publish_excitation(functools.partial(_excitation_doc, self.vehicle, rep, final))
+        if self.rerun is not None and self._rerun_calls is not None:
+            self._rerun_calls.submit(self.rerun.log_excitation, rep)
+        self._on_excitation(rep, final)
+
+    def _on_excitation(self, rep: ExcitationReport, final: bool) -> None:
+        """A verdict, on the loop: the status, a line per axis that has just become enough and one with
+        the whole verdict at the end of the flight."""
         before = self.excitation_last.enough_at_s if self.excitation_last is not None and \
             self.excitation_last.flight == rep.flight else {}
         self.excitation_last = rep
@@ -434,11 +461,6 @@ class Service:
                 self.log(f"flight {rep.flight}: {rep.axes[axis].line()} at {t:.0f} s")
         if final:
             self.log(rep.line())
-        if self.zenoh is not None:
-            vehicle = self.vehicle
-            self.zenoh.publish_excitation(lambda: {"vehicle": vehicle, **rep.to_json(), "final": final})
-        if self.rerun is not None and self._rerun_calls is not None:
-            self._rerun_calls.submit(self.rerun.log_excitation, rep)
         if self.on_excitation is not None:
             self.on_excitation(rep)
 
@@ -647,6 +669,9 @@ class Service:
                 self.zenoh.publish_freq(flight, res.freq)
             if res.trends is not None:
                 self.zenoh.publish_trends(res.trends)
+            if res.report_path is not None:
+                self.zenoh.publish_report(flight, {"vehicle": self.vehicle, "flight": flight, "path": res.report_path,
+                                                   "summary": res.report_summary})
         if res.freq is not None:
             ja = res.freq.get("J_avg")
             self.log(f"flight {flight}: frequency check {res.freq_path} J_avg "
@@ -657,6 +682,10 @@ class Service:
             self._warn(res.trends_error)
         if gap is not None:
             self.log(f"flight {flight}: gap report {res.gap_path} verdict {gap.get('verdict')}")
+        if res.report_path is not None:
+            self.log(f"flight {flight}: report {res.report_path}: {res.report_summary}")
+        if res.report_error:
+            self._warn(res.report_error)
         if res.gap_error:
             self._warn(res.gap_error)
 
@@ -805,6 +834,11 @@ class Service:
                 await asyncio.wait_for(link.write(out), 0.5)
         except (LinkError, OSError, TimeoutError) as exc:
             self._warn(f"{getattr(link, 'url', 'link')}: last messages not sent ({exc})")
+
+
+def _excitation_doc(vehicle: str, rep: ExcitationReport, final: bool) -> dict[str, Any]:
+    """The ``heli/{vehicle}/excitation`` payload (built on the zenoh publisher thread)."""
+    return {"vehicle": vehicle, **rep.to_json(), "final": final}
 
 
 def _worker_init() -> None:

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from firmware_interface.samples import Heartbeat, Imu
-from groundstation.errors import DspError
+from groundstation.errors import DspError, FreqError
 from groundstation.freq.spectra import FreqConfig, IncrementalResponses
 
 AXES = ("lat", "lon", "col", "ped")
@@ -335,6 +335,7 @@ class _Flight:
     next_report_fc_s: float = -math.inf
     pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)   # rows not yet added
     pending_rows: int = 0
+    armed: bool = False
 
 
 class ExcitationMonitor:
@@ -359,7 +360,6 @@ class ExcitationMonitor:
         self._pairs = tuple((a, o) for a in AXES for o in self.config.outputs_of(a))
         # rows are handed to the spectra every half window step of the shortest window (at least)
         self._flush_rows = max(1, int(round(min(self.config.window_s) / self.dt_s * 0.2)))
-        self._f_hz: np.ndarray | None = None
         self.last: ExcitationReport | None = None
 
     # ------------------------------------------------------------------ inputs
@@ -406,10 +406,11 @@ class ExcitationMonitor:
         return np.where((t >= ti[0] - 2 * self.dt_s) & (t <= ti[-1] + 2 * self.dt_s), az, np.nan)
 
     def rows(self, t_fc_s: np.ndarray, inputs: np.ndarray, outputs: np.ndarray, *, armed: bool,
-             in_air: bool) -> ExcitationReport | None:
+             in_air: bool, work: bool = True) -> ExcitationReport | None:
         """Grid rows ``t_fc_s (n,)``, ``inputs (n, 4)``, ``outputs (n, 8)`` (raw, as dsp.live gives them)
-        and the flight state after them. In-air rows of the current flight accumulate; a verdict is
-        returned when one is due."""
+        and the flight state after them. In-air rows of the current flight accumulate; with ``work`` the
+        rows gathered are transformed and a verdict is returned when one is due (else :meth:`step` does
+        that when the caller has time: the service, between two live windows)."""
         fl = self.flight
         if fl is None or len(t_fc_s) == 0:
             return None
@@ -421,13 +422,22 @@ class ExcitationMonitor:
             fl.pending_rows += len(t)
             self._chirps.rows(t, np.asarray(inputs, dtype=float))
             fl.in_segment = True
-            if fl.pending_rows >= self._flush_rows:
-                self._flush()
         elif fl.in_segment:
             self._flush(end_segment=True)
             fl.in_segment = False
         fl.last_t_fc_s = float(t[-1])
-        if armed and fl.last_t_fc_s >= fl.next_report_fc_s and fl.spectra.rows + fl.pending_rows:
+        fl.armed = armed
+        return self.step() if work else None
+
+    def step(self) -> ExcitationReport | None:
+        """Transform the rows gathered (once the shortest window's step has arrived) and return a verdict
+        if one is due (every ``1 / publish_rate_hz`` FC seconds while armed)."""
+        fl = self.flight
+        if fl is None:
+            return None
+        if fl.pending_rows >= self._flush_rows:
+            self._flush()
+        if fl.armed and fl.last_t_fc_s >= fl.next_report_fc_s and fl.spectra.rows + fl.pending_rows:
             fl.next_report_fc_s = fl.last_t_fc_s + 1.0 / self.config.publish_rate_hz
             return self.report()
         return None
@@ -460,7 +470,7 @@ class ExcitationMonitor:
         t_s = fl.last_t_fc_s - fl.start_fc_s
         try:
             rs = inc.responses(self._pairs) if inc.rows else None
-        except Exception:       # noqa: BLE001 - e.g. no window usable yet: nothing coherent
+        except FreqError:       # no in-air rows yet: nothing coherent
             rs = None
         f_hz = inc.f_hz
         chirps = tuple(self._chirps.chirps)

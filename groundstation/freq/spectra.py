@@ -174,13 +174,22 @@ def _frequency_grid(cfg: FreqConfig, dt_s: float, longest_s: float) -> np.ndarra
     return np.geomspace(f_lo, f_hi, cfg.n_freq)
 
 
+def taper_window(name: str, length: int) -> np.ndarray:
+    """``scipy.signal.get_window(name, length)`` (periodic); the Hann taper without importing
+    scipy.signal, which costs about a second of CPU: the live service starts a flight's estimate on its
+    event loop."""
+    if name in ("hann", "hanning"):
+        return 0.5 - 0.5 * np.cos(2.0 * np.pi * np.arange(length) / length)
+    from scipy.signal import get_window
+
+    return np.asarray(get_window(name, length), dtype=float)
+
+
 def _window_geometry(win_s: float, dt_s: float, cfg: FreqConfig) -> tuple[int, int, np.ndarray]:
     """(samples per window, samples between window starts, taper) of one window length."""
-    from scipy.signal import get_window  # imported here: scipy.signal costs ~1 s of CPU at every start
-
     length = int(round(win_s / dt_s))
     step = max(1, int(round(length * (1.0 - cfg.overlap))))
-    return length, step, get_window(cfg.taper, length)
+    return length, step, taper_window(cfg.taper, length)
 
 
 def window_operator(length: int, dt_s: float, f_hz: np.ndarray, taper: np.ndarray, detrend: str) -> np.ndarray:
@@ -302,9 +311,7 @@ def _window_spectra(segments: list[tuple[np.ndarray, np.ndarray]], length: int, 
                     dt_s: float, cfg: FreqConfig) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """DFT of every window: X (K, n_freq, C) scaled so that conj(X_a) X_b averages to the one-sided
     density; valid (K, C) channel finite over the window; windows per segment."""
-    from scipy.signal import get_window  # imported here: scipy.signal costs ~1 s of CPU at every start
-
-    taper = get_window(cfg.taper, length)
+    taper = taper_window(cfg.taper, length)
     op = window_operator(length, dt_s, f_hz, taper, cfg.detrend)
     Xs, valid, counts = [], [], []
     n_ch = segments[0][0].shape[1] + segments[0][1].shape[1] if segments else 12

@@ -479,20 +479,46 @@ def effects_figure(pic: Any) -> Figure | None:
 
 
 def shares_figure(gap: dict[str, Any] | None) -> Figure | None:
-    shares = (gap or {}).get("shares")
-    if not isinstance(shares, dict) or not shares:
+    """The gap report's shares (``heli-gap-report/2``): per named effect and unexplained, and per channel."""
+    sh = (gap or {}).get("shares")
+    if not isinstance(sh, dict) or sh.get("explained_pct") is None:
         return None
-    items = [(k, float(v)) for k, v in shares.items() if isinstance(v, int | float)]
-    if not items:
-        return None
-    fig, axes = _new(8, 0.35 * len(items) + 1.0, 1, 1)
-    ax = axes[0, 0]
-    ax.barh(range(len(items)), [100 * v if abs(v) <= 1.0 else v for _, v in items], color="#1f77b4")
-    ax.set_yticks(range(len(items)), [k for k, _ in items], fontsize=7)
-    ax.set_xlabel("share of the gap explained (%)")
-    ax.set_ylabel("effect (-)")
-    ax.invert_yaxis()
-    return finish(fig, "shares", "Explained shares", "The share of the held-out gap each named effect explains.")
+    eff = [e for e in sh.get("per_effect") or [] if e.get("share_pct") is not None]
+    rows = [(e["effect"], float(e["share_pct"]), e.get("interval_pct")) for e in eff]
+    rows.append(("not explained", float(sh.get("unexplained_pct") or 0.0), None))
+    chans = [(c, x) for c, x in (sh.get("per_channel") or {}).items() if x.get("explained_pct") is not None]
+    fig, axes = _new(10, 0.35 * max(len(rows), len(chans), 3) + 1.3, 1, 2)
+    a, b = axes[0]
+    y = np.arange(len(rows))
+    a.barh(y, [r[1] for r in rows], color=["#1f77b4"] * (len(rows) - 1) + ["0.7"])
+    for k, (_, _v, iv) in enumerate(rows):
+        if iv and None not in iv:
+            a.plot(iv, [k, k], "k-", lw=1.2)
+    a.set_yticks(y, [r[0] for r in rows], fontsize=7)
+    a.invert_yaxis()
+    a.set_xlim(0, 100)
+    a.set_xlabel("share of the held-out gap above noise (%)")
+    a.set_ylabel("effect (-)")
+    if chans:
+        yc = np.arange(len(chans))
+        b.barh(yc, [float(x.get("excess_share_pct") or 0.0) for _, x in chans], color="0.8", label="channel's part of the gap")
+        b.plot([float(x["explained_pct"]) for _, x in chans], yc, "o", color="#1f77b4", label="explained there")
+        for k, (_, x) in enumerate(chans):
+            iv = x.get("interval_pct")
+            if iv and None not in iv:
+                b.plot(iv, [k, k], "-", color="#1f77b4", lw=1.2)
+        b.set_yticks(yc, [c for c, _ in chans])
+        b.invert_yaxis()
+        b.legend(fontsize=7)
+    else:
+        b.text(0.5, 0.5, "no channel above its noise floor", transform=b.transAxes, ha="center", fontsize=8)
+    b.set_xlim(0, 100)
+    b.set_xlabel("share (%)")
+    b.set_ylabel("output channel (-)")
+    return finish(fig, "shares", "Explained shares",
+                  "Left: the share of the held-out gap above the noise floor each named effect removes (bars, with the "
+                  "5-95 % bootstrap interval) and what is left. Right: each channel's part of that gap (grey) and "
+                  "how much of it the named effects explain there (blue, with interval).")
 
 
 # ------------------------------------------------------------------ across flights

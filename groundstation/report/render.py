@@ -55,6 +55,7 @@ def _env() -> Any:
                       autoescape=select_autoescape(["html", "j2"]), undefined=StrictUndefined,
                       trim_blocks=True, lstrip_blocks=True)
     env.filters["num"] = _f
+    env.filters["basename"] = lambda p: str(p).replace("\\", "/").rsplit("/", 1)[-1]
     return env
 
 
@@ -205,18 +206,25 @@ def gap_view(d: FlightReportData) -> dict[str, Any]:
     ratio = g.get("gap_to_noise_ratio", {})
     channels = [{"channel": c, "match": _f(x.get("match"), ".1f"), "tic": _f(x.get("tic"), ".3f"),
                  "ratio": _f(ratio.get(c), ".2f")} for c, x in g.get("channels", {}).items()]
+    def share(e: dict[str, Any]) -> str:
+        iv = e.get("share_interval_pct")
+        return _f(e.get("share_pct"), ".0f") + (f" ({_f(iv[0], '.0f')}–{_f(iv[1], '.0f')})" if iv else "")
+
     effects = [{"effect": e["effect"], "where": e.get("input") or e.get("output") or "–", "named": True,
+                "share": share(e),
                 "estimate": ", ".join(f"{k} {_f(x, '.3g')}" for k, x in (e.get("estimate") or {}).items()),
                 "before_after": f"{_f(e.get('gap_before'), '.3f')} → {_f(e.get('gap_after'), '.3f')}",
                 "shrink": _f(e.get("shrink_pct"), ".1f"), "p": _f(e.get("p_value"), ".2g"),
                 "evidence": e.get("evidence", "")}
                for e in gap.get("effects", [])]
     effects += [{**x, "named": False} for x in
-                [{"effect": e["effect"], "where": e.get("input") or e.get("output") or "–",
+                [{"effect": e["effect"] + (" (partial finding)" if e in gap.get("partial_findings", []) else ""),
+                  "where": e.get("input") or e.get("output") or "–", "share": share(e),
                   "estimate": ", ".join(f"{k} {_f(v, '.3g')}" for k, v in (e.get("estimate") or {}).items()),
                   "before_after": f"{_f(e.get('gap_before'), '.3f')} → {_f(e.get('gap_after'), '.3f')}",
                   "shrink": _f(e.get("shrink_pct"), ".1f"), "p": _f(e.get("p_value"), ".2g"),
-                  "evidence": e.get("evidence", "")} for e in gap.get("candidates", [])[:4]]]
+                  "evidence": e.get("evidence", "")}
+                 for e in list(gap.get("partial_findings", [])) + list(gap.get("candidates", []))[:4]]]
     wins = [w for w in g.get("windows_s", []) if w and w[0] is not None]
     where = [f"Channels: worst {', '.join(g.get('worst_channels', [])) or '–'}"
              f" (gap {'significant' if g.get('significant') else 'not significant'} against the noise floor).",
@@ -242,7 +250,26 @@ def gap_view(d: FlightReportData) -> dict[str, Any]:
     figs = [F.shares_figure(gap), F.residual_figure(pic), F.spectrum_figure(pic), F.effects_figure(pic)]
     no_pics = None if pic is not None else "Before/after pictures need the diagnosis arrays (made when the report " \
                                            "runs the diagnosis itself, not from a gap report file)."
-    shares = gap.get("shares") if isinstance(gap.get("shares"), dict) else None
+    sh: dict[str, Any] = gap["shares"] if isinstance(gap.get("shares"), dict) else {}
+    rest = sh.get("rest") or {}
+    rest_lines = []
+    if rest:
+        if rest.get("channels"):
+            chs = [c if isinstance(c, str) else f"{c.get('channel')} ({_f(c.get('excess_share_pct'), '.0f')} % of the "
+                   f"gap, {_f(c.get('explained_pct'), '.0f')} % of it explained)" for c in rest["channels"]]
+            rest_lines.append(f"The part not explained lies on {', '.join(chs)}"
+                              + (f", band {_band(rest.get('band_hz'))}" if rest.get("band_hz") else "")
+                              + (f", {rest['condition']}" if rest.get("condition") else "") + ".")
+        rest_lines += [str(x) for x in rest.get("what_it_looks_like", [])]
+    tf = gap.get("through_flight") or {}
+    for k, h in enumerate(tf.get("halves") or []):
+        span = h.get("t_s") or [None, None]
+        rest_lines.append(f"{'First' if k == 0 else 'Second'} half ({_f(span[0], '.0f')}–{_f(span[1], '.0f')} s): "
+                          f"{_f(h.get('excess_share_pct'), '.0f')} % of the gap above noise, "
+                          f"{_f(h.get('explained_pct'), '.0f')} % of it explained by the named effects.")
+    changes = [f"{c['effect']} {c.get('channel') or ''}: {c.get('why', '')}" for c in tf.get("changes", [])]
+    shares = {"headline": sh.get("headline"), "rule": sh.get("rule"), "rest": rest_lines, "changes": changes,
+              "explained": sh.get("explained_pct"), "checked": tf.get("checked")} if sh else None
     return {"error": None, "verdict": gap.get("verdict"), "sentence": verdict_sentence(gap), "channels": channels,
             "effects": effects, "where": where, "findings": findings, "looks": looks, "untestable": untest,
             "tested": gap.get("tested", []), "next": [n for n in nxt if n], "departures": deps,
@@ -324,8 +351,12 @@ def unsupported(d: FlightReportData) -> list[str]:
                        + ", ".join(f"{i}→{o}" for i, o, _ in v.unmodelled) + ".")
     g = d.gap
     if g is not None:
+        sh: dict[str, Any] = g["shares"] if isinstance(g.get("shares"), dict) else {}
         if g.get("verdict") == "unexplained":
-            out.append("A significant gap remains that no effect in the catalogue explains.")
+            out.append("A significant gap remains that no effect in the catalogue explains"
+                       + (f" ({sh['headline']})" if sh.get("headline") else "") + ".")
+        elif (sh.get("unexplained_pct") or 0) >= 50 and g.get("verdict") != "none":
+            out.append(f"{sh['unexplained_pct']:.0f} % of the gap above noise is not explained by the named effects.")
         ut = g.get("untestable") or {}
         if ut:
             out.append(f"Effects this flight cannot test: {', '.join(ut) if isinstance(ut, dict) else ut}.")

@@ -10,6 +10,7 @@ Keys (JSON payloads, encoding ``application/json``):
 * ``heli/{vehicle}/flight/{n}/freq``        the model's frequency-domain check (Tischler J per
   input-output pair), once per identified flight (BLOCK, reliable)
 * ``heli/{vehicle}/trends``                 trend summary over the vehicle's flights, after each one (BLOCK, reliable)
+* ``heli/{vehicle}/flight/{n}/report``      the flight's HTML page: its path and a one-line summary (BLOCK, reliable)
 * queryables ``heli/{vehicle}/model/latest`` and ``heli/{vehicle}/gap/latest`` (late subscribers)
 * liveliness token ``heli/{vehicle}/alive``
 
@@ -167,7 +168,8 @@ class ZenohSink:
         self._windows_waiting = 0
         self._lock = threading.Lock()
         self.latest: dict[str, dict | None] = {"model": None, "gap": None, "trends": None}
-        self.sent: dict[str, int] = {"status": 0, "window": 0, "excitation": 0, "model": 0, "gap": 0, "freq": 0, "trends": 0}
+        self.sent: dict[str, int] = {"status": 0, "window": 0, "excitation": 0, "model": 0, "gap": 0, "freq": 0, "trends": 0,
+                                     "report": 0}
         self.windows_dropped = 0
         self.queries_served = 0
         #: (seq, t_host_last_s, t_published_s) of recent windows, for latency measurement
@@ -268,6 +270,11 @@ class ZenohSink:
         """The ``heli-freq-verification/1`` J table of the flight's model (reliable, like the model)."""
         self._q.put_nowait(("freq", flight, doc))
 
+    def publish_report(self, flight: int, doc: dict) -> None:
+        """Where the flight's HTML page is and its one-line summary (``{"vehicle", "flight", "path", "summary"}``)
+        on ``heli/{vehicle}/flight/{n}/report`` (reliable)."""
+        self._q.put_nowait(("report", flight, doc))
+
     def publish_trends(self, doc: dict) -> None:
         """The latest trend summary over the vehicle's flights on ``heli/{vehicle}/trends`` (reliable)."""
         self.latest["trends"] = doc
@@ -291,7 +298,7 @@ class ZenohSink:
                     self._windows_waiting -= 1
             if self._session is None:
                 if item is not None:
-                    if item[0] in ("model", "gap", "freq", "trends"):
+                    if item[0] in ("model", "gap", "freq", "trends", "report"):
                         backlog.append(item)
                     self._q.task_done()
                 if time.monotonic() >= next_try and not self._closing.is_set():

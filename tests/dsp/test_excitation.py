@@ -184,3 +184,21 @@ def test_a_sysid_chirp_is_recognised_and_its_own_band_judged():
     assert lon.enough, lon.missing
     assert rep.axes["lat"].band_from == "config" and not rep.axes["lat"].enough
     assert rep.to_json()["chirps"][0]["axis"] == "lon"
+
+
+def test_a_flight_start_does_not_import_scipy_signal():
+    """The service starts a flight's estimate on its event loop: importing scipy.signal there (about a
+    second of CPU) stalled the live windows. The Hann taper is computed with numpy, equal to scipy's."""
+    import subprocess
+    import sys
+
+    code = ("import sys\nfrom groundstation.dsp.excitation import ExcitationMonitor\n"
+            "m = ExcitationMonitor()\nm.flight_started(1, 0.0)\nprint('scipy.signal' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"
+    from scipy.signal import get_window
+
+    from groundstation.freq.spectra import taper_window
+
+    for n in (7, 125, 500):
+        np.testing.assert_allclose(taper_window("hann", n), get_window("hann", n), rtol=0, atol=1e-15)
