@@ -408,6 +408,8 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
     # position estimate resampled to the grid, whose interpolation images are not vibration
     line_ch = avail & (np.arange(8) >= 3)
     lines, spectra = fingerprints.spectral_lines(resid_raw, ev.U[:, ev.start:], dt, line_ch, alpha=cfg.alpha)
+    # a line above the Nyquist frequency of the stream a channel was sent at is an interpolation image
+    lines = fingerprints.resolvable_lines(lines, loc.out_stride, dt)
     kin = fingerprints.kinematic_rate_offsets(ev.Y, dt, avail, trims=_trims(prepared))
 
     for h in hyps:
@@ -715,7 +717,7 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
             if any(c.hyp.effect == "rotor_vibration" for c in ranked):
                 yfit = ev.simulate(ev.theta0)[0]
                 arrays = {"resid_raw": (ev.Yraw - yfit)[:, ev.start:], "U": ev.U[:, ev.start:],
-                          "line_channels": base.avail & (np.arange(8) >= 3)}
+                          "line_channels": base.avail & (np.arange(8) >= 3), "stride": loc.out_stride}
             for c in ranked:
                 cons[id(c)] = shares.consistency(
                     c, segs_h, ev, np.asarray(c.hyp.extra.get("theta_refit", ev.theta0)), level,
@@ -792,7 +794,7 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
         e = _effect_entry(c)
         e.update(per_effect[id(c)])
         partial_entries.append(e)
-    rep = {"shares": share_block, "partial_findings": partial_entries,
+    rep: dict[str, Any] = {"shares": share_block, "partial_findings": partial_entries,
            "through_flight": {"checked": bool(cons) and not any(v.get("why") == "flight too short to split in halves"
                                                                for v in cons.values()),
                               **over_time, "changes": changes},
