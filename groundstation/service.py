@@ -49,6 +49,8 @@ import numpy as np
 from firmware_interface.errors import LinkError
 from firmware_interface.samples import (
     FcRebooted,
+    Heartbeat,
+    Imu,
     LinkLost,
     LinkRestored,
     RawPacket,
@@ -379,10 +381,13 @@ class Service:
                 self._warn(f"live path: {type(exc).__name__}: {exc} (recording goes on)".splitlines()[0])
 
     def _live(self, events: list[Any], now: float) -> None:
+        mon_events = []            # what the excitation monitor reads besides the rows
         for ev in events:
             if isinstance(ev, RawPacket):
                 self.packets += 1
                 self.rates.add(ev.msg_type, now)
+            elif isinstance(ev, Imu | Heartbeat):
+                mon_events.append(ev)
             elif isinstance(ev, LinkLost):
                 self.link_up = False
                 self._rerun_event(f"link lost: {ev.reason}", "WARN")
@@ -400,7 +405,7 @@ class Service:
         for w in out.windows:
             self._on_window(w)
         if self.excitation is not None:
-            self._excite(events, out)
+            self._excite(mon_events, out)
         for fe in out.flight_events:
             self._on_flight_event(fe)
 
@@ -412,9 +417,13 @@ class Service:
         for fe in out.flight_events:
             if isinstance(fe, FlightStarted):
                 mon.flight_started(fe.flight, fe.t_fc_s)
-        mon.events(events)
+        if events:
+            mon.events(events)
+        if mon.flight is None:
+            return
         ft = self.live.flights
-        mon.rows(out.t_fc_s, out.inputs, out.outputs_raw, armed=ft.armed, in_air=ft.in_air, work=False)
+        if len(out.t_fc_s):
+            mon.rows(out.t_fc_s, out.inputs, out.outputs_raw, armed=ft.armed, in_air=ft.in_air, work=False)
         rows, hop = self.live.rows, self.live.windows.hop
         if out.windows:
             self._excite_window_row = rows

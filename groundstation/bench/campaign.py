@@ -186,19 +186,26 @@ def _makespan(task_cpu_s: list[float], workers: int) -> float:
     return max(free)
 
 
+def _psutil():
+    """psutil, which only this benchmark uses (an optional dependency: ``pip install 'groundstation[bench]'``)."""
+    try:
+        import psutil
+    except ImportError:
+        raise RuntimeError("groundstation bench campaign needs psutil for its CPU accounting: "
+                           "pip install 'groundstation[bench]' (or pip install psutil)") from None
+    return psutil
+
+
 def _machine_busy_s() -> float:
     """CPU seconds every core of the machine has spent busy since boot (all processes, and time
     the hypervisor gave to other machines)."""
-    import psutil
-
-    t = psutil.cpu_times()
+    t = _psutil().cpu_times()
     return float(sum(t) - t.idle - getattr(t, "iowait", 0.0) - getattr(t, "guest", 0.0) - getattr(t, "guest_nice", 0.0))
 
 
 def _tree_cpu_s() -> float:
     """CPU seconds of this process and every descendant, alive or reaped (user + system)."""
-    import psutil
-
+    psutil = _psutil()
     me = psutil.Process()
     total = 0.0
     for p in [me, *me.children(recursive=True)]:

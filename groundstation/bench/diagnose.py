@@ -277,9 +277,9 @@ def _child_pids(pid: str) -> list[str]:
 def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
     """Simulate, read back, prepare, diagnose one case (runs in a worker process; ``pmap``: a map over
     worker processes for the diagnosis's independent pieces, None: serial)."""
-    from firmware_interface.readers import load_log
-    from groundstation.dsp.prepare import prepare
-    from groundstation.gap.diagnose import run_diagnosis
+    from groundstation.analysis import analyse
+    from groundstation.config import ServiceConfig
+    from groundstation.parallel import serial_map
     from groundstation.sysid.model import HoverModel
     from hil_replay.sim import write_tlog
     from hil_replay.sim.effects import random_effect
@@ -295,12 +295,13 @@ def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
         out["truth"] = truth.get("effects", [])
         t0 = time.perf_counter()
         c0 = tree_cpu_s()
-        prepared = prepare([load_log(path)])
         model = None
         if job["model_source"] == "truth":
             model = HoverModel(params=dict(truth["parameters"]))
-        try:
-            diag = run_diagnosis(model, prepared, seed=job["seed"], **({"pmap": pmap} if pmap else {}))
+        cfg = ServiceConfig().replace("identification", seed=job["seed"])
+        try:   # the product's analysis, the diagnosis step only (the model given, or identified by the diagnosis)
+            res = analyse([path], config=cfg, steps=("diagnose",), model=model, pmap=pmap or serial_map)
+            prepared, diag = res.prepared, res.gap.diagnosis
         except ValueError as exc:  # a flight the diagnosis refuses (too little data): counted, not hidden
             out.update(seconds=time.perf_counter() - t0, cpu_s=tree_cpu_s() - c0, flight_s=0.0, verdict="refused", effects=[], sensor_errors=[],
                        candidates=[], error=str(exc))
@@ -325,6 +326,10 @@ def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
         out["gap_to_noise_ratio"] = rep["gap"].get("gap_to_noise_ratio")
         sh = rep.get("shares") or {}
         out["explained_pct"] = sh.get("explained_pct")
+        out["partial_explained_pct"] = sh.get("partial_explained_pct")
+        out["headline"] = sh.get("headline")
+        out["partial_findings"] = [{k: e.get(k) for k in ("effect", "input", "output", "share_pct", "consistency")}
+                                   for e in rep.get("partial_findings", [])]
         out["consistency"] = [{k: e.get("consistency", {}).get(k) for k in ("status", "parameter", "first", "second")}
                               for e in rep["effects"]]
         if job.get("fresh") and job["effects"]:
@@ -332,7 +337,7 @@ def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
             rng2 = np.random.default_rng(job["seed"])
             eff2 = [random_effect(n, rng2) for n in job["effects"]]  # same draw: same effect and magnitude
             write_tlog(path2, seed=job["seed"] + 100000, flights=1, effects=eff2, **kw)
-            d2 = run_diagnosis(model, prepare([load_log(path2)]), seed=job["seed"])
+            d2 = analyse([path2], config=cfg, steps=("diagnose",), model=model).gap
             allc = d2.report["effects"] + d2.report["candidates"]
             same = [e for e in allc if e["effect"] == job["effects"][0]]
             out["fresh_shrink_pct"] = same[0]["shrink_pct"] if same else None

@@ -1,8 +1,8 @@
 """One log of a campaign analysed into table rows (one row per flight in the log).
 
 :func:`analyse` is the picklable unit of work (a process pool or a Dask worker runs it): it reads
-the log, prepares it, and for each flight (armed interval) in it identifies the hover model,
-diagnoses the gap (held-out, k-fold), predicts a reference flight with the model (the campaign's
+the log, prepares it, and for each flight (armed interval) in it identifies the hover model and
+diagnoses the gap (held-out, k-fold) with :func:`groundstation.analysis.analyse_prepared`, predicts a reference flight with the model (the campaign's
 previous log: the cross-flight fit, :func:`groundstation.sysid.heldout.predict`) and returns plain JSON-able rows. A failure becomes a row with
 ``error`` set (one line) and never stops the campaign. Memory is one log's at a time per worker.
 """
@@ -152,18 +152,17 @@ def model_row(model: Any, report: dict | None, prepared: Any) -> dict[str, Any]:
 
 
 def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[str, Any]:
-    from groundstation.pipeline import identify_prepared
+    from groundstation.analysis import analyse_prepared
     from groundstation.sysid.heldout import predict
 
     t0 = time.perf_counter()
     cfg = job.settings.service_config()
-    model = identify_prepared(prepared, cfg, aircraft=job.settings.aircraft)
-    report = diag = None
-    if job.settings.diagnose:
-        from groundstation.gap.diagnose import run_diagnosis
-
-        diag = run_diagnosis(model, prepared, seed=cfg.identification.seed, config=cfg.diagnose)
-        report = diag.report
+    res = analyse_prepared(prepared, cfg, job.settings.aircraft, log_paths=[job.log],
+                           steps=("identify", "diagnose") if job.settings.diagnose else ("identify",))
+    model = res.model
+    model.fit.pop("seconds", None)   # the row has its own; a stored row is the same whichever backend ran it
+    diag = res.gap.diagnosis if res.gap is not None else None
+    report = res.gap.report if res.gap is not None else None
     row = {"flight_index": flight, **model_row(model, report, prepared), "cross_log": None, "cross_match_pct": None}
     if ref is not None:
         try:
@@ -186,11 +185,10 @@ def flight_page(job: FlightJob, prepared: Any, flight: int, model: Any, diag: An
     """(path, None) of the flight's HTML page (:mod:`groundstation.report`) drawn from this job's model and
     diagnosis plus the frequency check, or (None, one-line error): the row stands without it."""
     try:
-        from groundstation.commands.freq_support import prepare_native
         from groundstation.freq.spectra import estimate_responses
         from groundstation.freq.verify import verify
         from groundstation.gap.pictures import gap_pictures
-        from groundstation.pipeline import load_logs, with_aircraft
+        from groundstation.pipeline import load_logs, prepare_native, with_aircraft
         from groundstation.report import render_report, write_html
         from groundstation.report.collect import assemble
 

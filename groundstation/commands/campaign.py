@@ -11,6 +11,7 @@ the table (or where ``--trends-dir`` says).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import time
@@ -42,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trends-dir", type=Path, default=None, help="where trends.json/png/rrd go (default: --db's dir)")
     parser.add_argument("--report-dir", type=Path, default=None,
                         help="write an HTML page per analysed flight and DIR/campaign.html (table, trends, links)")
-    parser.add_argument("--alpha", type=float, default=0.05, help="family-wise false-alarm level of the trend test")
+    parser.add_argument("--alpha", type=float, default=None,
+                        help="family-wise false-alarm level of the trend test (default: [trends] alpha, 0.05)")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True, help="progress bar")
     parser.add_argument("--quiet", action="store_true")
 
@@ -118,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
         if args.parquet is not None:
             out = store.write_parquet(name, args.parquet / f"{name}.parquet")
             con.print(f"wrote {out}")
-        summary = write_trends(store, name, settings.key(), args)
+        summary = write_trends(store, name, settings.key(), args, settings.service_config().trends)
         if args.report_dir is not None:
             page = write_campaign_page(store, name, settings.key(), summary, args.report_dir)
             con.print(f"wrote {page}")
@@ -134,8 +136,9 @@ def _fmt(v: Any) -> str:
     return "-" if v is None else f"{float(v):.1f}"
 
 
-def write_trends(store: Any, aircraft: str, settings_key: str, args: argparse.Namespace) -> dict:
-    """Trend test over the aircraft's flights; trends.json / .png / .rrd; returns the summary."""
+def write_trends(store: Any, aircraft: str, settings_key: str, args: argparse.Namespace, trend_cfg: Any = None) -> dict:
+    """Trend test over the aircraft's flights (``[trends]`` of the configuration, ``--alpha`` over it);
+    trends.json / .png / .rrd; returns the summary."""
     from groundstation.campaign.plots import plot_trends, write_trends_rrd
     from groundstation.campaign.store import series
     from groundstation.trends.change import TrendConfig, assess_all, campaign_summary
@@ -143,7 +146,10 @@ def write_trends(store: Any, aircraft: str, settings_key: str, args: argparse.Na
     rows = store.rows(aircraft, settings_key)
     out_dir = args.trends_dir or args.db.parent
     labels = [f"{r['log_name']}#{int(r['flight_index'])}" for r in rows]
-    trends = assess_all(series(rows), TrendConfig(alpha=args.alpha))
+    tc = trend_cfg if trend_cfg is not None else TrendConfig()
+    if args.alpha is not None:
+        tc = dataclasses.replace(tc, alpha=args.alpha)
+    trends = assess_all(series(rows), tc)
     summary = campaign_summary(aircraft, labels, trends)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "trends.json").write_text(json.dumps(summary, indent=1, allow_nan=False))

@@ -81,6 +81,9 @@ class DiagnoseConfig:
     #: 0.65-1.7 m/s sigma were fitted at 1.8-8 m/s. The resolvable level is the larger of this and
     #: ``excitation_snr`` x the velocity sensors' measured white noise.
     gust_min_rms_m_s: float = 0.3
+    #: significance of the rank correlation between a window's residual energy and a flight condition
+    #: (input amplitude, input rate, height) that the report names as the gap's ``conditions``
+    conditions_alpha: float = 0.01
     #: ground effect is untestable when the in-air height spans less than this (m): below a rotor
     #: radius of a small helicopter the excess lift hardly varies over the flight
     ground_effect_min_height_span_m: float = 0.5

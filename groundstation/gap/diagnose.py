@@ -343,7 +343,7 @@ def locate_stage(base: Base, prepared: Any, cfg: DiagnoseConfig) -> Located:
     windows_s = locate.merge_intervals([(float(ev.T[i, 0]), float(ev.T[i, -1] + dt)) for i in np.flatnonzero(flag)])
     noise_psd = 2 * dt * nf["sigma_smoothed"] ** 2
     band = locate.worst_band(e[:, ev.start:], ev.U[:, ev.start:], dt, noise_psd, ev.w8)
-    cond = locate.conditions(energy_w, _window_features(ev))
+    cond = locate.conditions(energy_w, _window_features(ev), alpha=cfg.conditions_alpha)
     ho_nrmse = np.array([np.sqrt((e_w[:, ev.start:, c] ** 2).sum() / ev.energy[:, c].sum())
                          if ev.energy[:, c].sum() > 0 else np.nan for c in range(8)])
     gap_ratio = ho_nrmse / np.where(nf["nrmse_floor"] > 0, nf["nrmse_floor"], np.nan)
@@ -403,6 +403,8 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
     # position estimate resampled to the grid, whose interpolation images are not vibration
     line_ch = avail & (np.arange(8) >= 3)
     lines, spectra = fingerprints.spectral_lines(resid_raw, ev.U[:, ev.start:], dt, line_ch, alpha=cfg.alpha)
+    # a line above the Nyquist frequency of the stream a channel was sent at is an interpolation image
+    lines = fingerprints.resolvable_lines(lines, loc.out_stride, dt)
     kin = fingerprints.kinematic_rate_offsets(ev.Y, dt, avail, trims=_trims(prepared))
 
     for h in hyps:
@@ -710,7 +712,7 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
             if any(c.hyp.effect == "rotor_vibration" for c in ranked):
                 yfit = ev.simulate(ev.theta0)[0]
                 arrays = {"resid_raw": (ev.Yraw - yfit)[:, ev.start:], "U": ev.U[:, ev.start:],
-                          "line_channels": base.avail & (np.arange(8) >= 3)}
+                          "line_channels": base.avail & (np.arange(8) >= 3), "stride": loc.out_stride}
             for c in ranked:
                 cons[id(c)] = shares.consistency(
                     c, segs_h, ev, np.asarray(c.hyp.extra.get("theta_refit", ev.theta0)), level,
@@ -733,9 +735,12 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
         per_effect.setdefault(id(c), {"share_pct": None, "share_interval_pct": None,
                                       "consistency": cons.get(id(c), {"status": "not_checked", "why": ""})})
     # "most of the gap": refuted only when the share's whole 5-95 % interval lies below the level
-    # (the windows' own spread decides, not the point estimate alone)
+    # (the windows' own spread decides, not the point estimate alone), and only where there is a
+    # gap to share: a gap within a few times the noise (not significant, section 1) is a small
+    # difference of two large numbers, and the noise floor itself is an estimate
     explained = sh.interval_pct[1] if sh.interval_pct is not None else sh.explained_pct
-    named_ok = bool(kept) and (explained is None or explained >= cfg.explained_share_min_pct)
+    named_ok = bool(kept) and (not loc.gap_significant or explained is None
+                               or explained >= cfg.explained_share_min_pct)
     verdict, unexplained = dec.verdict, dec.unexplained
     partial = []
     if ranked and not named_ok:
@@ -751,7 +756,7 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
     over_time = shares.gap_over_time(ev, base_sse, noise_sse, removed, cols)
     changes = [{"effect": c.hyp.effect, "channel": c.hyp.input or c.hyp.output, **cons[id(c)]} for c in changing]
     rest = _rest_of_gap(sh, loc, over_time, unexplained)
-    headline = _headline(kept, partial, sh if kept else sh_all, changes, rest, cfg)
+    headline = _headline(kept, partial, sh if kept else sh_all, changes, rest, cfg, loc.gap_significant)
     if unexplained is not None:
         unexplained = dict(unexplained)
         unexplained["what_it_looks_like"] = list(unexplained.get("what_it_looks_like", []))
@@ -765,12 +770,15 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
         "unexplained_pct": None if sh.explained_pct is None else round(100.0 - min(max(sh.explained_pct, 0.0), 100.0), 1),
         "partial_explained_pct": None if not partial or sh_all.explained_pct is None else round(sh_all.explained_pct, 1),
         "excess_pct_of_cost": round(sh.excess_pct_of_cost, 1),
+        "gap_significant": bool(loc.gap_significant),
         "channels": sh.channels,
         "per_channel": sh.per_channel if kept else sh_all.per_channel,
         "per_effect": sh.per_effect if kept else sh_all.per_effect,
         "rule": (f"effects are named unless together they remove less than {cfg.explained_share_min_pct:g} % of the "
                  f"held-out gap above the noise floor with the whole 5-95 % interval (bootstrap over held-out "
-                 f"windows) below it, and each holds through the flight (the halves' estimates agree)"),
+                 f"windows) below it, on a significant gap (at least {cfg.gap_channels_min} excited channels above "
+                 f"{cfg.gap_ratio_significant:g}x their noise); and each holds through the flight (the halves' "
+                 f"estimates agree)"),
         "rest": rest,
         "headline": headline,
     }
@@ -781,7 +789,7 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
         e = _effect_entry(c)
         e.update(per_effect[id(c)])
         partial_entries.append(e)
-    rep = {"shares": share_block, "partial_findings": partial_entries,
+    rep: dict[str, Any] = {"shares": share_block, "partial_findings": partial_entries,
            "through_flight": {"checked": bool(cons) and not any(v.get("why") == "flight too short to split in halves"
                                                                for v in cons.values()),
                               **over_time, "changes": changes},
@@ -794,7 +802,12 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
 def _rest_of_gap(sh: shares.Shares, loc: Located, over_time: dict, unexplained: dict | None) -> dict[str, Any]:
     """Where the part of the gap the named effects leave lies: channels, band, time and condition."""
     chans = {k: v for k, v in sh.per_channel.items() if v.get("excess_share_pct")}
-    top = sorted(chans.items(), key=lambda kv: -(kv[1].get("excess_share_pct") or 0.0))[:3]
+
+    def left(v: dict) -> float:  # the channel's part of the gap above noise the named effects leave
+        x = v.get("explained_pct")
+        return float(v.get("excess_share_pct") or 0.0) * (1.0 - (0.0 if x is None else min(max(x, 0.0), 100.0)) / 100.0)
+
+    top = sorted(chans.items(), key=lambda kv: -left(kv[1]))[:3]
     halves = over_time.get("halves", [])
     return {"channels": [{"channel": k, "excess_share_pct": v["excess_share_pct"], "gap_to_noise": v["gap_to_noise"],
                           "explained_pct": v.get("explained_pct")} for k, v in top],
@@ -805,7 +818,7 @@ def _rest_of_gap(sh: shares.Shares, loc: Located, over_time: dict, unexplained: 
 
 
 def _headline(kept: list[attribute.Candidate], partial: list[attribute.Candidate], sh: shares.Shares,
-              changes: list[dict], rest: dict[str, Any], cfg: DiagnoseConfig) -> str:
+              changes: list[dict], rest: dict[str, Any], cfg: DiagnoseConfig, significant: bool = True) -> str:
     """One sentence a user reads first: how much of the gap above noise the named effects explain."""
     if sh.explained_pct is None:
         if kept:
@@ -814,6 +827,7 @@ def _headline(kept: list[attribute.Candidate], partial: list[attribute.Candidate
         return "the held-out gap is at the noise floor: nothing to explain"
     x = min(max(sh.explained_pct, 0.0), 100.0)
     lo, hi = sh.interval_pct or (float("nan"), float("nan"))
+    iv = f"interval {lo:.0f} to {hi:.0f} %"
     where = ", ".join(f"{c['channel']} ({c['gap_to_noise']:g}x noise)" for c in rest["channels"])
     extra = []
     if rest.get("band_hz"):
@@ -826,13 +840,17 @@ def _headline(kept: list[attribute.Candidate], partial: list[attribute.Candidate
     tail = f": it lies in {where}" + (f"; {', '.join(extra)}" if extra else "") if where else ""
     if kept:
         names = " and ".join(_effect_label(c) for c in kept)
-        return (f"{x:.0f} % of the gap above noise is explained by {names} (interval {lo:.0f}-{hi:.0f} %); "
-                f"{100 - x:.0f} % is not" + (tail if 100 - x >= 20 else ""))
+        small = ("" if significant else
+                 f" (the gap is small: fewer than {cfg.gap_channels_min} channels above {cfg.gap_ratio_significant:g}x "
+                 f"their noise, so the share is indicative and the effect is named on its own tests)")
+        return (f"{x:.0f} % of the gap above noise is explained by {names} ({iv}); "
+                f"{100 - x:.0f} % is not" + (tail if 100 - x >= 20 and significant else "") + small)
     if partial:
         names = " and ".join(_effect_label(c) for c in partial)
         why = (f"clearly below the {cfg.explained_share_min_pct:g} % needed to name them" if not changes else
                "and " + "; ".join(f"the {ch['effect'].replace('_', ' ')} changes through the flight" for ch in changes))
-        return (f"unexplained: {names} explain only {x:.0f} % of the gap above noise (interval {lo:.0f}-{hi:.0f} %), "
+        verb = "explains" if len(partial) == 1 else "explain"
+        return (f"unexplained: {names} {verb} only {x:.0f} % of the gap above noise ({iv}), "
                 f"{why}; {100 - x:.0f} % is not explained" + tail)
     return "no catalogue effect explains the gap above noise (0 % explained)" + tail
 

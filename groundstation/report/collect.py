@@ -113,7 +113,7 @@ def collect(logs: Sequence[str | os.PathLike[str]], *, config: Any = None, aircr
     except Exception as exc:  # the page still says what could not be read
         errors["logs"] = _line(exc)
         return FlightReportData(**parts, errors=errors)
-    from groundstation.commands.log_info import summarise
+    from groundstation.loginfo import summarise
 
     parts["log_info"] = tuple(summarise(log) for log in raw)
     parts["timelines"] = tuple(timeline(log) for log in raw)
@@ -148,7 +148,7 @@ def assemble(logs: Sequence[str | os.PathLike[str]], cfg: Any, *, prepared: Any,
     """A :class:`FlightReportData` from results already computed elsewhere (the service's worker, a
     campaign job): reads the logs again for their data quality and timeline, validates the model on
     its training windows when ``validation`` is not given; nothing else is recomputed."""
-    from groundstation.commands.log_info import summarise
+    from groundstation.loginfo import summarise
     from groundstation.pipeline import load_logs
 
     errs = {k: v for k, v in (errors or {}).items() if v}
@@ -187,7 +187,7 @@ def _prepare(raw: list[Any], cfg: Any, errors: dict[str, str]) -> Any:
 def _model(prepared: Any, cfg: Any, aircraft: Any, model_path: Any, folds: int, errors: dict[str, str],
            pmap: Map, say: Progress) -> Any:
     if model_path is not None:
-        from groundstation.commands.validate import load_model
+        from groundstation.pipeline import load_model
 
         model = load_model(Path(model_path))   # a named file that cannot be read is the user's error
     elif prepared is None:
@@ -203,13 +203,11 @@ def _model(prepared: Any, cfg: Any, aircraft: Any, model_path: Any, folds: int, 
             errors["model"] = f"not identified: {_line(exc)}"
             return None
     if prepared is not None and folds >= 2 and (model.fit.get("heldout") or {}).get("k") != folds:
-        from rich.console import Console
-
-        from groundstation.commands.identify import held_out
+        from groundstation.analysis import held_out
 
         say(f"held-out check ({folds} folds)")
         try:
-            held_out(model, prepared, cfg, aircraft, folds, Console(quiet=True), pmap)
+            held_out(model, prepared, cfg, aircraft, folds, pmap)
         except Exception as exc:
             errors["heldout"] = _line(exc)
     return model
@@ -219,10 +217,10 @@ def _freq(raw: list[Any], cfg: Any, model: Any, errors: dict[str, str], say: Pro
     if model is None:
         errors["freq"] = f"no frequency check without a model ({errors.get('model', 'none')})"
         return None
-    from groundstation.commands.freq_support import prepare_native
     from groundstation.freq.model_response import delays_from_augmentations
     from groundstation.freq.spectra import estimate_responses
     from groundstation.freq.verify import verify
+    from groundstation.pipeline import prepare_native
 
     say("frequency-domain check")
     try:
@@ -246,7 +244,7 @@ def _gap(raw: list[Any], prepared: Any, cfg: Any, model: Any, freq: Any, gap_pat
     if prepared is None or model is None:
         errors["gap"] = f"no diagnosis: {errors.get('model') or errors.get('prepare') or 'no model'}"
         return None, None
-    from groundstation.commands.diagnose import native_vibration, unfold_rotor_line
+    from groundstation.analysis import native_vibration, unfold_rotor_line
     from groundstation.gap.diagnose import run_diagnosis
     from groundstation.gap.pictures import gap_pictures
     from groundstation.gap.report import frequency_section
