@@ -36,7 +36,11 @@ def _diff(a, b, path="") -> list[str]:
 
 @pytest.mark.timeout(1800)   # a flight, its analysis in the service, then identify and diagnose again: minutes on a busy machine
 def test_service_files_equal_identify_and_diagnose_of_the_recording(tmp_path):
-    sections = {"identify": {"maxiter": 6}, "identification": {"refine": False, "plots": False}}
+    # [excitation] off: with it on, the service's frequency check uses the spectra its live monitor
+    # accumulated during the flight (the same windows and grid as the log's, tested in
+    # test_excitation_service.py), not a second pass over the recording as diagnose makes
+    sections = {"identify": {"maxiter": 6}, "identification": {"refine": False, "plots": False},
+                "excitation": {"enabled": False}}
     cfg = service_config(tmp_path, service={"exit_after_flights": 1}, sim={"speed": 20.0, "flights": 1, "seed": 4},
                          **sections)
     service = Service(cfg, sim_options={"flight_duration_s": 40.0, "pause_s": 3.0}, log=lambda m: None)
@@ -53,7 +57,7 @@ def test_service_files_equal_identify_and_diagnose_of_the_recording(tmp_path):
     assert served_model["fit"]["seconds"] > 0
 
     toml = tmp_path / "same.toml"
-    toml.write_text("[identify]\nmaxiter = 6\n\n[identification]\nrefine = false\n")
+    toml.write_text("[identify]\nmaxiter = 6\n\n[identification]\nrefine = false\n\n[excitation]\nenabled = false\n")
     model_path, gap_path = tmp_path / "cli-model.json", tmp_path / "cli-gap.json"
     assert main(["identify", tlog, "--out", str(model_path), "--config", str(toml), "--no-plot", "--quiet",
                  "--jobs", "1"]) == 0
