@@ -10,12 +10,14 @@ identify command-to-response, the "end-to-end" dynamics, and report bandwidth an
 
 Structure (``kind``), per axis (roll lat->p/phi, pitch lon->q/theta, yaw ped->r, heave col->w):
 
-* ``rate_command``: first order with an equivalent time delay, ``T xdot = -x + K d(t - tau)
-  + sum_j C_j d_j(t - tau) + b`` for x = p, q, r, w, with ``d`` the on-axis input, ``d_j`` the
-  other moving inputs (the off-axis couplings; the fit keeps those the data support: estimate beyond
-  ``COUPLING_T`` standard errors), ``b`` a rate offset (the stick trim the controller holds as zero
-  rate need not be the median stick);
-* ``attitude_command``: roll and pitch second order, ``phi'' = wn^2 (K d(t - tau) + sum C d_j + b
+* ``rate_command``: first order with an equivalent time delay, ``T xdot = -x + sum_j K_j d_j(t - tau)
+  + b`` for x = p, q, r, w over every moving input ``d_j``; the fit keeps the inputs the data support
+  (estimate beyond ``COUPLING_T`` standard errors) and names the one contributing most (gain times the
+  input's spread) the on-axis input, the others are the off-axis couplings (the simulator's paper
+  naming has lat driving pitch, a real aircraft's longitudinal stick does: the data say which);
+  ``b`` is the rate held for a centred stick, each window's own (the controller's integrator: an
+  unmeasured state estimated over the window as the hover model's flapping states are);
+* ``attitude_command``: roll and pitch second order, ``phi'' = wn^2 (sum_j K_j d_j(t - tau) + b
   - phi) - 2 zeta wn phi'``; yaw and heave as above;
 * attitude kinematics ``phi' = p``, ``theta' = q`` (hover, small angles) and the hover translational
   dynamics ``u' = X_u u - g theta + X_0``, ``v' = Y_v v + g phi + Y_0``.
@@ -51,7 +53,8 @@ KINDS: tuple[str, ...] = ("blade", "rate_command", "attitude_command", "unknown"
 #: the command structures fitted here
 COMMAND_KINDS: tuple[str, ...] = ("rate_command", "attitude_command")
 SCHEMA = "heli-command-response/1"
-#: axis -> (rate channel, attitude channel or None, on-axis input, velocity channel or None)
+#: axis -> (rate channel, attitude channel or None, nominal on-axis input, velocity channel or None); the
+#: reported on-axis input is the data's (see the module docstring)
 AXES: dict[str, tuple[str, str | None, str, str | None]] = {
     "roll": ("p", "phi", "lat", "v"), "pitch": ("q", "theta", "lon", "u"),
     "yaw": ("r", None, "ped", None), "heave": ("w", None, "col", None),
