@@ -27,6 +27,7 @@ COMMANDS: dict[str, str] = {
     "identify": "identify",
     "validate": "validate",
     "diagnose": "diagnose",
+    "report": "report",
     "campaign": "campaign",
     "bench": "bench",
 }

@@ -11,6 +11,7 @@ once and every command reads the same file (``--config FILE.toml``)::
     [bounds]                                   search bounds, NAME = [low, high] (paper parameter names)
     [diagnose]                                 gap.config.DiagnoseConfig
     [freq]                                     freq.spectra.FreqConfig (``validate --freq``)
+    [excitation]                               dsp.excitation.ExcitationConfig (live excitation monitor)
     [identification]                           what the service does between flights (and the
                                                defaults of ``groundstation identify``'s options)
 
@@ -37,13 +38,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
+from groundstation.dsp.excitation import ExcitationConfig
 from groundstation.dsp.live import LiveConfig
 from groundstation.dsp.prepare import PrepConfig
 from groundstation.errors import GroundstationError
+from groundstation.freq.settings import FreqIdentifyConfig
 from groundstation.freq.spectra import FreqConfig
 from groundstation.gap.config import DiagnoseConfig
 from groundstation.sysid.identify import IdentifyConfig
 from groundstation.sysid.model import PARAM_NAMES
+from groundstation.trends.settings import TrendConfig
 
 
 class ConfigError(GroundstationError, ValueError):
@@ -98,6 +102,9 @@ class IdentificationSection:
     refine: bool = True
     diagnose: bool = True
     plots: bool = True
+    #: held-out check after the fit: refit on k-1 contiguous blocks of the in-air time and predict the
+    #: left-out one, for each block (``usable``, ``closed_loop`` in the model file); 0 = skip
+    heldout_folds: int = 5
     #: aircraft file (TOML) applied between flights: its channel map and outputs prepare each flight,
     #: its ``[identify]`` settings and prior model identify it; "" = none
     aircraft: str = ""
@@ -138,6 +145,9 @@ class ServiceConfig:
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
     diagnose: DiagnoseConfig = field(default_factory=DiagnoseConfig)
     freq: FreqConfig = field(default_factory=FreqConfig)
+    freq_identify: FreqIdentifyConfig = field(default_factory=FreqIdentifyConfig)
+    trends: TrendConfig = field(default_factory=TrendConfig)
+    excitation: ExcitationConfig = field(default_factory=ExcitationConfig)
     identification: IdentificationSection = field(default_factory=IdentificationSection)
     zenoh: ZenohSection = field(default_factory=ZenohSection)
     rerun: RerunSection = field(default_factory=RerunSection)
@@ -191,6 +201,8 @@ def validate(cfg: ServiceConfig, where: str = "config") -> None:
          "must be last or all"),
         (cfg.identification.algorithm in ("cabc", "abc", "ga", "de"), "identification.algorithm",
          cfg.identification.algorithm, "must be cabc, abc, ga or de"),
+        (cfg.identification.heldout_folds == 0 or cfg.identification.heldout_folds >= 2,
+         "identification.heldout_folds", cfg.identification.heldout_folds, "must be 0 (skip) or >= 2"),
         (cfg.identify.search_restarts >= 1, "identify.search_restarts", cfg.identify.search_restarts, "must be >= 1"),
         (cfg.sim.speed > 0, "sim.speed", cfg.sim.speed, "must be > 0"),
         (cfg.sim.flights >= 1, "sim.flights", cfg.sim.flights, "must be >= 1"),
@@ -267,6 +279,20 @@ def _convert(tp: Any, value: Any, where: str, key: str) -> Any:
     return value
 
 
+#: keys and tables of earlier releases -> what replaced them (an old file gets told where its setting went)
+RENAMED: dict[str, str] = {
+    "identification.restarts": "[identify] search_restarts",
+    "identification.maxiter": "[identify] maxiter",
+    "inputs": "[prepare] (input_channels, input_trim_pwm, pwm_per_unit)",
+    "inputs.lat_servo": "[prepare] input_channels (lat lon col ped)",
+    "inputs.lon_servo": "[prepare] input_channels (lat lon col ped)",
+    "inputs.col_servo": "[prepare] input_channels (lat lon col ped)",
+    "inputs.ped_servo": "[prepare] input_channels (lat lon col ped)",
+    "inputs.trim_pwm": "[prepare] input_trim_pwm",
+    "inputs.pwm_per_unit": "[prepare] pwm_per_unit",
+}
+
+
 def _from_dict(cls: type[T], data: dict[str, Any], where: str, prefix: str = "") -> T:
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
@@ -276,6 +302,11 @@ def _from_dict(cls: type[T], data: dict[str, Any], where: str, prefix: str = "")
         if key not in fields:
             kind = "table" if isinstance(value, dict) else "key"
             shown = f"[{prefix}{key}]" if kind == "table" else f"{prefix}{key}"
+            if cls is ServiceConfig and kind == "table" and key in RENAMED:
+                old = next((f"{key}.{k}" for k in value if f"{key}.{k}" in RENAMED), key)
+                raise ConfigError(f"{where}: [{key}] is no longer read: {old} is now {RENAMED[old]}")
+            if f"{prefix}{key}" in RENAMED:
+                raise ConfigError(f"{where}: {shown} was renamed: it is now {RENAMED[f'{prefix}{key}']}")
             raise ConfigError(f"{where}: unknown {kind} {shown} (known: {', '.join(fields)})")
         if isinstance(value, dict):
             for sub in value:
@@ -318,3 +349,82 @@ def load_config(path: str | os.PathLike[str] | None) -> ServiceConfig:
     if path is None:
         return ServiceConfig()
     return load_toml(path, ServiceConfig)
+
+
+# ------------------------------------------------------------------ every key, from the dataclasses
+
+
+def _field_comments(cls: type) -> dict[str, str]:
+    """field name -> its comment in the source (``#:`` lines above it, or a trailing ``# ...``)."""
+    import inspect
+
+    try:
+        lines = inspect.getsource(cls).splitlines()
+    except (OSError, TypeError):
+        return {}
+    out: dict[str, str] = {}
+    above: list[str] = []
+    for line in lines[1:]:
+        s = line.strip()
+        if s.startswith("#:"):
+            above.append(s[2:].strip())
+            continue
+        head = s.split("#", 1)[0]
+        name = head.split(":", 1)[0].strip()
+        if ":" in head and name.isidentifier() and not s.startswith(("def ", "@", "return", "if ")):
+            trailing = s.split("#", 1)[1].strip() if "#" in s and "=" in head else ""
+            out.setdefault(name, " ".join(above) or trailing)
+        if s.startswith("def "):
+            break
+        above = []
+    return out
+
+
+def toml_value(v: Any) -> str | None:
+    """``v`` written as TOML (None: TOML has no null, the key is left out)."""
+    import json
+
+    if v is None:
+        return None
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (tuple, list)):
+        items = [toml_value(x) for x in v]
+        return "[" + ", ".join(x for x in items if x is not None) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k} = {toml_value(x)}" for k, x in v.items()) + "}"
+    return json.dumps(str(v))
+
+
+def reference(cfg: ServiceConfig | None = None) -> list[tuple[str, str, str, str]]:
+    """Every key a configuration file can set: (table, key, default as TOML or "" for none, meaning).
+    Derived keys (set in another table) are left out."""
+    cfg = cfg or ServiceConfig()
+    rows = []
+    for sec in dataclasses.fields(cfg):
+        value = getattr(cfg, sec.name)
+        if not dataclasses.is_dataclass(value):
+            continue
+        notes = _field_comments(type(value))
+        for f in dataclasses.fields(value):
+            if not f.init or f"{sec.name}.{f.name}" in ServiceConfig.CONFIG_DERIVED:
+                continue
+            rows.append((sec.name, f.name, toml_value(getattr(value, f.name)) or "", notes.get(f.name, "")))
+    return rows
+
+
+def reference_markdown(cfg: ServiceConfig | None = None) -> str:
+    """The table of every key (docs/configuration.md carries it; ``python -m groundstation.config`` prints it)."""
+    out = ["| key | default | meaning |", "|---|---|---|"]
+    for table, key, default, note in reference(cfg):
+        shown = f"`{default}`" if default else "(none)"
+        out.append(f"| `{table}.{key}` | {shown} | {note.replace('|', '/')} |")
+    return "\n".join(out) + "\n"
+
+
+if __name__ == "__main__":
+    print(reference_markdown(), end="")

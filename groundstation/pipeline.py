@@ -82,6 +82,41 @@ def with_aircraft_file(cfg: ServiceConfig) -> tuple[ServiceConfig, Any]:
     return with_aircraft(cfg, aircraft), aircraft
 
 
+def load_model(path: str | os.PathLike[str]) -> Any:
+    """A model file (``heli-hover-model/1``, docs/model-file.md) as a :class:`groundstation.sysid.model.HoverModel`;
+    a missing or malformed file raises an error naming it."""
+    import json
+
+    from groundstation.sysid.model import HoverModel
+
+    path = Path(path)
+    if not path.exists():
+        raise OSError(f"{path}: no such model file")
+    try:
+        doc = json.loads(path.read_bytes())
+    except UnicodeDecodeError:
+        raise SysidError(f"{path}: not a model file (binary, not JSON text)") from None
+    except json.JSONDecodeError as exc:
+        raise SysidError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    try:
+        return HoverModel.from_json(doc)
+    except ValueError as exc:
+        raise SysidError(f"{path}: {exc}") from None
+
+
+def prepare_native(logs: list[Any], prep_cfg: Any, *, grid_only: bool = False) -> Any:
+    """Prepared data at the log's native rate where that is faster than the grid (else the grid): what
+    the frequency-domain analysis runs on."""
+    from groundstation.dsp.prepare import prepare
+    from groundstation.freq.spectra import native_rate_hz
+
+    prepared = prepare(logs, prep_cfg)
+    rate = None if grid_only else native_rate_hz(prepared, prep_cfg.rate_hz)
+    if rate is None:
+        return prepared
+    return prepare(logs, dataclasses.replace(prep_cfg, rate_hz=rate))
+
+
 def prepare_logs(paths: Sequence[str | os.PathLike[str]], cfg: ServiceConfig, segments: str = "flights",
                  aircraft: Any = None, pmap: Map = serial_map) -> Any:
     """Read the logs and prepare them with ``cfg.prepare`` (a :class:`groundstation.dsp.prepare.PreparedData`),

@@ -8,8 +8,10 @@ One :class:`Service` per run, one ``asyncio.TaskGroup``:
   requests), reopens a lost link with backoff (a USB cable pulled and plugged back). Each batch of
   events goes to the :class:`firmware_interface.recorder.Recorder` first (recording never depends on
   anything after it), then to :class:`groundstation.dsp.live.LivePipeline`; windows to zenoh, rows to
-  Rerun (both through their own threads: the loop never blocks on a sink). Reading waits while a
-  batch is processed: back-pressure onto the link, nothing dropped;
+  Rerun (both through their own threads: the loop never blocks on a sink). The in-air rows of the
+  current flight also feed :class:`groundstation.dsp.excitation.ExcitationMonitor` (its transforms and
+  verdicts run half a hop after a window went out), whose verdict (is each axis excited enough yet?)
+  goes to zenoh, Rerun and the status about once per FC second while armed. Reading waits while a batch is processed: back-pressure onto the link, nothing dropped;
 * ``timer``     -- recorder flushes, the status record at ``status_rate_hz``;
 * ``stopper``   -- waits for Ctrl-C/SIGTERM, ``exit_after_flights`` or :meth:`Service.request_stop`.
 
@@ -52,6 +54,7 @@ from firmware_interface.samples import (
     RawPacket,
 )
 from groundstation.config import ServiceConfig
+from groundstation.dsp.excitation import ExcitationMonitor, ExcitationReport
 from groundstation.dsp.live import FlightEnded, FlightStarted, LivePipeline, RateMeter, Window
 from groundstation.sinks.background import BackgroundCalls
 from groundstation.worker import IdentifyJob, JobResult, run_job
@@ -160,6 +163,12 @@ class Service:
         self.packets = 0
         self.window_seq_published = 0
         self.on_window: Callable[[Window], None] | None = None     # test/bench hook (loop thread)
+        ex = config.excitation
+        self.excitation = ExcitationMonitor(ex, 1.0 / config.live.grid_rate_hz) if ex.enabled else None
+        self._excite_window_row = 0          # live row count at the last window / the monitor's last step
+        self._excite_step_row = 0
+        self.excitation_last: ExcitationReport | None = None
+        self.on_excitation: Callable[[ExcitationReport], None] | None = None   # test hook (loop thread)
         self.onboard: Any = None             # groundstation.onboard.OnboardLogs when [onboard_logs] download
         self._onboard_busy = False
 
@@ -390,8 +399,58 @@ class Service:
             self._sm_buf.append((out.t_smoothed_s, out.t_host_smoothed_s, out.outputs_smoothed))
         for w in out.windows:
             self._on_window(w)
+        if self.excitation is not None:
+            self._excite(events, out)
         for fe in out.flight_events:
             self._on_flight_event(fe)
+
+    def _excite(self, events: list[Any], out: Any) -> None:
+        """Feed the excitation monitor. Rows are only gathered here; the transforms and the verdict run
+        half a hop after a window went out, so that a window never waits for them."""
+        mon = self.excitation
+        assert mon is not None
+        for fe in out.flight_events:
+            if isinstance(fe, FlightStarted):
+                mon.flight_started(fe.flight, fe.t_fc_s)
+        mon.events(events)
+        ft = self.live.flights
+        mon.rows(out.t_fc_s, out.inputs, out.outputs_raw, armed=ft.armed, in_air=ft.in_air, work=False)
+        rows, hop = self.live.rows, self.live.windows.hop
+        if out.windows:
+            self._excite_window_row = rows
+        # half a hop after the last window; in a fast replay (a window in every batch) every two hops
+        if (rows - self._excite_window_row >= max(1, hop // 2) and rows - self._excite_step_row >= hop) \
+                or rows - self._excite_step_row >= 2 * hop:
+            self._excite_step_row = rows
+            rep = mon.step()
+            if rep is not None:
+                self._publish_excitation(rep, False)
+        for fe in out.flight_events:
+            if isinstance(fe, FlightEnded):
+                last = mon.flight_ended()
+                if last is not None:
+                    self._publish_excitation(last, True)
+
+    def _publish_excitation(self, rep: ExcitationReport, final: bool) -> None:
+        if self.zenoh is not None:
+            self.zenoh.publish_excitation(functools.partial(_excitation_doc, self.vehicle, rep, final))
+        if self.rerun is not None and self._rerun_calls is not None:
+            self._rerun_calls.submit(self.rerun.log_excitation, rep)
+        self._on_excitation(rep, final)
+
+    def _on_excitation(self, rep: ExcitationReport, final: bool) -> None:
+        """A verdict, on the loop: the status, a line per axis that has just become enough and one with
+        the whole verdict at the end of the flight."""
+        before = self.excitation_last.enough_at_s if self.excitation_last is not None and \
+            self.excitation_last.flight == rep.flight else {}
+        self.excitation_last = rep
+        for axis, t in rep.enough_at_s.items():
+            if axis not in before:
+                self.log(f"flight {rep.flight}: {rep.axes[axis].line()} at {t:.0f} s")
+        if final:
+            self.log(rep.line())
+        if self.on_excitation is not None:
+            self.on_excitation(rep)
 
     def _on_window(self, w: Window) -> None:
         if self.zenoh is not None:
@@ -589,6 +648,9 @@ class Service:
                 self.zenoh.publish_freq(flight, res.freq)
             if res.trends is not None:
                 self.zenoh.publish_trends(res.trends)
+            if res.report_path is not None:
+                self.zenoh.publish_report(flight, {"vehicle": self.vehicle, "flight": flight, "path": res.report_path,
+                                                   "summary": res.report_summary})
         if res.freq is not None:
             ja = res.freq.get("J_avg")
             self.log(f"flight {flight}: frequency check {res.freq_path} J_avg "
@@ -599,6 +661,10 @@ class Service:
             self._warn(res.trends_error)
         if gap is not None:
             self.log(f"flight {flight}: gap report {res.gap_path} verdict {gap.get('verdict')}")
+        if res.report_path is not None:
+            self.log(f"flight {flight}: report {res.report_path}: {res.report_summary}")
+        if res.report_error:
+            self._warn(res.report_error)
         if res.gap_error:
             self._warn(res.gap_error)
 
@@ -633,12 +699,21 @@ class Service:
             "identification": {"state": self.ident.state, "flight": self.ident.flight,
                                "queued": self.ident.queued, "done": self.ident.done, "failed": self.ident.failed,
                                "last_error": self.ident.last_error, "last_seconds": self.ident.last_seconds},
+            "excitation": self._excitation_status(),
             "windows": {"published": self.window_seq_published,
                         "dropped": z.windows_dropped if z is not None else 0,
                         "latency_ms": self._latency_ms()},
             "signing": ({**self.signing.status(), "dropped": int(getattr(stats, "unsigned_dropped", 0) or 0)}
                         if self.signing is not None else {"enabled": False}),
         }
+
+    def _excitation_status(self) -> dict[str, Any] | None:
+        """The latest verdict in brief: its status line and whether each axis is enough."""
+        rep = self.excitation_last
+        if rep is None:
+            return None
+        return {"flight": rep.flight, "t_s": round(rep.t_s, 1), "line": rep.line(),
+                "enough": {a: v.enough for a, v in rep.axes.items()}}
 
     def _latency_ms(self, last: int = 200) -> dict[str, float | None]:
         """Packet arrival -> window handed to zenoh, over the last ``last`` windows (ms)."""
@@ -718,6 +793,11 @@ class Service:
                 await asyncio.wait_for(link.write(out), 0.5)
         except (LinkError, OSError, TimeoutError) as exc:
             self._warn(f"{getattr(link, 'url', 'link')}: last messages not sent ({exc})")
+
+
+def _excitation_doc(vehicle: str, rep: ExcitationReport, final: bool) -> dict[str, Any]:
+    """The ``heli/{vehicle}/excitation`` payload (built on the zenoh publisher thread)."""
+    return {"vehicle": vehicle, **rep.to_json(), "final": final}
 
 
 def _worker_init() -> None:

@@ -3,13 +3,15 @@
 :func:`run_job` is the picklable entry point the service submits to a
 ``ProcessPoolExecutor(max_workers=1, mp_context=spawn)``: it reads and prepares the flight's .tlog
 file(s) and identifies the hover model exactly as ``groundstation identify --config`` does
-(:mod:`groundstation.pipeline`, with the service's configuration), validates it, writes
+(:func:`groundstation.analysis.analyse`, with the service's configuration: the same model file,
+held-out verdict included), validates it, writes
 ``model-flightNN.json`` next to the recording, checks the model in the frequency domain
 (``freq-flightNN.json``: Tischler J per input-output pair, published on ``heli/{vehicle}/flight/{n}/freq``),
-diagnoses the gap (``gap-flightNN.json``), draws a model-vs-measured PNG, and returns a :class:`JobResult` for the service
+diagnoses the gap (``gap-flightNN.json``), draws a model-vs-measured PNG and the flight's self-contained HTML page
+(``report-flightNN.html``, :mod:`groundstation.report`), and returns a :class:`JobResult` for the service
 to publish. Errors come back as ``JobResult.error`` (one line) so a bad flight never stops the service.
 
-The numerical work is the other packages'; this module only chains them and writes files.
+The chain is :mod:`groundstation.analysis`'s; this module only writes its files and returns them.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.analysis import AnalysisError
 from groundstation.config import ServiceConfig
 from groundstation.jsonio import dumps
 
@@ -79,6 +82,9 @@ class JobResult:
     freq_pairs: Any = None                          # Bode arrays per scored pair (data, model, coherence), for Rerun
     trends: dict[str, Any] | None = None            # heli-trends/1 over the vehicle's flights ([service] campaign_db)
     trends_error: str | None = None                 # the campaign table failed (the model is still good)
+    report_path: str | None = None                  # report-flightNN.html: the flight's self-contained page
+    report_summary: str | None = None               # what the page says, one line
+    report_error: str | None = None                 # the page failed (the model is still good)
     identify_s: float | None = None
     seconds: float = 0.0
 
@@ -165,37 +171,48 @@ def _cross_flight(job: IdentifyJob, model: Any, prepared: Any) -> dict[str, Any]
 def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
     import dataclasses
 
-    from groundstation.pipeline import identify_prepared, prepare_logs, with_aircraft_file
-    from groundstation.sysid.validate import validate
+    from groundstation.analysis import analyse
+    from groundstation.pipeline import with_aircraft_file
 
     cfg, aircraft = with_aircraft_file(job.config)
     job = dataclasses.replace(job, config=cfg)
     out_dir = Path(job.out_dir)
-    prepared = prepare_logs(job.tlogs, cfg)
-    if not prepared.segments:
-        notes = "; ".join(prepared.notes) or "no in-air data"
-        return JobResult(flight=job.flight, tlogs=job.tlogs, error=f"flight {job.flight}: nothing to identify ({notes})",
+    steps = ("identify", "heldout", "validate", "freq") + (("diagnose",) if cfg.identification.diagnose else ())
+    validated_s: list[float] = []
+
+    def on(ev: Any) -> None:
+        if ev.step == "validate" and ev.state == "done":
+            validated_s.append(time.perf_counter() - t0)
+
+    try:
+        res = analyse(list(job.tlogs), aircraft, cfg, steps=steps, progress=on, keep_going=True)
+    except AnalysisError as exc:
+        if not str(exc).startswith("nothing to identify"):
+            raise
+        return JobResult(flight=job.flight, tlogs=job.tlogs, error=f"flight {job.flight}: {exc}",
                          seconds=time.perf_counter() - t0)
-    model = identify_prepared(prepared, cfg, aircraft=aircraft)
+    model, prepared, val = res.model, res.prepared, dict(res.validation or {})
     cross = _cross_flight(job, model, prepared)
     if cross:
         model.fit["cross_flight"] = cross
     doc = model.to_json()
-    val = validate(model, prepared, return_series=True)
-    series = val.pop("series")
     model_path = out_dir / f"model-flight{job.flight:02d}.json"
     model_path.write_text(dumps(doc, indent=1))
-    overlay = _overlay(series, prepared.output_trim)
+    overlay = _overlay(res.validation_series, prepared.output_trim)
     png: tuple[str, ...] = ()
     if cfg.identification.plots and len(overlay["t_fc_s"]):
         png_path = out_dir / f"model-flight{job.flight:02d}.png"
         _plot(overlay, png_path, f"{job.vehicle} flight {job.flight}: model vs measured")
         png = (str(png_path),)
-    identify_s = time.perf_counter() - t0
-    freq, freq_path, freq_error, bode = _freq_check(job, model)
-    gap, gap_path, gap_error, pictures = (_diagnose(job, model, prepared) if cfg.identification.diagnose
+    identify_s = validated_s[0] if validated_s else time.perf_counter() - t0
+    freq, freq_path, freq_error, bode = _freq_files(job, res)
+    gap, gap_path, gap_error, pictures = (_gap_files(job, res, model_path) if cfg.identification.diagnose
                                           else (None, None, None, None))
     trends, trends_error = _trends(job, model, gap, prepared, time.perf_counter() - t0)
+    report_path, report_summary, report_error = (
+        _report(job, prepared, model, val, res.validation_series, res.freq, gap, pictures,
+                {"freq": freq_error, "gap": gap_error, "history": trends_error})
+        if cfg.identification.plots else (None, None, None))
     return JobResult(
         flight=job.flight, tlogs=job.tlogs, model=doc, model_path=str(model_path),
         match_degree={c: float(v["match"]) for c, v in val["channels"].items()}, validation=val, png=png,
@@ -203,6 +220,7 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
         overlay=Overlay(*(np.asarray(overlay[k], dtype=float) for k in ("t_fc_s", "model", "measured"))),
         gap=gap, gap_path=gap_path, gap_error=gap_error, gap_pictures=pictures, identify_s=identify_s,
         freq=freq, freq_path=freq_path, freq_error=freq_error, freq_pairs=bode, trends=trends, trends_error=trends_error,
+        report_path=report_path, report_summary=report_summary, report_error=report_error,
         seconds=time.perf_counter() - t0)
 
 
@@ -221,42 +239,58 @@ def _trends(job: IdentifyJob, model: Any, gap: Any, prepared: Any, seconds: floa
         return None, f"flight {job.flight}: trends: {type(exc).__name__}: {exc}".splitlines()[0]
 
 
-def _freq_check(job: IdentifyJob, model: Any) -> tuple[Any, Any, Any, Any]:
-    """(J table document, its file, None, Bode arrays per scored pair) of the model's frequency-domain
-    check on the flight at the log's native rate, or (None, None, one-line error, None): the model
-    stands on its own."""
-    from groundstation.commands.freq_support import prepare_native
-    from groundstation.freq.model_response import delays_from_augmentations
-    from groundstation.freq.spectra import estimate_responses
-    from groundstation.freq.verify import verify
-    from groundstation.pipeline import load_logs
-
+def _report(job: IdentifyJob, prepared: Any, model: Any, val: dict[str, Any], series: Any, verification: Any,
+            gap: Any, pictures: Any, errors: dict[str, str | None]) -> tuple[Any, Any, Any]:
+    """(``report-flightNN.html`` path, one-line summary, None) of the flight's page, drawn from what this
+    job computed, or (None, None, one-line error): the model stands on its own."""
     try:
-        prepared = prepare_native(load_logs(job.tlogs), job.config.prepare)
-        v = verify(model.theta, estimate_responses(prepared, job.config.freq),
-                   delays_from_augmentations(model.augmentations))
+        from groundstation.report import one_line_summary, render_report, write_html
+        from groundstation.report.collect import assemble, load_history
+
+        cfg = job.config
+        history: tuple[dict[str, Any], ...] = ()
+        label = ""
+        if cfg.service.campaign_db and (Path(job.out_dir) / cfg.service.campaign_db).exists():
+            history, label = load_history(Path(job.out_dir) / cfg.service.campaign_db, job.vehicle)
+        data = assemble(job.tlogs, cfg, prepared=prepared, model=model, validation={**val, "series": series},
+                        freq=verification, gap=gap, pictures=pictures, history=history, history_label=label,
+                        errors=errors, title=f"{job.vehicle} flight {job.flight}", aircraft=job.vehicle)
+        path = write_html(Path(job.out_dir) / f"report-flight{job.flight:02d}.html", render_report(data))
+        return str(path), one_line_summary(data), None
+    except Exception as exc:
+        return None, None, f"flight {job.flight}: report: {type(exc).__name__}: {exc}".splitlines()[0]
+
+
+def _freq_files(job: IdentifyJob, res: Any) -> tuple[Any, Any, Any, Any]:
+    """(J table document, its file, None, Bode arrays per scored pair) of the analysis's frequency-domain
+    check, or (None, None, one-line error, None): the model stands on its own."""
+    if res.freq is None:
+        why = res.errors.get("freq", "no result")
+        return None, None, f"flight {job.flight}: frequency check: {why}", None
+    try:
+        from groundstation.sinks.rerun_sink import freq_pairs
+
+        doc = {**res.freq.to_json(), "vehicle": job.vehicle, "flight": job.flight}
+        path = Path(job.out_dir) / f"freq-flight{job.flight:02d}.json"
+        path.write_text(dumps(doc, indent=1))
+        return doc, str(path), None, freq_pairs(res.freq)
     except Exception as exc:
         return None, None, f"flight {job.flight}: frequency check: {type(exc).__name__}: {exc}".splitlines()[0], None
-    doc = {**v.to_json(), "vehicle": job.vehicle, "flight": job.flight}
-    path = Path(job.out_dir) / f"freq-flight{job.flight:02d}.json"
-    path.write_text(dumps(doc, indent=1))
-    from groundstation.sinks.rerun_sink import freq_pairs
-
-    return doc, str(path), None, freq_pairs(v)
 
 
-def _diagnose(job: IdentifyJob, model: Any, prepared: Any) -> tuple[Any, Any, Any, Any]:
+def _gap_files(job: IdentifyJob, res: Any, model_path: Path) -> tuple[Any, Any, Any, Any]:
     """(gap report, its file, None, pictures for the live plots), or (None, None, one-line error, None):
     the model stands on its own."""
-    from groundstation.gap.diagnose import run_diagnosis
-    from groundstation.gap.pictures import gap_pictures
-
-    cfg = job.config
+    if res.gap is None:
+        return None, None, f"flight {job.flight}: diagnosis: {res.errors.get('diagnose', 'no result')}", None
     try:
-        diag = run_diagnosis(model, prepared, seed=cfg.identification.seed, config=cfg.diagnose)
-        pictures = gap_pictures(diag)
+        from groundstation.gap.pictures import gap_pictures
+
+        report = res.gap.report
+        report["source"]["model"] = str(model_path)
+        pictures = gap_pictures(res.gap.diagnosis)
     except Exception as exc:
         return None, None, f"flight {job.flight}: diagnosis: {type(exc).__name__}: {exc}".splitlines()[0], None
     gap_path = Path(job.out_dir) / f"gap-flight{job.flight:02d}.json"
-    gap_path.write_text(dumps(diag.report, indent=1))
-    return diag.report, str(gap_path), None, pictures
+    gap_path.write_text(dumps(report, indent=1))
+    return report, str(gap_path), None, pictures

@@ -41,8 +41,8 @@ def one_seed(seed: int, effects: tuple[str, ...], keep: Path | None) -> dict[str
     import io
 
     from firmware_interface.readers import load_log
+    from groundstation.analysis import native_vibration
     from groundstation.cli import main as cli_main
-    from groundstation.commands.diagnose import native_vibration
     from hil_replay.dataflash import write_bin
     from hil_replay.sim import write_tlog
 

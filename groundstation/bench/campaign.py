@@ -45,6 +45,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--grow-from", type=float, default=0.01, help="deadband half-width on the first flight")
     parser.add_argument("--grow-to", type=float, default=0.05, help="deadband half-width on the last flight")
     parser.add_argument("--restarts", type=int, default=1, help="identification searches per subsystem")
+    parser.add_argument("--default-flights", type=int, default=4,
+                        help="flights of the default campaign as a user runs it (default settings, --jobs default: "
+                             "every core): wall and CPU per flight (0: skip)")
+    parser.add_argument("--only-default", action="store_true", help="only the default campaign")
     parser.add_argument("--keep", type=Path, default=None,
                         help="keep the logs and the table (bench.sqlite, aircraft 'bench') in this directory")
 
@@ -92,6 +96,28 @@ def _scaling(paths: list[Path], settings: Any) -> tuple[list[dict], list[dict]]:
 
     runner.run(_jobs(paths, settings), workers=1, on_result=on_result)
     return rows, marks
+
+
+def _default_campaign(paths: list[Path]) -> dict[str, float]:
+    """``groundstation campaign`` of ``paths`` with the default configuration and workers: wall and
+    CPU (the whole process tree: this process, the fork server, every worker) per flight, the workers'
+    start included (a user's run pays it)."""
+    from groundstation.campaign import runner
+    from groundstation.campaign.job import Settings
+    from groundstation.config import ServiceConfig
+
+    workers = runner.default_workers()
+    c0, t0, b0 = _tree_cpu_s(), time.perf_counter(), _machine_busy_s()
+    res = runner.run(_jobs(paths, Settings(config=ServiceConfig(), diagnose=True)), workers=workers)
+    wall, cpu, busy = time.perf_counter() - t0, _tree_cpu_s() - c0, _machine_busy_s() - b0
+    n = len(paths)
+    errors = [r.get("error") for rows in res for r in rows if r.get("error")]
+    others = max(0.0, busy - cpu) / max(wall, 1e-9)
+    print(f"  {workers} worker process(es) (every core): {wall:.1f} s wall, {cpu:.1f} s CPU for {n} flights = "
+          f"{wall / n:.1f} s wall and {cpu / n:.1f} s CPU per flight; load average {os.getloadavg()[0]:.1f} on "
+          f"{os.cpu_count()} cores, other work {others:.2f} cores on average (wall is a measurement only when that "
+          f"is near 0){'; errors: ' + '; '.join(map(str, errors)) if errors else ''}", flush=True)
+    return {"workers": workers, "wall_s": wall, "cpu_s": cpu, "flights": n, "others_cores": others}
 
 
 def _speedup(paths: list[Path], settings: Any) -> dict[str, dict[str, float]]:
@@ -160,19 +186,26 @@ def _makespan(task_cpu_s: list[float], workers: int) -> float:
     return max(free)
 
 
+def _psutil():
+    """psutil, which only this benchmark uses (an optional dependency: ``pip install 'groundstation[bench]'``)."""
+    try:
+        import psutil
+    except ImportError:
+        raise RuntimeError("groundstation bench campaign needs psutil for its CPU accounting: "
+                           "pip install 'groundstation[bench]' (or pip install psutil)") from None
+    return psutil
+
+
 def _machine_busy_s() -> float:
     """CPU seconds every core of the machine has spent busy since boot (all processes, and time
     the hypervisor gave to other machines)."""
-    import psutil
-
-    t = psutil.cpu_times()
+    t = _psutil().cpu_times()
     return float(sum(t) - t.idle - getattr(t, "iowait", 0.0) - getattr(t, "guest", 0.0) - getattr(t, "guest_nice", 0.0))
 
 
 def _tree_cpu_s() -> float:
     """CPU seconds of this process and every descendant, alive or reaped (user + system)."""
-    import psutil
-
+    psutil = _psutil()
     me = psutil.Process()
     total = 0.0
     for p in [me, *me.children(recursive=True)]:
@@ -200,6 +233,13 @@ def run(args: argparse.Namespace) -> int:
         paths, widths = _simulate(d, args)
         print(f"simulated {len(paths)} flights of {args.duration_s:g} s in {time.perf_counter() - t0:.0f} s; deadband on "
               f"{args.input} widening {args.grow_from:g} -> {args.grow_to:g} (normalised units)", flush=True)
+        if args.default_flights > 0:
+            k = min(args.default_flights, len(paths))
+            print(f"0. the default campaign of {k} flights (default settings: identify with every check, diagnose, "
+                  f"cross-flight fit; --jobs default):", flush=True)
+            _default_campaign(paths[:k])
+            if args.only_default:
+                return 0
         print("1. campaign in one process (identify + diagnose + cross-flight fit per flight):", flush=True)
         rows, marks = _scaling(paths[: args.flights], Settings(config=cfg, diagnose=True))
         _print_scaling(marks)

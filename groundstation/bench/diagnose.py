@@ -14,6 +14,12 @@ hover) on half the flights each. ``--kinds`` runs only some kinds of case (the o
 and skipped, so each case is the same flight as in the full run). Hides the label; reads the .tlog back through the ordinary reader,
 prepares it and diagnoses it (identifying the model first unless ``--model-source truth``).
 
+``--held-back N`` adds N flights of a set held back from every tuning of the diagnosis
+(``hil_replay.sim.effects.HELD_BACK``: physics a catalogue entry only approximates, whose right
+answer is that entry, and parameters that drift through the flight, whose right answer is
+``unexplained``; effect-free flights and catalogue effects at other noise levels), with their own
+random draws and seeds (``1000 S + 700 + j``), reported separately.
+
 Prints the confusion matrix, top-1 accuracy, false alarms on effect-free flights, invented second
 effects (a named effect that is not in the flight, beside a right one), the out-of-catalogue
 outcome (``unexplained`` or the right sensor finding; catalogue names with a shrink above 10 %),
@@ -40,7 +46,18 @@ CLASSES = ("none", "input_delay", "rate_limit", "deadband", "ground_effect", "wi
            "gyro_bias", "rotor_vibration", "velocity_latency")
 
 #: kinds of case: one catalogue effect or none, one effect outside the catalogue, two catalogue effects
-KINDS = ("single", "outside", "combined")
+KINDS = ("single", "outside", "combined", "held_back")
+
+#: the held-back set, in turn: what is injected ("catalogue": a random catalogue effect at another
+#: noise level) and the right verdict (None: the effect itself; "unexplained": a parameter drifting
+#: through the flight, no constant catalogue effect is it)
+HELD_BACK_CYCLE: tuple[tuple[str, str | None], ...] = (
+    ("none", "none"), ("servo_lag", "input_delay"), ("rotor_droop", "unexplained"),
+    ("asym_deadband", "deadband"), ("growing_delay", "unexplained"), ("backlash", "deadband"),
+    ("drifting_bias", "unexplained"), ("turbulence", "wind_gust"), ("cg_shift", "unexplained"),
+    ("wandering_vibration", "rotor_vibration"), ("catalogue", None), ("none", "none"))
+#: noise levels (x the simulator's sensor noise) of the held-back flights
+HELD_BACK_NOISE = (0.5, 1.0, 1.6, 2.5)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -49,6 +66,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out-of-catalogue", type=int, default=0, dest="out_of_catalogue",
                         help="extra flights with an effect outside the catalogue")
     parser.add_argument("--combined", type=int, default=0, help="extra cases with two effects at once")
+    parser.add_argument("--held-back", type=int, default=0, dest="held_back",
+                        help="extra flights from the set held back from tuning (other physics, drifting "
+                             "parameters, other noise levels), reported separately")
     parser.add_argument("--workers", type=int, default=2, help="flights diagnosed at once (processes)")
     parser.add_argument("--jobs", type=int, default=1,
                         help="worker processes inside each diagnosis (its independent scans); with --workers 1 "
@@ -75,7 +95,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "nonlinear with --plain)")
     parser.add_argument("--excitation", type=float, default=None,
                         help="scale of the card's sweep and doublet amplitudes (e.g. 0.5: a cautious pilot)")
-    parser.add_argument("--kinds", default="single,outside,combined",
+    parser.add_argument("--kinds", default="single,outside,combined,held_back",
                         help="comma-separated kinds of case to run (single, outside, combined): the others are "
                              "drawn but not run, so each case is the same flight as in a full run of these options")
     parser.add_argument("--json", type=Path, default=None,
@@ -217,6 +237,8 @@ def _sim_kwargs(job: dict[str, Any]) -> dict[str, Any]:
         kw["sweeps"] = False
     if fl.get("kinematics", "nonlinear") == "linear":
         kw["linear_kinematics"] = True
+    if fl.get("noise_scale", 1.0) != 1.0:
+        kw["noise_scale"] = fl["noise_scale"]
     return kw
 
 
@@ -255,9 +277,9 @@ def _child_pids(pid: str) -> list[str]:
 def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
     """Simulate, read back, prepare, diagnose one case (runs in a worker process; ``pmap``: a map over
     worker processes for the diagnosis's independent pieces, None: serial)."""
-    from firmware_interface.readers import load_log
-    from groundstation.dsp.prepare import prepare
-    from groundstation.gap.diagnose import run_diagnosis
+    from groundstation.analysis import analyse
+    from groundstation.config import ServiceConfig
+    from groundstation.parallel import serial_map
     from groundstation.sysid.model import HoverModel
     from hil_replay.sim import write_tlog
     from hil_replay.sim.effects import random_effect
@@ -265,7 +287,7 @@ def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
     rng = np.random.default_rng(job["seed"])
     effects = [random_effect(n, rng) for n in job["effects"]]
     out: dict[str, Any] = {"case": job["case"], "kind": job["kind"], "truth_effects": job["effects"],
-                           "flight": job["flight"]}
+                           "flight": job["flight"], "expect": job.get("expect")}
     with tempfile.TemporaryDirectory() as td:
         path = Path(td) / f"case{job['case']}.tlog"
         kw = _sim_kwargs(job)
@@ -273,12 +295,13 @@ def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
         out["truth"] = truth.get("effects", [])
         t0 = time.perf_counter()
         c0 = tree_cpu_s()
-        prepared = prepare([load_log(path)])
         model = None
         if job["model_source"] == "truth":
             model = HoverModel(params=dict(truth["parameters"]))
-        try:
-            diag = run_diagnosis(model, prepared, seed=job["seed"], **({"pmap": pmap} if pmap else {}))
+        cfg = ServiceConfig().replace("identification", seed=job["seed"])
+        try:   # the product's analysis, the diagnosis step only (the model given, or identified by the diagnosis)
+            res = analyse([path], config=cfg, steps=("diagnose",), model=model, pmap=pmap or serial_map)
+            prepared, diag = res.prepared, res.gap.diagnosis
         except ValueError as exc:  # a flight the diagnosis refuses (too little data): counted, not hidden
             out.update(seconds=time.perf_counter() - t0, cpu_s=tree_cpu_s() - c0, flight_s=0.0, verdict="refused", effects=[], sensor_errors=[],
                        candidates=[], error=str(exc))
@@ -301,12 +324,20 @@ def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
         out["structure_tests"] = [{k: t.get(k) for k in ("kind", "input", "coefficient", "score_pct", "p_value",
                                                      "significant", "effect_to_noise")} for t in rep.get("structure_tests", [])]
         out["gap_to_noise_ratio"] = rep["gap"].get("gap_to_noise_ratio")
+        sh = rep.get("shares") or {}
+        out["explained_pct"] = sh.get("explained_pct")
+        out["partial_explained_pct"] = sh.get("partial_explained_pct")
+        out["headline"] = sh.get("headline")
+        out["partial_findings"] = [{k: e.get(k) for k in ("effect", "input", "output", "share_pct", "consistency")}
+                                   for e in rep.get("partial_findings", [])]
+        out["consistency"] = [{k: e.get("consistency", {}).get(k) for k in ("status", "parameter", "first", "second")}
+                              for e in rep["effects"]]
         if job.get("fresh") and job["effects"]:
             path2 = Path(td) / "fresh.tlog"
             rng2 = np.random.default_rng(job["seed"])
             eff2 = [random_effect(n, rng2) for n in job["effects"]]  # same draw: same effect and magnitude
             write_tlog(path2, seed=job["seed"] + 100000, flights=1, effects=eff2, **kw)
-            d2 = run_diagnosis(model, prepare([load_log(path2)]), seed=job["seed"])
+            d2 = analyse([path2], config=cfg, steps=("diagnose",), model=model).gap
             allc = d2.report["effects"] + d2.report["candidates"]
             same = [e for e in allc if e["effect"] == job["effects"][0]]
             out["fresh_shrink_pct"] = same[0]["shrink_pct"] if same else None
@@ -334,6 +365,22 @@ def make_jobs(args: argparse.Namespace, classes: list[str]) -> list[dict[str, An
         jobs.append({**base, "case": args.cases + args.out_of_catalogue + j, "kind": "combined",
                      "seed": int(args.seed * 1000 + 500 + j), "effects": pair, "flight": draw_flight(rng, args),
                      "fresh": False})
+    # the held-back set: its own generator, so the cases above are the same flights with or without it
+    hrng = np.random.default_rng((args.seed, 26))
+    n0 = args.cases + args.out_of_catalogue + args.combined
+    for j in range(getattr(args, "held_back", 0)):
+        name, expect = HELD_BACK_CYCLE[j % len(HELD_BACK_CYCLE)]
+        if name == "catalogue":
+            name = str(hrng.choice(real))
+            expect = name
+        fl = draw_flight(hrng, args)
+        if not getattr(args, "plain", False):
+            fl["scatter"] = max(float(args.scatter), 0.35)
+            fl["noise_scale"] = float(hrng.choice(HELD_BACK_NOISE))
+            if args.excitation is None:
+                fl["excitation"] = round(float(hrng.uniform(0.5, 1.4)), 3)
+        jobs.append({**base, "case": n0 + j, "kind": "held_back", "seed": int(args.seed * 1000 + 700 + j),
+                     "effects": [] if name == "none" else [name], "expect": expect, "flight": fl, "fresh": False})
     return jobs
 
 
@@ -419,6 +466,7 @@ def _sensor_right(r: dict[str, Any]) -> bool:
 
 
 def print_summary(results: list[dict], classes: list[str], wall: float) -> None:
+    held = [r for r in results if r["kind"] == "held_back"]
     singles = [r for r in results if r["kind"] == "single"]
     outside = [r for r in results if r["kind"] == "outside"]
     combos = [r for r in results if r["kind"] == "combined"]
@@ -459,6 +507,32 @@ def print_summary(results: list[dict], classes: list[str], wall: float) -> None:
             print(f"diagnosis wall per 150 s of in-air data: median {np.median(per150):.1f} s (max "
                   f"{np.max(per150):.1f} s), {'one flight at a time on ' + str(max(jobs)) + ' worker process(es)' if 'jobs' in results[0] else 'flights diagnosed in parallel'}"
                   f"; wall includes whatever else loads the machine")
+    if held:
+        print_held_back(held)
+
+
+def print_held_back(held: list[dict]) -> None:
+    """The held-back set, on its own: top-1 on the flights with a catalogue answer (or none), the
+    out-of-catalogue (drifting) flights, invented second effects per right report, false alarms."""
+    drift = [r for r in held if r.get("expect") == "unexplained"]
+    rest = [r for r in held if r.get("expect") != "unexplained"]
+    right = [r for r in rest if r["verdict"] == r.get("expect")]
+    nones = [r for r in rest if r.get("expect") == "none"]
+    inv = sum(any(e != r.get("expect") for e in _named(r)) for r in right if r.get("expect") != "none")
+    n_right_eff = sum(r.get("expect") != "none" for r in right)
+    print("held-back set (never used for tuning):")
+    for r in held:
+        print(f"  case {r['case']:3d} {r['truth_effects'] or ['none']} noise x{r['flight'].get('noise_scale', 1.0):g}"
+              f" expect {r.get('expect')} -> {r['verdict']} {_named(r)}"
+              f"{' explained ' + str(r['explained_pct']) + '%' if r.get('explained_pct') is not None else ''}")
+    if rest:
+        print(f"held-back top-1 accuracy: {len(right)}/{len(rest)} = {100.0 * len(right) / len(rest):.1f}%")
+    if nones:
+        print(f"held-back false alarms on effect-free flights: {sum(r['verdict'] != 'none' for r in nones)}/{len(nones)}")
+    print(f"held-back reports with an invented second effect: {inv}/{n_right_eff} right reports")
+    if drift:
+        ok = sum(r["verdict"] == "unexplained" or _sensor_right(r) for r in drift)
+        print(f"held-back drifting / out-of-catalogue flights: unexplained {ok}/{len(drift)}")
 
 
 def _print_singles(singles: list[dict], classes: list[str]) -> None:

@@ -67,8 +67,8 @@ def _linear(seed: int, duration_s: float, delay_s: float = 0.0) -> tuple[Any, di
 
 def _sim(seed: int, duration_s: float, tmp: Path, delay_s: float = 0.0) -> tuple[Any, dict[str, float]]:
     from firmware_interface.readers import load_log
-    from groundstation.commands.freq_support import prepare_native
     from groundstation.dsp.prepare import PrepConfig
+    from groundstation.pipeline import prepare_native
     from hil_replay.sim import write_tlog
 
     path = tmp / f"sim{seed}_{int(delay_s * 1000)}.tlog"

@@ -40,6 +40,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--algorithms", default="ga,abc,cabc,de")
     parser.add_argument("--out-dir", type=Path, default=Path("bench_identify"), help="PNG and JSON output")
     parser.add_argument("--skip-compare", action="store_true", help="only speed and accuracy")
+    parser.add_argument("--profile", action="store_true",
+                        help="only the CPU per stage of `groundstation identify FLIGHT --out m.json` (the default "
+                             "command, one process) on the simulated training flight, or on --log")
+    parser.add_argument("--log", type=Path, default=None, help="--profile: this flight log instead of a simulated one")
+    parser.add_argument("--aircraft", type=Path, default=None, help="--profile: aircraft file for --log")
 
 
 def _flights(args, tmp: Path) -> tuple[Any, Any, dict[str, float], str]:
@@ -134,6 +139,8 @@ def run(args: argparse.Namespace) -> int:
 
     con = Console()
     args.out_dir.mkdir(parents=True, exist_ok=True)
+    if args.profile:
+        return _run_profile(args, con)
     with tempfile.TemporaryDirectory() as td:
         train, val, truth, desc = _flights(args, Path(td))
     con.print(f"[bold]flights[/]: {desc}; training {train.duration_s:.0f} s, validation {val.duration_s:.0f} s")
@@ -256,3 +263,149 @@ def _compare(args, train, con, identify, IdentifyConfig, plot_convergence) -> di
     con.print(f"wrote {png}")
     return {a: {"cost": res[a]["cost"], "wall": res[a]["wall"], "nfev": res[a]["nfev"],
                 "match_mean": {ch: float(np.mean([mm[ch] for mm in res[a]["match"]])) for ch in chans}} for a in algs} | {"wins_pct": wins}
+
+
+# --- per-stage CPU of the default ``identify`` command (``--profile``) ------------------------------
+
+#: stages of ``groundstation identify`` and the functions whose CPU they are (module, function[, the
+#: stages under which it counts]). Time goes to the innermost stage running, so a stage's figure
+#: excludes the stages it calls (the held-out folds of the selection are "held-out folds", not
+#: "selection"); a function with a list of stages counts only under those (the refinements of the
+#: search's starts stay "screening refinements", those of the selection's candidates "selection").
+STAGES: tuple[tuple[str, ...], ...] = (
+    ("read + prepare", "groundstation.pipeline", "prepare_logs"),
+    ("search", "groundstation.sysid.optimizers", "minimize_cabc"),
+    ("search", "groundstation.sysid.optimizers", "minimize_abc"),
+    ("search", "groundstation.sysid.optimizers", "minimize_ga"),
+    ("search", "groundstation.sysid.optimizers", "minimize_de"),
+    ("screening refinements", "groundstation.sysid.identify", "_screen_refine"),
+    ("identify: windows, costs, in-sample match", "groundstation.sysid.identify", "identify"),
+    ("refinements", "groundstation.sysid.refine", "refine", "identify: windows, costs, in-sample match"),
+    ("selection", "groundstation.sysid.select", "select_config"),
+    ("held-out folds", "groundstation.sysid.heldout", "crossvalidate"),
+    ("closed-loop evidence", "groundstation.sysid.heldout", "feedback_evidence"),
+    ("validation", "groundstation.sysid.validate", "validate"),
+    ("plots", "groundstation.sysid.plots", "plot_fit"),
+    ("plots", "groundstation.sysid.plots", "plot_convergence"),
+    ("frequency check", "groundstation.freq.spectra", "estimate_responses"),
+    ("frequency check", "groundstation.freq.verify", "verify"),
+)
+
+
+class StageTimer:
+    """CPU seconds (``time.process_time``: this process, every thread) per stage of :data:`STAGES`.
+
+    While active, the stage functions are wrapped wherever the ``groundstation`` modules hold them
+    (module attributes and module-level dicts such as the optimiser registry); CPU between two
+    stage boundaries goes to the innermost stage running, the rest to "other" (imports, argument
+    parsing, writing the model). Only the calling process is measured: run with one job.
+    """
+
+    def __init__(self) -> None:
+        self.cpu_s: dict[str, float] = {}
+        self.calls: dict[str, int] = {}
+        self._stack: list[str] = []
+        self._t = 0.0
+        self._undo: list[tuple[Any, Any, Any]] = []
+
+    def _switch(self) -> None:
+        t = time.process_time()
+        top = self._stack[-1] if self._stack else "other"
+        self.cpu_s[top] = self.cpu_s.get(top, 0.0) + t - self._t
+        self._t = t
+
+    def _wrap(self, stage: str, fn: Any, under: tuple[str, ...] = ()) -> Any:
+        import functools
+
+        @functools.wraps(fn)
+        def wrapped(*a: Any, **kw: Any) -> Any:
+            if under and (not self._stack or self._stack[-1] not in under):
+                return fn(*a, **kw)
+            self._switch()
+            self._stack.append(stage)
+            self.calls[stage] = self.calls.get(stage, 0) + 1
+            try:
+                return fn(*a, **kw)
+            finally:
+                self._switch()
+                self._stack.pop()
+        return wrapped
+
+    def __enter__(self) -> StageTimer:
+        import importlib
+        import sys
+
+        for stage, mod, name, *under in STAGES:
+            try:
+                fn = getattr(importlib.import_module(mod), name)
+            except (ImportError, AttributeError):
+                continue   # moved or not installed: that stage reads 0
+            w = self._wrap(stage, fn, tuple(under))
+            for m in [m for k, m in list(sys.modules.items()) if k.startswith("groundstation") and m is not None]:
+                for attr, val in list(vars(m).items()):
+                    if val is fn:
+                        self._undo.append((m, attr, fn))
+                        setattr(m, attr, w)
+                    elif isinstance(val, dict):
+                        for key, v in list(val.items()):
+                            if v is fn:
+                                self._undo.append((val, key, fn))
+                                val[key] = w
+        self._t = time.process_time()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._switch()
+        for obj, key, fn in reversed(self._undo):
+            if isinstance(obj, dict):
+                obj[key] = fn
+            else:
+                setattr(obj, key, fn)
+        self._undo.clear()
+
+    def table(self) -> list[tuple[str, float, int]]:
+        order = list(dict.fromkeys([s[0] for s in STAGES] + ["other"]))
+        return [(s, self.cpu_s.get(s, 0.0), self.calls.get(s, 0)) for s in order if s in self.cpu_s]
+
+
+def profile_identify(log: Path, out: Path, *, aircraft: Path | None = None, extra: tuple[str, ...] = ()) -> tuple[StageTimer, float, float]:
+    """Run ``groundstation identify LOG --out OUT [--aircraft A] --jobs 1`` in this process under a
+    :class:`StageTimer`; returns it, the wall and the CPU seconds of the command."""
+    from groundstation.cli import build_parser
+
+    argv = ["identify", str(log), "--out", str(out), "--quiet", "--jobs", "1", *extra]
+    if aircraft is not None:
+        argv += ["--aircraft", str(aircraft)]
+    args = build_parser().parse_args(argv)
+    t0, c0 = time.perf_counter(), time.process_time()
+    with StageTimer() as st:
+        args._module.run(args)
+    return st, time.perf_counter() - t0, time.process_time() - c0
+
+
+def _run_profile(args: argparse.Namespace, con: Any) -> int:
+    """``--profile``: the stage table of one identify command."""
+    from rich.table import Table
+
+    with tempfile.TemporaryDirectory() as td:
+        log = args.log
+        if log is None:
+            from hil_replay.sim import write_tlog
+
+            log = Path(td) / "flight.tlog"
+            write_tlog(log, seed=args.sim_seed, flights=1, effects=(), aircraft=None, flight_duration_s=args.duration_s)
+        st, wall, cpu = profile_identify(log, args.out_dir / "profile_model.json", aircraft=args.aircraft)
+    load = os.getloadavg()
+    t = Table(title=f"groundstation identify {log.name if args.log else f'(simulated {args.duration_s:g} s flight)'}"
+                    f" --jobs 1: CPU per stage")
+    for c in ("stage", "CPU s", "share", "calls"):
+        t.add_column(c, justify="right" if c != "stage" else "left")
+    for name, s, n in st.table():
+        t.add_row(name, f"{s:.2f}", f"{100 * s / max(cpu, 1e-9):.0f} %", str(n) if n else "")
+    con.print(t)
+    con.print(f"total {cpu:.2f} s CPU (this process), {wall:.2f} s wall; load average {load[0]:.2f} {load[1]:.2f} "
+              f"{load[2]:.2f} on {os.cpu_count()} cores (wall is only a measurement on an otherwise idle machine)")
+    (args.out_dir / "profile.json").write_text(json.dumps(
+        {"log": str(args.log or f"simulated {args.duration_s} s seed {args.sim_seed}"), "cpu_s": cpu, "wall_s": wall,
+         "load_average": load, "stages_cpu_s": {n: s for n, s, _ in st.table()}}, indent=1))
+    return 0

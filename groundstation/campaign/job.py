@@ -1,8 +1,8 @@
 """One log of a campaign analysed into table rows (one row per flight in the log).
 
 :func:`analyse` is the picklable unit of work (a process pool or a Dask worker runs it): it reads
-the log, prepares it, and for each flight (armed interval) in it identifies the hover model,
-diagnoses the gap (held-out, k-fold), predicts a reference flight with the model (the campaign's
+the log, prepares it, and for each flight (armed interval) in it identifies the hover model and
+diagnoses the gap (held-out, k-fold) with :func:`groundstation.analysis.analyse_prepared`, predicts a reference flight with the model (the campaign's
 previous log: the cross-flight fit, :func:`groundstation.sysid.heldout.predict`) and returns plain JSON-able rows. A failure becomes a row with
 ``error`` set (one line) and never stops the campaign. Memory is one log's at a time per worker.
 """
@@ -60,6 +60,9 @@ class FlightJob:
     aircraft: str
     settings: Settings
     reference_log: str | None = None
+    #: where the flight's HTML page goes (``<log name>.html``, or ``<log name>-flightN.html`` for the
+    #: second and later flights of a log), None for no page
+    report_dir: str | None = None
 
 
 def file_sha256(path: str | Path) -> str:
@@ -149,17 +152,17 @@ def model_row(model: Any, report: dict | None, prepared: Any) -> dict[str, Any]:
 
 
 def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[str, Any]:
-    from groundstation.pipeline import identify_prepared
+    from groundstation.analysis import analyse_prepared
     from groundstation.sysid.heldout import predict
 
     t0 = time.perf_counter()
     cfg = job.settings.service_config()
-    model = identify_prepared(prepared, cfg, aircraft=job.settings.aircraft)
-    report = None
-    if job.settings.diagnose:
-        from groundstation.gap.diagnose import diagnose
-
-        report = diagnose(model, prepared, seed=cfg.identification.seed, config=cfg.diagnose)
+    res = analyse_prepared(prepared, cfg, job.settings.aircraft, log_paths=[job.log],
+                           steps=("identify", "diagnose") if job.settings.diagnose else ("identify",))
+    model = res.model
+    model.fit.pop("seconds", None)   # the row has its own; a stored row is the same whichever backend ran it
+    diag = res.gap.diagnosis if res.gap is not None else None
+    report = res.gap.report if res.gap is not None else None
     row = {"flight_index": flight, **model_row(model, report, prepared), "cross_log": None, "cross_match_pct": None}
     if ref is not None:
         try:
@@ -167,8 +170,43 @@ def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[st
             row["cross_log"] = Path(job.reference_log or "").name
         except ValueError as exc:  # the reference holds no usable window: reported, not fatal
             row["cross_log"] = f"{Path(job.reference_log or '').name}: {exc}"
+    if job.report_dir:
+        row["report_page"], row["report_error"] = flight_page(job, prepared, flight, model, diag)
     row["seconds"] = round(time.perf_counter() - t0, 3)
     return row
+
+
+def page_name(log_name: str, flight: int) -> str:
+    """The file name of a campaign flight's page in the report directory."""
+    return f"{log_name}.html" if flight == 0 else f"{log_name}-flight{flight}.html"
+
+
+def flight_page(job: FlightJob, prepared: Any, flight: int, model: Any, diag: Any) -> tuple[str | None, str | None]:
+    """(path, None) of the flight's HTML page (:mod:`groundstation.report`) drawn from this job's model and
+    diagnosis plus the frequency check, or (None, one-line error): the row stands without it."""
+    try:
+        from groundstation.freq.spectra import estimate_responses
+        from groundstation.freq.verify import verify
+        from groundstation.gap.pictures import gap_pictures
+        from groundstation.pipeline import load_logs, prepare_native, with_aircraft
+        from groundstation.report import render_report, write_html
+        from groundstation.report.collect import assemble
+
+        cfg = with_aircraft(job.settings.service_config(), job.settings.aircraft)
+        errors: dict[str, str | None] = {} if diag is not None else {"gap": "not diagnosed (--no-diagnose)"}
+        freq = None
+        try:
+            freq = verify(model.theta, estimate_responses(prepare_native(load_logs([job.log]), cfg.prepare), cfg.freq))
+        except ValueError as exc:
+            errors["freq"] = str(exc).splitlines()[0]
+        data = assemble([job.log], cfg, prepared=prepared, model=model, freq=freq,
+                        gap=None if diag is None else diag.report,
+                        pictures=None if diag is None else gap_pictures(diag), errors=errors, aircraft=job.aircraft,
+                        title=f"{job.aircraft}: {Path(job.log).name} flight {flight}")
+        path = write_html(Path(job.report_dir or ".") / page_name(Path(job.log).name, flight), render_report(data))
+        return str(path), None
+    except Exception as exc:  # noqa: BLE001 - the row stands without its page
+        return None, _one_line(job, exc)
 
 
 def _mean(d: dict) -> float | None:

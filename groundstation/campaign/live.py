@@ -31,4 +31,4 @@ def record_flight(db_path: str | Path, aircraft: str, log_path: str, flight: int
     finally:
         store.close()
     labels = [f"{r['log_name']}#{int(r['flight_index'])}" for r in rows]
-    return campaign_summary(aircraft, labels, assess_all(series(rows)))
+    return campaign_summary(aircraft, labels, assess_all(series(rows), getattr(config, "trends", None)))

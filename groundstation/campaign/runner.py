@@ -41,8 +41,9 @@ LOCAL_DASK = {"distributed.worker.profile.enabled": False, "distributed.admin.ti
 
 
 def default_workers() -> int:
-    """All cores but one (the live service keeps its core), at least one."""
-    return max(1, (os.cpu_count() or 2) - 1)
+    """Every core: a campaign is offline work, nothing else needs a spare core (the live service,
+    which keeps one for the link, uses :func:`groundstation.parallel.default_jobs`)."""
+    return max(1, os.cpu_count() or 1)
 
 
 def start_fork_server(dask: bool = False) -> Any:

@@ -2,7 +2,7 @@
 
 Finds every log (.tlog, .bin, .ulg, .px4log) under the given directories, skips those already in
 the table with the same content hash and settings, identifies and diagnoses the others - one task
-per log on a local process pool (``--jobs``, default all cores but one) or on a Dask cluster
+per log on a local process pool (``--jobs``, default every core) or on a Dask cluster
 (``--scheduler``) - stores one row per flight in the aircraft's table, then runs the trend test over
 all of the aircraft's flights and writes ``trends.json``, ``trends.png`` and ``trends.rrd`` next to
 the table (or where ``--trends-dir`` says).
@@ -11,7 +11,9 @@ the table (or where ``--trends-dir`` says).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -28,7 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--vehicle", default=None, help="aircraft name for the table (default: from --aircraft)")
     parser.add_argument("--config", type=Path, default=None,
                         help="configuration TOML ([prepare], [identify], [bounds], [identification], [diagnose])")
-    parser.add_argument("--jobs", type=int, default=None, help="worker processes (default: all cores but one)")
+    parser.add_argument("--jobs", type=int, default=None, help="worker processes (default: every core)")
     parser.add_argument("--scheduler", default=None,
                         help="run on Dask distributed: tcp://host:8786, or 'local' for a LocalCluster on loopback")
     parser.add_argument("--algorithm", choices=("cabc", "abc", "ga", "de"), default=None,
@@ -39,7 +41,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-diagnose", action="store_true", help="identify only (no gap verdicts or effects)")
     parser.add_argument("--no-cross", action="store_true", help="do not score each model on the previous flight")
     parser.add_argument("--trends-dir", type=Path, default=None, help="where trends.json/png/rrd go (default: --db's dir)")
-    parser.add_argument("--alpha", type=float, default=0.05, help="family-wise false-alarm level of the trend test")
+    parser.add_argument("--report-dir", type=Path, default=None,
+                        help="write an HTML page per analysed flight and DIR/campaign.html (table, trends, links)")
+    parser.add_argument("--alpha", type=float, default=None,
+                        help="family-wise false-alarm level of the trend test (default: [trends] alpha, 0.05)")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True, help="progress bar")
     parser.add_argument("--quiet", action="store_true")
 
@@ -74,7 +79,8 @@ def build_jobs(args: argparse.Namespace, store: Any) -> tuple[list, list[Path], 
             skipped.append(p)
             continue
         ref = None if args.no_cross or k == 0 else str(logs[k - 1])
-        jobs.append(FlightJob(str(p), h, name, s, ref))
+        jobs.append(FlightJob(str(p), h, name, s, ref,
+                              str(args.report_dir) if getattr(args, "report_dir", None) is not None else None))
     return jobs, skipped, s
 
 
@@ -94,7 +100,8 @@ def run(args: argparse.Namespace) -> int:
         jobs, skipped, settings = build_jobs(args, store)
         name = jobs[0].aircraft if jobs else _aircraft(args)[0]
         con.print(f"{len(jobs) + len(skipped)} log(s): {len(skipped)} already done, {len(jobs)} to analyse on "
-                  f"{'Dask ' + args.scheduler if args.scheduler else f'{workers} process(es)'}")
+                  f"{'Dask ' + args.scheduler if args.scheduler else f'{workers} process(es)'}"
+                  f"{'' if args.scheduler or args.jobs is not None else f' (every core of {os.cpu_count()}; --jobs to change)'}")
         t0 = time.perf_counter()
         with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
                       TimeElapsedColumn(), console=con, transient=True, disable=not args.progress) as prog:
@@ -113,7 +120,10 @@ def run(args: argparse.Namespace) -> int:
         if args.parquet is not None:
             out = store.write_parquet(name, args.parquet / f"{name}.parquet")
             con.print(f"wrote {out}")
-        summary = write_trends(store, name, settings.key(), args)
+        summary = write_trends(store, name, settings.key(), args, settings.service_config().trends)
+        if args.report_dir is not None:
+            page = write_campaign_page(store, name, settings.key(), summary, args.report_dir)
+            con.print(f"wrote {page}")
         if not args.quiet:
             _print(store.rows(name, settings.key()), summary, con)
         con.print(f"{len(jobs)} log(s) analysed in {wall:.1f} s; table {args.db} ({name})")
@@ -126,8 +136,9 @@ def _fmt(v: Any) -> str:
     return "-" if v is None else f"{float(v):.1f}"
 
 
-def write_trends(store: Any, aircraft: str, settings_key: str, args: argparse.Namespace) -> dict:
-    """Trend test over the aircraft's flights; trends.json / .png / .rrd; returns the summary."""
+def write_trends(store: Any, aircraft: str, settings_key: str, args: argparse.Namespace, trend_cfg: Any = None) -> dict:
+    """Trend test over the aircraft's flights (``[trends]`` of the configuration, ``--alpha`` over it);
+    trends.json / .png / .rrd; returns the summary."""
     from groundstation.campaign.plots import plot_trends, write_trends_rrd
     from groundstation.campaign.store import series
     from groundstation.trends.change import TrendConfig, assess_all, campaign_summary
@@ -135,7 +146,10 @@ def write_trends(store: Any, aircraft: str, settings_key: str, args: argparse.Na
     rows = store.rows(aircraft, settings_key)
     out_dir = args.trends_dir or args.db.parent
     labels = [f"{r['log_name']}#{int(r['flight_index'])}" for r in rows]
-    trends = assess_all(series(rows), TrendConfig(alpha=args.alpha))
+    tc = trend_cfg if trend_cfg is not None else TrendConfig()
+    if args.alpha is not None:
+        tc = dataclasses.replace(tc, alpha=args.alpha)
+    trends = assess_all(series(rows), tc)
     summary = campaign_summary(aircraft, labels, trends)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "trends.json").write_text(json.dumps(summary, indent=1, allow_nan=False))
@@ -143,6 +157,21 @@ def write_trends(store: Any, aircraft: str, settings_key: str, args: argparse.Na
         plot_trends(trends, labels, out_dir / "trends.png", title=f"{aircraft}: trends over {len(rows)} flights")
         write_trends_rrd(trends, labels, out_dir / "trends.rrd")
     return summary
+
+
+def write_campaign_page(store: Any, aircraft: str, settings_key: str, summary: dict, report_dir: Path) -> Path:
+    """``report_dir/campaign.html``: the aircraft's flights (every row, errors included) linked to the flight
+    pages that exist in ``report_dir``, the trend test's changes and figure."""
+    from groundstation.campaign.job import page_name
+    from groundstation.report import render_campaign, write_html
+
+    rows = store.rows(aircraft, settings_key) + [{**e, "flight_index": 0} for e in store.errors(aircraft)]
+    links = {}
+    for r in rows:
+        name = page_name(r["log_name"], int(r.get("flight_index") or 0))
+        if (report_dir / name).exists():
+            links[f"{r['log_name']}#{int(r.get('flight_index') or 0)}"] = name
+    return write_html(report_dir / "campaign.html", render_campaign(aircraft, rows, summary, links))
 
 
 def _print(rows: list[dict], summary: dict, con: Any) -> None:

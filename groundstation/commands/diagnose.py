@@ -1,10 +1,9 @@
 """``groundstation diagnose LOG... [--model model.json] --out report.json [--plots DIR] [--seed N] [--config FILE.toml]``.
 
-Reads and prepares the logs as ``groundstation identify`` does (:mod:`groundstation.pipeline`,
-``[prepare]`` of the configuration file), loads the model file if given (else the diagnosis
-identifies one first), runs
-:func:`groundstation.gap.diagnose.run_diagnosis`, writes the gap-report JSON, prints a summary
-table and optionally PNG plots and a Rerun .rrd recording of the residuals.
+Reads and prepares the logs as ``groundstation identify`` does and diagnoses the gap through
+:func:`groundstation.analysis.analyse` (``[prepare]`` of the configuration file and the aircraft
+file), with the model file if given (else the diagnosis identifies one first); writes the gap-report
+JSON, prints a summary table and optionally PNG plots and a Rerun .rrd recording of the residuals.
 """
 
 from __future__ import annotations
@@ -12,6 +11,8 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+
+from groundstation.analysis import native_vibration, unfold_rotor_line  # noqa: F401 - their home is the analysis
 
 HELP = "diagnose where and why the hover model departs from flight data (gap report JSON)"
 
@@ -29,6 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="scoring window length (s) (default: [diagnose] window_s, 3)")
     parser.add_argument("--config", type=Path, default=None,
                         help="configuration TOML ([prepare] channel map and trims, [diagnose], ...)")
+    parser.add_argument("--aircraft", type=Path, default=None,
+                        help="aircraft TOML: input source and channel map, measured outputs (and the prior model "
+                             "when the diagnosis identifies its base model)")
     parser.add_argument("--quiet", action="store_true", help="no terminal table")
     parser.add_argument("--jobs", type=int, default=None,
                         help="worker processes for reading the logs, the base model's identification and the "
@@ -44,109 +48,29 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, pmap) -> int:
-    from groundstation.commands.validate import load_model
+    from groundstation.analysis import analyse
     from groundstation.config import load_config
-    from groundstation.dsp.prepare import prepare
-    from groundstation.gap.diagnose import run_diagnosis
-    from groundstation.pipeline import load_logs
 
     cfg = load_config(args.config)
     if args.window_s is not None:
         cfg = cfg.replace("diagnose", window_s=args.window_s)
-    seed = cfg.identification.seed if args.seed is None else args.seed
-    model = load_model(args.model) if args.model else None
-    logs = load_logs(args.logs, args.segments, pmap)
-    prepared = prepare(logs, cfg.prepare)
-    diag = run_diagnosis(model, prepared, seed=seed, config=cfg.diagnose, pmap=pmap)
-    report = diag.report
-    native = native_vibration(logs, cfg.prepare.rate_hz)
-    if native is not None:
-        unfold_rotor_line(report, native, cfg.prepare.rate_hz)
-    report["source"] = {"logs": [str(p) for p in args.logs], "model": str(args.model) if args.model else None}
-    report["frequency"] = frequency_report(logs, cfg, model, report)
+    if args.seed is not None:
+        cfg = cfg.replace("identification", seed=args.seed)
+    res = analyse(args.logs, args.aircraft, cfg, steps=("freq", "diagnose"), model=args.model,
+                  segments=args.segments, pmap=pmap)
+    report = res.gap.report
     from groundstation.jsonio import write_atomic
 
     write_atomic(args.out, report)
     if args.plots:
         from groundstation.gap.plots import write_all
 
-        write_all(diag.arrays, report, args.plots)
+        write_all(res.gap.arrays, report, args.plots)
     if args.rrd:
-        write_rrd(diag.arrays, report, args.rrd)
+        write_rrd(res.gap.arrays, report, args.rrd)
     if not args.quiet:
         print_summary(report)
     return 0
-
-
-def native_vibration(logs: list, grid_rate_hz: float) -> dict | None:
-    """Vibration lines in the logs' own high-rate gyro (dataflash IMU/GYR faster than twice the grid),
-    over the armed flights; None when no log has one. Adds the logged rotor speed when there is one."""
-    import numpy as np
-
-    from groundstation.gap.fingerprints import native_rate_lines
-
-    for log in logs:
-        for name in ("GYRO_FAST", "IMU"):
-            s = log.series.get(name)
-            if s is None or len(s) < 100:
-                continue
-            dt = float(np.median(np.diff(s.t_fc_s)))
-            if not 0 < dt < 1.0 / (2.0 * grid_rate_hz):
-                continue
-            sel = np.zeros(len(s), bool)
-            for fl in log.flights:
-                sel |= (s.t_fc_s >= fl.start_fc_s) & (s.t_fc_s <= fl.end_fc_s)
-            g = np.stack([s["gx_rad_s"], s["gy_rad_s"], s["gz_rad_s"]], axis=1)[sel]
-            lines = native_rate_lines(g[np.isfinite(g).all(axis=1)], dt)
-            rotor = log.series.get("ROTOR")
-            rpm = None
-            if rotor is not None and len(rotor):
-                r = rotor["rotor_speed_rpm"][np.isfinite(rotor["rotor_speed_rpm"])]
-                spinning = r[r > 0.8 * r.max()] if r.size and r.max() > 0 else r[:0]
-                rpm = float(np.median(spinning)) if spinning.size else None
-            return {"source": f"{name} at {1 / dt:.0f} Hz in {log.source}",
-                    "lines": [{"frequency_hz": round(ln.frequency_hz, 3), "channels": ln.channels,
-                               "log10_p": round(ln.log10_p, 1), "amplitude_rad_s": ln.amplitude} for ln in lines],
-                    "rotor_speed_hz": None if rpm is None else round(rpm / 60.0, 3)}
-    return None
-
-
-def unfold_rotor_line(report: dict, native: dict, grid_rate_hz: float) -> None:
-    """Put the native lines in the report; a rotor_vibration effect found on the grid gets the true
-    frequency of the native line that folds onto its own (its grid frequency is kept beside it)."""
-    report["vibration_native"] = native
-    for eff in report.get("effects", []):
-        if eff.get("effect") != "rotor_vibration":
-            continue
-        f_grid = float(eff["estimate"].get("frequency_hz", float("nan")))
-        for ln in native["lines"]:
-            f = ln["frequency_hz"] % grid_rate_hz
-            if abs(min(f, grid_rate_hz - f) - f_grid) < 0.3:
-                eff["estimate"]["frequency_hz_on_grid"] = f_grid
-                eff["estimate"]["frequency_hz"] = ln["frequency_hz"]
-                eff["evidence"] = (eff.get("evidence", "") + f"; at {ln['frequency_hz']:.2f} Hz in the "
-                                   f"autopilot's own log ({native['source'].split(' in ')[0]})")
-                break
-
-
-def frequency_report(logs: list, cfg, model, report: dict) -> dict:
-    """The gap report's frequency section: the base model checked against the flight's frequency
-    responses (at the log's native rate), or ``{"error": ...}`` when the analysis cannot run."""
-    from groundstation.commands.freq_support import prepare_native
-    from groundstation.freq.model_response import delays_from_augmentations
-    from groundstation.freq.spectra import estimate_responses
-    from groundstation.freq.verify import verify
-    from groundstation.gap.report import frequency_section
-    from groundstation.sysid.model import theta_from_dict
-
-    try:
-        theta = theta_from_dict(report["method"]["base_parameters"])
-        prepared = prepare_native(logs, cfg.prepare)
-        v = verify(theta, estimate_responses(prepared, cfg.freq),
-                   delays_from_augmentations(model.augmentations) if model is not None else None)
-    except ValueError as exc:
-        return {"error": str(exc)}
-    return frequency_section(v)
 
 
 def print_summary(report: dict) -> None:
@@ -163,12 +87,20 @@ def print_summary(report: dict) -> None:
     for r in rows["channels"]:
         t.add_row(*r)
     con.print(t)
-    t2 = Table(title="effects (ranked) and best rejected candidates")
-    for col in ("effect", "channel", "significant", "score %", "gap before -> after", "shrink %", "evidence"):
+    sh = report.get("shares") or {}
+    if sh.get("headline"):
+        con.print(f"[bold]{sh['headline']}[/bold]")
+    t2 = Table(title="effects (ranked), partial findings and best rejected candidates")
+    for col in ("effect", "channel", "named", "share of gap above noise", "score %", "gap before -> after",
+                "shrink %", "through the flight", "evidence"):
         t2.add_column(col)
     for r in rows["effects"]:
         t2.add_row(*r)
     con.print(t2)
+    from groundstation.gap.report import through_flight_lines
+
+    for line in through_flight_lines(report):
+        con.print(line)
     nat = report.get("vibration_native")
     if nat:
         lines = ", ".join(f"{ln['frequency_hz']:.2f} Hz ({'/'.join(ln['channels'])})" for ln in nat["lines"]) or "none"
@@ -237,6 +169,12 @@ def write_rrd(arrays: dict, report: dict, path: Path) -> None:
                            ("residual", Y[:, mask, c] - yh[:, mask, c])):
             rec.send_columns(f"/gap/{name}/{kind}", indexes=[rr.TimeColumn("fc_time", duration=t[order])],
                              columns=rr.Scalars.columns(scalars=data.ravel()[order]))
-    rec.log("/gap/verdict", rr.TextDocument(json.dumps({"verdict": report["verdict"],
-                                                        "effects": report["effects"][:3]}, indent=1)), static=True)
+    sh = report.get("shares") or {}
+    rec.log("/gap/verdict", rr.TextDocument(json.dumps({"verdict": report["verdict"], "headline": sh.get("headline"),
+                                                        "explained_pct": sh.get("explained_pct"),
+                                                        "interval_pct": sh.get("interval_pct"),
+                                                        "effects": report["effects"][:3],
+                                                        "partial_findings": (report.get("partial_findings") or [])[:3],
+                                                        "through_flight": report.get("through_flight")},
+                                                       indent=1, default=str)), static=True)
     rec.flush()

@@ -9,6 +9,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from groundstation.pipeline import prepare_native
+
 
 def add_freq_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--freq-config", type=Path, default=None,
@@ -25,18 +27,6 @@ def load_freq_config(path: Path | None, cfg: Any = None) -> Any:
     if path is not None:
         return load_config(path).freq
     return (cfg if cfg is not None else ServiceConfig()).freq
-
-
-def prepare_native(logs: list[Any], prep_cfg: Any, *, grid_only: bool = False) -> Any:
-    """Prepared data at the log's native rate where that is faster than the grid (else the grid)."""
-    from groundstation.dsp.prepare import prepare
-    from groundstation.freq.spectra import native_rate_hz
-
-    prepared = prepare(logs, prep_cfg)
-    rate = None if grid_only else native_rate_hz(prepared, prep_cfg.rate_hz)
-    if rate is None:
-        return prepared
-    return prepare(logs, replace(prep_cfg, rate_hz=rate))
 
 
 def j_table(v: Any, title: str):
@@ -124,7 +114,7 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
     from rich.console import Console
 
     from groundstation.dsp.prepare import prepare
-    from groundstation.freq.identify import FreqIdentifyConfig, identify_frequency
+    from groundstation.freq.identify import identify_frequency
     from groundstation.freq.spectra import estimate_responses
 
     con = Console(stderr=True, quiet=args.quiet)
@@ -133,9 +123,14 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
     rs = estimate_responses(fast, load_freq_config(args.freq_config, cfg))
     ic = cfg.identification
     bounds = dict(cfg.bounds)
-    fcfg = FreqIdentifyConfig(fit_delays=args.fit_delays, refine=ic.refine,
-                              weighting=getattr(args, "freq_weighting", "output_error"),
-                              **({"maxiter": args.maxiter} if args.maxiter else {}))
+    over: dict[str, Any] = {"refine": ic.refine}   # [freq_identify] of the configuration, the options over it
+    if getattr(args, "fit_delays", False):
+        over["fit_delays"] = True
+    if getattr(args, "freq_weighting", None) is not None:
+        over["weighting"] = args.freq_weighting
+    if args.maxiter:
+        over["maxiter"] = args.maxiter
+    fcfg = replace(cfg.freq_identify, **over)
     models = {}
     start = None
     if args.domain == "both":
@@ -162,7 +157,7 @@ def _score_and_write(args: argparse.Namespace, models: dict[str, Any], rs: Any, 
     """Score each model both ways, write them and print the table (``identify --domain``)."""
     from rich.console import Console
 
-    from groundstation.commands.identify import print_model, write_json
+    from groundstation.commands.model_summary import print_model, write_json
     from groundstation.freq.model_response import delays_from_augmentations
     from groundstation.freq.verify import verify
     from groundstation.sysid.heldout import SUBSYSTEM_CHANNELS

@@ -24,96 +24,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from typing import Any
 
-import numpy as np
+from groundstation.loginfo import (  # noqa: F401 - importable from here as before
+    MAX_GAPS_LISTED,
+    _flight,
+    _ground_evidence,
+    _num,
+    summarise,
+)
 
 HELP = "summarise a flight log (.tlog, .bin, .px4log, .ulg): flights, message rates, gaps, corruption"
-
-MAX_GAPS_LISTED = 200
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("log", help="the log file")
     p.add_argument("--json", action="store_true", help="print one JSON object")
-
-
-def _num(x: float) -> float | None:
-    return None if not math.isfinite(x) else round(float(x), 6)
-
-
-def summarise(log: Any) -> dict[str, Any]:
-    """The log-info dict of a :class:`firmware_interface.samples.LogData`."""
-    spans = [(float(s.t_fc_s[0]), float(s.t_fc_s[-1])) for s in log.series.values()
-             if len(s) and np.isfinite(s.t_fc_s[0]) and np.isfinite(s.t_fc_s[-1])]
-    log_span = (max(b for _, b in spans) - min(a for a, _ in spans)) if spans else math.nan
-    messages: dict[str, dict[str, Any]] = {}
-    for name, count in sorted(log.message_counts.items()):
-        s = log.series.get(name)
-        rate = math.nan
-        if s is not None and len(s) >= 2:
-            span = float(s.t_fc_s[-1] - s.t_fc_s[0])
-            rate = (len(s) - 1) / span if span > 0 else math.nan
-        elif log_span and log_span > 0:
-            rate = count / log_span
-        messages[name] = {"count": int(count), "rate_hz": _num(rate)}
-    gaps: list[dict[str, Any]] = []
-    for name, s in log.series.items():
-        if len(s) < 3:
-            continue
-        t = s.t_fc_s[np.isfinite(s.t_fc_s)]
-        dt = np.diff(t)
-        pos = dt[dt > 0]
-        if not pos.size:
-            continue
-        period = float(np.median(pos))
-        for k in np.flatnonzero(dt > 3 * period):
-            gaps.append({"message": name, "start_s": _num(t[k]), "duration_s": _num(dt[k])})
-    gaps.sort(key=lambda g: (g["start_s"] if g["start_s"] is not None else 0.0, g["message"]))
-    st = log.stats
-    return {
-        "source": log.source,
-        "flights": [_flight(log, f) for f in log.flights],
-        "messages": messages,
-        "gaps": gaps[:MAX_GAPS_LISTED],
-        "gaps_total": len(gaps),
-        "corrupt_bytes": int(st.corrupt_bytes),
-        "truncated_tail_bytes": int(st.truncated_tail_bytes),
-        "fc_reboots": int(st.fc_reboots),
-        "packet_loss": {"lost": int(st.packets_lost), "by_source": dict(st.loss_by_source)},
-        "dropouts": [{"start_s": _num(a), "duration_s": _num(d)} for a, d in getattr(log, "dropouts_s", [])],
-        "notes": list(getattr(log, "notes", [])),
-        "chirps": [{"index": c.index, "axis": c.axis_name, "sid_axis": c.axis, "magnitude": _num(c.magnitude),
-                    "f_start_hz": _num(c.f_start_hz), "f_stop_hz": _num(c.f_stop_hz),
-                    "start_s": _num(c.start_fc_s), "duration_s": _num(c.duration_s)}
-                   for c in getattr(log, "chirps", [])],
-    }
-
-
-def _flight(log: Any, f: Any) -> dict[str, Any]:
-    """One row of ``flights``. Where height alone says "in the air" and the IMU and body rates say the
-    aircraft never left the ground, ``in_air_s`` is 0, the height's figure is kept as
-    ``in_air_by_height_s`` and ``on_ground_evidence`` says why."""
-    evidence = _ground_evidence(log, f)
-    row = {"index": f.index, "start_s": _num(f.start_fc_s), "end_s": _num(f.end_fc_s),
-           "duration_s": _num(f.duration_s), "in_air_s": _num(f.in_air_s), "on_ground_evidence": evidence}
-    if evidence is not None:
-        row["in_air_by_height_s"] = row["in_air_s"]
-        row["in_air_s"] = 0.0
-    return row
-
-
-def _ground_evidence(log: Any, flight: Any) -> str | None:
-    """Where only height says "in the air": why the aircraft did not fly (no rotor vibration, no body
-    motion), else None."""
-    from groundstation.dsp.prepare import PrepConfig, _land_detector, airborne_evidence
-
-    air = list(getattr(flight, "in_air_intervals_fc_s", ()) or ())
-    if not air or _land_detector(log, flight):
-        return None
-    flying, why = airborne_evidence(log, float(air[0][0]), float(air[-1][1]), PrepConfig())
-    return None if flying else f"in the air by height only, but on the ground: {why}"
 
 
 def _print_tables(info: dict[str, Any]) -> None:

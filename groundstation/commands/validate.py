@@ -40,20 +40,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def load_model(path: Path):
-    from groundstation.sysid.model import HoverModel
+    """The model file as a HoverModel (:func:`groundstation.pipeline.load_model`)."""
+    from groundstation.pipeline import load_model as _load
 
-    if not path.exists():
-        raise OSError(f"{path}: no such model file")
-    try:
-        doc = json.loads(path.read_bytes())
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: not a model file (binary, not JSON text)") from None
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
-    try:
-        return HoverModel.from_json(doc)
-    except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from None
+    return _load(path)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -114,7 +104,6 @@ def run_freq(args: argparse.Namespace, model, cfg) -> int:
     """``validate --freq``: the J table (or one JSON object), Bode PNGs and Rerun recording."""
     from groundstation.commands.freq_support import (
         load_freq_config,
-        prepare_native,
         print_verification,
         verification_json,
         write_rerun,
@@ -122,7 +111,7 @@ def run_freq(args: argparse.Namespace, model, cfg) -> int:
     from groundstation.freq.model_response import delays_from_augmentations
     from groundstation.freq.spectra import estimate_responses
     from groundstation.freq.verify import verify
-    from groundstation.pipeline import load_logs
+    from groundstation.pipeline import load_logs, prepare_native
 
     fcfg = load_freq_config(args.freq_config, cfg)
     prepared = prepare_native(load_logs(args.logs, args.segments), cfg.prepare, grid_only=args.grid_rate)

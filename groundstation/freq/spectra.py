@@ -4,11 +4,13 @@ What it computes, for every input -> output pair of the hover model (inputs ``la
 outputs ``u v w p q r theta phi``):
 
 1. for each window length ``T`` of :attr:`FreqConfig.window_s`: the data are cut into overlapped
-   windows (``overlap``, default 0.8), each detrended and tapered (Hann by default, through
-   ``scipy.signal.detrend`` / ``get_window``), and Fourier-transformed at the composite frequencies
-   (a direct DFT at arbitrary frequencies, like a chirp-z: no interpolation between window grids);
-   auto and cross spectra are averaged over windows (one-sided densities, scaled as
-   ``scipy.signal.csd`` scales them);
+   windows (``overlap``, default 0.8), each detrended (least squares, as ``scipy.signal.detrend``) and
+   tapered (Hann by default, ``get_window``), and Fourier-transformed at the composite frequencies
+   (a direct DFT at arbitrary frequencies, like a chirp-z: no interpolation between window grids) --
+   one matrix per window length, :func:`window_operator`; auto and cross spectra are averaged over
+   windows (one-sided densities, scaled as ``scipy.signal.csd`` scales them). The averages are running
+   sums (:class:`WindowSpectra`, :class:`IncrementalResponses`): the batch estimate feeds whole
+   segments, the live excitation monitor feeds rows as they arrive, and both give the same numbers;
 2. conditioned (multi-input) responses per output: with the input cross-spectral matrix ``Gxx``
    (every input that moves), ``H = Gxx^-1 Gxy``; the residual spectrum ``Gnn = Gyy - Gxy^H H``;
    each input's partial coherence ``g2_i = |H_i|^2 / (|H_i|^2 + Gnn [Gxx^-1]_ii)`` (its own effect
@@ -35,11 +37,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.signal import detrend as sp_detrend
-from scipy.signal import get_window
 
 from groundstation.freq import FreqError
 from groundstation.sysid.model import INPUTS, OUTPUTS
+
+N_INPUTS = len(INPUTS)
 
 
 @dataclass(frozen=True)
@@ -172,28 +174,158 @@ def _frequency_grid(cfg: FreqConfig, dt_s: float, longest_s: float) -> np.ndarra
     return np.geomspace(f_lo, f_hi, cfg.n_freq)
 
 
+def taper_window(name: str, length: int) -> np.ndarray:
+    """``scipy.signal.get_window(name, length)`` (periodic); the Hann taper without importing
+    scipy.signal, which costs about a second of CPU: the live service starts a flight's estimate on its
+    event loop."""
+    if name in ("hann", "hanning"):
+        return 0.5 - 0.5 * np.cos(2.0 * np.pi * np.arange(length) / length)
+    from scipy.signal import get_window
+
+    return np.asarray(get_window(name, length), dtype=float)
+
+
+def _window_geometry(win_s: float, dt_s: float, cfg: FreqConfig) -> tuple[int, int, np.ndarray]:
+    """(samples per window, samples between window starts, taper) of one window length."""
+    length = int(round(win_s / dt_s))
+    step = max(1, int(round(length * (1.0 - cfg.overlap))))
+    return length, step, taper_window(cfg.taper, length)
+
+
+def window_operator(length: int, dt_s: float, f_hz: np.ndarray, taper: np.ndarray, detrend: str) -> np.ndarray:
+    """``(length, n_freq)`` complex: a window's rows (as a row vector) times this matrix are its
+    detrended, tapered DFT at ``f_hz``, scaled so that ``conj(X_a) X_b`` averages to the one-sided
+    cross-spectral density (as ``scipy.signal.csd`` scales it).
+
+    Detrending (least-squares constant or line over the window, as ``scipy.signal.detrend``) is a
+    projection ``D``, the taper a diagonal ``W`` and the DFT at arbitrary frequencies a matrix ``E``:
+    the operator ``D W E`` (``D`` symmetric) is computed once per window length.
+    """
+    n = np.arange(length, dtype=float)
+    TE = np.exp(-2j * np.pi * np.outer(n * dt_s, f_hz)) * taper[:, None]
+    basis = np.ones((length, 1)) if detrend == "constant" else np.column_stack([np.ones(length), n])
+    Q, _ = np.linalg.qr(basis)
+    return (TE - Q @ (Q.T @ TE)) * np.sqrt(2.0 * dt_s / np.sum(taper ** 2))
+
+
+def _transform(frames: np.ndarray, op_re: np.ndarray, op_im: np.ndarray) -> np.ndarray:
+    """``(K, C, n_freq)`` transforms of windows ``(K, C, L)``, NaN samples as zeros (two real BLAS
+    products: a real-by-complex product of a strided view does not reach BLAS and is ~20x slower)."""
+    K, C, L = frames.shape
+    F = np.nan_to_num(np.ascontiguousarray(frames)).reshape(K * C, L)
+    return (F @ op_re + 1j * (F @ op_im)).reshape(K, C, -1)
+
+
+class WindowSpectra:
+    """Running sums of the cross-spectral matrix over overlapped windows of one length (incremental).
+
+    Rows ``(n, C)`` (inputs then outputs) arrive in chunks (:meth:`add`); segments end
+    (:meth:`end_segment`). Each window that completes (``length`` rows; starts ``step`` rows apart from
+    the segment's first row, as :func:`estimate_responses` cuts them) is transformed once
+    (:func:`window_operator`) and ``conj(X_a) X_b`` (n_freq, C, C) added to the sum of its finiteness
+    pattern (which channels are finite over the whole window; NaN samples enter as zeros, as in the
+    batch estimate, and a pair uses only the windows where its channels are finite). The work per
+    window is fixed: nothing grows with the flight but one count per segment.
+    """
+
+    def __init__(self, win_s: float, dt_s: float, f_hz: np.ndarray, cfg: FreqConfig, n_channels: int) -> None:
+        self.win_s = float(win_s)
+        self.length, self.step, self.taper = _window_geometry(win_s, dt_s, cfg)
+        self.operator = window_operator(self.length, dt_s, f_hz, self.taper, cfg.detrend)
+        self._op_re, self._op_im = np.ascontiguousarray(self.operator.real), np.ascontiguousarray(self.operator.imag)
+        self.n_channels = n_channels
+        self._sums: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}   # pattern -> (finite (C,), sum (nf, C, C))
+        self.counts: list[dict[bytes, int]] = [{}]                     # per segment: pattern -> windows
+        self.segment_rows: list[int] = [0]
+        self._tail = np.empty((0, n_channels))     # rows of the open segment from the next window start on
+        self._eff: dict[int, float] = {}
+
+    def add(self, rows: np.ndarray) -> None:
+        """Append rows ``(n, C)`` to the open segment and transform every window they complete."""
+        rows = np.asarray(rows, dtype=float).reshape(-1, self.n_channels)
+        if rows.shape[0] == 0:
+            return
+        self.segment_rows[-1] += rows.shape[0]
+        data = np.concatenate([self._tail, rows]) if self._tail.shape[0] else rows
+        if data.shape[0] < self.length:
+            self._tail = data
+            return
+        frames = np.lib.stride_tricks.sliding_window_view(data, self.length, axis=0)[::self.step]  # (K, C, L)
+        self._tail = data[frames.shape[0] * self.step:].copy()
+        self._accumulate(frames)
+
+    def transforms(self, frames: np.ndarray) -> np.ndarray:
+        """``(K, C, n_freq)`` transforms of windows ``(K, C, length)`` (NaN samples as zeros)."""
+        return _transform(frames, self._op_re, self._op_im)
+
+    def _accumulate(self, frames: np.ndarray) -> None:
+        ok = np.isfinite(frames).all(axis=2)                                # (K, C)
+        X = self.transforms(frames)
+        keys = [k.tobytes() for k in np.packbits(ok, axis=1)]
+        counts = self.counts[-1]
+        for key in dict.fromkeys(keys):
+            sel = [i for i, k in enumerate(keys) if k == key]
+            Xs = X[sel]
+            S = np.einsum("kaf,kbf->fab", Xs.conj(), Xs)
+            if key in self._sums:
+                self._sums[key][1][...] += S
+            else:
+                self._sums[key] = (ok[sel[0]].copy(), S)
+            counts[key] = counts.get(key, 0) + len(sel)
+
+    def end_segment(self) -> None:
+        """Close the open segment (in-air interval ended, link gap): no window spans the break."""
+        self._tail = np.empty((0, self.n_channels))
+        if self.segment_rows[-1] > 0:
+            self.counts.append({})
+            self.segment_rows.append(0)
+
+    def patterns(self, need: np.ndarray) -> tuple[bytes, ...]:
+        """The finiteness patterns of the windows in which every channel of ``need (C,) bool`` was finite."""
+        return tuple(k for k, (ok, _) in self._sums.items() if ok[need].all())
+
+    def sum_of(self, keys: tuple[bytes, ...]) -> tuple[np.ndarray, list[int]]:
+        """Sum ``(nf, C, C)`` over the windows of patterns ``keys`` (not empty), and their number per segment."""
+        S = self._sums[keys[0]][1].copy()
+        for k in keys[1:]:
+            S += self._sums[k][1]
+        return S, [sum(c.get(k, 0) for k in keys) for c in self.counts]
+
+    def averages(self, per_segment: list[int]) -> float:
+        """Effective number of averages of ``per_segment`` windows (Welch's overlap correction)."""
+        return sum(self._effective(k) for k in per_segment)
+
+    def _effective(self, k: int) -> float:
+        got = self._eff.get(k)
+        if got is None:
+            got = self._eff[k] = effective_averages(k, self.length, self.step, self.taper)
+        return got
+
+    def usable_averages(self, q: int) -> float:
+        """Effective averages every window of the segments gives, less the ``q - 1`` other inputs."""
+        return sum(self._effective((n - self.length) // self.step + 1)
+                   for n in self.segment_rows if n >= self.length) - (max(q, 1) - 1)
+
+
 def _window_spectra(segments: list[tuple[np.ndarray, np.ndarray]], length: int, step: int, f_hz: np.ndarray,
                     dt_s: float, cfg: FreqConfig) -> tuple[np.ndarray, np.ndarray, list[int]]:
-    """DFT of every window: X (K, n_freq, 12) scaled so that conj(X_a) X_b averages to the one-sided
-    density; valid (K, 12) channel finite over the window; windows per segment."""
-    taper = get_window(cfg.taper, length)
-    E = np.exp(-2j * np.pi * np.outer(np.arange(length) * dt_s, f_hz))  # (L, nf)
-    scale = np.sqrt(2.0 * dt_s / np.sum(taper ** 2))
+    """DFT of every window: X (K, n_freq, C) scaled so that conj(X_a) X_b averages to the one-sided
+    density; valid (K, C) channel finite over the window; windows per segment."""
+    taper = taper_window(cfg.taper, length)
+    op = window_operator(length, dt_s, f_hz, taper, cfg.detrend)
     Xs, valid, counts = [], [], []
+    n_ch = segments[0][0].shape[1] + segments[0][1].shape[1] if segments else 12
     for u, y in segments:
-        n = u.shape[0]
-        if n < length:
+        if u.shape[0] < length:
             counts.append(0)
             continue
         data = np.concatenate([u, y], axis=1)
-        frames = np.lib.stride_tricks.sliding_window_view(data, length, axis=0)[::step]  # (K, 12, L)
-        ok = np.isfinite(frames).all(axis=2)
-        fr = sp_detrend(np.nan_to_num(frames), axis=2, type=cfg.detrend) * taper
-        Xs.append(np.einsum("kcl,lf->kfc", fr, E) * scale)
-        valid.append(ok)
+        frames = np.lib.stride_tricks.sliding_window_view(data, length, axis=0)[::step]  # (K, C, L)
+        valid.append(np.isfinite(frames).all(axis=2))
+        Xs.append(np.transpose(_transform(frames, op.real.copy(), op.imag.copy()), (0, 2, 1)))
         counts.append(frames.shape[0])
     if not Xs:
-        return np.zeros((0, f_hz.size, 12), complex), np.zeros((0, 12), bool), counts
+        return np.zeros((0, f_hz.size, n_ch), complex), np.zeros((0, n_ch), bool), counts
     return np.concatenate(Xs), np.concatenate(valid), counts
 
 
@@ -205,66 +337,73 @@ def _miso(X_in: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Gxx = np.einsum("kfa,kfb->fab", X_in.conj(), X_in) / X_in.shape[0]
     Gxy = np.einsum("kfa,kf->fa", X_in.conj(), Y) / X_in.shape[0]
     Gyy = np.mean(np.abs(Y) ** 2, axis=0)
+    H, g2 = _miso_spectra(Gxx, Gxy[:, :, None], Gyy[:, None])
+    return H[:, :, 0], g2[:, :, 0]
+
+
+def _miso_spectra(Gxx: np.ndarray, Gxy: np.ndarray, Gyy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """H (nf, q, m) and partial coherence (nf, q, m) of m outputs from the averaged spectra Gxx (nf, q, q),
+    Gxy (nf, q, m), Gyy (nf, m) (the outputs share the inputs' matrix: one inverse for all)."""
     q = Gxx.shape[-1]
     ridge = 1e-12 * np.real(np.trace(Gxx, axis1=1, axis2=2))[:, None, None] * np.eye(q)
     Ginv = np.linalg.inv(Gxx + ridge)
-    H = np.einsum("fab,fb->fa", Ginv, Gxy)
-    Gnn = np.maximum(Gyy - np.real(np.einsum("fa,fa->f", Gxy.conj(), H)), 0.0)
+    H = Ginv @ Gxy
+    Gnn = np.maximum(Gyy - np.real(np.einsum("fam,fam->fm", Gxy.conj(), H)), 0.0)
     h2 = np.abs(H) ** 2
     with np.errstate(divide="ignore", invalid="ignore"):
-        g2 = h2 / (h2 + Gnn[:, None] * np.real(np.diagonal(Ginv, axis1=1, axis2=2)))
+        g2 = h2 / (h2 + Gnn[:, None, :] * np.real(np.diagonal(Ginv, axis1=1, axis2=2))[:, :, None])
     return H, np.nan_to_num(g2, nan=0.0)
 
 
-def _averages(valid_y: np.ndarray, counts: list[int], length: int, step: int, taper: np.ndarray) -> float:
-    n, start = 0.0, 0
-    for c in counts:
-        n += effective_averages(int(valid_y[start:start + c].sum()), length, step, taper)
-        start += c
-    return n
-
-
-def _one_window(segments, win_s: float, f_hz: np.ndarray, dt_s: float, active: list[int], cfg: FreqConfig,
-                notes: list[str]) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] | None:
-    """Per pair (input, output): (H, partial coherence, random error) of one window length, NaN where
-    the window does not resolve the frequency; None when the data are too short for it."""
-    length = int(round(win_s / dt_s))
-    step = max(1, int(round(length * (1.0 - cfg.overlap))))
-    X, valid, counts = _window_spectra(segments, length, step, f_hz, dt_s, cfg)
-    taper = get_window(cfg.taper, length)
+def _one_window(ws: WindowSpectra, f_hz: np.ndarray, active: list[int], outputs: list[int], cfg: FreqConfig,
+                notes: list[str], dt_s: float, want: set[tuple[int, int]] | None = None
+                ) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] | None:
+    """Per pair (input, output) (of ``want`` only, if given): (H, partial coherence, random error) of one
+    window length, NaN where the window does not resolve the frequency; None when the data are too
+    short for it."""
     q = len(active)
-    resolved = f_hz >= 2.0 / win_s
+    resolved = f_hz >= 2.0 / ws.win_s
     out: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-    for j in range(8):
-        sel = valid[:, 4 + j] & valid[:, active].all(axis=1) if X.shape[0] else np.zeros(0, bool)
-        n_d = _averages(sel, counts, length, step, taper) - (q - 1) if sel.any() else 0.0
+    groups: dict[tuple[bytes, ...], list[int]] = {}     # outputs whose windows are the same ones
+    for j in outputs:
+        need = np.zeros(ws.n_channels, bool)
+        need[active] = True
+        need[N_INPUTS + j] = True
+        groups.setdefault(ws.patterns(need), []).append(j)
+    for keys, js in groups.items():
+        if not keys:
+            continue
+        S, per_seg = ws.sum_of(keys)
+        K = sum(per_seg)
+        n_d = ws.averages(per_seg) - (q - 1) if K > 0 else 0.0
         if n_d < cfg.min_averages:
             continue
-        H, g2 = _miso(X[sel][:, :, active], X[sel][:, :, 4 + j])
+        ys = [N_INPUTS + j for j in js]
+        Sa = S[:, active]
+        H, g2 = _miso_spectra(Sa[:, :, active] / K, Sa[:, :, ys] / K, np.real(S[:, ys, ys]) / K)
         with np.errstate(divide="ignore", invalid="ignore"):
             eps = np.sqrt((1.0 - g2) / (2.0 * n_d * g2))
-        for a, i in enumerate(active):
-            out[(i, j)] = (np.where(resolved, H[:, a], np.nan), np.where(resolved, g2[:, a], np.nan),
-                           np.where(resolved, eps[:, a], np.nan))
+        for m, j in enumerate(js):
+            for a, i in enumerate(active):
+                if want is not None and (i, j) not in want:
+                    continue
+                out[(i, j)] = (np.where(resolved, H[:, a, m], np.nan), np.where(resolved, g2[:, a, m], np.nan),
+                               np.where(resolved, eps[:, a, m], np.nan))
     if not out:
-        longest = max((s[0].shape[0] for s in segments), default=0) * dt_s
-        notes.append(f"window {win_s:g} s not used: the longest segment ({longest:.1f} s) gives fewer than "
+        longest = max(ws.segment_rows, default=0) * dt_s
+        notes.append(f"window {ws.win_s:g} s not used: the longest segment ({longest:.1f} s) gives fewer than "
                      f"{cfg.min_averages:g} effective averages beyond the {q} inputs conditioned on")
         return None
     return out
 
 
-def _enough(segments, win_s: float, dt_s: float, q: int, cfg: FreqConfig, notes: list[str]) -> bool:
+def _enough(ws: WindowSpectra, q: int, cfg: FreqConfig, dt_s: float, notes: list[str]) -> bool:
     """Whether the segments give a window length enough averages (else a note says why not)."""
-    length = int(round(win_s / dt_s))
-    step = max(1, int(round(length * (1.0 - cfg.overlap))))
-    taper = get_window(cfg.taper, length)
-    n_d = sum(effective_averages((s[0].shape[0] - length) // step + 1, length, step, taper)
-              for s in segments if s[0].shape[0] >= length) - (max(q, 1) - 1)
+    n_d = ws.usable_averages(q)
     if n_d >= cfg.min_averages:
         return True
-    longest = max(s[0].shape[0] for s in segments) * dt_s
-    notes.append(f"window {win_s:g} s not used: {longest:.1f} s of data (longest segment) give {max(n_d, 0):.1f} "
+    longest = max(ws.segment_rows) * dt_s
+    notes.append(f"window {ws.win_s:g} s not used: {longest:.1f} s of data (longest segment) give {max(n_d, 0):.1f} "
                  f"effective averages, {cfg.min_averages:g} needed beyond the inputs conditioned on")
     return False
 
@@ -304,46 +443,136 @@ def _no_response(inp: str, out: str, f_hz: np.ndarray, reason: str) -> PairRespo
     return PairResponse(inp, out, f_hz, nan.astype(complex), nan, nan, np.zeros(f_hz.size, bool), reason)
 
 
+class IncrementalResponses:
+    """The estimate of :func:`estimate_responses`, built up one chunk of rows at a time.
+
+    ``add(inputs (n, 4), outputs (n, m))`` appends in-air rows to the open segment, ``end_segment()``
+    closes it (left the air, link gap); :meth:`responses` gives the :class:`ResponseSet` of everything
+    so far at any moment. Each window length keeps running sums of its windows' cross-spectral matrix
+    (:class:`WindowSpectra`), so an update costs the transforms of the windows it completes and
+    :meth:`responses` costs the same whatever the length of the flight.
+
+    The frequency grid is fixed when it starts: ``f_min_hz``, else ``min_cycles`` cycles of the longest
+    configured window (the batch estimate takes the longest window the data can use; the two agree once
+    the data are long enough for every window, or when ``f_min_hz`` is set).
+    """
+
+    def __init__(self, dt_s: float, config: FreqConfig | None = None, outputs: tuple[str, ...] = OUTPUTS,
+                 f_hz: np.ndarray | None = None, windows_s: tuple[float, ...] | None = None) -> None:
+        self.config = cfg = config or FreqConfig()
+        self.dt_s = float(dt_s)
+        self.outputs = tuple(outputs)
+        wins = sorted(set(windows_s if windows_s is not None else cfg.window_s))
+        self.f_hz = f_hz if f_hz is not None else _frequency_grid(cfg, self.dt_s, max(wins))
+        n_ch = N_INPUTS + len(self.outputs)
+        self.windows = [WindowSpectra(w, self.dt_s, self.f_hz, cfg, n_ch) for w in wins]
+        self._n = np.zeros(N_INPUTS)            # per input: finite samples, sums of (x - shift) and its square
+        self._s1 = np.zeros(N_INPUTS)
+        self._s2 = np.zeros(N_INPUTS)
+        self._shift: np.ndarray | None = None   # the first finite row (keeps the sums well conditioned)
+        self._avail = np.zeros(len(self.outputs), bool)
+        self.rows = 0
+
+    def add(self, inputs: np.ndarray, outputs: np.ndarray) -> None:
+        """Append rows to the open segment: ``inputs (n, 4)`` normalised, ``outputs (n, m)`` (NaN where
+        not measured)."""
+        u = np.asarray(inputs, dtype=float).reshape(-1, N_INPUTS)
+        y = np.asarray(outputs, dtype=float).reshape(-1, len(self.outputs))
+        if u.shape[0] == 0:
+            return
+        self.rows += u.shape[0]
+        self._avail |= np.isfinite(y).any(axis=0)
+        if self._shift is None:
+            self._shift = np.nan_to_num(u[0])
+        d = u - self._shift
+        fin = np.isfinite(d)
+        d = np.where(fin, d, 0.0)
+        self._n += fin.sum(axis=0)
+        self._s1 += d.sum(axis=0)
+        self._s2 += (d * d).sum(axis=0)
+        data = np.concatenate([u, y], axis=1)
+        for ws in self.windows:
+            ws.add(data)
+
+    def end_segment(self) -> None:
+        for ws in self.windows:
+            ws.end_segment()
+
+    def input_std(self) -> np.ndarray:
+        """(4,) standard deviation of each input over the rows so far (NaN before any finite value)."""
+        n = np.maximum(self._n, 1)
+        var = np.maximum(self._s2 / n - (self._s1 / n) ** 2, 0.0)
+        return np.where(self._n > 0, np.sqrt(var), np.nan)
+
+    def active_inputs(self) -> list[int]:
+        return [i for i, s in enumerate(self.input_std()) if s > self.config.input_active_std]
+
+    def responses(self, pairs: tuple[tuple[str, str], ...] | None = None) -> ResponseSet:
+        """The composite responses of the data so far (of ``pairs`` only, if given: cheaper)."""
+        cfg, dt = self.config, self.dt_s
+        if self.rows == 0:
+            raise FreqError("no in-air segments to analyse")
+        notes: list[str] = []
+        active = self.active_inputs()
+        wins = [ws for ws in self.windows if _enough(ws, len(active), cfg, dt, notes)]
+        want = {(INPUTS.index(i), self.outputs.index(o)) for i, o in pairs} if pairs is not None else None
+        outs = sorted({j for _, j in want}) if want is not None else list(range(len(self.outputs)))
+        per_window: list[dict] = []
+        used: list[float] = []
+        if active and wins:
+            for ws in wins:
+                got = _one_window(ws, self.f_hz, active, outs, cfg, notes, dt, want)
+                if got is not None:
+                    per_window.append(got)
+                    used.append(ws.win_s)
+        longest = max(max(ws.segment_rows) for ws in self.windows) * dt
+        out_pairs = []
+        for i, inp in enumerate(INPUTS):
+            for j, out in enumerate(self.outputs):
+                if want is None or (i, j) in want:
+                    out_pairs.append(_pair(i, j, inp, out, self.f_hz, active, bool(self._avail[j]), per_window, used,
+                                           cfg, longest))
+        return ResponseSet(f_hz=self.f_hz, dt_s=dt, windows_s=tuple(used),
+                           conditioned_on=tuple(INPUTS[i] for i in active), pairs=tuple(out_pairs),
+                           notes=tuple(notes), config=cfg)
+
+
 def estimate_responses(prepared: Any, config: FreqConfig | None = None) -> ResponseSet:
     """Composite conditioned frequency responses of every input -> output pair of ``prepared``.
 
     ``prepared`` is a :class:`groundstation.dsp.prepare.PreparedData` (its unsmoothed outputs are
-    used: the eq.-18 smoothing is a low-pass filter); see the module docstring for the method.
+    used: the eq.-18 smoothing is a low-pass filter); see the module docstring for the method. The
+    segments go through :class:`IncrementalResponses` whole, one after the other: the live excitation
+    monitor's estimate is this one, built as the flight goes.
     """
     cfg = config or FreqConfig()
     dt = float(prepared.dt_s)
     segments = [(np.asarray(s.inputs, float), np.asarray(s.outputs_raw, float)) for s in prepared.segments]
     if not segments:
         raise FreqError("no in-air segments to analyse")
-    notes: list[str] = []
+    # the grid follows the longest window length the segments give enough averages (cheap: lengths only)
     u_all = np.concatenate([s[0] for s in segments])
-    active = [i for i in range(4) if np.nanstd(u_all[:, i]) > cfg.input_active_std]
-    longest_seg_s = max(s[0].shape[0] for s in segments) * dt
-    wins = [w for w in sorted(set(cfg.window_s)) if _enough(segments, w, dt, len(active), cfg, notes)]
-    per_window: list[dict] = []
-    used: list[float] = []
-    f_hz = np.geomspace(1.0, 2.0, cfg.n_freq)
-    if active and wins:
-        f_hz = _frequency_grid(cfg, dt, max(wins))
-        for w in wins:
-            got = _one_window(segments, w, f_hz, dt, active, cfg, notes)
-            if got is not None:
-                per_window.append(got)
-                used.append(w)
-    avail = [any(bool(np.isfinite(s[1][:, j]).any()) for s in segments) for j in range(8)]
-    pairs = []
-    for i, inp in enumerate(INPUTS):
-        for j, out in enumerate(OUTPUTS):
-            pairs.append(_pair(i, j, inp, out, f_hz, active, avail, per_window, used, cfg, longest_seg_s))
-    return ResponseSet(f_hz=f_hz, dt_s=dt, windows_s=tuple(used), conditioned_on=tuple(INPUTS[i] for i in active),
-                       pairs=tuple(pairs), notes=tuple(notes), config=cfg)
+    q = sum(1 for i in range(N_INPUTS) if np.nanstd(u_all[:, i]) > cfg.input_active_std)
+    usable = []
+    for w in sorted(set(cfg.window_s)):
+        length, step, taper = _window_geometry(w, dt, cfg)
+        n_d = sum(effective_averages((s[0].shape[0] - length) // step + 1, length, step, taper)
+                  for s in segments if s[0].shape[0] >= length) - (max(q, 1) - 1)
+        if n_d >= cfg.min_averages:
+            usable.append(w)
+    f_hz = _frequency_grid(cfg, dt, max(usable)) if usable and q else np.geomspace(1.0, 2.0, cfg.n_freq)
+    inc = IncrementalResponses(dt, cfg, OUTPUTS, f_hz=f_hz)
+    for u, y in segments:
+        inc.add(u, y)
+        inc.end_segment()
+    return inc.responses()
 
 
-def _pair(i: int, j: int, inp: str, out: str, f_hz: np.ndarray, active: list[int], avail: list[bool],
+def _pair(i: int, j: int, inp: str, out: str, f_hz: np.ndarray, active: list[int], avail: bool,
           per_window: list[dict], used_s: list[float], cfg: FreqConfig, longest_seg_s: float) -> PairResponse:
     if i not in active:
         return _no_response(inp, out, f_hz, f"input {inp} never moves (std below {cfg.input_active_std:g})")
-    if not avail[j]:
+    if not avail:
         return _no_response(inp, out, f_hz, f"output {out} not measured")
     parts = [w[(i, j)] for w in per_window if (i, j) in w]
     lengths = [t for t, w in zip(used_s, per_window, strict=True) if (i, j) in w]

@@ -376,6 +376,12 @@ def conditional_names(ranked: list[attribute.Candidate], cands: list[attribute.C
         if res is None:
             continue
         hb, s, etn = res
+        # what it removes once the first is in (the shares of the named effects: no double count)
+        given_base = hb.extra.get("base_sse", cctx.base_sse) if hb.effect == "wind_gust" else cctx.base_sse
+        for ex in (b.hyp.extra, hb.extra):
+            ex["sse_given"], ex["base_given"] = hb.sse, given_base
+            if hb.effect == "wind_gust":
+                ex["share_ref"] = given_base
         b.hyp.extra[f"p_given_{top.hyp.effect}"] = s.p_value
         b.hyp.extra[f"score_given_{top.hyp.effect}"] = s.score_pct
         b.hyp.extra[f"effect_to_noise_given_{top.hyp.effect}"] = etn
@@ -492,6 +498,7 @@ def second_given_air_mass(top: attribute.Candidate, cands: list[attribute.Candid
         s = attribute.score(m_g, hg.sse, ctx.ev.energy, b.hyp.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
         s.p_value = attribute.paired_bootstrap(m_g.sum(1), hg.sse.sum(1), rng, cfg.n_boot)
         b.hyp.extra["p_given_wind_gust"] = s.p_value
+        b.hyp.extra.update(sse_given=hg.sse, base_given=m_g, share_ref=top.hyp.extra.get("base_sse"))
         b.hyp.extra["score_given_wind_gust"] = s.score_pct
         ok = bool(s.p_value < crit2 and gain_ok(s, cfg))
         given = (f"adds {s.score_pct:+.1f}% (p={s.p_value:.2g} against {crit2:.2g}, gap on its channels "

@@ -81,6 +81,9 @@ class DiagnoseConfig:
     #: 0.65-1.7 m/s sigma were fitted at 1.8-8 m/s. The resolvable level is the larger of this and
     #: ``excitation_snr`` x the velocity sensors' measured white noise.
     gust_min_rms_m_s: float = 0.3
+    #: significance of the rank correlation between a window's residual energy and a flight condition
+    #: (input amplitude, input rate, height) that the report names as the gap's ``conditions``
+    conditions_alpha: float = 0.01
     #: ground effect is untestable when the in-air height spans less than this (m): below a rotor
     #: radius of a small helicopter the excess lift hardly varies over the flight
     ground_effect_min_height_span_m: float = 0.5
@@ -103,6 +106,17 @@ class DiagnoseConfig:
     #: on at least one output (on a long flight a structure a fraction of the noise is significant
     #: and still no departure: 1 = as large as the noise, the rule of data compatibility's findings)
     structure_min_effect_to_noise: float = 1.0
+
+    # ------------------------------------------------------------------ shares and consistency
+    #: the verdict names effects unless, together, they remove less than this share (percent) of
+    #: the held-out gap above the noise floor with the whole 5-95 % interval (bootstrap over
+    #: held-out windows) below it; then the verdict is ``unexplained`` and they are partial findings
+    explained_share_min_pct: float = 50.0
+    #: bootstrap resamples (over held-out windows) of every share interval
+    share_n_boot: int = 1000
+    #: a named effect "changes through the flight" only when the other half's value gives up more
+    #: than this fraction of the effect's own gain in a half (besides being rejected at the level)
+    consistency_min_loss: float = 0.25
 
     # ------------------------------------------------------------------ data compatibility
     #: window over which the kinematics are integrated (s): long enough to lever a scale factor,

@@ -46,6 +46,7 @@ from groundstation.gap import (
     hypotheses,
     locate,
     noise,
+    shares,
     structure,
 )
 from groundstation.gap.config import DiagnoseConfig
@@ -198,6 +199,7 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
     att = attribute_stage(base, loc, prepared, cfg, rng, seed, pmap)
     tests = structure_stage(base, loc, att, cfg, rng)
     dec = decide_stage(base, loc, att, comp, tests, cfg)
+    dec, verdict_info = verdict_stage(base, loc, att, dec, tests, cfg, np.random.default_rng((seed, 26)))
     ev = base.ev
     report = build_report(
         verdict=dec.verdict, channels=loc.chan, worst=loc.worst, windows_s=loc.windows_s, band=loc.band,
@@ -213,6 +215,11 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
     # where and how the model departs, whatever the verdict, when the departure is above the noise
     report["departure"] = (dec.unexplained or _unexplained_evidence(base, loc, tests, cfg)) \
         if loc.gap_significant else None
+    info = dict(verdict_info["report"])
+    report["notes"] = list(report.get("notes", [])) + info.pop("notes_add")
+    report.update(info)
+    for e, c in zip(report["effects"], dec.ranked, strict=True):
+        e.update(verdict_info["per_effect"].get(id(c), {}))
     report["structure_tests"] = [{**dataclasses.asdict(t), "effect_to_noise": round(t.effect_to_noise, 2)
                                   if np.isfinite(t.effect_to_noise) else None} for t in tests]
     arrays = {"t_s": ev.T, "Y": ev.Y, "Yraw": ev.Yraw, "yhat": loc.yhat_ho, "mask": ev.mask, "flag": loc.flag,
@@ -336,7 +343,7 @@ def locate_stage(base: Base, prepared: Any, cfg: DiagnoseConfig) -> Located:
     windows_s = locate.merge_intervals([(float(ev.T[i, 0]), float(ev.T[i, -1] + dt)) for i in np.flatnonzero(flag)])
     noise_psd = 2 * dt * nf["sigma_smoothed"] ** 2
     band = locate.worst_band(e[:, ev.start:], ev.U[:, ev.start:], dt, noise_psd, ev.w8)
-    cond = locate.conditions(energy_w, _window_features(ev))
+    cond = locate.conditions(energy_w, _window_features(ev), alpha=cfg.conditions_alpha)
     ho_nrmse = np.array([np.sqrt((e_w[:, ev.start:, c] ** 2).sum() / ev.energy[:, c].sum())
                          if ev.energy[:, c].sum() > 0 else np.nan for c in range(8)])
     gap_ratio = ho_nrmse / np.where(nf["nrmse_floor"] > 0, nf["nrmse_floor"], np.nan)
@@ -664,6 +671,186 @@ def decide_stage(base: Base, loc: Located, att: Attributed, comp: compat.Compati
                               for c in range(8)}}
     return Decision(verdict=verdict, ranked=ranked, others=[c for c in att.candidates if not c.significant],
                     untestable=untestable, excitation=excitation, unexplained=unexplained)
+
+
+def _effect_label(c: attribute.Candidate) -> str:
+    ch = c.hyp.input or c.hyp.output
+    return c.hyp.effect.replace("_", " ") + (f" {ch}" if ch else "")
+
+
+def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, tests: list[structure.StructureTest],
+                  cfg: DiagnoseConfig, rng: np.random.Generator) -> tuple[Decision, dict[str, Any]]:
+    """The named effects' shares of the gap above the noise, and whether each holds through the flight.
+
+    Each named effect is estimated again in the first and the second half of the flight
+    (:func:`groundstation.gap.shares.consistency`); one whose halves disagree is not named as a
+    constant effect: the change through the flight is a finding of its own. The effects left are
+    named only when together they remove at least ``explained_share_min_pct`` of the held-out gap
+    above the noise floor; otherwise the verdict is ``unexplained``, they are listed as partial
+    findings with their shares, and the report says where the rest lies and what it looks like.
+    A flight too short to split in halves says so in a note; its effects are marked not checked.
+    """
+    ev, ctx = base.ev, att.ctx
+    base_sse = ctx.base_sse
+    noise_sse = shares.noise_cost(ev, loc.nf["sigma_smoothed"])
+    avail = base.avail & loc.out_excited
+    ranked = list(dec.ranked)
+    notes: list[str] = []
+    cons: dict[int, dict[str, Any]] = {}
+    min_w = max(cfg.min_windows, 2 * cfg.folds)
+    if ranked:
+        if ev.W < 2 * min_w:
+            notes.append(f"flight too short to split in halves ({ev.W} windows of {cfg.window_s:g} s, "
+                         f"{2 * min_w} needed): the named effects are not checked for consistency through the flight")
+            cons = {id(c): {"status": "not_checked", "why": "flight too short to split in halves"} for c in ranked}
+        else:
+            segs_h = shares.split_segments(base.segs, ev)
+            level = cfg.alpha / (2 * len(ranked))
+            arrays = None
+            if any(c.hyp.effect == "rotor_vibration" for c in ranked):
+                yfit = ev.simulate(ev.theta0)[0]
+                arrays = {"resid_raw": (ev.Yraw - yfit)[:, ev.start:], "U": ev.U[:, ev.start:],
+                          "line_channels": base.avail & (np.arange(8) >= 3)}
+            for c in ranked:
+                cons[id(c)] = shares.consistency(
+                    c, segs_h, ev, np.asarray(c.hyp.extra.get("theta_refit", ev.theta0)), level,
+                    cfg.consistency_min_loss, min_w, rng, cfg.n_boot, cfg.window_alpha, arrays)
+    changing = [c for c in ranked if cons.get(id(c), {}).get("status") == "changes"]
+    kept = [c for c in ranked if c not in changing]
+    # what each effect removes: the first on its own, later ones given the first (no double count)
+    rem = {id(c): shares.removal(c, base_sse, first=(i == 0)) for i, c in enumerate(ranked)}
+    if kept and kept[0] is not ranked[0]:
+        rem[id(kept[0])] = shares.removal(kept[0], base_sse, first=True)
+    sh_all = shares.compute_shares([(_effect_label(c), rem[id(c)]) for c in ranked], base_sse, noise_sse, avail,
+                                   rng, cfg.share_n_boot)
+    sh = shares.compute_shares([(_effect_label(c), rem[id(c)]) for c in kept], base_sse, noise_sse, avail,
+                               rng, cfg.share_n_boot)
+    per_effect: dict[int, dict[str, Any]] = {}
+    for c, pe in zip(ranked, sh_all.per_effect, strict=False):
+        per_effect[id(c)] = {"share_pct": pe["share_pct"], "share_interval_pct": pe["interval_pct"],
+                             "consistency": cons.get(id(c), {"status": "not_checked", "why": ""})}
+    for c in ranked:
+        per_effect.setdefault(id(c), {"share_pct": None, "share_interval_pct": None,
+                                      "consistency": cons.get(id(c), {"status": "not_checked", "why": ""})})
+    # "most of the gap": refuted only when the share's whole 5-95 % interval lies below the level
+    # (the windows' own spread decides, not the point estimate alone), and only where there is a
+    # gap to share: a gap within a few times the noise (not significant, section 1) is a small
+    # difference of two large numbers, and the noise floor itself is an estimate
+    explained = sh.interval_pct[1] if sh.interval_pct is not None else sh.explained_pct
+    named_ok = bool(kept) and (not loc.gap_significant or explained is None
+                               or explained >= cfg.explained_share_min_pct)
+    verdict, unexplained = dec.verdict, dec.unexplained
+    partial = []
+    if ranked and not named_ok:
+        partial = ranked
+        kept = []
+        verdict = "unexplained"
+    elif changing:
+        partial = changing
+    if verdict == "unexplained" and unexplained is None:
+        unexplained = _unexplained_evidence(base, loc, tests, cfg)
+    cols = [OUTPUTS.index(n) for n in sh.channels]
+    removed = sum((rem[id(c)] for c in (kept or ranked)), np.zeros_like(base_sse))
+    over_time = shares.gap_over_time(ev, base_sse, noise_sse, removed, cols)
+    changes = [{"effect": c.hyp.effect, "channel": c.hyp.input or c.hyp.output, **cons[id(c)]} for c in changing]
+    rest = _rest_of_gap(sh, loc, over_time, unexplained)
+    headline = _headline(kept, partial, sh if kept else sh_all, changes, rest, cfg, loc.gap_significant)
+    if unexplained is not None:
+        unexplained = dict(unexplained)
+        unexplained["what_it_looks_like"] = list(unexplained.get("what_it_looks_like", []))
+        for ch in changes:
+            unexplained["what_it_looks_like"].insert(0, f"the {ch['effect'].replace('_', ' ')} "
+                                                        f"{ch['channel'] or ''} changes through the flight: {ch['why']}")
+        unexplained["explained_pct"] = None if sh_all.explained_pct is None else round(sh_all.explained_pct, 1)
+    share_block = {
+        "explained_pct": None if sh.explained_pct is None else round(sh.explained_pct, 1),
+        "interval_pct": None if sh.interval_pct is None else [round(v, 1) for v in sh.interval_pct],
+        "unexplained_pct": None if sh.explained_pct is None else round(100.0 - min(max(sh.explained_pct, 0.0), 100.0), 1),
+        "partial_explained_pct": None if not partial or sh_all.explained_pct is None else round(sh_all.explained_pct, 1),
+        "excess_pct_of_cost": round(sh.excess_pct_of_cost, 1),
+        "gap_significant": bool(loc.gap_significant),
+        "channels": sh.channels,
+        "per_channel": sh.per_channel if kept else sh_all.per_channel,
+        "per_effect": sh.per_effect if kept else sh_all.per_effect,
+        "rule": (f"effects are named unless together they remove less than {cfg.explained_share_min_pct:g} % of the "
+                 f"held-out gap above the noise floor with the whole 5-95 % interval (bootstrap over held-out "
+                 f"windows) below it, on a significant gap (at least {cfg.gap_channels_min} excited channels above "
+                 f"{cfg.gap_ratio_significant:g}x their noise); and each holds through the flight (the halves' "
+                 f"estimates agree)"),
+        "rest": rest,
+        "headline": headline,
+    }
+    from groundstation.gap.report import _effect_entry
+
+    partial_entries = []
+    for c in partial:
+        e = _effect_entry(c)
+        e.update(per_effect[id(c)])
+        partial_entries.append(e)
+    rep = {"shares": share_block, "partial_findings": partial_entries,
+           "through_flight": {"checked": bool(cons) and not any(v.get("why") == "flight too short to split in halves"
+                                                               for v in cons.values()),
+                              **over_time, "changes": changes},
+           "verdict": verdict, "unexplained": unexplained}
+    new = dataclasses.replace(dec, verdict=verdict, ranked=kept, unexplained=unexplained)
+    rep["notes_add"] = notes
+    return new, {"report": rep, "per_effect": per_effect}
+
+
+def _rest_of_gap(sh: shares.Shares, loc: Located, over_time: dict, unexplained: dict | None) -> dict[str, Any]:
+    """Where the part of the gap the named effects leave lies: channels, band, time and condition."""
+    chans = {k: v for k, v in sh.per_channel.items() if v.get("excess_share_pct")}
+
+    def left(v: dict) -> float:  # the channel's part of the gap above noise the named effects leave
+        x = v.get("explained_pct")
+        return float(v.get("excess_share_pct") or 0.0) * (1.0 - (0.0 if x is None else min(max(x, 0.0), 100.0)) / 100.0)
+
+    top = sorted(chans.items(), key=lambda kv: -left(kv[1]))[:3]
+    halves = over_time.get("halves", [])
+    return {"channels": [{"channel": k, "excess_share_pct": v["excess_share_pct"], "gap_to_noise": v["gap_to_noise"],
+                          "explained_pct": v.get("explained_pct")} for k, v in top],
+            "band_hz": loc.band.get("band_hz"), "condition": loc.cond.get("label", "none"),
+            "halves_excess_share_pct": [h.get("excess_share_pct") for h in halves],
+            "trend": over_time.get("trend"),
+            "what_it_looks_like": list((unexplained or {}).get("what_it_looks_like", []))[:4]}
+
+
+def _headline(kept: list[attribute.Candidate], partial: list[attribute.Candidate], sh: shares.Shares,
+              changes: list[dict], rest: dict[str, Any], cfg: DiagnoseConfig, significant: bool = True) -> str:
+    """One sentence a user reads first: how much of the gap above noise the named effects explain."""
+    if sh.explained_pct is None:
+        if kept:
+            return ("the held-out gap is at the noise floor on every channel; named on its own tests: "
+                    + ", ".join(_effect_label(c) for c in kept))
+        return "the held-out gap is at the noise floor: nothing to explain"
+    x = min(max(sh.explained_pct, 0.0), 100.0)
+    lo, hi = sh.interval_pct or (float("nan"), float("nan"))
+    iv = f"interval {lo:.0f} to {hi:.0f} %"
+    where = ", ".join(f"{c['channel']} ({c['gap_to_noise']:g}x noise)" for c in rest["channels"])
+    extra = []
+    if rest.get("band_hz"):
+        extra.append(f"{rest['band_hz'][0]:g}-{rest['band_hz'][1]:g} Hz")
+    if rest.get("condition") not in (None, "none"):
+        extra.append(f"grows with {rest['condition']}")
+    hs = rest.get("halves_excess_share_pct") or []
+    if len(hs) == 2 and all(v is not None for v in hs):
+        extra.append(f"{hs[0]:.0f} % of it in the first half, {hs[1]:.0f} % in the second")
+    tail = f": it lies in {where}" + (f"; {', '.join(extra)}" if extra else "") if where else ""
+    if kept:
+        names = " and ".join(_effect_label(c) for c in kept)
+        small = ("" if significant else
+                 f" (the gap is small: fewer than {cfg.gap_channels_min} channels above {cfg.gap_ratio_significant:g}x "
+                 f"their noise, so the share is indicative and the effect is named on its own tests)")
+        return (f"{x:.0f} % of the gap above noise is explained by {names} ({iv}); "
+                f"{100 - x:.0f} % is not" + (tail if 100 - x >= 20 and significant else "") + small)
+    if partial:
+        names = " and ".join(_effect_label(c) for c in partial)
+        why = (f"clearly below the {cfg.explained_share_min_pct:g} % needed to name them" if not changes else
+               "and " + "; ".join(f"the {ch['effect'].replace('_', ' ')} changes through the flight" for ch in changes))
+        verb = "explains" if len(partial) == 1 else "explain"
+        return (f"unexplained: {names} {verb} only {x:.0f} % of the gap above noise ({iv}), "
+                f"{why}; {100 - x:.0f} % is not explained" + tail)
+    return "no catalogue effect explains the gap above noise (0 % explained)" + tail
 
 
 def _window_features(ev: Evaluator) -> dict[str, np.ndarray]:

@@ -85,7 +85,8 @@ def simulate(
 
     Returns
     -------
-    yhat : array (C, W, L, 8)
+    yhat : array (C, W, L, 8); NaN for a candidate whose simulation runs away (an unstable
+        parameter vector whose states overflow within a window): callers reject non-finite costs
     coef : array (C, W, n_unknown + K), only with ``return_coef``: fitted initial-state corrections
         then the K nuisance coefficients
     """
@@ -113,13 +114,23 @@ def simulate(
     forced_u = np.einsum("wlm,cmn->lcwn", u_all, BdT, optimize=True)  # (L, C, W, 11)
     ys = np.empty((L, C, Wn, N_STATES))
     fs = np.empty((L, C, nu, N_STATES))
-    for k in range(L):
-        ys[k] = x
-        fs[k] = e
-        x = np.matmul(x, AdT) + forced_u[k]
-        e = np.matmul(e, AdT)
+    # an unstable candidate (a search or a Levenberg-Marquardt trial step) can overflow within a
+    # window: it is simulated without warnings, zeroed for the least squares and returned as NaN
+    with np.errstate(over="ignore", invalid="ignore"):
+        for k in range(L):
+            ys[k] = x
+            fs[k] = e
+            x = np.matmul(x, AdT) + forced_u[k]
+            e = np.matmul(e, AdT)
+    runaway = ~(np.isfinite(ys).all(axis=(0, 2, 3)) & np.isfinite(fs).all(axis=(0, 2, 3))
+                & (np.abs(ys).max(axis=(0, 2, 3), initial=0.0) < 1e150))
+    if runaway.any():
+        ys[:, runaway] = 0.0
+        fs[:, runaway] = 0.0
     yhat = np.moveaxis(ys[..., OUT_STATE], 0, 2)  # (C, W, L, 8)
     if not fit_initial:
+        if runaway.any():
+            yhat[runaway] = np.nan
         return yhat
     S = np.moveaxis(fs[..., OUT_STATE], 0, 2)  # (C, nu, L, 8): the same in every window
     r = outputs[None] - yhat  # (C, W, L, 8)
@@ -153,6 +164,8 @@ def simulate(
     yhat = yhat + np.einsum("cwi,cilk->cwlk", a[..., :nu], S)
     if nuisance is not None:
         yhat = yhat + np.einsum("cwk,wlmk->cwlm", a[..., nu:], nuisance)
+    if runaway.any():
+        yhat[runaway] = np.nan
     if return_coef:
         return yhat, a
     return yhat

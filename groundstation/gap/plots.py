@@ -66,18 +66,22 @@ def residual_spectra(arrays: dict[str, Any], report: dict[str, Any], path: Path)
 
 
 def shrink_bars(report: dict[str, Any], path: Path) -> Path:
-    """Per-channel held-out gap shrink of the ranked effects (before/after comparison)."""
-    fig, ax = plt.subplots(figsize=(9, 4))
-    effects = report["effects"] or report.get("candidates", [])[:1]
+    """Per-channel held-out gap shrink of the ranked effects (or the partial findings), titled with
+    the share of the gap above noise they explain (the report's headline)."""
+    fig, ax = plt.subplots(figsize=(9, 4.4))
+    effects = report["effects"] or report.get("partial_findings") or report.get("candidates", [])[:1]
     width = 0.8 / max(len(effects), 1)
     for i, e in enumerate(effects):
         vals = [e["per_channel_shrink"].get(n, 0.0) or 0.0 for n in OUTPUTS]
-        ax.bar(np.arange(8) + i * width, vals, width, label=f"{e['effect']} {e['input'] or e['output'] or ''}")
+        share = f", {e['share_pct']:.0f} % of the gap above noise" if e.get("share_pct") is not None else ""
+        ax.bar(np.arange(8) + i * width, vals, width, label=f"{e['effect']} {e['input'] or e['output'] or ''}{share}")
     ax.axhline(0, color="k", lw=0.5)
     ax.set_xticks(np.arange(8) + 0.4 - width / 2, OUTPUTS)
     ax.set_ylabel("held-out NRMSE shrink [%]")
     ax.legend(fontsize=8)
-    ax.set_title(f"gap before/after adding the effect (verdict {report['verdict']})")
+    head = (report.get("shares") or {}).get("headline") or ""
+    ax.set_title(f"gap before/after adding the effect (verdict {report['verdict']})\n" + "\n".join(
+        head[i:i + 110] for i in range(0, min(len(head), 330), 110)), fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

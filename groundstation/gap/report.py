@@ -1,4 +1,4 @@
-"""The ``heli-gap-report/1`` document (docs/gap-report.md) and the rows of its terminal summary.
+"""The ``heli-gap-report/2`` document (docs/gap-report.md) and the rows of its terminal summary.
 
 :func:`build_report` assembles plain JSON types only (floats rounded, no numpy); the command
 renders :func:`summary_rows` with rich. Pure.
@@ -13,7 +13,7 @@ import numpy as np
 from groundstation.gap.attribute import Candidate
 from groundstation.sysid.model import OUTPUTS, theta_to_dict
 
-SCHEMA = "heli-gap-report/1"
+SCHEMA = "heli-gap-report/2"
 
 
 def _r(x: float, nd: int = 4) -> float | None:
@@ -93,11 +93,40 @@ def summary_rows(report: dict[str, Any]) -> dict[str, list[list[str]]]:
     ratio = report["gap"].get("gap_to_noise_ratio", {})
     chan_rows = [[k, f"{v['match']:.1f}", f"{v['tic']:.3f}", f"{ratio.get(k, float('nan'))}"] for k, v in ch.items()]
     eff_rows = []
-    for e in report["effects"] + report.get("candidates", [])[:4]:
-        sig = "yes" if e in report["effects"] else "no"
-        eff_rows.append([e["effect"], e["input"] or e["output"] or "-", sig, f"{e['score']}",
-                         f"{e['gap_before']} -> {e['gap_after']}", f"{e['shrink_pct']}", e["evidence"]])
+    partial = report.get("partial_findings") or []
+    for e in report["effects"] + partial + report.get("candidates", [])[:4]:
+        sig = "yes" if e in report["effects"] else ("partial" if e in partial else "no")
+        eff_rows.append([e["effect"], e["input"] or e["output"] or "-", sig, share_text(e), f"{e['score']}",
+                         f"{e['gap_before']} -> {e['gap_after']}", f"{e['shrink_pct']}",
+                         (e.get("consistency") or {}).get("status", "-"), e["evidence"]])
     return {"channels": chan_rows, "effects": eff_rows}
+
+
+def share_text(e: dict[str, Any]) -> str:
+    """An effect's share of the gap above noise with its interval, e.g. ``62 % (48-75)``; ``-`` when none."""
+    sp, iv = e.get("share_pct"), e.get("share_interval_pct")
+    if sp is None:
+        return "-"
+    return f"{sp:.0f} %" + (f" ({iv[0]:.0f}-{iv[1]:.0f})" if iv and None not in iv else "")
+
+
+def through_flight_lines(report: dict[str, Any]) -> list[str]:
+    """What the report says about the flight's first and second half, in sentences."""
+    tf = report.get("through_flight") or {}
+    out = []
+    for ch in tf.get("changes") or []:
+        out.append(f"changes through the flight: {ch['effect']} {ch.get('channel') or ''}: {ch.get('why', '')}")
+    for e in report.get("effects") or []:
+        c = e.get("consistency") or {}
+        if c.get("status") == "not_checked":
+            out.append(f"{e['effect']} {e.get('input') or e.get('output') or ''}: not checked for consistency "
+                       f"through the flight ({c.get('why') or 'no reason given'})")
+    hv = tf.get("halves") or []
+    if len(hv) == 2 and all(h.get("excess_share_pct") is not None for h in hv):
+        out.append(f"gap above noise: {hv[0]['excess_share_pct']:.0f} % in the first half "
+                   f"({hv[0]['t_s'][0]:.0f}-{hv[0]['t_s'][1]:.0f} s), {hv[1]['excess_share_pct']:.0f} % in the second "
+                   f"({hv[1]['t_s'][0]:.0f}-{hv[1]['t_s'][1]:.0f} s)")
+    return out
 
 
 def frequency_section(verification: Any) -> dict[str, Any]:

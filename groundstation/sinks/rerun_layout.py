@@ -14,6 +14,9 @@ Entity tree under ``/{vehicle}`` (every scalar on the ``fc_time`` timeline, flig
     flights/{n}/spectrum/{u..phi}/{psd,floor,lines}     residual spectrum in dB, frequency in Hz
     flights/{n}/effects/{label}/{u..phi}/{before,after} held-out NRMSE per window with/without an effect
     flights/{n}/bode/{input}_{output}/{magnitude,phase,coherence}/{data,model}   at log10(f / Hz)
+    excitation/{lat,lon,col,ped}/coherence   live excitation monitor: coherence vs log10(f / Hz), on fc_time
+    excitation/covered/{lat,lon,col,ped}     % of each axis's band covered by coherent data (time series)
+    excitation/summary                       the monitor's status line (text)
 
 :func:`blueprint` lays these out as one tab per flight (latest first, opened on the whole flight:
 every plot of the tab shows the flight's FC-time span, not a window at t = 0) plus a session tab.
@@ -165,17 +168,31 @@ def _session_tab(v: str, span: FlightViews | None) -> rrb.Container:
     return rrb.Vertical(top, grid, row_shares=[1, 3], name="session" if span is not None else "session (live)")
 
 
+def _excitation_tab(v: str) -> rrb.Container:
+    e = f"{v}/excitation"
+    bars = [rrb.BarChartView(origin=f"{e}/{a}/coherence", name=f"{a}: coherence [0-1] vs log10 f [Hz] · green enough",
+                             plot_legend=rrb.PlotLegend(visible=False)) for a in INPUTS]
+    covered = rrb.TimeSeriesView(origin=f"{e}/covered", name="band covered by coherent data [%]",
+                                 plot_legend=rrb.PlotLegend(rrb.Corner2D.LeftTop))
+    top = rrb.Horizontal(covered, rrb.TextDocumentView(origin=f"{e}/summary", name="excitation: enough?"),
+                         column_shares=[2, 1])
+    return rrb.Vertical(top, rrb.Grid(*bars, grid_columns=2), row_shares=[1, 2], name="excitation")
+
+
 def blueprint(vehicle: str, flights: Sequence[FlightViews] = (), session: tuple[float, float] | None = None,
-              opening: str = "") -> rrb.Blueprint:
+              opening: str = "", excitation: bool = False) -> rrb.Blueprint:
     """One tab per finished flight, latest first and active, then the whole session.
 
     ``session``: the session's FC-time span for a saved file (its tab then shows all of it); None
     for a live viewer (the plots follow the newest data). ``opening``: the latest flight's sub-tab
-    to open on (``model vs measured`` by default, ``gap``, ``frequency responses``).
+    to open on (``model vs measured`` by default, ``gap``, ``frequency responses``). ``excitation``: the
+    recording holds the live excitation monitor (a tab after the session's).
     """
     v = f"/{vehicle}"
     order = sorted(flights, key=lambda f: -f.flight)
     tabs = [_flight_tab(v, fv, opening if k == 0 else "") for k, fv in enumerate(order)]
     tabs.append(_session_tab(v, FlightViews(0, session[0], session[1]) if session else None))
+    if excitation:
+        tabs.append(_excitation_tab(v))
     return rrb.Blueprint(rrb.Tabs(*tabs, active_tab=0), rrb.TimePanel(timeline="fc_time", state="collapsed"),
                          rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"))

@@ -115,6 +115,7 @@ class RerunSink:
         self._buf_rows: dict[str, int] = {}
         self._last_flush = time.monotonic()
         self._state = ""
+        self.has_excitation = False
         self._t_first, self._t_last = np.inf, -np.inf      # FC-time span of the rows seen
         self.rows = 0
         self._properties(aircraft)
@@ -244,6 +245,30 @@ class RerunSink:
         self.stream.set_time("fc_time", duration=float(t_fc_s))
         self.stream.log(f"{self.root}/flight/state", rr.StateChange(state=state))
 
+    def log_excitation(self, report: Any) -> None:
+        """One verdict of the live excitation monitor (:class:`groundstation.dsp.excitation.ExcitationReport`)
+        at its FC time: per axis the coherence against log10(f / Hz) (bars, green where the axis is enough;
+        scrubbing ``fc_time`` shows it build up), the share of the axis's band covered by coherent data (%)
+        and the status line."""
+        e = f"{self.root}/excitation"
+        if not self.has_excitation:
+            for a in report.axes:
+                self.stream.log(f"{e}/covered/{a}", rr.SeriesLines(names=[f"{a} band covered"]), static=True)
+        self.stream.set_time("fc_time", duration=float(report.t_fc_s))
+        for a, av in report.axes.items():
+            f = np.asarray(av.f_hz, dtype=float)
+            ok = f > 0
+            x = np.log10(f[ok])
+            df = float(np.median(np.diff(x))) if x.size > 1 else 0.05
+            color = (44, 160, 44) if av.enough else (255, 127, 14)
+            self.stream.log(f"{e}/{a}/coherence", rr.BarChart(np.nan_to_num(np.asarray(av.coherence, dtype=float)[ok]),
+                                                              abscissa=x, widths=[df], color=color))
+            self.stream.log(f"{e}/covered/{a}", rr.Scalars(100.0 * av.covered_fraction))
+        self.stream.log(f"{e}/summary", rr.TextDocument(report.line().replace("; ", "\n\n")))
+        if not self.has_excitation:
+            self.has_excitation = True
+            self._send_blueprint()
+
     # ------------------------------------------------------------------ flights
 
     def flight_ended(self, flight: int, t_start_s: float, t_end_s: float) -> None:
@@ -278,7 +303,8 @@ class RerunSink:
         span = (self._t_first, self._t_last) if final and self._t_first <= self._t_last else None
         flights = list(self.flights.values())
         self.stream.send_property("views", rr.AnyValues(json=views_to_json(flights, span)))
-        self.stream.send_blueprint(blueprint(self.vehicle, flights, span), make_active=True, make_default=True)
+        self.stream.send_blueprint(blueprint(self.vehicle, flights, span, excitation=self.has_excitation),
+                                   make_active=True, make_default=True)
 
     def log_result(self, result: Any, overlay: Mapping[str, np.ndarray] | None = None, pictures: Any = None) -> None:
         """A worker result (mapping or dataclass): model overlay, residuals, fit, gap, Bode.

@@ -134,6 +134,14 @@ def _effect_lines(e: Mapping[str, Any], alpha: Any) -> list[str]:
     sure += f", family-wise α = {alpha})" if alpha is not None else ")"
     if _num(lo) is not None and _num(hi) is not None:
         sure += f"; gap on its channels shrinks {e.get('shrink_pct', 0) or 0:.0f} % (interval {lo:.0f}–{hi:.0f} %)"
+    if _num(e.get("share_pct")) is not None:
+        iv = e.get("share_interval_pct") or [None, None]
+        sure += f"; removes {e['share_pct']:.0f} % of the gap above noise" + (
+            f" (interval {iv[0]:.0f}–{iv[1]:.0f} %)" if _num(iv[0]) is not None and _num(iv[1]) is not None else "")
+    cs = (e.get("consistency") or {}).get("status")
+    if cs:
+        sure += {"holds": "; holds through the flight", "changes": "; changes through the flight",
+                 "not_checked": "; not checked through the flight"}.get(cs, "")
     step = NEXT_STEP.get(str(e.get("effect")), "").format(input=e.get("input") or "?", output=e.get("output") or "?")
     return [f"- **Found:** {str(e.get('effect', '')).replace('_', ' ')} {where}" + (f" ({est})" if est else ""),
             f"- *Evidence:* {e.get('evidence') or '–'}", f"- **How sure:** {sure}", f"- **Next:** {step}", ""]
@@ -145,11 +153,21 @@ def verdict_text(flight: int, gap: Mapping[str, Any]) -> str:
     g = gap.get("gap") or {}
     alpha = (gap.get("method") or {}).get("alpha")
     lines = [f"## Flight {flight}: verdict **{verdict.replace('_', ' ') or '–'}**", ""]
+    sh = gap.get("shares") or {}
+    if sh.get("headline"):
+        lines += [f"**{sh['headline']}**", ""]
     for e in (gap.get("effects") or [])[:3]:
         lines += _effect_lines(e, alpha)
+    for e in (gap.get("partial_findings") or [])[:3]:
+        lines += ["*Partial finding (not named):*"] + _effect_lines(e, alpha)
+    from groundstation.gap.report import through_flight_lines
+
+    lines += [f"- {t}" for t in through_flight_lines(gap)] + ([""] if gap.get("through_flight") else [])
     if verdict in ("none", "unexplained"):
         sig = "significant" if g.get("significant") else "not significant"
-        lines += [f"- **Found:** no catalogue effect beats the base model on held-out data; the remaining gap is {sig}.",
+        found = ("the effects found explain too little of the gap, or change through the flight (partial findings above)"
+                 if gap.get("partial_findings") else "no catalogue effect beats the base model on held-out data")
+        lines += [f"- **Found:** {found}; the remaining gap is {sig}.",
                   f"- **Next:** {NEXT_STEP[verdict]}.", ""]
         best = (gap.get("candidates") or [])[:1]
         if best:

@@ -4,11 +4,13 @@ Keys (JSON payloads, encoding ``application/json``):
 
 * ``heli/{vehicle}/status``                 about 1 Hz (congestion control DROP)
 * ``heli/{vehicle}/telemetry/window``       smoothed windows, a few Hz (DROP)
+* ``heli/{vehicle}/excitation``             the live excitation verdict per axis, about 1 Hz while armed (DROP)
 * ``heli/{vehicle}/flight/{n}/model``       once per identified flight (BLOCK, reliable)
 * ``heli/{vehicle}/flight/{n}/gap``         once per diagnosed flight (BLOCK, reliable)
 * ``heli/{vehicle}/flight/{n}/freq``        the model's frequency-domain check (Tischler J per
   input-output pair), once per identified flight (BLOCK, reliable)
 * ``heli/{vehicle}/trends``                 trend summary over the vehicle's flights, after each one (BLOCK, reliable)
+* ``heli/{vehicle}/flight/{n}/report``      the flight's HTML page: its path and a one-line summary (BLOCK, reliable)
 * queryables ``heli/{vehicle}/model/latest`` and ``heli/{vehicle}/gap/latest`` (late subscribers)
 * liveliness token ``heli/{vehicle}/alive``
 
@@ -166,7 +168,8 @@ class ZenohSink:
         self._windows_waiting = 0
         self._lock = threading.Lock()
         self.latest: dict[str, dict | None] = {"model": None, "gap": None, "trends": None}
-        self.sent: dict[str, int] = {"status": 0, "window": 0, "model": 0, "gap": 0, "freq": 0, "trends": 0}
+        self.sent: dict[str, int] = {"status": 0, "window": 0, "excitation": 0, "model": 0, "gap": 0, "freq": 0, "trends": 0,
+                                     "report": 0}
         self.windows_dropped = 0
         self.queries_served = 0
         #: (seq, t_host_last_s, t_published_s) of recent windows, for latency measurement
@@ -202,6 +205,8 @@ class ZenohSink:
                                                 congestion_control=zenoh.CongestionControl.DROP),
             "window": session.declare_publisher(f"{p}/telemetry/window", encoding=json_enc,
                                                 congestion_control=zenoh.CongestionControl.DROP),
+            "excitation": session.declare_publisher(f"{p}/excitation", encoding=json_enc,
+                                                    congestion_control=zenoh.CongestionControl.DROP),
         }
         self._entities = [
             session.declare_queryable(f"{p}/model/latest", self._make_handler("model")),
@@ -236,6 +241,11 @@ class ZenohSink:
     def publish_status(self, doc: dict) -> None:
         self._q.put_nowait(("status", None, doc))
 
+    def publish_excitation(self, doc: dict | Callable[[], dict]) -> None:
+        """The live excitation verdict (``heli/{vehicle}/excitation``; a dict, or a callable making it on
+        the publisher thread); dropped, like the status, under congestion."""
+        self._q.put_nowait(("excitation", None, doc))
+
     def publish_window(self, doc: dict | Callable[[], dict], *, seq: int = -1,
                        t_host_last_s: float = math.nan) -> bool:
         """Enqueue a window (a dict of numbers, or a callable making it, run on the publisher thread);
@@ -260,6 +270,11 @@ class ZenohSink:
         """The ``heli-freq-verification/1`` J table of the flight's model (reliable, like the model)."""
         self._q.put_nowait(("freq", flight, doc))
 
+    def publish_report(self, flight: int, doc: dict) -> None:
+        """Where the flight's HTML page is and its one-line summary (``{"vehicle", "flight", "path", "summary"}``)
+        on ``heli/{vehicle}/flight/{n}/report`` (reliable)."""
+        self._q.put_nowait(("report", flight, doc))
+
     def publish_trends(self, doc: dict) -> None:
         """The latest trend summary over the vehicle's flights on ``heli/{vehicle}/trends`` (reliable)."""
         self.latest["trends"] = doc
@@ -283,7 +298,7 @@ class ZenohSink:
                     self._windows_waiting -= 1
             if self._session is None:
                 if item is not None:
-                    if item[0] in ("model", "gap", "freq", "trends"):
+                    if item[0] in ("model", "gap", "freq", "trends", "report"):
                         backlog.append(item)
                     self._q.task_done()
                 if time.monotonic() >= next_try and not self._closing.is_set():
@@ -302,8 +317,8 @@ class ZenohSink:
             if kind == "window":
                 payload = dumps_numeric(doc() if callable(doc) else doc)
             else:
-                payload = dumps(doc)
-            if kind in ("status", "window"):
+                payload = dumps(doc() if callable(doc) else doc)
+            if kind in ("status", "window", "excitation"):
                 self._pub[kind].put(payload)
                 if kind == "window":
                     seq, t_host = extra

@@ -184,3 +184,11 @@ class WindowedCost:
         e = self.sim.errors(th)
         s = self.sim.scales if sigma is None else np.asarray(sigma, dtype=float)
         return (e / s[None, None, None, :])[..., self.used]
+
+    def residuals_native(self, x: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+        """The residuals of :meth:`residuals` as flat vectors (C, N) in the simulator's own row order
+        (:meth:`~groundstation.sysid.simulate.WindowSimulator.residuals_native`; zeros where a channel
+        is unused): for the normal equations of the refinement, which do not depend on the order."""
+        th = self.full(x)
+        self.nfev += th.shape[0]
+        return self.sim.residuals_native(th, sigma)

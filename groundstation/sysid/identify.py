@@ -61,7 +61,7 @@ from groundstation.sysid.model import (
     bounds_array,
 )
 from groundstation.sysid.optimizers import ALGORITHMS
-from groundstation.sysid.refine import map_objective
+from groundstation.sysid.refine import map_objective, with_standard_errors
 from groundstation.sysid.refine import refine as refine_ls
 from groundstation.sysid.simulate import kinematic_forcing
 
@@ -284,11 +284,14 @@ def _prior_arrays(prior: Any) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def _plan(prepared: Any, cfg: IdentifyConfig, refine: bool, bounds: dict | None, prior: Any,
-          pmap: Map = serial_map) -> _Plan:
+          pmap: Map = serial_map, search: bool = True) -> _Plan:
+    """``search=False``: no search windows (a refit from a model: :func:`refit`, the selection's fits)."""
     win = make_windows(prepared.segments, prepared.dt_s, cfg.window_s, key="identify.window_s", step_s=cfg.window_step_s)
-    win_s = make_windows(prepared.segments, prepared.dt_s, cfg.search_window_s, key="identify.search_window_s")
-    if cfg.search_stride > 1 and win_s.count >= 2 * cfg.search_stride:
-        win_s = subset_windows(win_s, np.arange(0, win_s.count, cfg.search_stride))
+    win_s = None
+    if search:
+        win_s = make_windows(prepared.segments, prepared.dt_s, cfg.search_window_s, key="identify.search_window_s")
+        if cfg.search_stride > 1 and win_s.count >= 2 * cfg.search_stride:
+            win_s = subset_windows(win_s, np.arange(0, win_s.count, cfg.search_stride))
     free, reasons = free_mask(prepared)
     kf = [c.strip() for c in cfg.kinematic_forcing.split(",") if c.strip()]
     if any(c not in ("u", "v", "w") for c in kf):
@@ -298,9 +301,10 @@ def _plan(prepared: Any, cfg: IdentifyConfig, refine: bool, bounds: dict | None,
         trim_vec = np.array([float(prepared.output_trim.get(c, 0.0)) for c in OUTPUTS])
         off = [j for j, c in enumerate(("u", "v", "w")) if c not in kf]
         forcing = kinematic_forcing(win.outputs, trim_vec)
-        forcing_s = kinematic_forcing(win_s.outputs, trim_vec)
         forcing[..., off] = 0.0
-        forcing_s[..., off] = 0.0
+        if win_s is not None:
+            forcing_s = kinematic_forcing(win_s.outputs, trim_vec)
+            forcing_s[..., off] = 0.0
     pr = _prior_arrays(prior)
     if pr is not None and cfg.prior_scale != 1.0:
         pr = (pr[0], pr[1] * float(cfg.prior_scale))
@@ -312,10 +316,17 @@ def _costs(plan: _Plan, cfg: IdentifyConfig, sub: int, sub_free: np.ndarray, the
            trim: bool) -> tuple[WindowedCost, WindowedCost, WindowedCost]:
     """(refinement cost, screening cost, search cost with B by variable projection) of one subsystem."""
     kw = dict(estimate_all_initial=cfg.estimate_all_initial, subsystems=(sub,))
-    cost = WindowedCost(plan.win, sub_free, theta, estimate_trim=trim, forcing=plan.forcing, **kw)  # type: ignore[arg-type]
+    cost = _refine_cost(plan, cfg, sub, sub_free, theta, trim)
     cost_s = WindowedCost(plan.win_s, sub_free, theta, estimate_trim=trim, forcing=plan.forcing_s, **kw)  # type: ignore[arg-type]
     cost_v = WindowedCost(plan.win_s, sub_free, theta, varpro=cfg.varpro, **kw)  # type: ignore[arg-type]
     return cost, cost_s, cost_v
+
+
+def _refine_cost(plan: _Plan, cfg: IdentifyConfig, sub: int, sub_free: np.ndarray, theta: np.ndarray,
+                 trim: bool) -> WindowedCost:
+    """The refinement cost of one subsystem alone (a refit needs no search or screening cost)."""
+    return WindowedCost(plan.win, sub_free, theta, estimate_trim=trim, forcing=plan.forcing,
+                        estimate_all_initial=cfg.estimate_all_initial, subsystems=(sub,))
 
 
 def _progress(callback: Callable[[dict], Any] | None, stage: str, fun: float, nfev: int) -> None:
@@ -366,8 +377,8 @@ def _search_once(alg: str, it: int, label: str, costs: tuple, plan: _Plan, cfg: 
         nfev_round *= 2
     _progress(callback, f"refine {sub_name}{label}", screen_f, cost_s.nfev + cost.nfev)
     ref = refine_ls(cost, starts[0], bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev, prior=prior,
-                    weighting=cfg.channel_weighting,
-                        prior_colour=cfg.prior_weighting == "effective")
+                    weighting=cfg.channel_weighting, with_std=False,
+                    prior_colour=cfg.prior_weighting == "effective")
     return float(ref.fun), ref.x, opt, ref
 
 
@@ -395,7 +406,7 @@ def _extra_starts(best: tuple, costs: tuple, plan: _Plan, cfg: IdentifyConfig, s
         x0 = prior[0] if n == "prior" and prior is not None else np.zeros(int(sub_free.sum()))
         x0 = np.clip(x0, bfree[:, 0] + 1e-6 * span, bfree[:, 1] - 1e-6 * span)
         ref = refine_ls(costs[0], x0, bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev, prior=prior,
-                        weighting=cfg.channel_weighting,
+                        weighting=cfg.channel_weighting, with_std=False,
                         prior_colour=cfg.prior_weighting == "effective")
         F = float(ref.fun) if prior is None or sig_ref is None else map_objective(costs[0], ref.x, sig_ref, prior)
         if F < best[0]:
@@ -445,6 +456,8 @@ def _identify_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], pl
     if refine:
         best = _extra_starts(best, costs, plan, cfg, sub_free, sig_ref)
     F, x, opt, ref, won = best
+    if ref is not None:   # the standard errors of the winner only (each restart's refinement skips them)
+        ref = with_standard_errors(cost, ref, plan.bounds[sub_free], pr)
     run.search_alg[sub_name] = won
     run.F_search += float(opt.fun)
     run.search_by_sub[sub_name] = float(opt.fun)
@@ -610,13 +623,13 @@ def refit(prepared: Any, model: HoverModel, *, config: IdentifyConfig | None = N
     cfg = config or IdentifyConfig()
     _check(cfg, "cabc", prepared)
     with threadpool_limits(1):
-        plan = _plan(prepared, cfg, True, None, prior)
+        plan = _plan(prepared, cfg, True, None, prior, search=False)
         run = _Run(theta=np.clip(model.theta, plan.bounds[:, 0], plan.bounds[:, 1]))
         for sub, sub_params in ((0, HOR_PARAMS), (1, VER_PARAMS)):
             idx = np.array([PARAM_INDEX[p] for p in sub_params])
             sub_free = np.zeros(N_PARAMS, dtype=bool)
             sub_free[idx] = plan.free[idx]
-            cost = _costs(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim)[0]
+            cost = _refine_cost(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim)
             if not cost.used.any():
                 continue
             pr = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])

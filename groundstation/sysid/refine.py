@@ -20,7 +20,7 @@ took the worst |estimate - truth| / std from 5.0 to 3.2 (X_u, Y_v, Z_col were th
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import OptimizeResult, least_squares
+from scipy.optimize import OptimizeResult
 
 from groundstation.sysid.cost import WindowedCost
 
@@ -30,6 +30,11 @@ from groundstation.sysid.cost import WindowedCost
 #: 465 000 page faults and 1.9 s of system time in the Jacobians, 1 MB batches 40 000 and 0.1 s,
 #: with less user time too: the batch stays in cache). The numbers do not depend on it.
 JAC_CHUNK_BYTES = 1e6
+#: the same for the refinement's normal equations (:func:`levenberg_marquardt`): without the transposed
+#: 8-channel error arrays their temporaries are a fraction of these bytes, and with freed memory kept
+#: for reuse (:func:`groundstation.parallel.keep_freed_memory`) batches of 4 MB made no page faults and
+#: were 20-25 % faster than 1 MB (fewer, larger batched products; simulated and real TREX 550 flights)
+NORMAL_CHUNK_BYTES = 4e6
 
 
 def _fd_step(x: np.ndarray, span: np.ndarray) -> np.ndarray:
@@ -75,19 +80,7 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
         if prior is not None and prior_colour:
             sig = sigma * np.sqrt(residual_tau(cost.residuals(x[None], sigma)[0], cost.used))
 
-        def fun(xx: np.ndarray, sig=sig) -> np.ndarray:
-            r = cost.residuals(xx[None], sig)[0].ravel()
-            return r if pm is None else np.concatenate([r, (xx - pm) / ps])
-
-        def jac(xx: np.ndarray, sig=sig) -> np.ndarray:
-            h = _fd_step(xx, span)
-            # step away from the bound we are close to
-            h = np.where(xx + h > hi, -h, h)
-            J = _fd_jacobian(cost, xx, h, sig, central=False, reuse=True)
-            return J if ps is None else np.vstack([J, np.diag(1.0 / ps)])
-
-        res = least_squares(fun, x, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac", max_nfev=max_nfev,
-                            ftol=1e-10, xtol=1e-10, gtol=1e-10)
+        res = levenberg_marquardt(cost, x, lo, hi, sig, max_nfev=max_nfev, prior=prior)
         x = res.x
         sigma = _sigma(cost, x, weighting)
     assert res is not None
@@ -95,17 +88,136 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
     std = np.full(x.size, np.nan)
     share = np.zeros(x.size)
     if with_std:
-        J = jac_final(cost, x, sigma, span, hi)
-        r = cost.residuals(x[None], sigma)[0]
-        if ps is None:
-            std = coloured_std(J, r)
-        else:
-            std, share = posterior_std(coloured_cov(J, r), ps)
+        J, std, share = standard_errors(cost, x, sigma, b, ps)
     F = float(cost(x[None])[0])
     map_cost = float(res.cost)
+    nit = int(res.nfev)
     return OptimizeResult(x=x, fun=F, sigma=sigma, std=std, nfev=cost.nfev - nfev0, jac=J, success=bool(res.success),
-                          message=str(res.message), nit=int(res.nfev), prior_share=share, map_cost=map_cost,
+                          message=str(res.message), nit=nit, prior_share=share, map_cost=map_cost,
                           sig_eff=sig)
+
+
+def levenberg_marquardt(cost: WindowedCost, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, sig: np.ndarray, *,
+                        max_nfev: int = 60, prior: tuple[np.ndarray, np.ndarray] | None = None,
+                        ftol: float = 1e-10, xtol: float = 1e-10, gtol: float = 1e-10) -> OptimizeResult:
+    """Bounded Levenberg-Marquardt on the normal equations (as SIDPAC's ``oe.m``): minimises
+    ``0.5 ||r(x)||^2`` with ``r`` the residuals ``(yhat - y) / sig_ch`` (plus the prior rows
+    ``(x - nominal) / std``) from ``x0`` inside ``[lo, hi]``.
+
+    Each iteration takes one forward-difference Jacobian (D + 1 candidates simulated as batches, in
+    the simulator's own row order: only ``J^T J`` (D, D) and ``J^T r`` are formed, never an SVD of
+    the tall Jacobian) and solves ``(J^T J + mu diag(J^T J)) dx = -J^T r`` on the parameters not held
+    by a bound (Marquardt's scaling; ``mu`` by Nielsen's rule from the gain ratio). Trial points are
+    clipped into the bounds; a parameter on its bound whose gradient pushes it outwards is held there
+    for the step. ``max_nfev`` counts trial points (function evaluations, as scipy's
+    ``least_squares``); stops when the relative decrease of the cost is below ``ftol``, the step
+    below ``xtol`` relative to ``x`` or the scaled gradient below ``gtol``.
+    Returns an OptimizeResult with ``x``, ``cost`` (``0.5 ||r||^2``), ``nfev``, ``njev``, ``success``.
+    """
+    span = hi - lo
+    x = np.clip(np.asarray(x0, dtype=float), lo, hi)
+    D = x.size
+    pm = np.zeros(D) if prior is None else np.asarray(prior[0], dtype=float)
+    pinfo = np.zeros(D) if prior is None else 1.0 / np.asarray(prior[1], dtype=float) ** 2  # prior information
+
+    def objective(r: np.ndarray, xx: np.ndarray) -> float:
+        d = xx - pm
+        return 0.5 * (float(r @ r) + float(d @ (pinfo * d)))
+
+    r = cost.residuals_native(x[None], sig)[0]
+    f = objective(r, x)
+    nfev, njev, mu, nu = 1, 0, 1e-3, 2.0
+    message, success = "maximum number of function evaluations reached", False
+    A, g, dA = np.zeros((D, D)), np.zeros(D), np.ones(D)
+    need_jac = True
+    while nfev < max_nfev:
+        if need_jac:
+            h = _fd_step(x, span)
+            h = np.where(x + h > hi, -h, h)  # step away from the bound we are close to
+            A, g = _normal_equations(cost, x, h, sig, r)
+            njev += 1
+            need_jac = False
+            A += np.diag(pinfo)
+            g += pinfo * (x - pm)
+            dA = np.maximum(np.diag(A).copy(), 1e-300)
+            if np.max(np.abs(g) / np.sqrt(dA)) < gtol * max(np.sqrt(2 * f), 1e-300):
+                message, success = "gradient below gtol", True
+                break
+        held = ((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0))
+        fr = ~held
+        step = np.zeros_like(x)
+        if fr.any():
+            Af = A[np.ix_(fr, fr)] + mu * np.diag(dA[fr])
+            try:
+                step[fr] = -np.linalg.solve(Af, g[fr])
+            except np.linalg.LinAlgError:
+                step[fr] = -g[fr] / (dA[fr] * (1.0 + mu))
+        xn = np.clip(x + step, lo, hi)
+        step = xn - x
+        pred = -(g @ step + 0.5 * step @ A @ step)
+        if not np.any(step) or np.linalg.norm(step) <= xtol * (xtol + np.linalg.norm(x)):
+            message, success = "step below xtol", True
+            break
+        rn = cost.residuals_native(xn[None], sig)[0]
+        nfev += 1
+        fn = objective(rn, xn)
+        rho = (f - fn) / pred if pred > 0 else -1.0
+        if np.isfinite(fn) and fn < f:
+            x, r, df, f = xn, rn, f - fn, fn
+            need_jac = True
+            mu *= max(1.0 / 3.0, 1.0 - (2.0 * min(rho, 1.0) - 1.0) ** 3)
+            nu = 2.0
+            if df <= ftol * f and rho > 0.25:
+                message, success = "cost decrease below ftol", True
+                break
+        else:
+            mu *= nu
+            nu *= 2.0
+            if mu > 1e16:
+                message, success = "no decrease in any step", True
+                break
+    return OptimizeResult(x=x, cost=f, nfev=nfev, njev=njev, success=success, message=message)
+
+
+def _normal_equations(cost: WindowedCost, x: np.ndarray, h: np.ndarray, sigma: np.ndarray,
+                      r0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(J^T J (D, D), J^T r (D,))`` of the forward-difference Jacobian at ``x`` (steps ``h``, residuals
+    ``r0`` at ``x``), the perturbed candidates simulated a few at a time (about :data:`NORMAL_CHUNK_BYTES`
+    of residuals per batch) in the simulator's own row order, into the array kept on ``cost``."""
+    D = x.size
+    n_res = r0.size
+    step = max(1, int(NORMAL_CHUNK_BYTES // (8 * n_res)))
+    J = _jacobian_buffer(cost, D, n_res)
+    for d0 in range(0, D, step):
+        d1 = min(D, d0 + step)
+        Rp = cost.residuals_native(x[None] + np.diag(h)[d0:d1], sigma)
+        Rp -= r0[None]
+        Rp /= h[d0:d1, None]
+        J[d0:d1] = Rp
+    return J @ J.T, J @ r0
+
+
+def standard_errors(cost: WindowedCost, x: np.ndarray, sigma: np.ndarray, bounds: np.ndarray,
+                    prior_std: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(Jacobian (n_res, D), standard errors (D,), prior share (D,)) at a refinement's solution ``x``
+    with its channel scales ``sigma`` (see the module docstring; posterior ones with ``prior_std``)."""
+    b = np.asarray(bounds, dtype=float)
+    J = jac_final(cost, x, sigma, b[:, 1] - b[:, 0], b[:, 1])
+    r = cost.residuals(x[None], sigma)[0]
+    if prior_std is None:
+        return J, coloured_std(J, r), np.zeros(x.size)
+    std, share = posterior_std(coloured_cov(J, r), np.asarray(prior_std, dtype=float))
+    return J, std, share
+
+
+def with_standard_errors(cost: WindowedCost, res: OptimizeResult, bounds: np.ndarray,
+                         prior: tuple[np.ndarray, np.ndarray] | None = None) -> OptimizeResult:
+    """``res`` (a :func:`refine` run with ``with_std=False``) with ``jac``, ``std`` and ``prior_share``
+    filled in: the standard errors of only the refinement that wins, not of every one compared."""
+    if res.jac is None:
+        res.jac, res.std, res.prior_share = standard_errors(cost, res.x, res.sigma, bounds,
+                                                            None if prior is None else prior[1])
+    return res
 
 
 def map_objective(cost: WindowedCost, x: np.ndarray, sig_eff: np.ndarray,

@@ -116,22 +116,22 @@ def fit_candidate(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
     ``quick``: one refinement pass from ``model0``'s parameters only (the selection's screening fit)."""
     from groundstation.sysid.identify import (
         _SUBS_INPUTS,
-        _costs,
         _in_sample_match,
         _model,
         _plan,
+        _refine_cost,
         _Run,
         record_tradeoffs,
     )
 
     with threadpool_limits(1):
-        plan = _plan(prepared, cfg, True, bounds, prior)
+        plan = _plan(prepared, cfg, True, bounds, prior, search=False)
         run = _Run(theta=np.clip(model0.theta, plan.bounds[:, 0], plan.bounds[:, 1]))
         for sub, sub_params in ((0, HOR_PARAMS), (1, VER_PARAMS)):
             idx = np.array([PARAM_INDEX[p] for p in sub_params])
             sub_free = np.zeros(N_PARAMS, dtype=bool)
             sub_free[idx] = plan.free[idx]
-            cost = _costs(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim)[0]
+            cost = _refine_cost(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim)
             if not cost.used.any():
                 continue
             x, ref = _best_refinement(cost, run.theta[sub_free], plan, cfg, sub_free, quick)
@@ -177,7 +177,8 @@ def _best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_fr
         x0 = np.clip(x0, bfree[:, 0] + 1e-6 * span, bfree[:, 1] - 1e-6 * span)
         ref = refine_ls(cost, x0, bfree, passes=1 if quick else cfg.refine_passes, prior=prior,
                         max_nfev=min(int(cfg.refine_max_nfev), SELECT_REFIT_NFEV) if quick else cfg.refine_max_nfev,
-                        weighting=cfg.channel_weighting, prior_colour=cfg.prior_weighting == "effective")
+                        weighting=cfg.channel_weighting, prior_colour=cfg.prior_weighting == "effective",
+                        with_std=False)
         if prior is not None:
             sig_ref = ref.sig_eff if sig_ref is None else sig_ref
             F = map_objective(cost, ref.x, sig_ref, prior)
@@ -186,6 +187,10 @@ def _best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_fr
         if best is None or F < best[0]:
             best = (F, ref.x, ref)
     assert best is not None
+    if not quick:   # standard errors of the winner only; the screening fit's model is only cross-validated
+        from groundstation.sysid.refine import with_standard_errors
+
+        with_standard_errors(cost, best[2], bfree, prior)
     return best[1], best[2]
 
 

@@ -88,9 +88,16 @@ def _schur_solve(G: np.ndarray, E: np.ndarray, rhs: np.ndarray, FF: np.ndarray,
                  rb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Block least squares with per-window unknowns ``z`` (k, W, n) and shared ones ``beta`` (k, P):
     ``[[G_w, E_w], [E_w^T, FF]] [z_w; beta] = [rhs_w; rb]``, by the Schur complement over the windows
-    (variable projection; a 1e-10 relative ridge keeps S solvable). Returns ``(z, beta)``."""
+    (variable projection; a 1e-10 relative ridge keeps S solvable). ``G`` (k, n, n) instead of
+    (k, W, n, n): the same matrix in every window (one factorisation for all). Returns ``(z, beta)``."""
     P = E.shape[-1]
-    sol = np.linalg.solve(G, np.concatenate([E, rhs[..., None]], axis=-1))
+    Bm = np.concatenate([E, rhs[..., None]], axis=-1)  # (k, W, n, P + 1)
+    if G.ndim == 3:
+        k, W, n, q = Bm.shape
+        sol = np.linalg.solve(G, Bm.transpose(0, 2, 1, 3).reshape(k, n, W * q))
+        sol = sol.reshape(k, n, W, q).transpose(0, 2, 1, 3)
+    else:
+        sol = np.linalg.solve(G, Bm)
     GiE, Gia = sol[..., :P], sol[..., P]
     S = FF - np.einsum("cwnp,cwnq->cpq", E, GiE)
     dS = np.einsum("cpp->cp", S)
@@ -250,7 +257,7 @@ class WindowSimulator:
             pre["X"]["R"] = R
         return R[:cc]
 
-    def _lifted(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, *, explicit: bool):
+    def _lifted(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, *, explicit: bool | str):
         """Windowed simulation with per-window least-squares initial states, in the lifted layout.
 
         Blocks of b samples: the block-start states come from the recursion
@@ -258,7 +265,8 @@ class WindowSimulator:
         sample of every block from ONE product per candidate, ``Y = [Ob | T] [x; U]`` (``Ob`` rows
         ``C_h A^j``, ``T`` the block-Toeplitz Markov parameters), laid out channel-major so that the
         initial-state least squares needs only per-channel products ``Phi_h^T r_h``. ``explicit``:
-        return the output errors ``e = yhat - y`` (C, W, L, nch); else the per-channel sums of squared
+        return the output errors ``e = yhat - y`` (C, W, L, nch) (``"native"``: in the lifted layout
+        (C, nch, Lp, W), padding zero); else the per-channel sums of squared
         errors over windows, from the quadratic form ``||r||^2 - 2 z.g + z^T H z`` (no error
         array), recomputed explicitly for any candidate where that form loses more than ~8 digits.
         Returns ``(e or sse, x0)``.
@@ -317,7 +325,7 @@ class WindowSimulator:
         H = np.matmul(np.swapaxes(Phi, -1, -2), Phi)  # (C, nch, n+nt, n+nt), the same for every window
         # candidates in chunks of ~2 MB of output: the chunk stays in cache from product to reduction
         cc = max(1, min(C, int(self.chunk_bytes // (8 * nch * b * nb * W))))
-        res = np.empty((C, W, L, nch) if explicit else (C, nch))
+        res = np.empty(((C, nch, Lp, W) if explicit == "native" else (C, W, L, nch)) if explicit else (C, nch))
         z = np.empty((C, W, n))
         beta = np.zeros((C, nt))
         for c0 in range(0, C, cc):
@@ -326,7 +334,7 @@ class WindowSimulator:
                                                                   explicit, n)
         return res, pre["xm"][None] + z, -beta  # input offsets: the model sees u - delta, e = ... - F delta
 
-    def _lifted_chunk(self, pre: dict, M: np.ndarray, X: np.ndarray, Phi: np.ndarray, H: np.ndarray, explicit: bool,
+    def _lifted_chunk(self, pre: dict, M: np.ndarray, X: np.ndarray, Phi: np.ndarray, H: np.ndarray, explicit: bool | str,
                       n: int):
         """Least squares and errors of one chunk of candidates.
 
@@ -360,7 +368,9 @@ class WindowSimulator:
             G += np.where(uk[None] > 0, self.ridge * scale, 1.0)[..., :, None] * np.eye(n)
             z = np.swapaxes(np.linalg.solve(G, np.swapaxes(rhs, 1, 2)), 1, 2)  # (k, W, n)
         else:
-            G = _window_gram(w_ch, Hzz, unk, self.ridge)
+            # with global columns too: one G for every window when the windows are alike
+            G = _window_gram(w_ch[:1], Hzz, unk[:1], self.ridge)[:, 0] if pre["same_G"] else \
+                _window_gram(w_ch, Hzz, unk, self.ridge)
             if nt:
                 # global columns: Schur complement over the windows (variable projection)
                 E = np.matmul(w_ch[None], np.ascontiguousarray(H[:, :, :n, n:]).reshape(k, nch, n * nt))
@@ -376,6 +386,8 @@ class WindowSimulator:
         if explicit:
             e = np.matmul(Phi, np.swapaxes(v, 1, 2)[:, None])  # (k, nch, Lp, W)
             e -= R4
+            if explicit == "native":
+                return z, beta, e
             return z, beta, e.reshape(k, nch, b, nb, W).transpose(0, 4, 3, 2, 1).reshape(k, W, Lp, nch)[:, :, :L]
         rr = np.einsum("chkw,chkw->chw", R4, R4)
         vHv = np.einsum("chwn,cwn->chw", np.matmul(v[:, None], H), v)
@@ -396,7 +408,7 @@ class WindowSimulator:
             sse[c] = np.einsum("hkw,hkw->h", e, e)
         return z, beta, sse
 
-    def _lifted_vp(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, Gam: np.ndarray, *, explicit: bool):
+    def _lifted_vp(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, Gam: np.ndarray, *, explicit: bool | str):
         """Lifted simulation with the ``linear`` B entries solved by least squares (variable projection).
 
         For a given A the output is linear in those entries: each has a unit response ``F_p`` (input
@@ -463,7 +475,7 @@ class WindowSimulator:
         Phi = Phi.reshape(C, nch, Lp, n)
         H = np.matmul(np.swapaxes(Phi, -1, -2), Phi)
         cc = max(1, min(C, int(self.chunk_bytes // (8 * (P + 1) * nch * b * N))))
-        res = np.empty((C, W, L, nch) if explicit else (C, nch))
+        res = np.empty(((C, nch, Lp, W) if explicit == "native" else (C, W, L, nch)) if explicit else (C, nch))
         z = np.empty((C, W, n))
         beta = np.empty((C, P))
         for c0 in range(0, C, cc):
@@ -493,11 +505,15 @@ class WindowSimulator:
         Fw = F5 * w_ch.T[None, None, :, None, :]
         FF = np.matmul(F.reshape(k, P, -1), np.swapaxes(Fw.reshape(k, P, -1), 1, 2))  # (k, P, P)
         rb = np.matmul(Fw.reshape(k, P, -1), R.reshape(k, -1, 1))[..., 0]  # (k, P)
-        z, beta = _schur_solve(_window_gram(w_ch, H, unk, self.ridge), E, rhs, FF, rb)
+        # the same normal matrix in every window when every window has the same channels and unknowns
+        G = _window_gram(w_ch[:1], H, unk[:1], self.ridge)[:, 0] if pre["same_G"] else _window_gram(w_ch, H, unk, self.ridge)
+        z, beta = _schur_solve(G, E, rhs, FF, rb)
         # e = Phi z + F beta - r, explicitly (no cancellation to guard)
         e = np.matmul(beta[:, None, :], F.reshape(k, P, -1)).reshape(k, nch, Lp, W)
         e -= R4
         e += np.matmul(Phi, np.swapaxes(z, 1, 2)[:, None])
+        if explicit == "native":
+            return z, beta, e
         if explicit:
             return z, beta, e.reshape(k, nch, b, nb, W).transpose(0, 4, 3, 2, 1).reshape(k, W, Lp, nch)[:, :, :L]
         if not pre["full_mask"]:
@@ -509,9 +525,12 @@ class WindowSimulator:
         """State updates (one x[k+1] = A x[k] + B u[k]) per candidate per call."""
         return self.W * self.L
 
-    def _run(self, theta: np.ndarray, *, sse: bool = False):
+    def _run(self, theta: np.ndarray, *, sse: bool = False, native: bool = False):
         """Per subsystem ``(i, (e, x0[, beta]))``; e (C, W, L*nch) output errors, or with ``sse`` and no
-        projected B entries the per-channel sums of squared errors (C, nch) in place of e."""
+        projected B entries the per-channel sums of squared errors (C, nch) in place of e; with
+        ``native`` the output errors in the simulation's own layout (C, nch, Lp, W) (see
+        :meth:`residuals_native`)."""
+        mode: bool | str = "native" if native else not sse
         th = np.atleast_2d(np.asarray(theta, dtype=float))
         Ah, Bh, Av, Bv = build_matrices(th)
         out = []
@@ -524,8 +543,8 @@ class WindowSimulator:
                     # Ad and Gamma = int_0^dt e^(A s) ds in one exponential; Bd = Gamma B (exact ZOH)
                     Ad, Gam = discretize(A, np.broadcast_to(np.eye(n), A.shape), self.dt_s)
                     Bd = np.matmul(Gam, B)
-                    e, x0, beta = self._lifted_vp(_SUBS[i], pre, Ad, Bd, Gam, explicit=not sse)
-                    if not sse:
+                    e, x0, beta = self._lifted_vp(_SUBS[i], pre, Ad, Bd, Gam, explicit=mode)
+                    if not sse and not native:
                         e = e.reshape(e.shape[0], self.W, self.L * pre["nch"])
                     out.append((i, (e, x0, beta, None)))
                     continue
@@ -535,8 +554,8 @@ class WindowSimulator:
                         E[..., st, c] = 1.0
                     B = np.concatenate([B, E], axis=-1)
                 Ad, Bd = discretize(A, B, self.dt_s)
-                e, x0, delta = self._lifted(_SUBS[i], pre, Ad, Bd, explicit=not sse)
-                if not sse:
+                e, x0, delta = self._lifted(_SUBS[i], pre, Ad, Bd, explicit=mode)
+                if not sse and not native:
                     e = e.reshape(e.shape[0], self.W, self.L * pre["nch"])
                 out.append((i, (e, x0, None, delta if self.estimate_trim else None)))
         return out
@@ -580,6 +599,26 @@ class WindowSimulator:
             nch = pre["nch"]
             out[:, pre["o_idx"]] = e.reshape(C, self.W, self.L * nch).sum(axis=1).reshape(C, self.L, nch).sum(axis=1)
         return np.where(np.isfinite(out), out, 1e300)
+
+    def residuals_native(self, theta: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+        """Weighted output errors ``(yhat - y) / sigma_ch`` of C candidates as flat vectors (C, N), in
+        the simulation's own layout (per subsystem: channel, padded sample, window) instead of
+        :meth:`errors`' (window, sample, channel): no transpose and no 8-channel array. Unused samples
+        (unavailable channel, padding of the last lifted block) are zero. For what does not depend on
+        the order of the rows (``J^T J``, ``J^T r``, ``||r||``: the refinement's normal equations)."""
+        s = np.asarray(sigma, dtype=float)
+        res = self._run(theta, native=True)
+        C = res[0][1][0].shape[0]
+        parts = []
+        for i, (e, *_rest) in res:
+            pre = self._prep[i]
+            w = pre["mask_hw"] / s[pre["o_idx"]][:, None]  # (nch, W): mask and channel weight
+            e *= w[None, :, None, :]
+            parts.append(e.reshape(C, -1))
+        out = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+        if not np.isfinite(out).all():
+            out = np.where(np.isfinite(out), out, 1e6)
+        return out
 
     def errors(self, theta: np.ndarray) -> np.ndarray:
         """Output errors ``yhat - y`` (C, W, L, 8), zero where a channel is unused."""

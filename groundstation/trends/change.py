@@ -32,18 +32,12 @@ import numpy as np
 from scipy.stats import norm
 from scipy.stats import t as student_t
 
+from groundstation.trends.settings import TrendConfig
+
 #: fewest finite flights from which tau (the between-flight scatter) is measured; no flight is tested
 #: before that: standard errors from one flight alone miss how much flights differ (another basin of
 #: the search, other excitation), and a change called on them would be a false alarm
 MIN_FLIGHTS_FOR_SCATTER = 4
-
-
-@dataclass(frozen=True)
-class TrendConfig:
-    """Change-test settings (``[trends]``)."""
-
-    alpha: float = 0.05  # family-wise false-alarm probability over every series and flight tested
-    baseline: int = 1  # flights averaged into the reference value
 
 
 @dataclass(frozen=True)

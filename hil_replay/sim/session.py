@@ -35,7 +35,9 @@ from hil_replay.sim.effects import (
     CHAIN_EFFECTS,
     Effect,
     GustModel,
+    HeldBackChain,
     InputChain,
+    TurbulenceModel,
     aliased_hz,
     resolve_effects,
     rotor_sag,
@@ -148,7 +150,7 @@ class SimulatedSession:
         effects = []
         for e in self.effects:
             d = e.to_json()
-            if e.name == "rotor_vibration":
+            if e.name in ("rotor_vibration", "wandering_vibration"):
                 f = float(e.params["rpm"]) / 60.0
                 d["params"]["frequency_hz"] = f
                 d["params"]["aliased_hz"] = aliased_hz(f, FRAME_RATE_HZ)  # 1/rev line in 50 Hz samples
@@ -199,10 +201,16 @@ class SimulatedSession:
         sf = make_specific_force(ac, drag_c_per_m=fx.drag_c, ground_effect_gain=fx.ge_gain)
         pilot = Pilot(ac, np.random.default_rng(self._seeds[1]), dt_s=dt, config=self.pilot_config)
         noise_rng = np.random.default_rng(self._seeds[2])
-        gust = None
+        gust: GustModel | TurbulenceModel | None = None
         if fx.wind:
-            gp = next(e for e in self.effects if e.name == "wind_gust").params
-            gust = GustModel(np.random.default_rng(self._seeds[3]), dt, float(gp["sigma_m_s"]), float(gp["tau_s"]))
+            ge = next(e for e in self.effects if e.name in ("wind_gust", "turbulence"))
+            gp = ge.params
+            if ge.name == "turbulence":
+                gust = TurbulenceModel(np.random.default_rng(self._seeds[3]), dt, float(gp["sigma_m_s"]),
+                                       float(gp["tau_slow_s"]), float(gp["tau_fast_s"]), float(gp["fast_share"]))
+            else:
+                gust = GustModel(np.random.default_rng(self._seeds[3]), dt, float(gp["sigma_m_s"]),
+                                 float(gp["tau_s"]))
         sensors = _Sensors(self.noise, fx, sf, ac, dt)
         loop = RateLoopState(self.rate_loop, ac, dt) if self.rate_loop is not None else None
         trim = [float(ac.trim_pwm[c]) for c in INPUTS]
@@ -238,6 +246,7 @@ class SimulatedSession:
                     flight_k = fi
                     sensors.used_mah = 0.0
                     off_n, off_e = x[12], x[13]
+                fx.set_progress(min(1.0, (t - arm[fi]) / max(self.cards[fi].duration_s, 1e-9)))
                 cmd, throttle, seg_kind = _pilot_command(self.cards[fi], t - arm[fi], pilot, x, (off_n, off_e),
                                                          col_low)
             else:
@@ -296,6 +305,16 @@ class _EffectState:
     vib_phase: list[float]
     latency_ticks: float
     vib_axis: tuple[float, float, float] = (1.0, 0.8, 0.5)
+    held: HeldBackChain | None = None  # held-back input physics (effects.HELD_BACK)
+    drift_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)  # gyro bias at the end of the flight
+    vib_wander: float = 0.0  # relative rpm wander of the rotor line
+    vib_period_s: float = 40.0
+    progress: float = 0.0  # 0 at arming, 1 at the end of the flight's card
+
+    def set_progress(self, progress: float) -> None:
+        self.progress = progress
+        if self.held is not None:
+            self.held.progress = progress
 
     @classmethod
     def of(cls, effects: Sequence[Effect], ac: Aircraft, dt: float, phase_rng: np.random.Generator) -> _EffectState:
@@ -323,23 +342,37 @@ class _EffectState:
                 asym[INPUTS.index(str(e.input))] = float(e.params["asymmetry"])
         sag = param("rotor_sag", "sag_per_unit", 0.0)
         vib_phase = phase_rng.uniform(0, 2 * math.pi, 6).tolist()
+        held = HeldBackChain(h, list(effects), INPUTS, float(ac.parameters["Z_col"]), G_M_S2)
+        drift = [0.0, 0.0, 0.0]
+        for e in effects:
+            if e.name == "drifting_bias":
+                drift["pqr".index(str(e.output))] += float(e.params["bias_end_rad_s"])
+        vib = "wandering_vibration" if "wandering_vibration" in eff else "rotor_vibration"
         return cls(drag_c=param("quadratic_drag", "c_per_m", 0.0), ge_gain=param("ground_effect", "gain", 0.0),
-                   wind="wind_gust" in eff, chains=chains,
+                   wind="wind_gust" in eff or "turbulence" in eff, chains=chains,
                    post=_PostChain(asym, sag, float(ac.parameters["Z_col"])) if sag or any(asym) else None,
                    bias=bias, gscale=gscale, vscale=1.0 + param("velocity_scale", "scale_error", 0.0),
-                   vib_amp=param("rotor_vibration", "amplitude_rad_s", 0.0),
-                   vib_w=2 * math.pi * param("rotor_vibration", "rpm", 0.0) / 60.0, vib_phase=vib_phase,
-                   latency_ticks=param("velocity_latency", "latency_s", 0.0) / dt)
+                   vib_amp=param(vib, "amplitude_rad_s", 0.0),
+                   vib_w=2 * math.pi * param(vib, "rpm", 0.0) / 60.0, vib_phase=vib_phase,
+                   latency_ticks=param("velocity_latency", "latency_s", 0.0) / dt,
+                   held=held if held.active else None, drift_bias=(drift[0], drift[1], drift[2]),
+                   vib_wander=param("wandering_vibration", "wander", 0.0),
+                   vib_period_s=param("wandering_vibration", "period_s", 40.0))
 
     def actuate(self, dcmd: list[float]) -> list[float]:
         """The inputs acting on the rotor at the next 200 Hz sub-step (one step of each input chain)."""
         da = [dcmd[i] if self.chains[i] is None else self.chains[i](dcmd[i]) for i in range(4)]  # type: ignore[misc]
-        return self.post(da) if self.post is not None else da
+        da = self.post(da) if self.post is not None else da
+        return self.held(da) if self.held is not None else da
 
     def vibration(self, t: float) -> list[float]:
         """Rotor vibration on p q r at ``t`` (rad/s)."""
-        s1 = [math.sin(self.vib_w * t + self.vib_phase[i]) for i in range(3)]
-        s2 = [math.sin(2 * self.vib_w * t + self.vib_phase[3 + i]) for i in range(3)]
+        wt = self.vib_w * t
+        if self.vib_wander:  # rpm (1 + wander sin(2 pi t / P)): the phase is its integral
+            om = 2 * math.pi / self.vib_period_s
+            wt += self.vib_w * self.vib_wander * (1.0 - math.cos(om * t)) / om
+        s1 = [math.sin(wt + self.vib_phase[i]) for i in range(3)]
+        s2 = [math.sin(2 * wt + self.vib_phase[3 + i]) for i in range(3)]
         return [self.vib_amp * a * (x1 + 0.5 * x2) for a, x1, x2 in zip(self.vib_axis, s1, s2, strict=False)]
 
 
@@ -364,6 +397,8 @@ class _Sensors:
         self.hist.append((vn, ve, vd, x[12], x[13], x[14]))
         nv = _delayed(self.hist, fx.latency_ticks) if fx.latency_ticks > 0.0 else (vn, ve, vd, x[12], x[13], x[14])
         b, gs = fx.bias, fx.gscale
+        if any(fx.drift_bias):
+            b = [bb + fx.progress * db for bb, db in zip(b, fx.drift_bias, strict=True)]
         mp, mq, mr = gs[0] * p + b[0], gs[1] * q + b[1], gs[2] * r + b[2]
         mroll, mpitch = ph, th
         if fx.vib_amp and spinning:
@@ -532,7 +567,8 @@ def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
                flight_duration_s: float | None = None, rates_hz: Mapping[str, float] | None = None,
                pause_s: float = 10.0, packet_loss: float = 0.002, pilot: PilotConfig | None = None,
                excitation_scale: float = 1.0, sweeps: bool = True, linear_kinematics: bool = False,
-               loss_burst: float = 1.0, rate_loop: RateLoop | None = None) -> dict[str, Any]:
+               loss_burst: float = 1.0, noise_scale: float = 1.0,
+               rate_loop: RateLoop | None = None) -> dict[str, Any]:
     """Simulate a session and write ``path`` (.tlog) and ``path.with_suffix('.truth.json')``.
 
     MAVLink 2 frames from sysid 1 compid 1 with a proper sequence number; host timestamps are
@@ -540,7 +576,8 @@ def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
     packets are dropped after encoding (the seq gap shows). ``loss_burst`` > 1 makes the loss bursty
     as a radio fade is: a two-state (Gilbert) channel whose lost runs are ``loss_burst`` packets long
     on average (geometric), every message type alike, with the same long-run loss rate
-    ``packet_loss``; 1 drops packets independently. Returns the truth dict (also written).
+    ``packet_loss``; 1 drops packets independently. ``noise_scale`` multiplies every sensor noise of
+    :class:`NoiseConfig`. Returns the truth dict (also written).
     Same arguments, same bytes.
     """
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -566,7 +603,9 @@ def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
     period = {n: max(1, int(round(FRAME_RATE_HZ / r))) for n, r in rates.items() if r > 0}
     sess = SimulatedSession(seed=seed, flights=flights, effects=effects, aircraft=aircraft, pause_s=pause_s,
                             flight_duration_s=flight_duration_s, pilot=pilot, excitation_scale=excitation_scale,
-                            sweeps=sweeps, linear_kinematics=linear_kinematics, rate_loop=rate_loop)
+                            sweeps=sweeps, linear_kinematics=linear_kinematics, rate_loop=rate_loop,
+                            noise=None if noise_scale == 1.0 else NoiseConfig(
+                                **{k: v * float(noise_scale) for k, v in asdict(NoiseConfig()).items()}))
     truth = sess.truth()
     truth["tlog_rates_hz"] = {n: rates[n] for n in MESSAGE_NAMES}
     truth["packet_loss"] = packet_loss

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from firmware_interface.readers import load_log
-from groundstation.commands.freq_support import prepare_native
 from groundstation.dsp.prepare import PrepConfig, prepared_from_arrays
 from groundstation.freq.identify import FreqIdentifyConfig, identify_frequency
 from groundstation.freq.metrics import Z95_COMPLEX
 from groundstation.freq.spectra import estimate_responses
 from groundstation.freq.verify import verify
+from groundstation.pipeline import prepare_native
 from tests.realdata import real_log
 
 

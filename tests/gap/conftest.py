@@ -30,6 +30,7 @@ def linear_flight(T_s: float = 90.0, dt: float = 0.02, seed: int = 0, effect: tu
     """A prepared-data-like object (segments, dt_s, output_trim) of one linear flight.
 
     effect: ("input_delay", channel, samples) | ("gyro_bias", output index, rad/s) |
+            ("drifting_bias", output index, rad/s at the end) |
             ("rotor_vibration", frequency_hz, amplitude) | ("velocity_latency", None, samples) |
             ("deadband", channel, half_width) | ("wind_gust", tau_s, sigma_m_s) (horizontal air velocity,
             Gauss-Markov, entering through the u and v columns of A; the pilot answers it)
@@ -80,6 +81,8 @@ def linear_flight(T_s: float = 90.0, dt: float = 0.02, seed: int = 0, effect: tu
         y[d:, :3] = y[:-d, :3].copy()
     if effect and effect[0] == "gyro_bias":
         y[:, effect[1]] += effect[2]
+    if effect and effect[0] == "drifting_bias":  # from 0 at the start to effect[2] at the end
+        y[:, effect[1]] += effect[2] * t / t[-1]
     y = y + NOISE_SD * rng.standard_normal(y.shape)
     if effect and effect[0] == "rotor_vibration":
         y[:, 3:6] += effect[2] * np.sin(2 * np.pi * effect[1] * t)[:, None] * np.array([1.0, 0.7, 0.4])

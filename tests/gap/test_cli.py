@@ -28,7 +28,7 @@ def test_diagnose_command_writes_report_plots_and_rrd(sim_log, capsys):
                "--rrd", str(d / "gap.rrd")])
     assert rc == 0
     rep = json.loads(out.read_text())
-    assert rep["schema"] == "heli-gap-report/1"
+    assert rep["schema"] == "heli-gap-report/2"
     assert rep["verdict"] == "gyro_bias"
     assert rep["effects"][0]["output"] == "q"
     assert abs(rep["effects"][0]["estimate"]["bias_rad_s"] - 0.015) < 0.004

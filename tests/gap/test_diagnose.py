@@ -82,7 +82,7 @@ def test_deadband_found_on_its_channel(reports):
 def test_report_schema(reports, case):
     for r in (reports[case],):
         json.dumps(r, allow_nan=False)
-        assert r["schema"] == "heli-gap-report/1"
+        assert r["schema"] == "heli-gap-report/2"
         assert r["verdict"] in VERDICTS
         assert r["data_compatibility"]["findings"] == []  # the linear flights' sensors are consistent
         assert not set(r["tested"]) & set(r["untestable"])
@@ -95,6 +95,24 @@ def test_report_schema(reports, case):
             assert {"effect", "input", "output", "estimate", "gap_before", "gap_after", "shrink_pct",
                     "score", "evidence"} <= set(e)
         assert {"untestable", "shrink_interval", "noise_floor", "per_channel_shrink"} <= set(r)
+        assert {"shares", "partial_findings", "through_flight"} <= set(r)
+        assert r["shares"]["headline"] and r["shares"]["rule"]
+        for e in r["effects"]:
+            assert e["consistency"]["status"] in ("holds", "changes", "not_checked")
+
+
+@pytest.mark.parametrize("case", ["input_delay", "gyro_bias", "velocity_latency", "deadband"])
+def test_named_effect_explains_most_of_the_gap_on_an_exact_linear_flight(reports, case):
+    # the flight is the paper's linear model plus one effect: the gap above noise is that effect
+    r = reports[case]
+    sh = r["shares"]
+    assert sh["explained_pct"] is not None and sh["explained_pct"] > 50.0
+    lo, hi = sh["interval_pct"]
+    assert lo <= sh["explained_pct"] <= hi
+    assert r["effects"][0]["share_pct"] is not None and r["effects"][0]["share_pct"] > 50.0
+    assert "is explained by" in sh["headline"] and case.replace("_", " ") in sh["headline"]
+    # a constant effect on a flight long enough to split: it holds (or its stick was not moved in a half)
+    assert r["effects"][0]["consistency"]["status"] in ("holds", "not_checked")
 
 
 def test_missing_altitude_makes_ground_effect_untestable(flight_factory, start_model):

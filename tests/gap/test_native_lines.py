@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from groundstation.commands.diagnose import unfold_rotor_line
+from groundstation.analysis import unfold_rotor_line
 from groundstation.gap.fingerprints import native_rate_lines
 
 

@@ -140,3 +140,48 @@ def test_every_command_takes_config_and_prints_one_line(tmp_path, capsys, comman
     assert main([command, *args, "--config", str(p)]) == 2
     err = capsys.readouterr().err.strip()
     assert "unknown key zenoh.mode" in err and str(p) in err and len(err.splitlines()) == 1
+
+
+def test_every_key_is_in_the_default_file_and_in_the_documentation():
+    """The dataclasses are the truth: default.toml sets (or, for a value TOML cannot write, names in a
+    comment) every key, and docs/configuration.md carries the generated table of every key."""
+    import re
+    import tomllib
+    from pathlib import Path
+
+    from groundstation.config import reference, reference_markdown
+
+    root = Path(__file__).resolve().parents[2]
+    text = (root / "groundstation/configs/default.toml").read_text()
+    doc = tomllib.loads(text)
+    missing = [f"[{t}] {k}" for t, k, default, _ in reference()
+               if k not in doc.get(t, {}) and not (not default and re.search(rf"^#\s*{k}\s*=", text, re.M))]
+    assert not missing, f"keys missing from groundstation/configs/default.toml: {missing}"
+    md = (root / "docs/configuration.md").read_text()
+    start = md.index("<!-- every-key table")
+    table = md[md.index("\n", start) + 1: md.index("<!-- end of the every-key table -->")]
+    assert table == reference_markdown(), "docs/configuration.md: regenerate the every-key table (python -m groundstation.config)"
+    assert {"trends", "freq_identify"} <= {t for t, *_ in reference()}
+
+
+def test_a_renamed_key_says_what_replaced_it(tmp_path):
+    from groundstation.config import ConfigError, config_from_dict
+
+    with pytest.raises(ConfigError, match=r"old.toml: identification.restarts was renamed: it is now \[identify\] search_restarts"):
+        config_from_dict({"identification": {"restarts": 3}}, "old.toml")
+    with pytest.raises(ConfigError, match=r"\[inputs\] is no longer read: inputs.trim_pwm is now \[prepare\] input_trim_pwm"):
+        config_from_dict({"inputs": {"trim_pwm": [1500, 1500, 1500, 1500]}}, "old.toml")
+    cfg = config_from_dict({"trends": {"alpha": 0.01}, "freq_identify": {"weighting": "coherence"}})
+    assert cfg.trends.alpha == 0.01 and cfg.freq_identify.weighting == "coherence"
+
+
+def test_every_analysis_command_takes_an_aircraft_file():
+    import argparse
+
+    from groundstation.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    analysis = [c for c in ("identify", "validate", "diagnose", "campaign", "run", "report") if c in sub.choices]
+    assert {"identify", "validate", "diagnose", "campaign", "run"} <= set(analysis)
+    missing = [c for c in analysis if "--aircraft" not in sub.choices[c]._option_string_actions]
+    assert not missing, f"commands without --aircraft: {missing}"

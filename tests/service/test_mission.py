@@ -85,7 +85,7 @@ def test_two_simulated_flights_identified_published_and_logged(tmp_path, subscri
         assert gaps == {f"heli/{service.vehicle}/flight/1/gap", f"heli/{service.vehicle}/flight/2/gap"}
         for k, d, _ in sub.samples:
             if k.endswith("/gap"):
-                assert d["schema"] == "heli-gap-report/1"
+                assert d["schema"] == "heli-gap-report/2"
     assert late_replies and late_replies[0]["schema"] == "heli-hover-model/1"
     # the frequency-domain check of each flight's model: a J table on heli/{vehicle}/flight/{n}/freq
     assert all(r.freq is not None and r.freq_error is None for r in report.results), [r.freq_error for r in report.results]

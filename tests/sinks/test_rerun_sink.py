@@ -194,3 +194,40 @@ def test_flight_armed_before_the_fc_clock_still_gets_a_view_and_the_file_its_blu
     assert ranges, "no view opens on the flight"
     assert all(np.isfinite(r).all() for r in ranges)
     assert min(r[0] for r in ranges) <= t[0] + 1e-6 and max(r[1] for r in ranges) >= t[-1] - 1e-6
+
+
+def test_excitation_panel_reads_back(tmp_path):
+    """The live excitation monitor's verdicts: coherence vs log10 f per axis on fc_time (building up), the
+    share of each band covered, the status line, and an ``excitation`` tab in the saved blueprint."""
+    from groundstation.dsp.excitation import ExcitationConfig, ExcitationMonitor
+
+    path = tmp_path / "exc.rrd"
+    sink = RerunSink("heli", "save", str(path))
+    mon = ExcitationMonitor(ExcitationConfig(), DT)
+    mon.flight_started(1, 0.0)
+    rng = np.random.default_rng(0)
+    t = np.arange(0, 80.0, DT)
+    u = 0.05 * rng.standard_normal((t.size, 4))
+    y = 0.01 * rng.standard_normal((t.size, 8))
+    y[:, 4] += 3.0 * u[:, 0]                           # q follows lat: lat becomes enough, the others never
+    reports = []
+    for a in range(0, t.size, 50):
+        rep = mon.rows(t[a:a + 50], u[a:a + 50], y[a:a + 50], armed=True, in_air=True)
+        if rep is not None:
+            reports.append(rep)
+            sink.log_excitation(rep)
+    sink.close()
+    assert reports[-1].axes["lat"].enough and not reports[-1].axes["lon"].enough
+    chunks = RrdReader(path).stream().to_chunks()
+    covered = _scalars(chunks, "/heli/excitation/covered/lat")
+    assert len(covered) == len(reports) and covered[-1] == 100.0 and covered[0] < 100.0
+    assert _scalars(chunks, "/heli/excitation/covered/lon")[-1] < 100.0
+    lay = read_layout(path)
+    for a in INPUTS:
+        assert f"/heli/excitation/{a}/coherence" in lay.entities
+    assert "/heli/excitation/summary" in lay.entities
+    tabs = [lay.name(c) for c in lay.children(lay.root)]
+    exc = next(c for c in lay.children(lay.root) if lay.name(c) == "excitation")
+    kinds = {v.origin: v.kind for v in lay.views_under(exc)}
+    assert kinds["/heli/excitation/lat/coherence"] == "BarChart" and kinds["/heli/excitation/covered"] == "TimeSeries"
+    assert tabs[-1] == "excitation"

@@ -159,3 +159,20 @@ def test_trend_summary_reaches_a_subscriber(collector_factory):
         assert doc["schema"] == "heli-trends/1" and sink.sent["trends"] == 1
     finally:
         sink.close()
+
+
+def test_excitation_verdict_reaches_a_subscriber_as_strict_json(collector_factory):
+    """``heli/{vehicle}/excitation``: the monitor's verdict (a callable: JSON built on the publisher thread)."""
+    sink = ZenohSink("tx")
+    try:
+        col = collector_factory(sink.endpoint, "heli/tx/excitation")
+        doc = {"flight": 1, "t_s": 12.0, "axes": {"lon": {"enough": False, "band_hz": [0.3, 5.0], "covered_hz": [],
+                                                           "coherence_min": float("nan"), "missing": "x"}}}
+        # until the subscriber gets one: DROP traffic reaches only peers already known to the sink
+        assert _retry(lambda: sink.publish_excitation(lambda: doc)
+                      or col.wait_for(lambda s: bool(s), 0.2))
+        k, got = col.samples[0]
+        assert k == "heli/tx/excitation" and got["axes"]["lon"]["coherence_min"] is None   # NaN -> null
+        assert got["axes"]["lon"]["band_hz"] == [0.3, 5.0] and sink.sent["excitation"] >= 1
+    finally:
+        sink.close()

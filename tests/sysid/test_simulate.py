@@ -254,3 +254,24 @@ def test_variable_projection_cost_equals_the_plain_cost_at_the_solved_b(windows,
         nudged[:, PARAM_INDEX[name]] *= 1.01
         assert (wsse(nudged) > wsse(full)).all()
     assert len(LINEAR_B) == 11
+
+
+@pytest.mark.parametrize("trim", [False, True])
+def test_native_residuals_are_the_residuals_in_another_order(windows, trim):
+    """The refinement's normal equations use the simulator's own row order: the same numbers."""
+    from groundstation.sysid.cost import WindowedCost, Windows
+
+    th, u, y, _, _, dt = windows
+    rng = np.random.default_rng(5)
+    avail = np.ones((6, 8), dtype=bool)
+    avail[2, 0] = False  # a channel missing in one window stays out of both
+    win = Windows(u, y + rng.normal(0, 0.01, y.shape), avail, np.zeros(6, dtype=int), np.arange(6.0), dt)
+    for sub in ((0,), (1,)):
+        cost = WindowedCost(win, np.ones(31, dtype=bool), th, subsystems=sub, estimate_trim=trim)
+        X = th[None] * (1 + 0.02 * rng.normal(size=(3, 31)))
+        sig = np.linspace(0.5, 2.0, 8)
+        a = cost.residuals(X, sig).reshape(3, -1)
+        b = cost.residuals_native(X, sig)
+        assert np.allclose(np.sort(np.abs(a), axis=1)[:, -a.shape[1]:], np.sort(np.abs(b), axis=1)[:, -a.shape[1]:],
+                           atol=1e-12)
+        assert np.allclose((b ** 2).sum(axis=1), (a ** 2).sum(axis=1), rtol=1e-12)

@@ -1,0 +1,428 @@
+"""How much of the gap the named effects explain, and whether each holds through the flight.
+
+Two questions a flight-test engineer asks before acting on a name:
+
+* **Share.** The held-out gap *above the noise floor*: per window and channel, the base model's
+  held-out cost less what a perfect model would still show there (the white noise measured on the
+  raw data, after the smoothing: ``noise.noise_floor``'s ``sigma_smoothed``, in the cost's own
+  weights). Each named effect removes part of the base cost (its held-out cost against the base
+  model's on the same windows; a second effect given the first, on the model with the first in);
+  its *share* is what it removes over the excess above the noise, in total (over the channels
+  above their floor) and per channel. The interval is a bootstrap over the held-out windows
+  (whole 3 s windows, so the residual's dependence inside a window stays in each draw).
+* **Through the flight.** The windows are cut into a first and a second half (in time order). In
+  each half, the named effect's parameter is estimated again (the same scan, base parameters
+  re-fitted inside each fold) and both values are scored on each half's held-out blocks: the
+  effect *holds* when neither half's data reject the other half's value (paired tests over the
+  ~0.5 s blocks, the analytic tests of the conditional step, Bonferroni over the halves and the
+  effects tested, and a practical loss: the other value gives up more than
+  ``consistency_min_loss`` of the effect's gain in that half); it *changes* when one does; it is
+  *not checked* when a half is too short for the windows and folds, or the effect does not lower
+  that half's held-out cost significantly (its input barely moved there). The gap itself over
+  time (its excess above the noise per half) is reported with it.
+
+Units. Each channel's excess and removal are counted in multiples of that channel's own noise
+(held-out cost over the noise cost), the scale of the report's gap-to-noise ratios: a channel
+with a departure of k noise variances weighs the same whatever its signal's size (in the cost's
+own weights, 1 / the signal's spread, a channel whose noise is large against its signal would
+weigh most).
+
+Pure numpy; the scans come from :mod:`groundstation.gap.hypotheses`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from groundstation.gap import attribute, fingerprints, hypotheses
+from groundstation.gap.evaluate import Evaluator, SegmentArrays
+from groundstation.sysid.model import INPUTS, OUTPUTS
+
+#: the estimate of each effect compared between the halves (key of ``Hypothesis.estimate``)
+PARAMETER = {"input_delay": "delay_s", "rate_limit": "rate_limit_per_s", "deadband": "deadband",
+             "velocity_latency": "latency_s", "gyro_bias": "bias_rad_s", "ground_effect": "accel_m_s2",
+             "quadratic_drag": None, "wind_gust": "air_velocity_rms_m_s", "rotor_vibration": "frequency_hz"}
+
+
+# ----------------------------------------------------------------------------------------------
+# shares
+# ----------------------------------------------------------------------------------------------
+def noise_cost(ev: Evaluator, sigma_smoothed: np.ndarray) -> np.ndarray:
+    """(W, 8) held-out cost a perfect model would still show: the measured noise in the cost's weights."""
+    s = np.nan_to_num(np.asarray(sigma_smoothed, float))
+    per = float(ev.mask.sum()) * (s * ev.w8) ** 2
+    return np.broadcast_to(per, (ev.W, 8)).copy()
+
+
+def removal(c: attribute.Candidate, base_sse: np.ndarray, first: bool = True) -> np.ndarray:
+    """(W, 8) held-out cost a named effect removes, in the units of ``base_sse`` (the base model's).
+
+    An effect named given a first one: what it removes from the model with the first in
+    (``extra['sse_given']``/``['base_given']``); an effect scored in its own protocol (the air mass):
+    its removal there, rescaled per channel to the base cost; the rotor line (a fingerprint of the
+    raw residual): its per-channel share of the raw cost applied to the base cost."""
+    h, s = c.hyp, c.score
+    ex = h.extra
+    if not first and ex.get("sse_given") is not None and ex.get("base_given") is not None:
+        R = np.asarray(ex["base_given"], float) - np.asarray(ex["sse_given"], float)
+        ref = ex.get("share_ref")
+    elif h.effect == "rotor_vibration" or h.sse is None:
+        f = np.zeros(8)
+        for k, v in s.per_channel_shrink.items():
+            f[int(k)] = 1.0 - (1.0 - max(min(float(v), 100.0), -100.0) / 100.0) ** 2
+        return base_sse * f[None, :]
+    elif ex.get("base_sse") is not None and h.sse is not None:
+        R = np.asarray(ex["base_sse"], float) - np.asarray(h.sse, float)
+        ref = ex["base_sse"]
+    else:
+        return base_sse - np.asarray(h.sse, float)
+    if ref is not None:
+        ref_t = np.asarray(ref, float).sum(axis=0)
+        R = R * np.where(ref_t > 0, base_sse.sum(axis=0) / np.where(ref_t > 0, ref_t, 1.0), 0.0)[None, :]
+    return R
+
+
+@dataclass
+class Shares:
+    """Shares of the held-out gap above the noise (percent); None where there is no gap to share."""
+
+    explained_pct: float | None
+    interval_pct: tuple[float, float] | None
+    per_channel: dict[str, dict[str, Any]]
+    per_effect: list[dict[str, Any]]
+    excess_pct_of_cost: float  # the gap above noise, in percent of the base held-out cost
+    channels: list[str] = field(default_factory=list)
+
+
+def _ratio_interval(num: np.ndarray, den: np.ndarray, idx: np.ndarray) -> tuple[float, float]:
+    b = num[idx].sum(axis=1) / np.maximum(den[idx].sum(axis=1), 1e-300)
+    lo, hi = np.percentile(100.0 * b, [5, 95])
+    return float(lo), float(hi)
+
+
+def compute_shares(named: list[tuple[str, np.ndarray]], base_sse: np.ndarray, noise_sse: np.ndarray,
+                   available: np.ndarray, rng: np.random.Generator, n_boot: int = 1000,
+                   min_gap_ratio: float = 1.2) -> Shares:
+    """Shares of the gap above the noise removed by ``named`` ((label, removal (W, 8)) in order).
+
+    Channels enter the total where their held-out cost is above their noise cost; a channel's own
+    share is given where its gap-to-noise ratio (RMS) is at least ``min_gap_ratio`` (below, the
+    excess is a small difference of two large numbers). Interval: 5-95 % bootstrap over windows."""
+    W = base_sse.shape[0]
+    cost = float(base_sse[:, available].sum())
+    excess0 = float(np.maximum((base_sse - noise_sse).sum(axis=0), 0.0)[available].sum())
+    # in multiples of each channel's noise (see the module docstring)
+    unit = np.where(noise_sse > 0, 1.0 / np.where(noise_sse > 0, noise_sse, 1.0), 0.0)
+    base_sse, noise_sse = base_sse * unit, noise_sse * unit
+    named = [(label, Rk * unit) for label, Rk in named]
+    E = base_sse - noise_sse
+    tot_c = E.sum(axis=0)
+    cols = [c for c in range(8) if available[c] and tot_c[c] > 0]
+    idx = rng.integers(0, W, (n_boot, W))
+    R = np.zeros_like(base_sse)
+    per_effect = []
+    for label, Rk in named:
+        R = R + Rk
+        if cols:
+            num = Rk[:, cols].sum(axis=1)
+            den = E[:, cols].sum(axis=1)
+            per_effect.append({"effect": label, "share_pct": round(100.0 * float(num.sum() / den.sum()), 1),
+                               "interval_pct": [round(v, 1) for v in _ratio_interval(num, den, idx)]})
+    excess = float(E[:, cols].sum()) if cols else 0.0
+    per_channel: dict[str, dict[str, Any]] = {}
+    for c in range(8):
+        if not available[c] or base_sse[:, c].sum() <= 0:
+            continue
+        ratio = float(np.sqrt(base_sse[:, c].sum() / max(noise_sse[:, c].sum(), 1e-300)))
+        d: dict[str, Any] = {"gap_to_noise": round(ratio, 2),
+                             "excess_share_pct": round(100.0 * float(max(tot_c[c], 0.0)) / excess, 1)
+                             if excess > 0 else 0.0}
+        if ratio >= min_gap_ratio and tot_c[c] > 0:
+            d["explained_pct"] = round(100.0 * float(R[:, c].sum() / tot_c[c]), 1)
+            d["interval_pct"] = [round(v, 1) for v in _ratio_interval(R[:, c], E[:, c], idx)]
+        per_channel[OUTPUTS[c]] = d
+    if not cols or excess <= 0:
+        return Shares(None, None, per_channel, per_effect, 0.0, [])
+    num = R[:, cols].sum(axis=1)
+    den = E[:, cols].sum(axis=1)
+    return Shares(explained_pct=100.0 * float(num.sum() / den.sum()), interval_pct=_ratio_interval(num, den, idx),
+                  per_channel=per_channel, per_effect=per_effect,
+                  excess_pct_of_cost=100.0 * excess0 / max(cost, 1e-300), channels=[OUTPUTS[c] for c in cols])
+
+
+# ----------------------------------------------------------------------------------------------
+# through the flight
+# ----------------------------------------------------------------------------------------------
+def halves(ev: Evaluator) -> np.ndarray:
+    """(W,) index of the half (0 first, 1 second) of each window, in the windows' time order."""
+    h = np.zeros(ev.W, int)
+    h[ev.W // 2:] = 1
+    return h
+
+
+def split_segments(segs: list[SegmentArrays], ev: Evaluator) -> tuple[list[SegmentArrays], list[SegmentArrays]]:
+    """The segments cut where the second half of the windows begins."""
+    si, st = ev.starts[ev.W // 2]
+
+    def piece(s: SegmentArrays, a: int, b: int) -> SegmentArrays:
+        return SegmentArrays(t_s=s.t_s[a:b], inputs=s.inputs[a:b], outputs=s.outputs[a:b],
+                             outputs_raw=s.outputs_raw[a:b], alt_m=s.alt_m[a:b], flight=s.flight)
+
+    first = list(segs[:si]) + [piece(segs[si], 0, st)]
+    second = [piece(segs[si], st, segs[si].t_s.shape[0])] + list(segs[si + 1:])
+    keep = [s for s in first if s.t_s.shape[0] >= ev.L], [s for s in second if s.t_s.shape[0] >= ev.L]
+    return keep
+
+
+@dataclass
+class HalfFit:
+    """One half: its evaluator, the effect's own estimate there and the variant builder."""
+
+    ev: Evaluator
+    segs: list[SegmentArrays]
+    value: Any  # the half's own estimate (label dict for input effects, float/array else)
+    shown: float | None  # the value as reported
+    X: np.ndarray | None = None
+
+
+def _input_residual(ev: Evaluator, segs: list[SegmentArrays], effect: str, lab: dict) -> np.ndarray:
+    h = hypotheses.Hypothesis(effect, extra={"label": lab})
+    U = ev.cut([s.inputs for s in hypotheses.apply_input_effect(h, segs, ev.dt_s)])
+    return ev.residual(ev.simulate(ev.theta0, U=U))[0]
+
+
+def _latency_residual(ev: Evaluator, segs: list[SegmentArrays], lat_s: float) -> np.ndarray:
+    d = lat_s / ev.dt_s
+    Ys = [s.outputs.copy() for s in segs]
+    for y in Ys:
+        y[:, :3] = hypotheses.shift(y[:, :3], -d)
+    y = ev.simulate(ev.theta0, Y=ev.cut(Ys))[0]
+    y[:, :, :3] = np.moveaxis(hypotheses.shift(np.moveaxis(y[:, :, :3], 1, 0), d), 0, 1)
+    return ev.residual(y)
+
+
+def _fit_half(c: attribute.Candidate, ev: Evaluator, segs: list[SegmentArrays]) -> HalfFit | None:
+    """The effect's own estimate in one half (its scan on that half, on its channel)."""
+    h = c.hyp
+    ctx = hypotheses.Context(ev, segs)
+    e = h.effect
+    if e in hypotheses.INPUT_EFFECTS:
+        hh = hypotheses.rescan_input_effect(ctx, h)
+        lab = dict(hh.extra["label"])
+        return HalfFit(ev, segs, lab, float(hh.estimate[PARAMETER[e]]))
+    if e == "velocity_latency":
+        hh = hypotheses.scan_velocity_latency(ctx)
+        return HalfFit(ev, segs, float(hh.estimate["latency_s"]), float(hh.estimate["latency_s"])) \
+            if hh.testable else None
+    if e == "gyro_bias" and h.output in hypotheses.RATE_CH:
+        ch = hypotheses.RATE_CH[h.output]
+        b = 0.01
+        Y2 = ev.Y.copy()
+        Y2[:, :, ch] -= b
+        yh = ev.simulate(ev.theta0, Y=Y2)[0]
+        yh[:, :, ch] += b
+        X = hypotheses._mask_w(ev, (yh - ev.simulate(ev.theta0)[0]) / b)[..., None]
+        _, _, coef = ev.heldout(ev.r0, X)
+        v = float(coef[:, 0].mean())
+        return HalfFit(ev, segs, v, v, X)
+    if e in ("quadratic_drag", "ground_effect"):
+        hh = hypotheses.scan_quadratic_drag(ctx) if e == "quadratic_drag" else hypotheses.scan_ground_effect(ctx)
+        X = hh.extra.get("X")
+        if not hh.testable or X is None:
+            return None
+        _, _, coef = ev.heldout(ev.r0, X)
+        v = coef.mean(axis=0)
+        shown = float(hh.estimate.get("accel_m_s2", float(np.mean(v))))
+        return HalfFit(ev, segs, v, shown, X)
+    return None
+
+
+def _residual(c: attribute.Candidate, hf: HalfFit, value: Any) -> np.ndarray:
+    """The weighted residual (W, L, 8) of the effect with parameter ``value`` fixed, in half ``hf``."""
+    e = c.hyp.effect
+    ev = hf.ev
+    if e in hypotheses.INPUT_EFFECTS:
+        return _input_residual(ev, hf.segs, e, value)
+    if e == "velocity_latency":
+        return _latency_residual(ev, hf.segs, float(value))
+    assert hf.X is not None
+    v = np.atleast_1d(np.asarray(value, float))
+    X = hf.X
+    if X.shape[-1] != v.size:
+        v = np.resize(v, X.shape[-1])
+    # the fitted coefficients are in the columns' own (un-normalised) units: r ~ -J d + X b
+    return ev.r0 - np.einsum("wlck,k->wlc", X, v)
+
+
+def consistency(c: attribute.Candidate, segs_h: tuple[list[SegmentArrays], list[SegmentArrays]], ev: Evaluator,
+                theta: np.ndarray, level: float, min_loss: float, min_windows: int,
+                rng: np.random.Generator, n_boot: int, window_alpha: float,
+                arrays: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Does named effect ``c`` hold through the flight? (see the module docstring)
+
+    Returns ``{"status": "holds" | "changes" | "not_checked", "parameter", "first", "second",
+    "p_values", "why"}``."""
+    e = c.hyp.effect
+    par = PARAMETER.get(e)
+    out: dict[str, Any] = {"status": "not_checked", "parameter": par, "first": None, "second": None,
+                           "p_values": None, "why": ""}
+    if e == "wind_gust":
+        return _gust_consistency(c, ev, level, out)
+    if e == "rotor_vibration":
+        return _line_consistency(c, ev, arrays, level, out)
+    evs = []
+    for s in segs_h:
+        try:
+            eh = Evaluator(s, ev.dt_s, theta, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds, ridge=ev.ridge)
+        except Exception:  # too few windows for the folds
+            eh = None
+        if eh is None or eh.W < min_windows:
+            out["why"] = "a half of the flight is too short to estimate the effect on its own"
+            return out
+        evs.append(eh)
+    fits = [_fit_half(c, eh, s) for eh, s in zip(evs, segs_h, strict=True)]
+    if any(f is None for f in fits):
+        out["why"] = "the effect cannot be estimated again on a half of the flight"
+        return out
+    assert fits[0] is not None and fits[1] is not None
+    out["first"], out["second"] = _round(fits[0].shown), _round(fits[1].shown)
+    pv: dict[str, float] = {}
+    resolved, rejected = [], []
+    for k, (hf, other) in enumerate(((fits[0], fits[1]), (fits[1], fits[0]))):
+        ev_h = hf.ev
+        base, _, _ = ev_h.heldout(ev_h.r0)
+        bb = ev_h.last_blocks.copy()
+        own, _, _ = ev_h.heldout(_residual(c, hf, hf.value))
+        ob = ev_h.last_blocks.copy()
+        oth, _, _ = ev_h.heldout(_residual(c, hf, _other_value(c, other.value, hf.value)))
+        tb = ev_h.last_blocks.copy()
+        p_res = attribute.conditional_p(base.sum(1), own.sum(1), rng, n_boot, window_alpha, bb, ob)
+        p_rej = attribute.conditional_p(oth.sum(1), own.sum(1), rng, n_boot, window_alpha, tb, ob)
+        gain = float(base.sum() - own.sum())
+        loss = float(oth.sum() - own.sum())
+        name = ("first", "second")[k]
+        pv[f"{name}_effect"] = float(f"{p_res:.3g}")
+        pv[f"{name}_rejects_other"] = float(f"{p_rej:.3g}")
+        resolved.append(p_res < level and gain > 0)
+        rejected.append(p_rej < level and gain > 0 and loss > min_loss * gain)
+    out["p_values"] = pv
+    if not all(resolved):
+        half = "first" if not resolved[0] else "second"
+        where = f" ({c.hyp.input} little excited there)" if c.hyp.input else ""
+        out["why"] = f"the effect does not lower the held-out cost of the {half} half significantly{where}"
+        return out
+    if any(rejected):
+        out["status"] = "changes"
+        out["why"] = (f"{par} {out['first']} in the first half, {out['second']} in the second: the "
+                      f"{'first' if rejected[0] else 'second'} half's data reject the other half's value")
+    else:
+        out["status"] = "holds"
+        out["why"] = f"{par} {out['first']} and {out['second']} in the two halves: neither half rejects the other's value"
+    return out
+
+
+def _other_value(c: attribute.Candidate, other: Any, own: Any) -> Any:
+    if c.hyp.effect in hypotheses.INPUT_EFFECTS:
+        lab = dict(own)
+        key = {"input_delay": "delay_s", "rate_limit": "rate_per_s", "deadband": "width"}[c.hyp.effect]
+        lab[key] = other[key]
+        if c.hyp.effect == "deadband":
+            lab["kind"], lab["centre"] = other.get("kind", lab.get("kind")), other.get("centre", lab.get("centre"))
+        return lab
+    return other
+
+
+def _round(v: Any) -> Any:
+    if v is None:
+        return None
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return [round(float(x), 6) for x in np.ravel(v)]
+    return round(float(v), 6)
+
+
+def _gust_consistency(c: attribute.Candidate, ev: Evaluator, level: float, out: dict[str, Any]) -> dict[str, Any]:
+    """An air mass holds when the fitted air velocity's rms per window is the same in both halves
+    (Welch t-test on the log of the per-window rms, level ``level``, and a factor above 1.5)."""
+    air = c.hyp.extra.get("air_knots")
+    if air is None:
+        out["why"] = "no per-window air velocity to compare"
+        return out
+    from scipy import stats
+
+    rms = np.sqrt((np.asarray(air) ** 2).sum(axis=1).mean(axis=1)) + 1e-9
+    hv = halves(ev)
+    a, b = np.log(rms[hv == 0]), np.log(rms[hv == 1])
+    if a.size < 3 or b.size < 3:
+        out["why"] = "a half of the flight is too short"
+        return out
+    p = float(stats.ttest_ind(a, b, equal_var=False).pvalue)
+    r1, r2 = float(np.exp(a.mean())), float(np.exp(b.mean()))
+    out.update(first=round(r1, 4), second=round(r2, 4), p_values={"halves_differ": float(f"{p:.3g}")})
+    if p < level and max(r1, r2) / min(r1, r2) > 1.5:
+        out["status"], out["why"] = "changes", f"air velocity rms {r1:.2f} m/s in the first half, {r2:.2f} m/s in the second"
+    else:
+        out["status"], out["why"] = "holds", f"air velocity rms {r1:.2f} and {r2:.2f} m/s in the two halves"
+    return out
+
+
+def _line_consistency(c: attribute.Candidate, ev: Evaluator, arrays: dict[str, Any] | None, level: float,
+                      out: dict[str, Any]) -> dict[str, Any]:
+    """A rotor line holds when each half's raw residual shows a line at its frequency (within two
+    bins of the averaged periodogram, or 0.3 Hz)."""
+    if arrays is None or arrays.get("resid_raw") is None:
+        out["why"] = "no raw residual to look at"
+        return out
+    resid, U, ch, dt = arrays["resid_raw"], arrays["U"], arrays["line_channels"], ev.dt_s
+    f0 = float(c.hyp.estimate.get("frequency_hz", np.nan))
+    hv = halves(ev)
+    found = []
+    for k in (0, 1):
+        sel = hv == k
+        if sel.sum() < 3:
+            out["why"] = "a half of the flight is too short"
+            return out
+        lines, sp = fingerprints.spectral_lines(resid[sel], U[sel], dt, ch, alpha=level)
+        f = sp["f_hz"] if isinstance(sp, dict) and "f_hz" in sp else None
+        tol = max(0.3, 2.0 * float(f[1] - f[0])) if f is not None and len(f) > 1 else 0.3
+        near = [ln.frequency_hz for ln in lines if abs(ln.frequency_hz - f0) <= tol]
+        found.append(near[0] if near else None)
+    out["first"], out["second"] = _round(found[0]), _round(found[1])
+    if all(v is not None for v in found):
+        out["status"], out["why"] = "holds", f"the line is in both halves ({found[0]:.2f} and {found[1]:.2f} Hz)"
+    else:
+        half = "second" if found[0] is not None else "first"
+        out["status"], out["why"] = "changes", f"the line at {f0:.2f} Hz is not in the {half} half"
+    return out
+
+
+def gap_over_time(ev: Evaluator, base_sse: np.ndarray, noise_sse: np.ndarray, removed: np.ndarray,
+                  cols: list[int]) -> dict[str, Any]:
+    """The gap above the noise per half of the flight, what the named effects remove there, and the
+    rank correlation of the windows' excess with time."""
+    from scipy import stats
+
+    hv = halves(ev)
+    unit = np.where(noise_sse > 0, 1.0 / np.where(noise_sse > 0, noise_sse, 1.0), 0.0)
+    E = ((base_sse - noise_sse) * unit)[:, cols].sum(axis=1) if cols else np.zeros(ev.W)
+    Rm = (removed * unit)[:, cols].sum(axis=1) if cols else np.zeros(ev.W)
+    tot = float(E.sum())
+    out = []
+    for k in (0, 1):
+        sel = hv == k
+        t = ev.T[sel]
+        e = float(E[sel].sum())
+        ratio = {OUTPUTS[c]: round(float(np.sqrt(base_sse[sel, c].sum() / max(noise_sse[sel, c].sum(), 1e-300))), 2)
+                 for c in cols}
+        out.append({"t_s": [round(float(t[:, 0].min()), 2), round(float(t[:, -1].max()), 2)],
+                    "excess_share_pct": round(100.0 * e / tot, 1) if tot > 0 else None,
+                    "explained_pct": round(100.0 * float(Rm[sel].sum()) / e, 1) if e > 0 else None,
+                    "gap_to_noise": ratio})
+    rho, p = (stats.spearmanr(np.arange(ev.W), E) if ev.W >= 6 and np.ptp(E) > 0 else (0.0, 1.0))
+    return {"halves": out, "trend": {"rho": round(float(rho), 3), "p": float(f"{float(p):.3g}")}}
+
+
+def describe_inputs(name: str | None) -> str:
+    return name if name in INPUTS else ""

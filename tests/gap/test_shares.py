@@ -1,0 +1,54 @@
+"""Shares of the gap above the noise and effects that must hold through the flight (docs/diagnosis.md 3b)."""
+
+import numpy as np
+
+from groundstation.gap.diagnose import diagnose
+from groundstation.gap.shares import compute_shares
+from groundstation.sysid.model import HoverModel, theta_to_dict
+
+
+def test_shares_count_the_gap_above_the_noise_in_noise_units():
+    W = 40
+    rng = np.random.default_rng(0)
+    noise = np.tile(np.array([1.0, 1.0, 4.0, 1.0, 1.0, 1.0, 1.0, 1.0]), (W, 1))
+    base = noise.copy()
+    base[:, 3] = 5.0  # p: 4 noise units above its floor per window
+    base[:, 2] = 4.0 * 3.0  # w: 2 noise units above (its noise is 4)
+    rem = np.zeros((W, 8))
+    rem[:, 3] = 4.0  # the effect removes all of p's excess
+    sh = compute_shares([("input_delay lat", rem)], base, noise, np.ones(8, bool), rng, n_boot=200)
+    assert sh.channels == ["w", "p"]
+    assert abs(sh.explained_pct - 100.0 * 4 / 6) < 1e-9  # 4 of the 6 noise units of excess
+    assert sh.per_channel["p"]["explained_pct"] == 100.0 and sh.per_channel["w"]["explained_pct"] == 0.0
+    lo, hi = sh.interval_pct
+    assert lo <= sh.explained_pct <= hi
+    # a channel at its floor carries no share
+    assert "explained_pct" not in sh.per_channel["q"]
+    # nothing above the noise: no share to state
+    none = compute_shares([("x", rem)], noise, noise, np.ones(8, bool), rng, n_boot=50)
+    assert none.explained_pct is None
+
+
+def _start(paper_theta):
+    th = paper_theta * (1 + 0.05 * np.random.default_rng(0).standard_normal(paper_theta.shape))
+    return HoverModel(params=theta_to_dict(th))
+
+
+def test_a_gyro_bias_drifting_through_the_flight_is_not_named_as_a_constant_one(flight_factory, paper_theta):
+    r = diagnose(_start(paper_theta), flight_factory(T_s=90.0, seed=11, effect=("drifting_bias", 4, 0.02)), seed=0)
+    assert r["verdict"] != "gyro_bias"
+    assert all(e["effect"] != "gyro_bias" for e in r["effects"])
+    ch = r["through_flight"]["changes"]
+    assert ch and ch[0]["effect"] == "gyro_bias" and ch[0]["channel"] == "q"
+    assert ch[0]["first"] < ch[0]["second"]  # the bias grows
+    assert any(e["effect"] == "gyro_bias" and e["consistency"]["status"] == "changes" for e in r["partial_findings"])
+    assert "changes through the flight" in r["shares"]["headline"]
+
+
+def test_a_flight_too_short_to_split_says_so_and_checks_nothing(flight_factory, paper_theta):
+    r = diagnose(_start(paper_theta), flight_factory(T_s=33.0, seed=12, effect=("gyro_bias", 4, 0.01)), seed=0)
+    assert not r["through_flight"]["checked"]
+    notes = [n for n in r["notes"] if "too short to split" in n]
+    assert len(notes) == 1
+    for e in r["effects"] + r["partial_findings"]:
+        assert e["consistency"]["status"] == "not_checked"

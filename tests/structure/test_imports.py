@@ -1,0 +1,133 @@
+"""The package's import graph: no circle, and nothing below the top layer imports the top layer.
+
+Every import counts, at module level or inside a function (an import inside a function is still a
+dependency; it only runs later). The top layer (``cli``, ``commands``, ``bench``, ``service``) uses
+everything; nothing else may import it, so the numerics, the pipeline and the worker can be used (and
+tested) without the command line or the live service.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+PACKAGES = ("groundstation", "firmware_interface", "hil_replay")
+#: the top layer: may import anything, imported by nothing else in the packages
+TOP = ("groundstation.cli", "groundstation.commands", "groundstation.bench", "groundstation.service")
+
+
+def _modules() -> dict[str, Path]:
+    mods = {}
+    for pkg in PACKAGES:
+        for f in (ROOT / pkg).rglob("*.py"):
+            name = ".".join(f.relative_to(ROOT).with_suffix("").parts)
+            mods[name.removesuffix(".__init__")] = f
+    return mods
+
+
+def import_graph() -> dict[str, set[str]]:
+    """module -> the project modules it imports (anywhere in its source); a package's ``__init__`` is
+    not counted as a dependency of its sub-modules' importers (importing ``a.b`` runs ``a``, but
+    that is the package's entry, not a design dependency)."""
+    mods = _modules()
+
+    def resolve(name: str) -> str | None:
+        while name and name not in mods:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph: dict[str, set[str]] = {}
+    for name, f in mods.items():
+        tree = ast.parse(f.read_text())
+        base = name if f.name == "__init__.py" else name.rpartition(".")[0]
+        deps: set[str] = set()
+        for n in ast.walk(tree):
+            if isinstance(n, ast.Import):
+                targets = [a.name for a in n.names]
+            elif isinstance(n, ast.ImportFrom):
+                mod = n.module or ""
+                if n.level:
+                    parts = base.split(".")
+                    mod = ".".join(parts[: len(parts) - n.level + 1] + ([mod] if mod else []))
+                targets = [f"{mod}.{a.name}" for a in n.names] + [mod]
+            else:
+                continue
+            for t in targets:
+                r = resolve(t)
+                if r and r != name and not name.startswith(r + ".") and mods[r].name != "__init__.py":
+                    deps.add(r)
+        graph[name] = deps
+    return graph
+
+
+def circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+    counter = 0
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph.get(root, ()))))]
+        index[root] = low[root] = counter
+        counter += 1
+        stack.append(root)
+        on.add(root)
+        while work:
+            v, it = work[-1]
+            for w in it:
+                if w not in index:
+                    index[w] = low[w] = counter
+                    counter += 1
+                    stack.append(w)
+                    on.add(w)
+                    work.append((w, iter(sorted(graph.get(w, ())))))
+                    break
+                if w in on:
+                    low[v] = min(low[v], index[w])
+            else:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[v])
+                if low[v] == index[v]:
+                    comp = []
+                    while True:
+                        w = stack.pop()
+                        on.discard(w)
+                        comp.append(w)
+                        if w == v:
+                            break
+                    if len(comp) > 1:
+                        out.append(sorted(comp))
+    return out
+
+
+#: circles still to break (each one a module pair sharing private pieces): the test fails on any other
+KNOWN_CIRCLES = [["groundstation.sysid.identify", "groundstation.sysid.select"]]
+
+
+def _top(name: str) -> bool:
+    return any(name == t or name.startswith(t + ".") for t in TOP)
+
+
+def test_no_import_circle():
+    found = [c for c in circles(import_graph()) if c not in KNOWN_CIRCLES]
+    assert not found, "import circles:\n" + "\n".join(" <-> ".join(c) for c in found)
+
+
+def test_nothing_below_the_top_layer_imports_it():
+    up = sorted(f"{m} imports {d}" for m, deps in import_graph().items() if not _top(m)
+                for d in deps if _top(d))
+    assert not up, "upward imports:\n" + "\n".join(up)
+
+
+def test_the_walk_sees_circles_and_function_level_imports():
+    g = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert circles(g) == [["a", "b", "c"]]
+    graph = import_graph()
+    # groundstation.analysis imports the diagnosis inside a function only
+    assert "groundstation.gap.diagnose" in graph["groundstation.analysis"]

@@ -1,0 +1,47 @@
+"""The refinement's Levenberg-Marquardt against scipy's least squares on the same windowed cost."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from groundstation.sysid.cost import WindowedCost, Windows
+from groundstation.sysid.model import PARAM_INDEX, VER_PARAMS, bounds_array, theta_from_dict
+from groundstation.sysid.refine import levenberg_marquardt, refine
+from groundstation.sysid.synthetic import EXAMPLE_TRUTH, simulate_flight
+
+
+def _cost():
+    th = theta_from_dict(EXAMPLE_TRUTH)
+    u, _, ym = simulate_flight(th, 40.0, 0.02, seed=4)
+    L = 150
+    W = u.shape[0] // L
+    win = Windows(u[: W * L].reshape(W, L, 4), ym[: W * L].reshape(W, L, 8), np.ones((W, 8), dtype=bool),
+                  np.zeros(W, dtype=int), np.arange(W) * 3.0, 0.02)
+    free = np.zeros(31, dtype=bool)
+    free[[PARAM_INDEX[p] for p in VER_PARAMS]] = True
+    return WindowedCost(win, free, th, subsystems=(1,)), th, free
+
+
+def test_levenberg_marquardt_reaches_the_least_squares_optimum():
+    cost, th, free = _cost()
+    b = bounds_array()[free]
+    x0 = np.clip(th[free] * 1.3, b[:, 0], b[:, 1])
+    sig = np.ones(8)
+    lm = levenberg_marquardt(cost, x0, b[:, 0], b[:, 1], sig, max_nfev=100)
+    ref = least_squares(lambda x: cost.residuals(x[None], sig).ravel(), x0, bounds=(b[:, 0], b[:, 1]),
+                        method="trf", x_scale="jac", ftol=1e-12, xtol=1e-12, gtol=1e-12, max_nfev=200)
+    assert lm.cost <= ref.cost * (1 + 1e-9)
+    assert np.allclose(lm.x, ref.x, rtol=1e-4, atol=1e-8)
+
+
+def test_a_parameter_held_by_its_bound_stays_on_it():
+    cost, th, free = _cost()
+    b = bounds_array()[free].copy()
+    i = VER_PARAMS.index("N_r")
+    b[i] = (0.5 * th[PARAM_INDEX["N_r"]], 0.4 * th[PARAM_INDEX["N_r"]])  # N_r < 0: a range that excludes the truth
+    b[i] = np.sort(b[i])
+    x0 = np.clip(th[free], b[:, 0], b[:, 1])
+    res = refine(cost, x0, b, passes=1, max_nfev=40, with_std=False)
+    assert b[i, 0] <= res.x[i] <= b[i, 1]
+    assert min(abs(res.x[i] - b[i, 0]), abs(res.x[i] - b[i, 1])) < 1e-9 * abs(b[i, 1] - b[i, 0]) + 1e-12
