@@ -570,6 +570,13 @@ def _fit_fold(train: Any, *, model: Any, kind: str) -> Any:
     return _as_hover_model(model, identify_command(train, kind))
 
 
+def fold_fitter(model: Any) -> Any:
+    """``fit_fold(train) -> model`` of a held-out check of ``model``'s command-response structure (same kind)."""
+    from functools import partial
+
+    return partial(_fit_fold, model=model, kind=str((model.command or {}).get("kind", "rate_command")))
+
+
 def attach_command_structure(prepared: Any, model: Any, cfg: Any, *, prior: Any = None, pmap: Any = None) -> Any:
     """``model`` with the command-response structure of ``cfg.input_kind`` fitted to ``prepared``.
 
@@ -593,6 +600,8 @@ def attach_command_structure(prepared: Any, model: Any, cfg: Any, *, prior: Any 
     out.fit["command_response"] = cm.describe()
     if cfg.input_kind in COMMAND_KINDS or int(cfg.select_folds) < 2:
         out.fit["structure_choice"] = {"chosen": "command_response", "reason": f"inputs.kind = {cfg.input_kind}"}
+        if "heldout" in out.fit:   # the hover model's, from the selection: not this structure's
+            out.fit["heldout_hover"] = out.fit.pop("heldout")
         return out
     try:
         cv_c = crossvalidate(prepared, partial(_fit_fold, model=model, kind=kind), k=int(cfg.select_folds),

@@ -14,7 +14,7 @@ drives the longitudinal flapping ``a_s`` and so the pitch rate ``q``; ``lon`` th
 yaw-gyro loop's static gain for r), so ``feedback`` is dimensionless (the loop gain at low
 frequency) and ``K`` the rate demanded per unit stick (``rate_per_unit``; by default ``G``: the pilot,
 who flies by the airframe's own model, sees the same aircraft at low frequency). The loop runs at
-the 50 Hz frame rate on the true rates.
+the 200 Hz integration rate on the true rates.
 
 :func:`closed_loop_truth` is the truth an identification of the stabilised aircraft is checked
 against: the linearised closed loop (eq.-8 matrices of the simulator's own dynamics, the loop,
@@ -47,7 +47,7 @@ class RateLoop:
 
     bandwidth_rad_s: float = 5.0
     delay_s: float = 0.08
-    feedback: float = 4.0
+    feedback: float = 8.0
     #: rad/s of rate demanded per unit of stick, per axis; an axis not given demands the bare airframe's
     #: static rate per unit (its sign too): the pilot, who flies by the aircraft's own model, then
     #: sees the same aircraft at low frequency, a crisper one above
@@ -111,7 +111,7 @@ def _delayed(hist: deque[tuple[float, ...]], lag_ticks: float) -> tuple[float, .
 
 def closed_loop_response(ac: Aircraft, loop: RateLoop, axis: str, w_rad_s: np.ndarray) -> np.ndarray:
     """Complex stick-to-rate frequency response of the linearised closed loop (delay included; the
-    50 Hz loop taken as continuous)."""
+    200 Hz loop taken as continuous)."""
     P = ac.parameters
     G = static_gains(ac)
     inp, _ = AXES[axis]

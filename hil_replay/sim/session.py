@@ -212,7 +212,8 @@ class SimulatedSession:
                 gust = GustModel(np.random.default_rng(self._seeds[3]), dt, float(gp["sigma_m_s"]),
                                  float(gp["tau_s"]))
         sensors = _Sensors(self.noise, fx, sf, ac, dt)
-        loop = RateLoopState(self.rate_loop, ac, dt) if self.rate_loop is not None else None
+        # the stabiliser runs at the 200 Hz integration rate (a flybarless unit runs faster than the link)
+        loop = RateLoopState(self.rate_loop, ac, dt / SUBSTEPS) if self.rate_loop is not None else None
         trim = [float(ac.trim_pwm[c]) for c in INPUTS]
         ppu = float(ac.pwm_per_unit)
         Z_col = float(ac.parameters["Z_col"])
@@ -268,7 +269,8 @@ class SimulatedSession:
             da0 = fx.actuate(blade)
             yield TelemetryFrame(meas, fi, avail, tuple(x), tuple(dcmd), tuple(da0), tuple(wind), fast_before)
             x, landed, fast_before = _integrate(step, fx, ac, x, landed, t, dt, da0, blade, wind, armed, seg_kind,
-                                                spinning, air, fast_rng, self.noise)
+                                                spinning, air, fast_rng, self.noise,
+                                                None if loop is None else (lambda xs, st=dcmd: loop.blade(st, xs)))
             if gust is not None:
                 gust.step()
 
@@ -462,7 +464,7 @@ def _landed_state(armed: bool, seg_kind: str, landed: bool) -> int:
 def _integrate(step: Any, fx: _EffectState, ac: Aircraft, x: list[float], landed: bool, t: float, dt: float,
                da0: list[float], dcmd: list[float], wind: list[float], armed: bool, seg_kind: str, spinning: bool,
                air: list[list[float | None]], fast_rng: np.random.Generator | None,
-               nz: NoiseConfig) -> tuple[list[float], bool, tuple[tuple[float, ...], ...]]:
+               nz: NoiseConfig, loop_fn: Any = None) -> tuple[list[float], bool, tuple[tuple[float, ...], ...]]:
     """Integrate from ``t`` to ``t + dt`` in 200 Hz sub-steps: lift-off and touchdown (appended to
     ``air``), and the 200 Hz gyro between two ticks when ``fast_rng`` is given."""
     h = dt / SUBSTEPS
@@ -471,7 +473,8 @@ def _integrate(step: Any, fx: _EffectState, ac: Aircraft, x: list[float], landed
     wn, we, wd = wind
     fast: list[tuple[float, ...]] = []
     for sub in range(SUBSTEPS):
-        da = da0 if sub == 0 else fx.actuate(dcmd)
+        # a stabiliser (``loop_fn(x) -> blade``) acts at every sub-step on the state there
+        da = da0 if sub == 0 else fx.actuate(dcmd if loop_fn is None else loop_fn(x))
         moves = True
         if landed:
             thrust = g - Z_col * da[2] - Z_ped * da[3]

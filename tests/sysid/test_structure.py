@@ -34,7 +34,7 @@ def _prepared(seed: int = 0, n: int = 6000) -> tuple[PreparedData, dict[str, flo
     u = np.zeros((n, 4))
     u[:, 1] = _lowpass(np.repeat(rng.uniform(-0.2, 0.2, n // 25), 25), 0.05)   # random steps, lon
     u[:, 2] = 0.05 * np.sin(0.7 * t) + 0.03 * np.sin(2.3 * t)                   # col
-    truth = {"K": 1.8, "T": 0.25, "tau": 0.09, "C_col": -0.6}
+    truth = {"K": 1.8, "T": 0.25, "tau": 0.1, "C_col": -0.6}   # a delay of 5 samples
     k = int(round(truth["tau"] / DT))
     drive = truth["K"] * u[:, 1] + truth["C_col"] * u[:, 2]
     drive = np.concatenate([np.zeros(k), drive[:-k]])
@@ -126,3 +126,17 @@ def test_simulated_stabilised_aircraft_is_identified_back_to_its_bandwidth_and_d
         assert f.on_input == tr["input"], (axis, f.on_input)
         assert s["bandwidth_rad_s"] == pytest.approx(tr["bandwidth_rad_s"], rel=0.10), (axis, s, tr)
         assert s["delay_s"] == pytest.approx(tr["delay_s"], rel=0.10), (axis, s, tr)
+
+
+def test_gap_finding_a_stabilising_controller_in_the_loop():
+    from groundstation.gap.controller import stabilising_controller
+    from groundstation.sysid.model import PARAM_NAMES
+
+    prep, truth = _prepared(n=7500)
+    hover = HoverModel(params={n: 0.0 for n in PARAM_NAMES})
+    f = stabilising_controller(prep, hover, k=3)
+    assert f is not None and f["effect"] == "stabilising_controller"
+    assert f["gap_after"] < 0.3 * f["gap_before"] and f["shrink_pct"] > 70
+    assert f["estimate"]["pitch"]["input"] == "lon"
+    assert f["estimate"]["pitch"]["delay_s"] == pytest.approx(truth["tau"], abs=0.01)
+    assert "predicts held-out data better" in f["evidence"]
