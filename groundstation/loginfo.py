@@ -54,6 +54,7 @@ def summarise(log: Any) -> dict[str, Any]:
         "truncated_tail_bytes": int(st.truncated_tail_bytes),
         "fc_reboots": int(st.fc_reboots),
         "packet_loss": {"lost": int(st.packets_lost), "by_source": dict(st.loss_by_source)},
+        "link": link_summary(log),
         "dropouts": [{"start_s": _num(a), "duration_s": _num(d)} for a, d in getattr(log, "dropouts_s", [])],
         "notes": list(getattr(log, "notes", [])),
         "chirps": [{"index": c.index, "axis": c.axis_name, "sid_axis": c.axis, "magnitude": _num(c.magnitude),
@@ -61,6 +62,54 @@ def summarise(log: Any) -> dict[str, Any]:
                     "start_s": _num(c.start_fc_s), "duration_s": _num(c.duration_s)}
                    for c in getattr(log, "chirps", [])],
     }
+
+
+#: the telemetry streams an analysis needs: their common outages are the link's
+_STREAMS = ("ATTITUDE", "SERVO_OUTPUT_RAW", "LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "RC_CHANNELS")
+
+
+def link_summary(log: Any, bridge_limit_s: float | None = None) -> dict[str, Any]:
+    """The link as a radio delivers it: packets lost (MAVLink sequence numbers), outages (the holes of
+    the telemetry streams - intervals over 1.5 of a stream's period - merged where they overlap: a fade
+    takes every type at once), their length, packets lost per outage (the burst length), and how many
+    are longer than data preparation's input bridge (``[prepare] max_input_bridge_s``; shorter ones are
+    bridged and their samples left out of every cost)."""
+    from groundstation.dsp.prepare import PrepConfig
+
+    limit = PrepConfig().max_input_bridge_s if bridge_limit_s is None else bridge_limit_s
+    st = log.stats
+    total = int(st.packets) + int(st.packets_lost)
+    loss = 100.0 * st.packets_lost / total if total and st.packets_lost else (0.0 if total else math.nan)
+    streams = [log.series[n] for n in _STREAMS if n in log.series and len(log.series[n]) > 3]
+    out: dict[str, Any] = {"loss_pct": _num(loss), "outages": 0, "outages_per_min": None, "median_outage_s": None,
+                           "longest_outage_s": None, "lost_per_outage": None, "bridge_limit_s": limit,
+                           "outages_split": 0}
+    iv: list[tuple[float, float]] = []
+    t_lo, t_hi = math.inf, -math.inf
+    for s in streams:
+        t = s.t_fc_s[np.isfinite(s.t_fc_s)]
+        d = np.diff(t)
+        if not (d > 0).any():
+            continue
+        period = float(np.median(d[d > 0]))
+        t_lo, t_hi = min(t_lo, float(t[0])), max(t_hi, float(t[-1]))
+        k = np.flatnonzero(d > 1.5 * period)
+        iv += list(zip(t[k].tolist(), t[k + 1].tolist(), strict=True))
+    iv.sort()
+    merged: list[list[float]] = []
+    for a, b in iv:
+        if merged and a <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], b)
+        else:
+            merged.append([a, b])
+    hole = np.array([b - a for a, b in merged])
+    span_min = (t_hi - t_lo) / 60.0 if t_hi > t_lo else 0.0
+    out.update(outages=int(hole.size), outages_per_min=_num(hole.size / span_min) if span_min > 0 else None,
+               median_outage_s=_num(float(np.median(hole))) if hole.size else None,
+               longest_outage_s=_num(float(hole.max())) if hole.size else None,
+               lost_per_outage=_num(st.packets_lost / hole.size) if hole.size else None,
+               outages_split=int((hole > limit).sum()))
+    return out
 
 
 def _flight(log: Any, f: Any) -> dict[str, Any]:

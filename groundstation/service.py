@@ -49,6 +49,8 @@ import numpy as np
 from firmware_interface.errors import LinkError
 from firmware_interface.samples import (
     FcRebooted,
+    Heartbeat,
+    Imu,
     LinkLost,
     LinkRestored,
     RawPacket,
@@ -159,6 +161,9 @@ class Service:
         self._rerun_state = ""
         self.flights_completed = 0
         self.link_drops = 0
+        #: link quality of the last flight identified (loss, holes, windows kept with holes), for the status
+        self.last_flight_link: dict[str, Any] | None = None
+        self._link_at_arm: tuple[int, int] = (0, 0)   # (packets, lost) when the current flight armed
         self.live_errors = 0
         self.packets = 0
         self.window_seq_published = 0
@@ -379,10 +384,13 @@ class Service:
                 self._warn(f"live path: {type(exc).__name__}: {exc} (recording goes on)".splitlines()[0])
 
     def _live(self, events: list[Any], now: float) -> None:
+        mon_events = []            # what the excitation monitor reads besides the rows
         for ev in events:
             if isinstance(ev, RawPacket):
                 self.packets += 1
                 self.rates.add(ev.msg_type, now)
+            elif isinstance(ev, Imu | Heartbeat):
+                mon_events.append(ev)
             elif isinstance(ev, LinkLost):
                 self.link_up = False
                 self._rerun_event(f"link lost: {ev.reason}", "WARN")
@@ -400,7 +408,7 @@ class Service:
         for w in out.windows:
             self._on_window(w)
         if self.excitation is not None:
-            self._excite(events, out)
+            self._excite(mon_events, out)
         for fe in out.flight_events:
             self._on_flight_event(fe)
 
@@ -412,9 +420,13 @@ class Service:
         for fe in out.flight_events:
             if isinstance(fe, FlightStarted):
                 mon.flight_started(fe.flight, fe.t_fc_s)
-        mon.events(events)
+        if events:
+            mon.events(events)
+        if mon.flight is None:
+            return
         ft = self.live.flights
-        mon.rows(out.t_fc_s, out.inputs, out.outputs_raw, armed=ft.armed, in_air=ft.in_air, work=False)
+        if len(out.t_fc_s):
+            mon.rows(out.t_fc_s, out.inputs, out.outputs_raw, armed=ft.armed, in_air=ft.in_air, work=False)
         rows, hop = self.live.rows, self.live.windows.hop
         if out.windows:
             self._excite_window_row = rows
@@ -520,6 +532,7 @@ class Service:
 
     def _on_flight_event(self, fe: FlightStarted | FlightEnded) -> None:
         if isinstance(fe, FlightStarted):
+            self._link_at_arm = self._link_counts()
             self.log(f"flight {fe.flight}: armed at FC {fe.t_fc_s:.1f} s")
             self._rerun_event(f"flight {fe.flight} armed", "INFO")
             return
@@ -531,6 +544,7 @@ class Service:
             self.report.flight_tlogs.append(path)
         held = f"after {fe.duration_s:.1f} s" if math.isfinite(fe.duration_s) else "(no FC time seen while armed)"
         self.log(f"flight {fe.flight}: disarmed {held}; recorded {path or '(no file)'}")
+        self._suggest_onboard_log(fe.flight)
         if self.onboard is not None:
             self.onboard.flight_ended(time.time())
         self._rerun_event(f"flight {fe.flight} disarmed {held}", "INFO")
@@ -637,6 +651,13 @@ class Service:
         line = cross_flight_line(flight, (model.get("fit") or {}).get("cross_flight") or {})
         if line:
             self.log(line)
+        lq = (model.get("source") or {}).get("link_quality") or {}
+        if lq:
+            self.last_flight_link = {"flight": flight, **lq}
+            if lq.get("in_air_holes"):
+                self.log(f"flight {flight}: link lost {lq.get('loss_pct') or 0:.1f} % of packets, {lq['in_air_holes']} "
+                         f"holes in the air (longest {lq.get('longest_gap_s', 0):.2f} s); "
+                         f"{lq.get('windows_with_holes', 0)}/{lq.get('windows', 0)} windows kept with holes")
         trim = model.get("input_trim_pwm") or {}
         if self.config.prepare.input_trim_pwm is None and all(k in trim for k in ("lat", "lon", "col", "ped")):
             self.live.set_trim((float(trim["lat"]), float(trim["lon"]), float(trim["col"]), float(trim["ped"])))
@@ -668,6 +689,25 @@ class Service:
         if res.gap_error:
             self._warn(res.gap_error)
 
+    def _link_counts(self) -> tuple[int, int]:
+        """(packets received, packets lost) on the link so far."""
+        stats = getattr(self.session, "stats", None)
+        return int(getattr(stats, "packets", 0) or 0), int(getattr(stats, "packets_lost", 0) or 0)
+
+    def _suggest_onboard_log(self, flight: int) -> None:
+        """One line when the flight's telemetry lost more than ``[onboard_logs] suggest_above_loss_pct``."""
+        (p0, l0), (p1, l1) = self._link_at_arm, self._link_counts()
+        got, lost = p1 - p0, l1 - l0
+        ob = self.config.onboard_logs
+        if got + lost <= 0 or 100.0 * lost / (got + lost) <= ob.suggest_above_loss_pct:
+            return
+        pct = 100.0 * lost / (got + lost)
+        how = ("it is being downloaded after this disarm" if ob.download else
+               f"fetch it with `groundstation logs get N --link {self.link_url or 'URL'}` or set [onboard_logs] "
+               "download = true")
+        self.log(f"flight {flight}: telemetry lost {pct:.1f} % of packets (above [onboard_logs] suggest_above_loss_pct "
+                 f"{ob.suggest_above_loss_pct:g}); the FC's onboard log holds the full-rate data: {how}")
+
     def _check_exit(self) -> None:
         k = self.config.service.exit_after_flights
         if k and self.flights_completed >= k and not self._pending and not (self.onboard and self.onboard.busy):
@@ -688,7 +728,8 @@ class Service:
                      "packets": pk, "packets_lost": lost,
                      "loss_pct": round(100.0 * lost / max(1, pk + lost), 3),
                      "bad_crc": int(getattr(stats, "bad_crc", 0) or 0),
-                     "corrupt_bytes": int(getattr(stats, "corrupt_bytes", 0) or 0)},
+                     "corrupt_bytes": int(getattr(stats, "corrupt_bytes", 0) or 0),
+                     "last_flight": self.last_flight_link},
             "rates_hz": self.rates.rates(now),
             "armed": ft.armed, "in_air": ft.in_air, "flight": ft.flight if ft.armed else None,
             "input_trim_pwm": dict(zip(("lat", "lon", "col", "ped"), self.live.trim_pwm, strict=True)),

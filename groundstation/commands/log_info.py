@@ -9,6 +9,8 @@ prints one JSON object (``--json``) or the same as readable tables (rich)::
      "gaps": [{"message", "start_s", "duration_s"}], "gaps_total": n,
      "corrupt_bytes": n, "truncated_tail_bytes": n, "fc_reboots": n,
      "packet_loss": {"lost": n, "by_source": {"sysid:compid": n}},
+     "link": {"loss_pct", "outages", "outages_per_min", "median_outage_s", "longest_outage_s", "lost_per_outage",
+              "bridge_limit_s", "outages_split"},
      "dropouts": [{"start_s", "duration_s"}], "notes": [str],
      "chirps": [{"index", "axis", "sid_axis", "magnitude", "f_start_hz", "f_stop_hz", "start_s", "duration_s"}]}
 
@@ -17,13 +19,13 @@ types) or over the log span (other types). A gap is an interval longer than 3 me
 of that series (a GPS outage shows as a GPS_RAW_INT gap). A flight "in the air" by height alone whose
 accelerometers and body rates show no rotor running and no motion (a ground run) has ``in_air_s`` 0
 and says why in ``on_ground_evidence``. ``dropouts`` are the intervals the FC's own
-logger says it lost (ULog); empty for other logs. Leaves analysis beyond this to ``groundstation.dsp``.
+logger says it lost (ULog); empty for other logs. ``link``: loss rate, the link's outages and their
+burst length, and how many data preparation bridges (:func:`groundstation.loginfo.link_summary`). Leaves analysis beyond this to ``groundstation.dsp``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 from typing import Any
 
 from groundstation.loginfo import (  # noqa: F401 - importable from here as before
@@ -76,6 +78,14 @@ def _print_tables(info: dict[str, Any]) -> None:
     pl = info["packet_loss"]
     con.print(f"corrupt bytes {info['corrupt_bytes']}, truncated tail {info['truncated_tail_bytes']} B, "
               f"packets lost {pl['lost']} {pl['by_source'] or ''}, FC reboots {info['fc_reboots']}")
+    lk = info.get("link") or {}
+    if lk.get("outages"):
+        loss = lk["loss_pct"] if lk["loss_pct"] is not None else float("nan")
+        con.print(f"link: {loss:.1f} % of packets lost in {lk['outages']} outages ({lk['outages_per_min']:.1f}/min, "
+                  f"median {lk['median_outage_s']:.2f} s, longest {lk['longest_outage_s']:.2f} s, "
+                  f"~{lk['lost_per_outage']:.1f} packets each); {lk['outages'] - lk['outages_split']} bridged by data "
+                  f"preparation (not counted in any cost), {lk['outages_split']} longer than the "
+                  f"{lk['bridge_limit_s']:g} s bridge ([prepare] max_input_bridge_s)")
     if info["chirps"]:
         ct = Table(title="system-identification chirps (SYSID mode)")
         for c in ("#", "axis", "from Hz", "to Hz", "start s", "duration s", "magnitude"):
@@ -93,7 +103,9 @@ def run(args: argparse.Namespace) -> int:
 
     info = summarise(load_log(args.log, all_topics=True))
     if args.json:
-        print(json.dumps(info))
+        from groundstation.jsonio import dumps
+
+        print(dumps(info))
     else:
         _print_tables(info)
     return 0

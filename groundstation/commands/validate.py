@@ -72,6 +72,7 @@ def _run(args: argparse.Namespace) -> int:
     res["model"] = str(args.model)
     res["logs"] = [str(p) for p in args.logs]
     res["notes"] = list(prepared.notes)
+    res["link_quality"] = dict(prepared.link_quality)
     if args.plot is not None and series is not None:
         from groundstation.sysid.plots import plot_fit
 

@@ -9,8 +9,11 @@ What it does, per log (:class:`firmware_interface.samples.LogData`):
    agree (:func:`airborne_evidence`): a barometer drifts, and a ground run with the rotor stopped is
    reported as one ("never left the ground") and nothing is identified from it;
 2. every needed series is interpolated linearly onto a uniform grid at ``rate_hz`` on the FC clock;
-   gaps no longer than ``max(max_gap_s, gap_factor * native interval)`` are bridged, longer gaps
-   split the segment; segments shorter than ``min_segment_s`` are dropped;
+   gaps no longer than ``max(max_gap_s, gap_factor * native interval)`` are ordinary sampling and
+   count as measured; longer holes (packets lost on the link) up to ``max_input_bridge_s`` are
+   bridged (inputs linearly, outputs too but marked *not measured* in ``Segment.measured``: they
+   never count in a cost), longer holes split the segment; segments shorter than ``min_segment_s``
+   are dropped. ``link_quality`` says how much was lost and bridged;
 3. body velocities u v w from LOCAL_POSITION_NED vx vy vz rotated by roll/pitch/yaw
    (GLOBAL_POSITION_INT as fallback); where velocities are missing for long stretches the
    segment is split into a part with and a part without velocity channels (``available``);
@@ -96,6 +99,11 @@ class PrepConfig:
     #: check the horizontal velocities against the attitude (gravity tilt,
     #: :mod:`groundstation.dsp.velocity_check`) and leave out a channel that does not measure the motion
     velocity_check: bool = True
+    #: longest hole in the inputs (packets lost on the link) bridged by linear interpolation, s; the
+    #: outputs in the hole are bridged too but marked unmeasured (they never count in a cost); longer
+    #: holes split the segment. 0 = no bridging beyond ordinary sampling (``max_gap_s``).
+    #: What a bridge costs is measured by ``groundstation bench link-loss``.
+    max_input_bridge_s: float = 0.35
 
     def __post_init__(self) -> None:
         if self.rate_hz <= 0:
@@ -112,6 +120,8 @@ class PrepConfig:
             raise DspError("prepare.input_channels needs 4 channel numbers (lat lon col ped)")
         if self.swash_phase_deg and len(self.swash_phase_deg) != 3:
             raise DspError(f"prepare.swash_phase_deg needs 3 angles, got {self.swash_phase_deg}")
+        if self.max_input_bridge_s < 0:
+            raise DspError(f"prepare.max_input_bridge_s must be >= 0, got {self.max_input_bridge_s}")
         bad = [c for c in self.measured_outputs if c not in OUTPUTS]
         if bad:
             raise DspError(f"prepare.measured_outputs: unknown channel(s) {bad} (allowed: {', '.join(OUTPUTS)})")
@@ -131,6 +141,8 @@ class Segment:
     available : (8,) bool, channel measured in this segment
     flight : flight index within its log
     source : log name
+    measured : (n, 8) bool or None; False where the sample lies in a hole of the link (bridged, not
+        measured: a cost must not count it); None = every sample of the available channels measured
     """
 
     t_s: np.ndarray
@@ -141,6 +153,7 @@ class Segment:
     available: np.ndarray
     flight: int
     source: str
+    measured: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -149,6 +162,11 @@ class Segment:
     @property
     def duration_s(self) -> float:
         return float(self.t_s[-1] - self.t_s[0]) if self.n else 0.0
+
+    def measured_mask(self) -> np.ndarray:
+        """(n, 8) bool: the channel is available and the sample was measured (not bridged)."""
+        m = np.broadcast_to(np.asarray(self.available, dtype=bool), (self.n, 8))
+        return m & self.measured if self.measured is not None else m.copy()
 
 
 @dataclass(frozen=True, eq=False)
@@ -165,6 +183,9 @@ class PreparedData:
     #: empty when unknown (arrays made on the grid). A channel sent slower than the grid is
     #: interpolated, so its noise on the grid is not white: the diagnosis' noise floors use this.
     native_interval_s: dict[str, float] = field(default_factory=dict)
+    #: what the link lost and what preparation did about it (:class:`LinkQuality` as a dict); empty
+    #: when unknown (arrays made on the grid)
+    link_quality: dict[str, Any] = field(default_factory=dict)
 
     def native_stride(self, names: tuple[str, ...]) -> np.ndarray:
         """Source interval over grid step per channel (1 where unknown or faster than the grid)."""
@@ -206,6 +227,8 @@ class _Raw:
     flight: int
     source: str
     native_s: np.ndarray  # (12,) median source sample interval of lat lon col ped u v w p q r theta phi
+    measured: np.ndarray  # (n, 8) output sample measured (not bridged over a hole)
+    bridged: np.ndarray  # (n,) input sample bridged over a hole
 
 
 def _series_gap(cfg: PrepConfig, t_src: np.ndarray) -> float:
@@ -393,7 +416,7 @@ def airborne_evidence(log: Any, a: float, b: float, cfg: PrepConfig) -> tuple[bo
     return flying or not known, ", ".join(parts)
 
 
-def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str]) -> list[_Raw]:
+def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str], holes: list[float] | None = None) -> list[_Raw]:
     src = log.source
     if not log.has(cfg.input_source):
         raise DspError(f"{src}: no {cfg.input_source} messages (servo outputs needed for the inputs lat lon col ped)")
@@ -443,19 +466,32 @@ def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str]) -> list[_Raw]:
                 continue
             n_air += 1
             t = uniform_grid(a2, b2, cfg.rate_hz)
-            pwm, pwm_ok = interpolate_onto(servo.t_fc_s, pwm_src, t, _series_gap(cfg, servo.t_fc_s))
-            at, at_ok = interpolate_onto(att.t_fc_s, att_src, t, _series_gap(cfg, att.t_fc_s))
+            if holes is not None:
+                ts = servo.t_fc_s[(servo.t_fc_s >= a2) & (servo.t_fc_s <= b2)]
+                d = np.diff(ts)
+                holes += d[d > _series_gap(cfg, servo.t_fc_s)].tolist()
+            pwm, pwm_ok = interpolate_onto(servo.t_fc_s, pwm_src, t, _bridge(cfg, servo.t_fc_s))
+            at, at_ok = interpolate_onto(att.t_fc_s, att_src, t, _bridge(cfg, att.t_fc_s))
+            _, pwm_meas = interpolate_onto(servo.t_fc_s, pwm_src, t, _series_gap(cfg, servo.t_fc_s))
+            _, at_meas = interpolate_onto(att.t_fc_s, att_src, t, _series_gap(cfg, att.t_fc_s))
             req = np.asarray(pwm_ok.all(axis=1) & at_ok.all(axis=1), dtype=bool)
-            vel, hor_ok, ver_ok = _velocities(vel_series, t, cfg)
+            vel, hor_ok, ver_ok, vel_meas = _velocities(vel_series, t, cfg)
+            meas = np.zeros((t.size, 8), dtype=bool)
+            att_m = at_meas.all(axis=1)
+            meas[:, 3:] = att_m[:, None]
+            meas[:, 0:2] = (vel_meas[:, :2].all(axis=1) & att_m)[:, None]
+            meas[:, 2] = vel_meas.all(axis=1) & att_m
+            bridged = ~pwm_meas.all(axis=1)
             alt_t, alt = _altitude(log, float(fl.start_fc_s), float(fl.end_fc_s))
             if alt_t is not None:
-                alt_g, _ = interpolate_onto(alt_t, alt, t, _series_gap(cfg, alt_t))
+                alt_g, _ = interpolate_onto(alt_t, alt, t, _bridge(cfg, alt_t))
             else:
                 alt_g = np.full(t.size, np.nan)
             for sl, lab in _labelled_runs(req, hor_ok & req, ver_ok & hor_ok & req, cfg):
                 outputs, avail = _segment_outputs(at[sl], vel[sl], lab, cfg)
                 out.append(_Raw(t_s=t[sl], pwm=pwm[sl], outputs=outputs, alt_m=alt_g[sl], available=avail,
-                                flight=int(fl.index), source=src, native_s=native_s))
+                                flight=int(fl.index), source=src, native_s=native_s, measured=meas[sl],
+                                bridged=bridged[sl]))
     if n_air == 0 and ground:
         raise DspError(f"{src}: the aircraft never left the ground, nothing to identify: in-air time from "
                          f"height alone, but no rotor vibration and no body motion: {'; '.join(ground)}")
@@ -469,19 +505,27 @@ def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str]) -> list[_Raw]:
     return out
 
 
-def _velocities(vel_series: Any, t: np.ndarray, cfg: PrepConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """NED velocities (n, 3) on the grid and where the horizontal pair and the vertical one are valid
-    (short holes filled)."""
+def _bridge(cfg: PrepConfig, t_src: np.ndarray) -> float:
+    """Longest source interval bridged on the grid: ordinary sampling or a hole up to ``max_input_bridge_s``."""
+    return max(_series_gap(cfg, t_src), cfg.max_input_bridge_s)
+
+
+def _velocities(vel_series: Any, t: np.ndarray,
+                cfg: PrepConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """NED velocities (n, 3) on the grid, where the horizontal pair and the vertical one are valid
+    (short holes filled, holes of the link bridged) and where each was measured (n, 3)."""
     vel = np.full((t.size, 3), np.nan)
     if vel_series is None:
-        return vel, np.zeros(t.size, dtype=bool), np.zeros(t.size, dtype=bool)
+        z = np.zeros(t.size, dtype=bool)
+        return vel, z, z, np.zeros((t.size, 3), dtype=bool)
     vs = vel_series[1]
     vsrc = np.stack([np.asarray(vs[c], dtype=float) for c in ("vx_m_s", "vy_m_s", "vz_m_s")], axis=1)
-    vel, vok = interpolate_onto(vs.t_fc_s, vsrc, t, _series_gap(cfg, vs.t_fc_s))
+    vel, vok = interpolate_onto(vs.t_fc_s, vsrc, t, _bridge(cfg, vs.t_fc_s))
+    _, vmeas = interpolate_onto(vs.t_fc_s, vsrc, t, _series_gap(cfg, vs.t_fc_s))
     max_hole = max(1, int(round(cfg.max_gap_s * cfg.rate_hz)))
     hor = fill_short_holes(np.asarray(vok[:, :2].all(axis=1), dtype=bool), max_hole)
     ver = fill_short_holes(np.asarray(vok[:, 2], dtype=bool), max_hole)
-    return vel, hor, ver
+    return vel, hor, ver, np.asarray(vmeas, dtype=bool)
 
 
 def _labelled_runs(req: np.ndarray, hor: np.ndarray, ver: np.ndarray, cfg: PrepConfig) -> list[tuple[slice, int]]:
@@ -548,8 +592,9 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
         raise DspError("no logs given")
     notes: list[str] = []
     raws: list[_Raw] = []
+    holes: list[float] = []
     for log in logs:
-        got = _raw_segments(log, cfg, notes)
+        got = _raw_segments(log, cfg, notes, holes)
         if not got:
             raise DspError(
                 f"{log.source}: no in-air segment of at least {cfg.min_segment_s:g} s with servo outputs and attitude "
@@ -587,10 +632,17 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
         sm = smooth5(np.nan_to_num(raw_out), cfg.smooth_passes)
         sm[:, ~r.available] = np.nan
         raw_out[:, ~r.available] = np.nan
+        unmeasured = ~r.measured[:, r.available]
         segs.append(Segment(t_s=r.t_s, inputs=inputs, outputs=sm, outputs_raw=raw_out, alt_m=r.alt_m,
-                            available=r.available.copy(), flight=r.flight, source=r.source))
+                            available=r.available.copy(), flight=r.flight, source=r.source,
+                            measured=r.measured.copy() if unmeasured.any() else None))
     if cfg.velocity_check:
         segs = _drop_inconsistent_velocities(segs, 1.0 / cfg.rate_hz, notes)
+    lq = link_quality(logs, raws, holes, cfg)
+    if lq["bridged_s"] > 0:
+        notes.append(f"link: {lq['loss_pct']:.1f} % of packets lost, longest hole {lq['longest_gap_s']:.2f} s; "
+                     f"inputs bridged over {lq['bridged_s']:.1f} s of holes up to {cfg.max_input_bridge_s:g} s "
+                     f"(prepare.max_input_bridge_s), outputs there not counted")
     native = np.array([r.native_s for r in raws], dtype=float)
     native_med = [float(np.nanmedian(native[:, k])) if np.isfinite(native[:, k]).any() else float("nan")
                   for k in range(12)]
@@ -602,7 +654,35 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
         output_trim={n: float(v) for n, v in zip(OUTPUTS, out_trim, strict=True)},
         notes=notes,
         native_interval_s=dict(zip(INPUTS + OUTPUTS, native_med, strict=True)),
+        link_quality=lq,
     )
+
+
+def link_quality(logs: list[Any], raws: list[_Raw], holes: list[float], cfg: PrepConfig) -> dict[str, Any]:
+    """What the link lost and what preparation did with it (JSON-ready dict).
+
+    ``loss_pct`` packets lost by the MAVLink sequence numbers (NaN when the log has none, e.g. an
+    onboard log); ``in_air_holes`` holes in the inputs' stream in the air (a hole is a source interval
+    longer than ordinary sampling), their median and longest length (s), ``holes_split`` how many
+    were longer than ``max_input_bridge_s`` and cut the data there; ``bridged_s`` time bridged over
+    holes in the kept segments, ``unmeasured_pct`` share of their output samples not measured.
+    """
+    lost = sum(int(getattr(getattr(lg, "stats", None), "packets_lost", 0) or 0) for lg in logs)
+    got = sum(int(getattr(getattr(lg, "stats", None), "packets", 0) or 0) for lg in logs)
+    loss = 100.0 * lost / (lost + got) if lost + got > 0 else float("nan")
+    dt = 1.0 / cfg.rate_hz
+    n_tot = n_unm = n_br = 0
+    for r in raws:
+        n_tot += r.t_s.size
+        n_br += int(r.bridged.sum())
+        m = r.measured[:, r.available]
+        n_unm += int((~m).any(axis=1).sum()) if m.size else 0
+    split = [h for h in holes if h > cfg.max_input_bridge_s + 1e-9]
+    return {"loss_pct": loss, "packets_lost": lost, "in_air_holes": len(holes), "holes_split": len(split),
+            "median_gap_s": float(np.median(holes)) if holes else 0.0,
+            "longest_gap_s": float(max(holes)) if holes else 0.0,
+            "bridged_s": n_br * dt, "unmeasured_pct": 100.0 * n_unm / max(n_tot, 1),
+            "max_input_bridge_s": cfg.max_input_bridge_s}
 
 
 def _drop_inconsistent_velocities(segs: list[Segment], dt_s: float, notes: list[str]) -> list[Segment]:

@@ -275,7 +275,7 @@ def conditioned_context(a: attribute.Candidate, ctx: hypotheses.Context, segs: l
             y[:, c] -= b
             yr[:, c] -= b
             segs_b.append(SegmentArrays(t_s=s.t_s, inputs=s.inputs, outputs=y, outputs_raw=yr, alt_m=s.alt_m,
-                                        flight=s.flight))
+                                        flight=s.flight, measured=s.measured))
         return on(segs_b, ev.theta0)
     if h.effect == "velocity_latency":
         d = float(h.estimate.get("latency_s", 0.0)) / ev.dt_s
@@ -285,7 +285,7 @@ def conditioned_context(a: attribute.Candidate, ctx: hypotheses.Context, segs: l
             y[:, :3] = hypotheses.shift(y[:, :3], -d)
             yr[:, :3] = hypotheses.shift(yr[:, :3], -d)
             segs_v.append(SegmentArrays(t_s=s.t_s, inputs=s.inputs, outputs=y, outputs_raw=yr, alt_m=s.alt_m,
-                                        flight=s.flight))
+                                        flight=s.flight, measured=s.measured))
         return on(segs_v, ev.theta0)
     return None  # rotor vibration (raw residual only), air mass (its own protocol, see encompass)
 

@@ -81,9 +81,10 @@ def segments_from_prepared(prepared: Any, share_min: float = 0.7) -> tuple[list[
         alt = np.full(n, np.nan) if alt is None else np.asarray(alt, float)
         raw = getattr(s, "outputs_raw", None)
         out = np.asarray(s.outputs, float)
+        meas = s.measured_mask() if getattr(s, "measured", None) is not None else None
         segs.append(SegmentArrays(t_s=np.asarray(s.t_s, float), inputs=np.asarray(s.inputs, float),
                                   outputs=out, outputs_raw=out if raw is None else np.asarray(raw, float),
-                                  alt_m=alt, flight=int(getattr(s, "flight", 0))))
+                                  alt_m=alt, flight=int(getattr(s, "flight", 0)), measured=meas))
         a = getattr(s, "available", None)
         avails.append(np.isfinite(out).all(axis=0) if a is None else np.asarray(a, bool))
     # channels measured in most of the data are kept; segments lacking one of them are left out
@@ -105,7 +106,8 @@ def segments_from_prepared(prepared: Any, share_min: float = 0.7) -> tuple[list[
         cleaned.append(SegmentArrays(t_s=s.t_s, inputs=np.nan_to_num(s.inputs),
                                      outputs=np.where(avail, np.nan_to_num(s.outputs), 0.0),
                                      outputs_raw=np.where(avail, np.nan_to_num(s.outputs_raw), 0.0),
-                                     alt_m=s.alt_m, flight=s.flight))
+                                     alt_m=s.alt_m, flight=s.flight,
+                                     measured=None if s.measured is None else s.measured | ~avail))
     return cleaned, avail
 
 
@@ -212,6 +214,8 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
         ["rotor_vibration"] if any(base.avail[3:]) else [])
     report["data_compatibility"] = compat_section(comp)
     report["unexplained"] = dec.unexplained
+    report["link_quality"] = {**dict(getattr(prepared, "link_quality", {}) or {}), "windows": int(ev.W),
+                              "windows_with_holes": 0 if ev.M is None else int((~ev.M.all(axis=(1, 2))).sum())}
     # where and how the model departs, whatever the verdict, when the departure is above the noise
     report["departure"] = (dec.unexplained or _unexplained_evidence(base, loc, tests, cfg)) \
         if loc.gap_significant else None
@@ -232,7 +236,7 @@ def compat_stage(prepared: Any, cfg: DiagnoseConfig) -> tuple[compat.Compatibili
     """Data compatibility before blame: the kinematic checks, and the data with found scale errors undone."""
     segs, avail = segments_from_prepared(prepared, cfg.channel_share_min)
     stride = getattr(prepared, "native_stride", None)
-    sigma = noise.raw_noise_std([s.outputs_raw for s in segs], stride(OUTPUTS) if stride is not None else None,
+    sigma = noise.raw_noise_std([s.raw_measured() for s in segs], stride(OUTPUTS) if stride is not None else None,
                                 cfg.noise_calibration_seed) if segs else np.full(8, np.nan)
     comp = compat.check(segs, avail, float(prepared.dt_s), sigma, _trims(prepared), window_s=cfg.compat_window_s,
                         alpha=cfg.alpha, min_windows=cfg.min_windows,
@@ -315,7 +319,7 @@ def base_stage(model: HoverModel | None, prepared: Any, cfg: DiagnoseConfig, see
     given_metrics = None
     if not identified_here:
         yg = ev.simulate(theta_given)[0]
-        given_metrics = locate.channel_metrics(ev.Y, yg, ev.mask, avail)
+        given_metrics = locate.channel_metrics(ev.Y, yg, ev.score_mask, avail)
     ev.refine(cfg.refine_iterations)
     return Base(ev=ev, segs=segs, avail=avail, dt_s=dt, notes=notes, given_metrics=given_metrics)
 
@@ -327,17 +331,18 @@ def locate_stage(base: Base, prepared: Any, cfg: DiagnoseConfig) -> Located:
     stride = getattr(prepared, "native_stride", None)
     out_stride = stride(OUTPUTS) if stride is not None else None
     in_stride = stride(INPUTS) if stride is not None else None
-    nf = noise.noise_floor([s.outputs_raw for s in segs], [s.outputs for s in segs], out_stride,
+    # noise from measured samples only: a straight line bridged across a hole of the link has none
+    nf = noise.noise_floor([s.raw_measured() for s in segs], [s.measured_only(s.outputs) for s in segs], out_stride,
                            cfg.noise_calibration_seed)
     out_excited = avail & (nf["signal_std"] > cfg.excitation_snr * nf["sigma_smoothed"])
     u_all = np.concatenate([s.inputs for s in segs])
-    u_noise = noise.raw_noise_std([s.inputs for s in segs], in_stride, cfg.noise_calibration_seed)
+    u_noise = noise.raw_noise_std([s.measured_only(s.inputs) for s in segs], in_stride, cfg.noise_calibration_seed)
     u_std = u_all.std(axis=0)
     in_excited = (u_std > cfg.excitation_snr * np.maximum(u_noise, 1e-12)) & (u_std > cfg.input_std_min)
 
     e_w = ev.heldout_residual(ev.r0)  # weighted
     e = e_w / np.where(ev.w8 > 0, ev.w8, 1.0)
-    chan = locate.channel_metrics(ev.Y, ev.Y - e, ev.mask, avail)
+    chan = locate.channel_metrics(ev.Y, ev.Y - e, ev.score_mask, avail)
     energy_w = (e_w ** 2).sum(axis=(1, 2))
     flag, nominal = locate.flag_windows(energy_w)
     windows_s = locate.merge_intervals([(float(ev.T[i, 0]), float(ev.T[i, -1] + dt)) for i in np.flatnonzero(flag)])
@@ -403,6 +408,8 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
     # position estimate resampled to the grid, whose interpolation images are not vibration
     line_ch = avail & (np.arange(8) >= 3)
     lines, spectra = fingerprints.spectral_lines(resid_raw, ev.U[:, ev.start:], dt, line_ch, alpha=cfg.alpha)
+    # a line above the Nyquist frequency of the stream a channel was sent at is an interpolation image
+    lines = fingerprints.resolvable_lines(lines, loc.out_stride, dt)
     kin = fingerprints.kinematic_rate_offsets(ev.Y, dt, avail, trims=_trims(prepared))
 
     for h in hyps:
@@ -710,7 +717,7 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
             if any(c.hyp.effect == "rotor_vibration" for c in ranked):
                 yfit = ev.simulate(ev.theta0)[0]
                 arrays = {"resid_raw": (ev.Yraw - yfit)[:, ev.start:], "U": ev.U[:, ev.start:],
-                          "line_channels": base.avail & (np.arange(8) >= 3)}
+                          "line_channels": base.avail & (np.arange(8) >= 3), "stride": loc.out_stride}
             for c in ranked:
                 cons[id(c)] = shares.consistency(
                     c, segs_h, ev, np.asarray(c.hyp.extra.get("theta_refit", ev.theta0)), level,
@@ -787,7 +794,7 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
         e = _effect_entry(c)
         e.update(per_effect[id(c)])
         partial_entries.append(e)
-    rep = {"shares": share_block, "partial_findings": partial_entries,
+    rep: dict[str, Any] = {"shares": share_block, "partial_findings": partial_entries,
            "through_flight": {"checked": bool(cons) and not any(v.get("why") == "flight too short to split in halves"
                                                                for v in cons.values()),
                               **over_time, "changes": changes},

@@ -31,7 +31,8 @@ class SegmentArrays:
     """One uniformly sampled in-air segment (the fields of ``dsp.prepare.Segment`` the diagnosis uses).
 
     Attributes: ``t_s (n,)``, ``inputs (n, 4)``, ``outputs (n, 8)`` smoothed, ``outputs_raw (n, 8)``,
-    ``alt_m (n,)`` (NaN if unknown), ``flight`` index.
+    ``alt_m (n,)`` (NaN if unknown), ``flight`` index, ``measured (n, 8)`` bool (False in holes of
+    the link, where the values are bridged; None: all measured).
     """
 
     t_s: np.ndarray
@@ -40,6 +41,18 @@ class SegmentArrays:
     outputs_raw: np.ndarray
     alt_m: np.ndarray
     flight: int = 0
+    measured: np.ndarray | None = None
+
+    def raw_measured(self) -> np.ndarray:
+        """``outputs_raw`` with NaN in the holes of the link (for noise estimates)."""
+        return self.measured_only(self.outputs_raw)
+
+    def measured_only(self, x: np.ndarray) -> np.ndarray:
+        """``x`` (n, k) with NaN at the samples in holes: per channel for outputs (k = 8), any hole for inputs."""
+        if self.measured is None:
+            return x
+        m = self.measured if x.shape[1] == 8 else self.measured.all(axis=1, keepdims=True)
+        return np.where(m, x, np.nan)
 
 
 def window_starts(segments: list[SegmentArrays], length: int) -> list[tuple[int, int]]:
@@ -94,6 +107,10 @@ class Evaluator:
         self.Y = self.cut([s.outputs for s in segments])
         self.Yraw = self.cut([s.outputs_raw for s in segments])
         self.T = self.cut([s.t_s for s in segments])
+        # samples measured (False in holes of the link): residuals and sensitivities count only those
+        self.holes = any(s.measured is not None for s in segments)
+        self.M = (self.cut([np.ones((s.t_s.shape[0], 8), bool) if s.measured is None else s.measured
+                            for s in segments]) if self.holes else None)
         self.flight = np.array([segments[si].flight for si, _ in self.starts])
         yv = self.Y[:, self.start:, :].reshape(-1, 8)
         sc = yv.std(axis=0)
@@ -106,6 +123,10 @@ class Evaluator:
         self.last_blocks = np.zeros((self.W, self.n_blocks))
         self.mask = np.zeros(self.L, bool)
         self.mask[self.start:] = True
+        #: weights of the residuals: the window's start ignored, holes of the link ignored; (L, 1) or (W, L, 8)
+        self.wmask = self.mask[:, None] if self.M is None else (self.mask[None, :, None] & self.M).astype(float)
+        #: samples scored: (L,) or, with holes, (W, L, 8) bool
+        self.score_mask = self.mask if self.M is None else self.mask[None, :, None] & self.M
         # per-window, per-channel energy of the (weighted) target about the overall mean
         yc = (self.Y - self.Y[:, self.start:].reshape(-1, 8).mean(0)) * self.w8
         self.energy = (yc[:, self.start:] ** 2).sum(axis=1)  # (W, 8)
@@ -134,7 +155,7 @@ class Evaluator:
         """Weighted, masked residual (..., W, L, 8) of a simulation against Y (default: measured)."""
         Yt = self.Y if Y is None else Y
         r = (Yt - yhat) * self.w8
-        return r * self.mask[:, None]
+        return r * self.wmask
 
     def set_theta(self, theta: np.ndarray) -> None:
         """Set the base parameters; recompute base residual and Jacobian (batched finite differences)."""

@@ -32,6 +32,24 @@ class Line:
     amplitude: dict[str, float] = field(default_factory=dict)  # sinusoid amplitude per channel
 
 
+def resolvable_lines(lines: list[Line], stride: np.ndarray | None, dt_s: float) -> list[Line]:
+    """The lines a channel's own stream can carry: below the Nyquist frequency of the rate it was sent
+    at (``stride`` (8,): source interval over grid step per output). A stream sent slower than the
+    grid reaches it interpolated; a narrow peak above its source Nyquist is an image of that
+    interpolation (and of the send-time jitter), never a vibration: a real rotor line sampled at the
+    source rate folds below the source Nyquist. Channels above it are dropped from a line, and a
+    line left with none is dropped."""
+    if stride is None:
+        return lines
+    st = np.asarray(stride, float)
+    out = []
+    for ln in lines:
+        ch = [c for c in ln.channels if ln.frequency_hz < 0.5 / (max(float(st[OUTPUTS.index(c)]), 1.0) * dt_s)]
+        if ch:
+            out.append(Line(ln.frequency_hz, ch, ln.ratio, ln.log10_p, {k: v for k, v in ln.amplitude.items() if k in ch}))
+    return out
+
+
 def _detrend(x: np.ndarray) -> np.ndarray:
     """Remove mean and linear trend along axis 1 of (W, L, C)."""
     L = x.shape[1]

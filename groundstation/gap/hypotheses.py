@@ -189,7 +189,7 @@ class Context:
 
 
 def _mask_w(ev: Evaluator, yh: np.ndarray) -> np.ndarray:
-    return (yh * ev.w8) * ev.mask[:, None]
+    return (yh * ev.w8) * ev.wmask
 
 
 # ---------------------------------------------------------------------------------------------
@@ -303,7 +303,7 @@ def apply_input_effect(h: Hypothesis, segments: list[SegmentArrays], dt_s: float
         else:
             raise GapError(f"not an input effect: {h.effect}")
         out.append(SegmentArrays(t_s=s.t_s, inputs=u, outputs=s.outputs, outputs_raw=s.outputs_raw,
-                                 alt_m=s.alt_m, flight=s.flight))
+                                 alt_m=s.alt_m, flight=s.flight, measured=s.measured))
     return out
 
 

@@ -30,13 +30,17 @@ OCTAVES_HZ = ((0.0, 0.25), (0.25, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, 4.0), (4.0
 
 
 def channel_metrics(Y: np.ndarray, yhat: np.ndarray, mask: np.ndarray, available: np.ndarray) -> dict[str, dict[str, float]]:
-    """Match degree (%) and Theil U per available channel."""
+    """Match degree (%) and Theil U per available channel; ``mask`` (L,) samples scored, or (W, L, 8)
+    per sample (holes of the link left out)."""
     out = {}
     for c, name in enumerate(OUTPUTS):
         if not available[c]:
             continue
-        y = Y[:, mask, c].ravel()
-        yh = yhat[:, mask, c].ravel()
+        if mask.ndim == 3:
+            y, yh = Y[..., c][mask[..., c]], yhat[..., c][mask[..., c]]
+        else:
+            y = Y[:, mask, c].ravel()
+            yh = yhat[:, mask, c].ravel()
         e = y - yh
         ny = np.linalg.norm(y)
         match = float((1 - np.linalg.norm(e) / ny) * 100) if ny > 0 else float("nan")

@@ -31,6 +31,7 @@ class EffectPicture:
     before_pct: np.ndarray     # (W, 8) 100 * sqrt(sse / energy) of the base model
     after_pct: np.ndarray      # (W, 8) the same with the effect
     channels: tuple[str, ...]  # the outputs the effect acts on most
+    share: str = ""            # e.g. "partial, 28 % of the gap above noise" (the report's share)
 
 
 @dataclass(frozen=True)
@@ -61,15 +62,19 @@ def _effect_pictures(arrays: dict[str, Any], report: dict[str, Any], max_effects
     cands = arrays.get("candidates") or []
     if ev is None or not cands:
         return ()
-    named = [(e["effect"], e.get("input"), e.get("output"), True) for e in report.get("effects", [])]
+    # named effects, then the partial findings (named by their own tests, not by the shares or the
+    # halves): each labelled with its share of the gap above noise, as the report's headline says
+    named = [(e["effect"], e.get("input"), e.get("output"), True, _share(e, "")) for e in report.get("effects", [])]
+    named += [(e["effect"], e.get("input"), e.get("output"), True, _share(e, "partial, "))
+              for e in report.get("partial_findings", [])]
     if not named and report.get("candidates"):
         e = report["candidates"][0]
-        named = [(e["effect"], e.get("input"), e.get("output"), False)]
+        named = [(e["effect"], e.get("input"), e.get("output"), False, "")]
     mask = np.asarray(ev.mask, bool)
     t_mid = np.asarray(ev.T)[:, mask].mean(axis=1)
     energy = np.maximum(np.asarray(ev.energy, dtype=float), 1e-30)
     out = []
-    for effect, inp, outp, sig in named[:max_effects]:
+    for effect, inp, outp, sig, share in named[:max_effects]:
         c = next((c for c in cands if c.hyp.effect == effect and c.hyp.input == inp and c.hyp.output == outp), None)
         if c is None or c.hyp.sse is None:
             continue
@@ -78,11 +83,19 @@ def _effect_pictures(arrays: dict[str, Any], report: dict[str, Any], max_effects
             continue
         label = " ".join(x for x in (effect, inp, outp) if x)
         out.append(EffectPicture(
-            label=label, significant=sig, t_s=t_mid,
+            label=label, significant=sig, t_s=t_mid, share=share.strip(" ()"),
             before_pct=100.0 * np.sqrt(np.asarray(base, dtype=float) / energy),
             after_pct=100.0 * np.sqrt(np.asarray(c.hyp.sse, dtype=float) / energy),
             channels=tuple(OUTPUTS[k] for k in c.hyp.channels)))
     return tuple(out)
+
+
+def _share(e: dict[str, Any], prefix: str) -> str:
+    """`` (partial, 28 % of the gap above noise)`` for a report effect entry; the prefix alone without a share."""
+    sp = e.get("share_pct")
+    if sp is None:
+        return f" ({prefix.rstrip(', ')})" if prefix else ""
+    return f" ({prefix}{sp:.0f} % of the gap above noise)"
 
 
 def gap_pictures(diagnosis: Any, max_effects: int = 3) -> GapPictures:

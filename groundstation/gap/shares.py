@@ -212,7 +212,7 @@ def _fit_half(c: attribute.Candidate, ev: Evaluator, segs: list[SegmentArrays]) 
     if e in hypotheses.INPUT_EFFECTS:
         hh = hypotheses.rescan_input_effect(ctx, h)
         lab = dict(hh.extra["label"])
-        return HalfFit(ev, segs, lab, float(hh.estimate[PARAMETER[e]]))
+        return HalfFit(ev, segs, lab, float(hh.estimate[str(PARAMETER[e])]))
     if e == "velocity_latency":
         hh = hypotheses.scan_velocity_latency(ctx)
         return HalfFit(ev, segs, float(hh.estimate["latency_s"]), float(hh.estimate["latency_s"])) \
@@ -230,9 +230,10 @@ def _fit_half(c: attribute.Candidate, ev: Evaluator, segs: list[SegmentArrays]) 
         return HalfFit(ev, segs, v, v, X)
     if e in ("quadratic_drag", "ground_effect"):
         hh = hypotheses.scan_quadratic_drag(ctx) if e == "quadratic_drag" else hypotheses.scan_ground_effect(ctx)
-        X = hh.extra.get("X")
-        if not hh.testable or X is None:
+        Xf = hh.extra.get("X")
+        if not hh.testable or Xf is None:
             return None
+        X = np.asarray(Xf)
         _, _, coef = ev.heldout(ev.r0, X)
         v = coef.mean(axis=0)
         shown = float(hh.estimate.get("accel_m_s2", float(np.mean(v))))
@@ -385,6 +386,7 @@ def _line_consistency(c: attribute.Candidate, ev: Evaluator, arrays: dict[str, A
             out["why"] = "a half of the flight is too short"
             return out
         lines, sp = fingerprints.spectral_lines(resid[sel], U[sel], dt, ch, alpha=level)
+        lines = fingerprints.resolvable_lines(lines, arrays.get("stride"), dt)
         f = sp["f_hz"] if isinstance(sp, dict) and "f_hz" in sp else None
         tol = max(0.3, 2.0 * float(f[1] - f[0])) if f is not None and len(f) > 1 else 0.3
         near = [ln.frequency_hz for ln in lines if abs(ln.frequency_hz - f0) <= tol]

@@ -77,7 +77,7 @@ def _feature_columns(ctx: hypotheses.Context, c: int, kind: str) -> tuple[np.nda
     U2 = ev.U.copy()
     U2[:, :, c] = u + g
     yh = ctx.variants_residual(U_list=[ev.U, U2])
-    X = ((yh[1] - yh[0]) * ev.w8) * ev.mask[:, None]
+    X = ((yh[1] - yh[0]) * ev.w8) * ev.wmask
     return X[..., None], (1.0 if kind == "input_asymmetry" else sd)
 
 
@@ -151,7 +151,7 @@ def apply_structure(t: StructureTest, segments: list[SegmentArrays], ev: Any) ->
         u = s.inputs.copy()
         u[:, c] = u[:, c] + t.coefficient * _feature(u[:, c], t.kind, mean_abs, sd)
         out.append(SegmentArrays(t_s=s.t_s, inputs=u, outputs=s.outputs, outputs_raw=s.outputs_raw,
-                                 alt_m=s.alt_m, flight=s.flight))
+                                 alt_m=s.alt_m, flight=s.flight, measured=s.measured))
     return out
 
 

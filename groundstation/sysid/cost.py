@@ -34,7 +34,8 @@ CANDIDATE_CHUNK_BYTES = 64e6
 
 @dataclass(frozen=True, eq=False)
 class Windows:
-    """inputs (W, L, 4), outputs (W, L, 8), available (W, 8), segment (W,) index, t0_s (W,) start time."""
+    """inputs (W, L, 4), outputs (W, L, 8), available (W, 8), segment (W,) index, t0_s (W,) start time;
+    measured (W, L, 8) bool, False in holes of the link (None: every sample measured)."""
 
     inputs: np.ndarray
     outputs: np.ndarray
@@ -42,6 +43,7 @@ class Windows:
     segment: np.ndarray
     t0_s: np.ndarray
     dt_s: float
+    measured: np.ndarray | None = None
 
     @property
     def count(self) -> int:
@@ -65,25 +67,31 @@ def make_windows(segments: list, dt_s: float, window_s: float, *, raw: bool = Fa
     if L < 5:
         raise SysidError(f"{key} = {window_s:g}: fewer than 5 samples at dt_s={dt_s:g}")
     S = L if step_s <= 0 else max(1, int(round(step_s / dt_s)))
-    ins, outs, av, seg, t0 = [], [], [], [], []
+    ins, outs, av, seg, t0, meas = [], [], [], [], [], []
+    holes = any(getattr(s, "measured", None) is not None for s in segments)
     for i, s in enumerate(segments):
         y = s.outputs_raw if raw else s.outputs
+        m = s.measured_mask() if holes and hasattr(s, "measured_mask") else None
         for a in range(0, s.n - L + 1, S):
             sl = slice(a, a + L)
             ins.append(s.inputs[sl])
             outs.append(y[sl])
+            if holes:
+                meas.append(np.ones((L, 8), dtype=bool) if m is None else m[sl])
             av.append(np.asarray(s.available, dtype=bool))
             seg.append(i)
             t0.append(float(s.t_s[a]))
     if not ins:
         longest = max((s.duration_s for s in segments), default=0.0)
         raise SysidError(f"{key} = {window_s:g}: no in-air segment is that long (longest {longest:.1f} s)")
-    return Windows(np.stack(ins), np.stack(outs), np.stack(av), np.array(seg), np.array(t0), float(dt_s))
+    return Windows(np.stack(ins), np.stack(outs), np.stack(av), np.array(seg), np.array(t0), float(dt_s),
+                   np.stack(meas) if holes else None)
 
 
 def subset_windows(win: Windows, idx: np.ndarray) -> Windows:
     """The windows ``idx`` of ``win``."""
-    return Windows(win.inputs[idx], win.outputs[idx], win.available[idx], win.segment[idx], win.t0_s[idx], win.dt_s)
+    return Windows(win.inputs[idx], win.outputs[idx], win.available[idx], win.segment[idx], win.t0_s[idx], win.dt_s,
+                   None if win.measured is None else win.measured[idx])
 
 
 class WindowedCost:
@@ -125,7 +133,7 @@ class WindowedCost:
         self.free = self.searched
         self.sim = WindowSimulator(windows.inputs, windows.outputs, windows.dt_s, windows.available,
                                    estimate_all_initial=estimate_all_initial, subsystems=subsystems, linear=linear,
-                                   estimate_trim=estimate_trim, forcing=forcing)
+                                   estimate_trim=estimate_trim, forcing=forcing, measured=windows.measured)
         self.nfev = 0
         self.used: np.ndarray = np.asarray(self.sim.mask.any(axis=0), dtype=bool)  # (8,) channels in the cost
 

@@ -96,19 +96,20 @@ def predict(model: HoverModel, prepared: Any, *, window_s: float = 5.0, use_mode
     win = make_windows(prepared.segments, prepared.dt_s, window_s)
     u = win.inputs + (input_offset(model, prepared)[None, None, :] if use_model_trim else 0.0)
     with threadpool_limits(1):
-        sim = WindowSimulator(u, win.outputs, win.dt_s, win.available, estimate_all_initial=False)
+        sim = WindowSimulator(u, win.outputs, win.dt_s, win.available, estimate_all_initial=False,
+                              measured=win.measured)
         yhat = sim.simulate(model.theta[None])[0]
     match: dict[str, float] = {}
     ratio: dict[str, float] = {}
     for j, ch in enumerate(OUTPUTS):
-        m = sim.mask[:, j]
+        m = sim.smask[:, :, j]  # measured samples only: holes of the link do not count
         if not m.any():
             continue
-        y = sim.outputs[m, :, j]
+        y = sim.outputs[:, :, j][m]
         den = float(np.linalg.norm(y))
         if den <= 0:
             continue
-        ratio[ch] = float(np.linalg.norm(yhat[m, :, j] - y)) / den
+        ratio[ch] = float(np.linalg.norm(yhat[:, :, j][m] - y)) / den
         match[ch] = (1.0 - ratio[ch]) * 100.0
     mean = float(np.mean(list(match.values()))) if match else float("nan")
     return Prediction(match=match, mean_match=mean, windows=win.count, window_s=float(window_s),
@@ -196,8 +197,9 @@ def feedback_evidence(model: HoverModel, prepared: Any, *, window_s: float = 5.0
     win = make_windows(prepared.segments, prepared.dt_s, window_s)
     u = win.inputs + input_offset(model, prepared)[None, None, :]
     with threadpool_limits(1):
-        sim = WindowSimulator(u, win.outputs, win.dt_s, win.available, estimate_all_initial=False)
-        e = sim.errors(model.theta[None])[0]  # (W, L, 8)
+        sim = WindowSimulator(u, win.outputs, win.dt_s, win.available, estimate_all_initial=False,
+                              measured=win.measured)
+        e = sim.errors(model.theta[None])[0]  # (W, L, 8), zero in holes of the link
     du = np.diff(win.inputs, axis=1)
     out = []
     chans = {0: ("p", "q", "theta", "phi"), 1: ("p", "q", "theta", "phi"), 2: ("w", "r"), 3: ("w", "r")}

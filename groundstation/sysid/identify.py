@@ -484,9 +484,9 @@ def _in_sample_match(plan: _Plan, cfg: IdentifyConfig, theta: np.ndarray, trim: 
     match = {}
     for j, ch in enumerate(OUTPUTS):
         if full_cost.used[j]:
-            m = full_cost.sim.mask[:, j]
-            num = np.sqrt((errs[m, :, j] ** 2).sum())
-            den = np.sqrt((y[m, :, j] ** 2).sum())
+            m = full_cost.sim.smask[:, :, j]  # measured samples only
+            num = np.sqrt((errs[:, :, j][m] ** 2).sum())
+            den = np.sqrt((y[:, :, j][m] ** 2).sum())
             match[ch] = float((1 - num / den) * 100) if den > 0 else float("nan")
     return match, full_cost.used
 
@@ -612,9 +612,20 @@ def _model(prepared: Any, plan: _Plan, cfg: IdentifyConfig, run: _Run, match: di
         pwm_per_unit=float(prepared.pwm_per_unit), output_trim=dict(prepared.output_trim), parameter_std=std, fit=fit,
         source={"logs": sorted({s.source for s in segs}),
                 "window_s": [float(min(s.t_s[0] for s in segs)), float(max(s.t_s[-1] for s in segs))],
-                "segments": [[s.source, int(s.flight), float(s.t_s[0]), float(s.t_s[-1])] for s in segs]},
+                "segments": [[s.source, int(s.flight), float(s.t_s[0]), float(s.t_s[-1])] for s in segs],
+                "link_quality": _link_report(prepared, plan.win)},
         pinned=list(pinned),
     )
+
+
+def _link_report(prepared: Any, win: Any) -> dict[str, Any]:
+    """The link figures of data preparation and what they did to the fit: windows used, and how many
+    of them have holes (samples bridged, not counted in the cost)."""
+    lq = dict(getattr(prepared, "link_quality", {}) or {})
+    meas = getattr(win, "measured", None)
+    holed = 0 if meas is None else int((~meas.all(axis=(1, 2))).sum())
+    lq.update(windows=int(win.count), windows_with_holes=holed)
+    return lq
 
 
 def refit(prepared: Any, model: HoverModel, *, config: IdentifyConfig | None = None, prior: Any = None) -> HoverModel:

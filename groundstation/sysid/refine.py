@@ -269,7 +269,7 @@ def _sigma(cost: WindowedCost, x: np.ndarray, weighting: str = "noise") -> np.nd
     used samples; "signal": the channel's signal spread (eq. 11) times one common factor that makes
     the weighted residual RMS one."""
     sse = cost.sim.sse(cost.full(x[None]))[0]
-    n = cost.sim.mask.sum(axis=0) * cost.sim.L
+    n = cost.sim.smask.sum(axis=(0, 1))
     ok = n > 0
     if weighting == "signal":
         rel = cost.sim.scales / np.sqrt(np.maximum(n, 1))  # RMS of each channel's signal about its mean

@@ -5,7 +5,10 @@ Array conventions
 * ``theta (C, 31)``: C candidate parameter vectors (a whole colony) in ``model.PARAM_NAMES`` order.
 * ``inputs (W, L, 4)``: W data windows of L samples, normalised ``lat lon col ped``.
 * ``outputs (W, L, 8)``: measured ``u v w p q r theta phi`` (trim removed); NaN / unavailable
-  channels are ignored (``available (8,)`` or ``(W, 8)`` bool).
+  channels are ignored (``available (8,)`` or ``(W, 8)`` bool); ``measured (W, L, 8)`` bool marks
+  the samples in holes of the link (False): they are not counted in the errors, the cost or the
+  channel scales. The initial-state least squares still sees the bridged values there (a straight
+  line across the hole): solving it per window without them would cost a Gram matrix per window.
 * ``yhat (C, W, L, 8)``: simulated outputs.
 
 Each window starts from an initial state: measured states (u v theta phi q p; w r) are taken from the
@@ -56,14 +59,16 @@ def _avail_2d(available: np.ndarray | None, outputs: np.ndarray) -> np.ndarray:
     return a & finite
 
 
-def channel_scales(outputs: np.ndarray, mask: np.ndarray) -> np.ndarray:
+def channel_scales(outputs: np.ndarray, mask: np.ndarray, smask: np.ndarray | None = None) -> np.ndarray:
     """Per-channel ``||y - mean(y)||`` over all windows where the channel is used; shape (8,).
 
-    outputs (W, L, 8); mask (W, 8). Unused channels get 1.
+    outputs (W, L, 8); mask (W, 8); smask (W, L, 8) samples counted (default: all of the used
+    channels). Unused channels get 1.
     """
     y = np.nan_to_num(outputs)
-    m = mask[:, None, :].astype(float)
-    cnt = mask.sum(axis=0) * y.shape[1]
+    m = np.broadcast_to(mask[:, None, :], y.shape) if smask is None else smask
+    m = m.astype(float)
+    cnt = m.sum(axis=(0, 1))
     mean = (y * m).sum(axis=(0, 1)) / np.maximum(cnt, 1)
     ss = (((y - mean) ** 2) * m).sum(axis=(0, 1))
     s = np.sqrt(ss)
@@ -124,6 +129,7 @@ class WindowSimulator:
         is linear in B for a given A); the values of those entries in ``theta`` are ignored and the
         estimates are returned by :meth:`solve_linear`
     lifted_block : block length per subsystem of the lifted simulation (see Notes)
+    measured : (W, L, 8) bool or None, sample measured (False in a hole of the link: not counted)
     forcing : (W, L, 3) known accelerations (m/s^2) added to u_dot, v_dot, w_dot, e.g. the measured
         kinematic and gravity terms that eq. 8 linearises away (:func:`kinematic_forcing`)
     estimate_trim : also solve, per subsystem, one constant offset per input shared by all windows
@@ -148,7 +154,7 @@ class WindowSimulator:
                  subsystems: tuple[int, ...] = (0, 1),
                  linear: dict[int, tuple[tuple[int, int], ...]] | None = None,
                  lifted_block: tuple[int, int] = (5, 5), estimate_trim: bool = False,
-                 forcing: np.ndarray | None = None) -> None:
+                 forcing: np.ndarray | None = None, measured: np.ndarray | None = None) -> None:
         u = np.asarray(inputs, dtype=float)
         y = np.asarray(outputs, dtype=float)
         if u.ndim != 3 or u.shape[2] != 4 or y.ndim != 3 or y.shape[2] != 8 or u.shape[:2] != y.shape[:2]:
@@ -165,7 +171,13 @@ class WindowSimulator:
             keep[[o for _, o in _SUBS[i].meas]] = True
         self.mask = _avail_2d(available, y) & keep[None, :]  # (W, 8)
         self.outputs = np.where(self.mask[:, None, :], np.nan_to_num(y), 0.0)
-        self.scales = channel_scales(self.outputs, self.mask)
+        #: (W, L, 8) samples counted: channel used in the window and the sample measured
+        self.smask = np.broadcast_to(self.mask[:, None, :], y.shape).copy()
+        self.holes = measured is not None and not bool(np.asarray(measured, dtype=bool)[self.smask].all())
+        if self.holes:
+            assert measured is not None
+            self.smask &= np.asarray(measured, dtype=bool)
+        self.scales = channel_scales(self.outputs, self.mask, self.smask if self.holes else None)
         self.weights = self.mask / self.scales[None, :] ** 2  # (W, 8) LS weights, same as eq. 11 normalisation
         self.estimate_all_initial = estimate_all_initial
         self.ridge = ridge
@@ -198,18 +210,27 @@ class WindowSimulator:
             xm = np.where(known, xm, 0.0)
             yflat = self.outputs[:, :, o_idx].reshape(self.W, self.L * nch)
             w_ch = self.weights[:, o_idx]
-            mflat = np.repeat(self.mask[:, None, o_idx], self.L, axis=1).reshape(self.W, self.L * nch)
+            mflat = self.smask[:, :, o_idx].reshape(self.W, self.L * nch)
             lin = self.linear.get(_SUBS.index(sub), ())
+            lb = self.lifted_block[_SUBS.index(sub)]
             self._prep.append(dict(s_idx=s_idx, o_idx=o_idx, nch=nch, xm=xm, yflat=yflat, lin=lin,
                                    mask_hw=np.ascontiguousarray(self.mask[:, o_idx].T).astype(float),
                                    w_ch=w_ch, mflat=mflat, unk=(~known).astype(float),
-                                   full_mask=bool(self.mask[:, o_idx].all())))
-            lb = self.lifted_block[_SUBS.index(sub)]
+                                   full_mask=bool(self.smask[:, :, o_idx].all()),
+                                   hole_lift=self._lift_mask(self.smask[:, :, o_idx], lb) if self.holes else None))
             u_sub = u[:, :, list(sub.inputs)]
             if self.forcing is not None:  # known accelerations enter as extra inputs with unit gain
                 u_sub = np.concatenate([u_sub, self.forcing[:, :, [c for _, c in _FORCED[_SUBS.index(sub)]]]], axis=2)
             self._prep[-1].update(self._lifted_prep(sub, u_sub, self.outputs[:, :, o_idx], xm, known,
                                                     w_ch, lb))
+
+    def _lift_mask(self, m: np.ndarray, block: int) -> np.ndarray:
+        """Sample mask (W, L, nch) in the lifted layout of the errors (nch, Lp, W), as floats."""
+        b = max(1, min(int(block), self.L))
+        nb = -(-self.L // b)
+        mp = np.zeros((self.W, nb * b, m.shape[2]))
+        mp[:, :self.L] = m
+        return np.ascontiguousarray(mp.reshape(self.W, nb, b, -1).transpose(3, 2, 1, 0).reshape(m.shape[2], nb * b, self.W))
 
     def _lifted_prep(self, sub: _Sub, u: np.ndarray, y: np.ndarray, xm: np.ndarray, known: np.ndarray,
                      w_ch: np.ndarray, block: int) -> dict:
@@ -383,9 +404,12 @@ class WindowSimulator:
         if not nt:
             beta = np.zeros((k, 0))
         v = np.concatenate([z, np.broadcast_to(beta[:, None, :], (k, W, nt))], axis=-1) if nt else z  # (k, W, na)
-        if explicit:
+        if explicit or pre["hole_lift"] is not None:
             e = np.matmul(Phi, np.swapaxes(v, 1, 2)[:, None])  # (k, nch, Lp, W)
             e -= R4
+            if not explicit:  # holes in the link: only the measured samples count
+                e *= pre["hole_lift"][None]
+                return z, beta, np.einsum("chkw,chkw->ch", e, e)
             if explicit == "native":
                 return z, beta, e
             return z, beta, e.reshape(k, nch, b, nb, W).transpose(0, 4, 3, 2, 1).reshape(k, W, Lp, nch)[:, :, :L]
@@ -516,7 +540,9 @@ class WindowSimulator:
             return z, beta, e
         if explicit:
             return z, beta, e.reshape(k, nch, b, nb, W).transpose(0, 4, 3, 2, 1).reshape(k, W, Lp, nch)[:, :, :L]
-        if not pre["full_mask"]:
+        if pre["hole_lift"] is not None:
+            e *= pre["hole_lift"][None]
+        elif not pre["full_mask"]:
             e *= pre["mask_hw"][None, :, None, :]
         return z, beta, np.einsum("chkw,chkw->ch", e, e)
 
@@ -604,7 +630,7 @@ class WindowSimulator:
         """Weighted output errors ``(yhat - y) / sigma_ch`` of C candidates as flat vectors (C, N), in
         the simulation's own layout (per subsystem: channel, padded sample, window) instead of
         :meth:`errors`' (window, sample, channel): no transpose and no 8-channel array. Unused samples
-        (unavailable channel, padding of the last lifted block) are zero. For what does not depend on
+        (unavailable channel, padding of the last lifted block, holes of the link) are zero. For what does not depend on
         the order of the rows (``J^T J``, ``J^T r``, ``||r||``: the refinement's normal equations)."""
         s = np.asarray(sigma, dtype=float)
         res = self._run(theta, native=True)
@@ -614,6 +640,8 @@ class WindowSimulator:
             pre = self._prep[i]
             w = pre["mask_hw"] / s[pre["o_idx"]][:, None]  # (nch, W): mask and channel weight
             e *= w[None, :, None, :]
+            if pre["hole_lift"] is not None:  # holes of the link: unmeasured samples are not residuals
+                e *= pre["hole_lift"][None]
             parts.append(e.reshape(C, -1))
         out = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
         if not np.isfinite(out).all():

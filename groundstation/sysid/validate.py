@@ -30,6 +30,8 @@ def _flat(yhat: np.ndarray, y: np.ndarray, mask: np.ndarray | None, j: int) -> t
         return yhat, y
     if mask is None:
         return yhat[..., j].ravel(), y[..., j].ravel()
+    if mask.ndim == 3:  # (W, L, 8): per sample (holes of the link left out)
+        return yhat[..., j][mask[..., j]], y[..., j][mask[..., j]]
     return yhat[mask[:, j], :, j].ravel(), y[mask[:, j], :, j].ravel()
 
 
@@ -66,10 +68,10 @@ def pearson(yhat: np.ndarray, y: np.ndarray) -> float:
 
 
 def channel_metrics(yhat: np.ndarray, y: np.ndarray, mask: np.ndarray) -> dict[str, dict[str, float]]:
-    """Metrics per used channel; yhat and y (W, L, 8), mask (W, 8)."""
+    """Metrics per used channel; yhat and y (W, L, 8), mask (W, 8) or per sample (W, L, 8)."""
     out: dict[str, dict[str, float]] = {}
     for j, ch in enumerate(OUTPUTS):
-        if not mask[:, j].any():
+        if not mask[..., j].any():
             continue
         a, b = _flat(yhat, y, mask, j)
         out[ch] = {"match": match_degree(a, b), "fit": nrmse(a, b), "tic": theil_u(a, b), "corr": pearson(a, b)}
@@ -88,10 +90,11 @@ def validate(model: HoverModel, prepared: Any, *, window_s: float | None = None,
     est_all = bool(model.fit.get("estimate_all_initial", True))
     with threadpool_limits(1):
         win = make_windows(prepared.segments, prepared.dt_s, ws, key="window_s")
-        sim = WindowSimulator(win.inputs, win.outputs, win.dt_s, win.available, estimate_all_initial=est_all)
+        sim = WindowSimulator(win.inputs, win.outputs, win.dt_s, win.available, estimate_all_initial=est_all,
+                              measured=win.measured)
         yhat = sim.simulate(model.theta[None])[0]
     y = sim.outputs
-    mask = sim.mask
+    mask = sim.smask if sim.holes else sim.mask
     ch = channel_metrics(yhat, y, mask)
     used = [c for c in OUTPUTS if c in ch]
     cost = 0.0
@@ -108,6 +111,7 @@ def validate(model: HoverModel, prepared: Any, *, window_s: float | None = None,
     }
     if return_series:
         t = win.t0_s[:, None] + np.arange(win.length)[None, :] * win.dt_s
-        res["series"] = {"t_s": t, "y": np.where(mask[:, None, :], y, np.nan),
-                         "yhat": np.where(mask[:, None, :], yhat, np.nan), "inputs": win.inputs}
+        m3 = mask if mask.ndim == 3 else mask[:, None, :]
+        res["series"] = {"t_s": t, "y": np.where(m3, y, np.nan),
+                         "yhat": np.where(sim.mask[:, None, :], yhat, np.nan), "inputs": win.inputs}
     return res

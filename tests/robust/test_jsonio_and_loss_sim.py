@@ -45,3 +45,17 @@ def test_loss_burst_below_one_is_refused(tmp_path):
 
     with pytest.raises(ValueError, match="loss_burst"):
         write_tlog(tmp_path / "f.tlog", flight_duration_s=30.0, loss_burst=0.5)
+
+
+def test_log_info_reports_the_links_outages(tmp_path):
+    from firmware_interface.readers import load_log
+    from groundstation.commands.log_info import summarise
+    from hil_replay.sim import write_tlog
+
+    path = tmp_path / "f.tlog"
+    write_tlog(path, seed=4, flight_duration_s=30.0, packet_loss=0.1, loss_burst=8.0,
+               rates_hz={"ATTITUDE": 25, "SERVO_OUTPUT_RAW": 25, "LOCAL_POSITION_NED": 25})
+    lk = summarise(load_log(path))["link"]
+    assert 6.0 < lk["loss_pct"] < 15.0 and lk["outages"] > 10
+    assert lk["lost_per_outage"] > 3.0 and lk["longest_outage_s"] >= lk["median_outage_s"] > 0.05
+    assert 0 <= lk["outages_split"] <= lk["outages"] and lk["bridge_limit_s"] == 0.35
