@@ -274,6 +274,8 @@ def _compare(args, train, con, identify, IdentifyConfig, plot_convergence) -> di
 #: search's starts stay "screening refinements", those of the selection's candidates "selection").
 STAGES: tuple[tuple[str, ...], ...] = (
     ("read + prepare", "groundstation.pipeline", "prepare_logs"),
+    ("read + prepare", "groundstation.pipeline", "load_logs"),
+    ("read + prepare", "groundstation.dsp.prepare", "prepare"),
     ("search", "groundstation.sysid.optimizers", "minimize_cabc"),
     ("search", "groundstation.sysid.optimizers", "minimize_abc"),
     ("search", "groundstation.sysid.optimizers", "minimize_ga"),

@@ -1,12 +1,13 @@
 """Runs what a flight report needs and is missing, and gathers it into a :class:`FlightReportData`.
 
-:func:`collect` reads the logs, summarises their data quality (the ``log-info`` summary), prepares
-them, identifies the model (or loads ``model_path``), checks it on held-out folds, on its training
-windows and in the frequency domain, and diagnoses the gap (or loads ``gap_path``), with the same
-:mod:`groundstation.pipeline` chain and configuration as ``identify`` and ``diagnose``. Each part that
-fails leaves a one-line reason in ``errors`` and the parts after it that need it say so: a log the
-analysis cannot use still gets its data-quality section. Drawing is :mod:`groundstation.report.render`'s.
-"""
+:func:`collect` reads the logs and summarises their data quality (the ``log-info`` summary), then runs
+the one analysis pipeline, :func:`groundstation.analysis.analyse` (prepare, identify unless
+``model_path``, held-out check, training-window validation, frequency check, diagnosis unless
+``gap_path``), with the same configuration and aircraft file as ``identify`` and ``diagnose``. Each
+part that fails leaves a one-line reason in ``errors`` and the parts after it that need it say so: a
+log the analysis cannot use still gets its data-quality section. :func:`assemble` makes the same object
+from results computed elsewhere (the service's worker, a campaign job). Drawing is
+:mod:`groundstation.report.render`'s."""
 
 from __future__ import annotations
 
@@ -117,22 +118,37 @@ def collect(logs: Sequence[str | os.PathLike[str]], *, config: Any = None, aircr
 
     parts["log_info"] = tuple(summarise(log) for log in raw)
     parts["timelines"] = tuple(timeline(log) for log in raw)
-    prepared = _prepare(raw, cfg, errors)
-    parts["prepared"] = prepared
-    parts["notes"] = tuple(prepared.notes) if prepared is not None else ()
-    model = _model(prepared, cfg, aircraft, model_path, folds, errors, pmap, say)
-    parts["model"] = model
-    if model is not None and prepared is not None:
-        from groundstation.sysid.validate import validate
+    res = _analyse(raw, names, cfg, aircraft, model_path, gap_path is None, folds, errors, pmap, say)
+    if res is None:   # not even prepared: the data-quality section is what the page has
+        prepared = _prepare(raw, cfg, errors)
+        parts["prepared"] = prepared
+        parts["notes"] = tuple(prepared.notes) if prepared is not None else ()
+        if model_path is None:
+            errors.setdefault("model", f"not identified: {errors.get('prepare') or errors.get('analysis')}")
+        errors.setdefault("freq", f"no frequency check: {errors.get('model') or errors.get('prepare')}")
+        if gap_path is None:
+            errors.setdefault("gap", f"no diagnosis: {errors.get('model') or errors.get('prepare')}")
+        errors.pop("analysis", None)
+    else:
+        parts["prepared"], parts["model"], parts["freq"] = res.prepared, res.model, res.freq
+        parts["notes"] = tuple(res.prepared.notes)
+        if res.validation is not None:
+            parts["validation"] = {**res.validation, "series": res.validation_series}
+        if res.gap is not None:
+            from groundstation.gap.pictures import gap_pictures
 
-        try:
-            parts["validation"] = validate(model, prepared, return_series=True)
-        except Exception as exc:
-            errors["validation"] = _line(exc)
-    freq = _freq(raw, cfg, model, errors, say)
-    parts["freq"] = freq
-    gap, pictures = _gap(raw, prepared, cfg, model, freq, gap_path, errors, pmap, say)
-    parts["gap"], parts["pictures"] = gap, pictures
+            parts["gap"] = res.gap.to_json()
+            try:
+                parts["pictures"] = gap_pictures(res.gap.diagnosis) if res.gap.diagnosis is not None else None
+            except Exception as exc:  # the report stands without its pictures
+                errors["pictures"] = _line(exc)
+        for step, part in (("freq", "freq"), ("diagnose", "gap")):
+            if res.errors.get(step):
+                errors[part] = res.errors[step]
+        if res.model is not None and res.freq is None and "freq" not in errors:
+            errors["freq"] = "no frequency check"
+    if gap_path is not None:
+        parts["gap"], _ = _gap_file(gap_path)
     try:
         parts["history"], parts["history_label"] = load_history(history_db, parts["aircraft"])
     except Exception as exc:
@@ -184,80 +200,43 @@ def _prepare(raw: list[Any], cfg: Any, errors: dict[str, str]) -> Any:
     return prepared
 
 
-def _model(prepared: Any, cfg: Any, aircraft: Any, model_path: Any, folds: int, errors: dict[str, str],
-           pmap: Map, say: Progress) -> Any:
-    if model_path is not None:
-        from groundstation.pipeline import load_model
+def _analyse(raw: list[Any], names: tuple[str, ...], cfg: Any, aircraft: Any, model_path: Any, diagnose: bool,
+             folds: int, errors: dict[str, str], pmap: Map, say: Progress) -> Any:
+    """The :func:`groundstation.analysis.analyse` result of the logs (frequency check and diagnosis kept going
+    on failure), or None with the reason in ``errors`` when there is nothing to analyse or the model fails."""
+    import dataclasses
 
-        model = load_model(Path(model_path))   # a named file that cannot be read is the user's error
-    elif prepared is None:
-        errors["model"] = f"not identified: {errors['prepare']}"
-        return None
-    else:
-        from groundstation.pipeline import identify_prepared
+    from groundstation.analysis import STEPS, AnalysisError, analyse
 
-        say("identifying the model")
-        try:
-            model = identify_prepared(prepared, cfg, aircraft=aircraft, pmap=pmap)
-        except Exception as exc:
-            errors["model"] = f"not identified: {_line(exc)}"
-            return None
-    if prepared is not None and folds >= 2 and (model.fit.get("heldout") or {}).get("k") != folds:
-        from groundstation.analysis import held_out
+    steps = [s for s in STEPS if (s != "identify" or model_path is None) and (s != "diagnose" or diagnose)]
+    cfg = dataclasses.replace(cfg, identification=dataclasses.replace(cfg.identification, heldout_folds=folds))
 
-        say(f"held-out check ({folds} folds)")
-        try:
-            held_out(model, prepared, cfg, aircraft, folds, pmap)
-        except Exception as exc:
-            errors["heldout"] = _line(exc)
-    return model
+    def progress(ev: Any) -> None:
+        if ev.state == "start":
+            say({"identify": "identifying the model", "heldout": f"held-out check ({folds} folds)",
+                 "validate": "measured vs model", "freq": "frequency-domain check",
+                 "diagnose": "diagnosing the gap"}.get(ev.step, ev.step))
 
-
-def _freq(raw: list[Any], cfg: Any, model: Any, errors: dict[str, str], say: Progress) -> Any:
-    if model is None:
-        errors["freq"] = f"no frequency check without a model ({errors.get('model', 'none')})"
-        return None
-    from groundstation.freq.model_response import delays_from_augmentations
-    from groundstation.freq.spectra import estimate_responses
-    from groundstation.freq.verify import verify
-    from groundstation.pipeline import prepare_native
-
-    say("frequency-domain check")
+    say("analysing")
     try:
-        fast = prepare_native(raw, cfg.prepare)
-        return verify(model.theta, estimate_responses(fast, cfg.freq), delays_from_augmentations(model.augmentations))
+        return analyse(raw, aircraft, cfg, steps=steps, model=model_path, progress=progress, keep_going=True,
+                       pmap=pmap)
+    except AnalysisError as exc:
+        errors["prepare"] = _line(exc)
+    except (OSError, ValueError) as exc:
+        if model_path is not None and str(model_path) in str(exc):
+            raise   # a named model file that cannot be read is the user's error
+        errors["model"] = f"not identified: {_line(exc)}"
     except Exception as exc:
-        errors["freq"] = _line(exc)
-        return None
+        errors["model"] = f"not identified: {_line(exc)}"
+    return None
 
 
-def _gap(raw: list[Any], prepared: Any, cfg: Any, model: Any, freq: Any, gap_path: Any, errors: dict[str, str],
-         pmap: Map, say: Progress) -> tuple[Any, Any]:
-    if gap_path is not None:
-        p = Path(gap_path)
-        if not p.exists():
-            raise OSError(f"{p}: no such gap report")
-        try:
-            return json.loads(p.read_text()), None
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ValueError(f"{p}: not a gap report (not JSON text: {exc})") from None
-    if prepared is None or model is None:
-        errors["gap"] = f"no diagnosis: {errors.get('model') or errors.get('prepare') or 'no model'}"
-        return None, None
-    from groundstation.analysis import native_vibration, unfold_rotor_line
-    from groundstation.gap.diagnose import run_diagnosis
-    from groundstation.gap.pictures import gap_pictures
-    from groundstation.gap.report import frequency_section
-
-    say("diagnosing the gap")
+def _gap_file(gap_path: Any) -> tuple[dict[str, Any], None]:
+    p = Path(gap_path)
+    if not p.exists():
+        raise OSError(f"{p}: no such gap report")
     try:
-        diag = run_diagnosis(model, prepared, seed=cfg.identification.seed, config=cfg.diagnose, pmap=pmap)
-        report = diag.report
-        native = native_vibration(raw, cfg.prepare.rate_hz)
-        if native is not None:
-            unfold_rotor_line(report, native, cfg.prepare.rate_hz)
-        report["frequency"] = frequency_section(freq) if freq is not None else {"error": errors.get("freq", "")}
-        return report, gap_pictures(diag)
-    except Exception as exc:
-        errors["gap"] = _line(exc)
-        return None, None
+        return json.loads(p.read_text()), None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{p}: not a gap report (not JSON text: {exc})") from None

@@ -118,7 +118,9 @@ def model_view(d: FlightReportData) -> dict[str, Any]:
                        "flag": status not in ("determined by the flight", "estimated")})
     ho = fit.get("heldout") or {}
     lines: list[str] = []
-    if "channel_mean" in ho:
+    if "channel_mean" in ho and not ho["channel_mean"]:
+        lines.append(f"Held-out check over {ho.get('k')} folds: no fold held a window the model could be scored on.")
+    elif "channel_mean" in ho:
         lines.append(f"Held-out match over {ho['k']} contiguous folds: mean {ho['mean_match']:.1f} % ("
                      + ", ".join(f"{c} {v:.1f}" for c, v in ho["channel_mean"].items()) + ").")
         lines.append(f"The model predicts: {', '.join(ho['predicted']) or 'no channel'}; it does not predict: "
@@ -328,7 +330,7 @@ def unsupported(d: FlightReportData) -> list[str]:
             out.append(f"The {sub} subsystem is not a model of the aircraft: its held-out prediction runs away.")
         if ho.get("not_predicted"):
             out.append(f"The model does not predict {', '.join(ho['not_predicted'])} on held-out data.")
-        if "mean_match" in ho and ho["mean_match"] < 50:
+        if "mean_match" in ho and math.isfinite(ho["mean_match"] or math.nan) and ho["mean_match"] < 50:
             out.append(f"The model predicts only {ho['mean_match']:.0f} % of held-out data (mean match).")
         if fit.get("fixed"):
             out.append(f"{len(fit['fixed'])} parameters cannot be identified from this flight and stay fixed: "
@@ -382,7 +384,7 @@ def one_line_summary(d: FlightReportData) -> str:
         return f"not analysed: {d.errors.get('logs') or d.errors.get('prepare')}"
     if d.model is not None:
         ho = d.model.fit.get("heldout") or {}
-        if "mean_match" in ho:
+        if "mean_match" in ho and math.isfinite(ho["mean_match"] or math.nan):
             parts.append(f"held-out match {ho['mean_match']:.1f} %")
         if ho.get("unusable_subsystems"):
             parts.append(f"unusable: {', '.join(ho['unusable_subsystems'])}")

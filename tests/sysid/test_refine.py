@@ -45,3 +45,24 @@ def test_a_parameter_held_by_its_bound_stays_on_it():
     res = refine(cost, x0, b, passes=1, max_nfev=40, with_std=False)
     assert b[i, 0] <= res.x[i] <= b[i, 1]
     assert min(abs(res.x[i] - b[i, 0]), abs(res.x[i] - b[i, 1])) < 1e-9 * abs(b[i, 1] - b[i, 0]) + 1e-12
+
+
+def test_stage_timer_charges_the_innermost_stage_and_restores_the_functions(monkeypatch):
+    """``bench identify --profile``: CPU goes to the stage running, every reference is put back."""
+    import groundstation.bench.identify as bench
+    import groundstation.parallel as parallel
+    import groundstation.sysid.identify as ident
+
+    original = parallel.serial_map
+    monkeypatch.setattr(bench, "STAGES", (("mapping", "groundstation.parallel", "serial_map"),))
+
+    def busy(n):
+        return float(np.linalg.norm(np.random.default_rng(n).normal(size=(200, 200)) @ np.ones(200)))
+
+    with bench.StageTimer() as st:
+        assert ident.serial_map is not original   # wrapped where identify holds it too
+        out = ident.serial_map(busy, range(20))
+    assert len(out) == 20
+    assert parallel.serial_map is original and ident.serial_map is original
+    table = {name: (cpu, calls) for name, cpu, calls in st.table()}
+    assert table["mapping"][1] == 1 and table["mapping"][0] > 0
