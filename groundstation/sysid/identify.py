@@ -198,6 +198,8 @@ def _check(cfg: IdentifyConfig, algorithm: str, prepared: Any) -> None:
         raise SysidError(f"identify.prior_scale = {cfg.prior_scale}: must be > 0")
     if cfg.prior_weighting not in ("logged", "effective"):
         raise SysidError(f"identify.prior_weighting = {cfg.prior_weighting!r}: choose logged or effective")
+    if cfg.input_kind not in ("blade", "rate_command", "attitude_command", "unknown"):
+        raise SysidError(f"identify.input_kind = {cfg.input_kind!r}: choose blade, rate_command, attitude_command or unknown")
     if not prepared.segments:
         raise SysidError("no in-air segments to identify from")
 
@@ -486,6 +488,10 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
         from groundstation.sysid.select import select_config
 
         model = select_config(prepared, model, cfg, prior=prior, bounds=bounds, pmap=pmap, fit=fit_candidate, refit=refit)
+    if refine and cfg.input_kind != "blade":
+        from groundstation.sysid.structure import attach_command_structure
+
+        model = attach_command_structure(prepared, model, cfg, pmap=pmap, refit=refit)
     return model
 
 

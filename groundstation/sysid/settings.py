@@ -69,3 +69,8 @@ class IdentifyConfig:
     select_candidates: str = "predictive | window_step_s=2.5"
     #: contiguous folds of the selection (< 2 = no selection)
     select_folds: int = 5
+    #: what the inputs are (the aircraft file's ``[inputs] kind``): "blade" (the eq.-8 hover model only),
+    #: "rate_command" / "attitude_command" (also the stabilised aircraft's command-response structure,
+    #: which then predicts), "unknown" (both, held-out prediction chooses):
+    #: :mod:`groundstation.sysid.structure`
+    input_kind: str = "blade"
