@@ -193,7 +193,7 @@ def _is_path(x: Any) -> bool:
 def analyse(logs: Any, aircraft: Any = None, config: ServiceConfig | str | os.PathLike[str] | None = None, *,
             steps: Iterable[str] = STEPS, model: Any = None, segments: str = "flights",
             progress: Callable[[Progress], Any] | None = None, keep_going: bool = False,
-            pmap: Map = serial_map) -> AnalysisResult:
+            pmap: Map = serial_map, responses: Any = None) -> AnalysisResult:
     """Analyse flight logs: prepare, identify, check on held-out data, validate, check in frequency, diagnose.
 
     Parameters
@@ -210,6 +210,9 @@ def analyse(logs: Any, aircraft: Any = None, config: ServiceConfig | str | os.Pa
     progress : called with a :class:`Progress` at each step's start and end, and per search iteration
     keep_going : a failed ``freq`` or ``diagnose`` step is recorded in ``errors`` instead of raised
     pmap : map over worker processes (:func:`groundstation.parallel.worker_map`); results do not depend on it
+    responses : the flight's frequency responses already estimated (a
+        :class:`groundstation.freq.spectra.ResponseSet`: the live service's spectra accumulated during
+        the flight); the frequency check then makes no second pass over the data
     """
     steps = _steps(steps)
     cfg = _config(config)
@@ -237,7 +240,7 @@ def analyse(logs: Any, aircraft: Any = None, config: ServiceConfig | str | os.Pa
     prepared = prepare(read, cfg.prepare)
     note("prepare", "done")
     res = analyse_prepared(prepared, cfg, ac, steps=steps, model=model, logs=read, log_paths=paths,
-                           progress=progress, keep_going=keep_going, pmap=pmap)
+                           progress=progress, keep_going=keep_going, pmap=pmap, responses=responses)
     return dataclasses.replace(res, seconds={"load_prepare": round(_since(t0) - sum(res.seconds.values()), 3),
                                              **res.seconds})
 
@@ -245,7 +248,7 @@ def analyse(logs: Any, aircraft: Any = None, config: ServiceConfig | str | os.Pa
 def analyse_prepared(prepared: Any, config: ServiceConfig | None = None, aircraft: Any = None, *,
                      steps: Iterable[str] = STEPS, model: Any = None, logs: Sequence[Any] = (),
                      log_paths: Sequence[str] = (), progress: Callable[[Progress], Any] | None = None,
-                     keep_going: bool = False, pmap: Map = serial_map) -> AnalysisResult:
+                     keep_going: bool = False, pmap: Map = serial_map, responses: Any = None) -> AnalysisResult:
     """:func:`analyse` from data already prepared (with ``config.prepare``, the aircraft applied).
 
     ``logs`` (the logs read) serve the frequency check at the log's native rate and the native-rate
@@ -306,10 +309,10 @@ def analyse_prepared(prepared: Any, config: ServiceConfig | None = None, aircraf
 
         validation = step("validate", lambda: validate(model, prepared, return_series=True))
         series = validation.pop("series", None)
-    responses: dict[str, Any] = {}
+    cache: dict[str, Any] = {} if responses is None else {"responses": responses}
     # a flight too short or too quiet for a frequency analysis is an answer (errors["freq"]), not a failure
-    freq = step("freq", lambda: _freq_check(model, prepared, logs, cfg, responses), (ValueError,))
-    gap = step("diagnose", lambda: _diagnose(model, prepared, logs, log_paths, model_source, cfg, responses,
+    freq = step("freq", lambda: _freq_check(model, prepared, logs, cfg, cache), (ValueError,))
+    gap = step("diagnose", lambda: _diagnose(model, prepared, logs, log_paths, model_source, cfg, cache,
                                              "freq" in run, pmap))
     return AnalysisResult(data=summarize(prepared, log_paths), model=model, validation=validation, freq=freq,
                           gap=gap, steps=run, errors=errors, seconds=seconds, config=cfg, aircraft=aircraft,
@@ -373,8 +376,12 @@ def held_out(model: Any, prepared: Any, cfg: ServiceConfig, aircraft: Any, k: in
         try:
             chosen = (model.fit.get("selection") or {}).get("overrides", {})
             icfg = dataclasses.replace(cfg.identify, **chosen)
-            cv = crossvalidate(prepared, functools.partial(refit, model=model, config=icfg, prior=prior), k=k,
-                               **({} if pmap is None else {"pmap": pmap}))
+            fit_fold = functools.partial(refit, model=model, config=icfg, prior=prior)
+            if getattr(model, "structure", "hover") == "command_response":   # the stabilised aircraft's structure
+                from groundstation.sysid.structure import fold_fitter
+
+                fit_fold = fold_fitter(model)
+            cv = crossvalidate(prepared, fit_fold, k=k, **({} if pmap is None else {"pmap": pmap}))
         except ValueError as exc:
             model.fit["heldout"] = {"skipped": str(exc)}
             return model.fit["heldout"]

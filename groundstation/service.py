@@ -169,7 +169,10 @@ class Service:
         self.window_seq_published = 0
         self.on_window: Callable[[Window], None] | None = None     # test/bench hook (loop thread)
         ex = config.excitation
-        self.excitation = ExcitationMonitor(ex, 1.0 / config.live.grid_rate_hz) if ex.enabled else None
+        # the monitor also accumulates the flight with [freq]'s settings for the after-flight frequency check
+        self.excitation = (ExcitationMonitor(ex, 1.0 / config.live.grid_rate_hz,
+                                             freq=config.freq if config.identification.enabled else None)
+                           if ex.enabled else None)
         self._excite_window_row = 0          # live row count at the last window / the monitor's last step
         self._excite_step_row = 0
         self.excitation_last: ExcitationReport | None = None
@@ -556,10 +559,12 @@ class Service:
             tlogs = (tuple(self._flight_tlogs[k] for k in sorted(self._flight_tlogs)) if ic.scope == "all"
                      else (path,))
             prev = [k for k in sorted(self._flight_tlogs) if k < fe.flight]
+            live = self.excitation.take_freq_spectra(fe.flight) if self.excitation is not None else None
             self.submit_identification(IdentifyJob(flight=fe.flight, tlogs=tlogs, out_dir=str(Path(path).parent),
                                                    config=self.config,
                                                    previous_flight=prev[-1] if prev else -1,
-                                                   previous_tlogs=(self._flight_tlogs[prev[-1]],) if prev else ()))
+                                                   previous_tlogs=(self._flight_tlogs[prev[-1]],) if prev else (),
+                                                   live_spectra=live if len(tlogs) == 1 else None))
         self._check_exit()
 
     def submit_identification(self, job: IdentifyJob) -> asyncio.Future[JobResult]:

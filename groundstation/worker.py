@@ -44,6 +44,10 @@ class IdentifyJob:
     #: the new model is scored on that flight and that flight's model on this one
     previous_flight: int = -1
     previous_tlogs: tuple[str, ...] = ()
+    #: the flight's spectra accumulated live with ``[freq]``'s settings (a
+    #: :class:`groundstation.freq.spectra.IncrementalResponses`), for a job of that flight alone: its
+    #: frequency check uses them instead of a second pass over the log
+    live_spectra: Any = None
 
     @property
     def vehicle(self) -> str:
@@ -168,6 +172,18 @@ def _cross_flight(job: IdentifyJob, model: Any, prepared: Any) -> dict[str, Any]
     return out
 
 
+def _live_responses(job: IdentifyJob) -> Any:
+    """The flight's responses from the spectra the service accumulated live (None: estimate them from the
+    log). Only for a job of that one flight, and only when they can be computed."""
+    spectra = job.live_spectra
+    if spectra is None or len(job.tlogs) != 1 or not getattr(spectra, "rows", 0):
+        return None
+    try:
+        return spectra.responses()
+    except ValueError:          # too little in-air data: the log's own estimate says why
+        return None
+
+
 def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
     import dataclasses
 
@@ -185,7 +201,8 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
             validated_s.append(time.perf_counter() - t0)
 
     try:
-        res = analyse(list(job.tlogs), aircraft, cfg, steps=steps, progress=on, keep_going=True)
+        res = analyse(list(job.tlogs), aircraft, cfg, steps=steps, progress=on, keep_going=True,
+                      responses=_live_responses(job))
     except AnalysisError as exc:
         if not str(exc).startswith("nothing to identify"):
             raise

@@ -36,6 +36,7 @@ import numpy as np
 from firmware_interface.samples import Heartbeat, Imu
 from groundstation.errors import DspError, FreqError
 from groundstation.freq.spectra import FreqConfig, IncrementalResponses
+from groundstation.sysid.model import OUTPUTS
 
 AXES = ("lat", "lon", "col", "ped")
 #: the live rows' outputs (dsp.live) and the vertical acceleration the monitor adds
@@ -336,6 +337,7 @@ class _Flight:
     pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)   # rows not yet added
     pending_rows: int = 0
     armed: bool = False
+    freq_spectra: IncrementalResponses | None = None     # the same rows with [freq]'s settings (after-flight check)
 
 
 class ExcitationMonitor:
@@ -347,8 +349,13 @@ class ExcitationMonitor:
     ``1 / publish_rate_hz`` FC seconds while armed), :meth:`report` makes one at any moment.
     """
 
-    def __init__(self, config: ExcitationConfig | None = None, dt_s: float = 0.02) -> None:
+    def __init__(self, config: ExcitationConfig | None = None, dt_s: float = 0.02,
+                 freq: FreqConfig | None = None) -> None:
         self.config = config or ExcitationConfig()
+        #: also accumulate the flight's rows with these settings (``[freq]``: the after-flight frequency
+        #: check then needs no second pass over the log; :meth:`take_freq_spectra`)
+        self.freq = freq
+        self._ended_freq: tuple[int, IncrementalResponses] | None = None
         self.dt_s = float(dt_s)
         self._freq = self.config.freq_config()
         self.flight: _Flight | None = None
@@ -367,14 +374,25 @@ class ExcitationMonitor:
     def flight_started(self, flight: int, t_fc_s: float) -> None:
         spectra = IncrementalResponses(self.dt_s, self._freq, MONITOR_OUTPUTS)
         self.flight = _Flight(flight, float(t_fc_s), spectra)
+        if self.freq is not None:
+            self.flight.freq_spectra = IncrementalResponses(self.dt_s, self.freq, OUTPUTS)
         self._chirps.chirps = []
         self.last = None
 
     def flight_ended(self) -> ExcitationReport | None:
         """The flight's last verdict (None if it never flew), then the monitor waits for the next."""
         rep = self.report() if self.flight is not None and self.flight.spectra.rows else None
+        if self.flight is not None and self.flight.freq_spectra is not None:
+            self._flush(end_segment=True)
+            self._ended_freq = (self.flight.number, self.flight.freq_spectra)
         self.flight = None
         return rep
+
+    def take_freq_spectra(self, flight: int) -> IncrementalResponses | None:
+        """The ``[freq]`` spectra of the flight that just ended (once; None for another flight or
+        without ``freq``)."""
+        got, self._ended_freq = self._ended_freq, None
+        return got[1] if got is not None and got[0] == flight else None
 
     def events(self, events: list[Any]) -> None:
         for ev in events:
@@ -454,8 +472,12 @@ class ExcitationMonitor:
             fl.pending.clear()
             fl.pending_rows = 0
             fl.spectra.add(u, y)
+            if fl.freq_spectra is not None:
+                fl.freq_spectra.add(u, y[:, :len(OUTPUTS)])
         if end_segment:
             fl.spectra.end_segment()
+            if fl.freq_spectra is not None:
+                fl.freq_spectra.end_segment()
 
     # ------------------------------------------------------------------ verdict
 

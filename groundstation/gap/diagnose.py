@@ -832,7 +832,7 @@ def _headline(kept: list[attribute.Candidate], partial: list[attribute.Candidate
         return "the held-out gap is at the noise floor: nothing to explain"
     x = min(max(sh.explained_pct, 0.0), 100.0)
     lo, hi = sh.interval_pct or (float("nan"), float("nan"))
-    iv = f"interval {lo:.0f} to {hi:.0f} %"
+    iv = f"interval {min(max(lo, 0.0), 100.0):.0f} to {min(max(hi, 0.0), 100.0):.0f} %"
     where = ", ".join(f"{c['channel']} ({c['gap_to_noise']:g}x noise)" for c in rest["channels"])
     extra = []
     if rest.get("band_hz"):
@@ -852,11 +852,13 @@ def _headline(kept: list[attribute.Candidate], partial: list[attribute.Candidate
                 f"{100 - x:.0f} % is not" + (tail if 100 - x >= 20 and significant else "") + small)
     if partial:
         names = " and ".join(_effect_label(c) for c in partial)
-        why = (f"clearly below the {cfg.explained_share_min_pct:g} % needed to name them" if not changes else
-               "and " + "; ".join(f"the {ch['effect'].replace('_', ' ')} changes through the flight" for ch in changes))
         verb = "explains" if len(partial) == 1 else "explain"
-        return (f"unexplained: {names} {verb} only {x:.0f} % of the gap above noise ({iv}), "
-                f"{why}; {100 - x:.0f} % is not explained" + tail)
+        if changes:
+            what = "; ".join(f"the {ch['effect'].replace('_', ' ')} changes through the flight" for ch in changes)
+            return (f"unexplained: {names} {verb} {x:.0f} % of the gap above noise ({iv}) but no constant effect "
+                    f"does: {what}; {100 - x:.0f} % is not explained" + tail)
+        return (f"unexplained: {names} {verb} only {x:.0f} % of the gap above noise ({iv}), clearly below the "
+                f"{cfg.explained_share_min_pct:g} % needed to name them; {100 - x:.0f} % is not explained" + tail)
     return "no catalogue effect explains the gap above noise (0 % explained)" + tail
 
 

@@ -16,7 +16,8 @@ Two questions a flight-test engineer asks before acting on a name:
   effect *holds* when neither half's data reject the other half's value (paired tests over the
   ~0.5 s blocks, the analytic tests of the conditional step, Bonferroni over the halves and the
   effects tested, and a practical loss: the other value gives up more than
-  ``consistency_min_loss`` of the effect's gain in that half); it *changes* when one does; it is
+  ``consistency_min_loss`` of the effect's gain in that half); it *changes* when both do (a half
+  whose data accept the other half's value holds the two estimates within its uncertainty); it is
   *not checked* when a half is too short for the windows and folds, or the effect does not lower
   that half's held-out cost significantly (its input barely moved there). The gap itself over
   time (its excess above the noise per half) is reported with it.
@@ -315,10 +316,13 @@ def consistency(c: attribute.Candidate, segs_h: tuple[list[SegmentArrays], list[
         where = f" ({c.hyp.input} little excited there)" if c.hyp.input else ""
         out["why"] = f"the effect does not lower the held-out cost of the {half} half significantly{where}"
         return out
-    if any(rejected):
+    if all(rejected):
+        # each half's data reject the other half's value: the estimates disagree beyond both
+        # halves' uncertainty. One half alone rejecting the other's value is a half that
+        # determines the effect poorly (its data accept the other value: they agree within it)
         out["status"] = "changes"
-        out["why"] = (f"{par} {out['first']} in the first half, {out['second']} in the second: the "
-                      f"{'first' if rejected[0] else 'second'} half's data reject the other half's value")
+        out["why"] = (f"{par} {out['first']} in the first half, {out['second']} in the second: each half's "
+                      f"data reject the other half's value")
     else:
         out["status"] = "holds"
         out["why"] = f"{par} {out['first']} and {out['second']} in the two halves: neither half rejects the other's value"

@@ -27,13 +27,14 @@ from hil_replay.sim.session import DEFAULT_TLOG_RATES_HZ
 RATES = {**DEFAULT_TLOG_RATES_HZ, "RAW_IMU": 50.0}
 
 
-def drive(path, config: ExcitationConfig | None = None, batch: int = 24):
+def drive(path, config: ExcitationConfig | None = None, batch: int = 24, freq=None, spectra: list | None = None):
     """Replay a .tlog through the session, the live pipeline and the monitor as the service does
-    (batches of packets); every verdict the monitor gives, in order."""
+    (batches of packets); every verdict the monitor gives, in order (with ``freq``: each flight's
+    ``[freq]`` spectra appended to ``spectra``)."""
     session = MavlinkSession(SessionConfig(request_streams=False, send_heartbeat=False, emit_raw_packets=False,
                                            link_timeout_s=math.inf))
     live = LivePipeline()
-    mon = ExcitationMonitor(config, 1.0 / live.config.grid_rate_hz)
+    mon = ExcitationMonitor(config, 1.0 / live.config.grid_rate_hz, freq=freq)
     reports = []
     pending = []
 
@@ -52,6 +53,8 @@ def drive(path, config: ExcitationConfig | None = None, batch: int = 24):
                 last = mon.flight_ended()
                 if last is not None:
                     reports.append(last)
+                if spectra is not None:
+                    spectra.append(mon.take_freq_spectra(fe.flight))
 
     with open(path, "rb") as f:
         data = f.read()
@@ -202,3 +205,29 @@ def test_a_flight_start_does_not_import_scipy_signal():
 
     for n in (7, 125, 500):
         np.testing.assert_allclose(taper_window("hann", n), get_window("hann", n), rtol=0, atol=1e-15)
+
+
+def test_the_flights_freq_spectra_accumulated_live_serve_the_after_flight_check(card_flight):
+    """With ``[freq]``'s settings the monitor also accumulates the flight (the worker's frequency check
+    then makes no second pass): on the recorded log they give what ``validate --freq`` gives, up to
+    the live rows not being ``prepare``'s exactly (edge trims)."""
+    from firmware_interface.readers import load_log
+    from groundstation.commands.freq_support import prepare_native
+    from groundstation.config import ServiceConfig
+    from groundstation.freq.spectra import FreqConfig, estimate_responses
+
+    path, _ = card_flight
+    spectra: list = []
+    drive(path, freq=FreqConfig(), spectra=spectra)
+    assert len(spectra) == 1 and spectra[0] is not None
+    live = spectra[0].responses()
+    batch = estimate_responses(prepare_native([load_log(str(path))], ServiceConfig().prepare), FreqConfig())
+    np.testing.assert_allclose(live.f_hz, batch.f_hz)
+    assert live.windows_s == batch.windows_s
+    assert {(p.input, p.output) for p in live.with_response} == {(p.input, p.output) for p in batch.with_response}
+    for inp, out in (("lat", "q"), ("lon", "p"), ("col", "w"), ("ped", "r")):
+        a, b = live.pair(inp, out), batch.pair(inp, out)
+        assert abs(a.coherent_points - b.coherent_points) <= 2
+        m = a.coherent & b.coherent
+        assert np.median(np.abs(np.abs(a.response[m]) / np.abs(b.response[m]) - 1)) < 0.01
+        assert np.median(np.abs(a.coherence[m] - b.coherence[m])) < 0.01

@@ -10,6 +10,7 @@ import time
 from rerun.chunk import RrdReader
 
 from groundstation.service import Service
+from groundstation.worker import JobResult
 from tests.service.conftest import service_config
 
 
@@ -53,3 +54,21 @@ def test_verdicts_on_zenoh_status_log_and_rerun(tmp_path, subscriber_factory):
     ents = {c.entity_path for c in RrdReader(rrd).stream().to_chunks()}
     root = f"/{service.vehicle}/excitation"
     assert {f"{root}/lat/coherence", f"{root}/covered/ped", f"{root}/summary"} <= ents
+
+
+def _report_live_spectra(job):
+    """Worker job: says what the service handed over instead of identifying (picklable, module level)."""
+    sp = job.live_spectra
+    return JobResult(flight=job.flight, tlogs=job.tlogs,
+                     error=f"live spectra: {None if sp is None else sp.rows} rows, windows {getattr(sp, 'windows', None) and [w.win_s for w in sp.windows]}")
+
+
+def test_the_job_of_a_flight_carries_its_live_freq_spectra(tmp_path):
+    cfg = service_config(tmp_path, service={"exit_after_flights": 1}, sim={"speed": 10.0, "flights": 1, "seed": 3},
+                         identification={"scope": "last"})
+    service = Service(cfg, sim_options={"flight_duration_s": 35.0}, log=lambda m: None, job_fn=_report_live_spectra)
+    report = asyncio.run(asyncio.wait_for(service.run(), 240))
+    said = [w for w in report.warnings if "live spectra:" in w]
+    assert len(said) == 1, report.warnings
+    rows = int(said[0].split("live spectra: ")[1].split(" rows")[0])
+    assert rows > 20 * 50 and "[5.0, 10.0, 20.0]" in said[0]      # the in-air rows, [freq]'s windows
