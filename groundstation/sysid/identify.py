@@ -143,6 +143,11 @@ class IdentifyConfig:
     select_candidates: str = "predictive | window_step_s=2.5"
     #: contiguous folds of the selection (< 2 = no selection)
     select_folds: int = 5
+    #: what the inputs are (the aircraft file's ``[inputs] kind``): "blade" (the eq.-8 hover model only),
+    #: "rate_command" / "attitude_command" (also the stabilised aircraft's command-response structure,
+    #: which then predicts), "unknown" (both, held-out prediction chooses):
+    #: :mod:`groundstation.sysid.structure`
+    input_kind: str = "blade"
 
 
 #: Input channels (indices into lat lon col ped) of each subsystem.
@@ -262,6 +267,8 @@ def _check(cfg: IdentifyConfig, algorithm: str, prepared: Any) -> None:
         raise SysidError(f"identify.prior_scale = {cfg.prior_scale}: must be > 0")
     if cfg.prior_weighting not in ("logged", "effective"):
         raise SysidError(f"identify.prior_weighting = {cfg.prior_weighting!r}: choose logged or effective")
+    if cfg.input_kind not in ("blade", "rate_command", "attitude_command", "unknown"):
+        raise SysidError(f"identify.input_kind = {cfg.input_kind!r}: choose blade, rate_command, attitude_command or unknown")
     if not prepared.segments:
         raise SysidError("no in-air segments to identify from")
 
@@ -550,6 +557,10 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
         from groundstation.sysid.select import select_config
 
         model = select_config(prepared, model, cfg, prior=prior, bounds=bounds, pmap=pmap)
+    if refine and cfg.input_kind != "blade":
+        from groundstation.sysid.structure import attach_command_structure
+
+        model = attach_command_structure(prepared, model, cfg, pmap=pmap)
     return model
 
 
