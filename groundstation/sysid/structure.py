@@ -577,7 +577,8 @@ def fold_fitter(model: Any) -> Any:
     return partial(_fit_fold, model=model, kind=str((model.command or {}).get("kind", "rate_command")))
 
 
-def attach_command_structure(prepared: Any, model: Any, cfg: Any, *, prior: Any = None, pmap: Any = None) -> Any:
+def attach_command_structure(prepared: Any, model: Any, cfg: Any, *, prior: Any = None, pmap: Any = None,
+                             refit: Any) -> Any:
     """``model`` with the command-response structure of ``cfg.input_kind`` fitted to ``prepared``.
 
     ``rate_command`` / ``attitude_command``: that structure predicts (``structure = "command_response"``).
@@ -585,7 +586,8 @@ def attach_command_structure(prepared: Any, model: Any, cfg: Any, *, prior: Any 
     ``cfg.select_folds`` contiguous folds and compared by the selection's rule
     (:func:`groundstation.sysid.select.choose`: a prediction that runs away never wins over one that
     does not; otherwise a gain beyond one standard error or on every fold); ``fit["structure_choice"]``
-    says which and why."""
+    says which and why. ``refit``: the hover model's fold refit (:func:`groundstation.sysid.identify.refit`,
+    given by the identification)."""
     from functools import partial
 
     from groundstation.parallel import serial_map
@@ -606,7 +608,7 @@ def attach_command_structure(prepared: Any, model: Any, cfg: Any, *, prior: Any 
     try:
         cv_c = crossvalidate(prepared, partial(_fit_fold, model=model, kind=kind), k=int(cfg.select_folds),
                              window_s=5.0, pmap=pmap)
-        cv_h = _crossvalidate(prepared, model, cfg, prior, pmap)
+        cv_h = _crossvalidate(prepared, model, cfg, prior, pmap, refit)
     except ValueError as exc:
         model.fit["structure_choice"] = {"chosen": "hover", "reason": f"not compared: {exc}"}
         return model

@@ -106,8 +106,11 @@ def circles(graph: dict[str, set[str]]) -> list[list[str]]:
     return out
 
 
-#: circles still to break (each one a module pair sharing private pieces): the test fails on any other
-KNOWN_CIRCLES = [["groundstation.sysid.identify", "groundstation.sysid.select"]]
+#: circles still to break: the test fails on any other. The stabilised aircraft's command-response
+#: structure and the held-out check use each other (structure -> heldout for the folds, heldout ->
+#: structure to predict with a command model; select <-> structure for the choice between them)
+KNOWN_CIRCLES: list[list[str]] = [["groundstation.sysid.heldout", "groundstation.sysid.select",
+                                   "groundstation.sysid.structure"]]
 
 
 def _top(name: str) -> bool:
