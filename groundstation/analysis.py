@@ -381,7 +381,7 @@ def held_out(model: Any, prepared: Any, cfg: ServiceConfig, aircraft: Any, k: in
                 from groundstation.sysid.structure import fold_fitter
 
                 fit_fold = fold_fitter(model)
-            cv = crossvalidate(prepared, fit_fold, k=k, **({} if pmap is None else {"pmap": pmap}))
+            cv = crossvalidate(prepared, fit_fold, k=k, pmap=serial_map if pmap is None else pmap)
         except ValueError as exc:
             model.fit["heldout"] = {"skipped": str(exc)}
             return model.fit["heldout"]

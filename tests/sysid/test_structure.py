@@ -112,6 +112,7 @@ def rate_loop_flight(tmp_path_factory):
     return path, truth
 
 
+@pytest.mark.timeout(1800)   # a 3-minute simulated flight and about a minute of CPU: much more wall on a loaded machine
 def test_simulated_stabilised_aircraft_is_identified_back_to_its_bandwidth_and_delay(rate_loop_flight):
     from groundstation.config import ServiceConfig
     from groundstation.pipeline import prepare_logs
@@ -128,6 +129,7 @@ def test_simulated_stabilised_aircraft_is_identified_back_to_its_bandwidth_and_d
         assert s["delay_s"] == pytest.approx(tr["delay_s"], rel=0.10), (axis, s, tr)
 
 
+@pytest.mark.timeout(1200)   # three folds of both structures
 def test_gap_finding_a_stabilising_controller_in_the_loop():
     from groundstation.gap.controller import stabilising_controller
     from groundstation.sysid.model import PARAM_NAMES
