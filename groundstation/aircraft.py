@@ -6,6 +6,8 @@
     name = "trex550"
     [inputs]
     source = "SERVO_OUTPUT_RAW"   # or "RC_CHANNELS" (the pilot's sticks) or "SWASHPLATE" (3-servo unmix)
+    kind = "blade"                # or "rate_command" / "attitude_command" (sticks to a stabilised aircraft) or
+                                  # "unknown"; default from the source: RC channels unknown, the others blade
     lat = 1                       # 1-based channel numbers of the source message
     lon = 2
     col = 3
@@ -82,6 +84,14 @@ class InputMap:
     pwm_per_unit: float = 500.0
     trim: dict[str, float] = field(default_factory=dict)
     swash_phase_deg: tuple[float, ...] = ()
+    #: what the inputs are: "blade" (swashplate/tail pitch: servo outputs), "rate_command" or
+    #: "attitude_command" (sticks to a stabilised aircraft), "unknown" (both structures fitted, held-out
+    #: prediction chooses); "" = from the source (servo outputs and swashplate: blade; RC channels: unknown)
+    kind: str = ""
+
+    @property
+    def input_kind(self) -> str:
+        return self.kind or ("unknown" if self.source == "RC_CHANNELS" else "blade")
 
 
 @dataclass(frozen=True)
@@ -120,7 +130,7 @@ class Aircraft:
         """``base`` (an :class:`groundstation.sysid.identify.IdentifyConfig`) with this file's overrides."""
         from groundstation.sysid.identify import IdentifyConfig
 
-        return replace(base or IdentifyConfig(), **self.identify)
+        return replace(base or IdentifyConfig(), **({"input_kind": self.inputs.input_kind} | self.identify))
 
     def prep_config(self, base: Any = None) -> Any:
         """The data-preparation settings (:class:`groundstation.dsp.prepare.PrepConfig`) this file implies."""
@@ -148,7 +158,8 @@ def _channel(name: str, key: str, v: Any) -> int:
 
 
 def _parse_inputs(t: dict[str, Any], name: str) -> InputMap:
-    allowed = {"source", "lat", "lon", "col", "ped", "units", "pwm_per_unit", "trim", "swash_servos", "swash_phase_deg"}
+    allowed = {"source", "lat", "lon", "col", "ped", "units", "pwm_per_unit", "trim", "swash_servos", "swash_phase_deg",
+               "kind"}
     for k in t:
         if k not in allowed:
             raise _err(name, f"inputs.{k}", t[k], f"unknown key (allowed: {', '.join(sorted(allowed))})")
@@ -177,7 +188,10 @@ def _parse_inputs(t: dict[str, Any], name: str) -> InputMap:
     if not isinstance(trim, dict) or any(k not in ("lat", "lon", "col", "ped") or not isinstance(v, int | float)
                                          for k, v in trim.items()):
         raise _err(name, "inputs.trim", trim, "a table of lat/lon/col/ped = number")
-    return InputMap(src, ch, units, float(ppu), {k: float(v) for k, v in trim.items()}, phase)  # type: ignore[arg-type]
+    kind = t.get("kind", "")
+    if kind not in ("", "blade", "rate_command", "attitude_command", "unknown"):
+        raise _err(name, "inputs.kind", kind, "blade, rate_command, attitude_command or unknown")
+    return InputMap(src, ch, units, float(ppu), {k: float(v) for k, v in trim.items()}, phase, kind)  # type: ignore[arg-type]
 
 
 def _parse_prior(t: dict[str, Any], name: str) -> Prior:

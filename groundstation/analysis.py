@@ -376,8 +376,12 @@ def held_out(model: Any, prepared: Any, cfg: ServiceConfig, aircraft: Any, k: in
         try:
             chosen = (model.fit.get("selection") or {}).get("overrides", {})
             icfg = dataclasses.replace(cfg.identify, **chosen)
-            cv = crossvalidate(prepared, functools.partial(refit, model=model, config=icfg, prior=prior), k=k,
-                               **({} if pmap is None else {"pmap": pmap}))
+            fit_fold = functools.partial(refit, model=model, config=icfg, prior=prior)
+            if getattr(model, "structure", "hover") == "command_response":   # the stabilised aircraft's structure
+                from groundstation.sysid.structure import fold_fitter
+
+                fit_fold = fold_fitter(model)
+            cv = crossvalidate(prepared, fit_fold, k=k, pmap=serial_map if pmap is None else pmap)
         except ValueError as exc:
             model.fit["heldout"] = {"skipped": str(exc)}
             return model.fit["heldout"]

@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     from groundstation.dsp.prepare import prepare
     from hil_replay.sim import parse_effect, write_tlog
 
-    con = Console()
+    con = Console(width=max(Console().width, 150))  # the table is wide; a pipe would cut it at 80 columns
     cfg = load_config(args.config)
     losses = _floats(args.losses)
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]

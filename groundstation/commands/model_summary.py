@@ -70,6 +70,11 @@ def print_verdicts(model, con) -> None:
                       f"({'; '.join(f'{f}: {chs}' for f, chs in ho['runaway'].items())}): not a model of the aircraft")
     for c in fit.get("closed_loop", []):
         con.print(f"closed loop: {c}")
+    if fit.get("structure_choice"):
+        ch = fit["structure_choice"]
+        con.print(f"structure: {ch['chosen']} ({ch['reason']})", markup=False)
+    for c in fit.get("command_response", []):
+        con.print(f"stabilised aircraft: {c}", markup=False)
 
 
 def selection_lines(sel: dict) -> list[str]:

@@ -131,6 +131,11 @@ def model_view(d: FlightReportData) -> dict[str, Any]:
         lines.append(f"Held-out check not made: {d.errors['heldout']}")
     else:
         lines.append("No k-fold held-out check with this model (the gap section's per-channel match is held out).")
+    src = [str(x).replace("\\", "/").rsplit("/", 1)[-1] for x in (m.source or {}).get("logs", [])]
+    here = [str(x).replace("\\", "/").rsplit("/", 1)[-1] for x in d.logs]
+    if src and sorted(src) != sorted(here):
+        lines.append(f"This model was identified on {', '.join(src)}: its held-out figures are of those logs; "
+                     f"on {', '.join(here)} see the measured-vs-model figure and the gap section.")
     warnings: list[str] = []
     for sub in ho.get("unusable_subsystems", []):
         runs = "; ".join(f"{f}: " + ", ".join(c) for f, c in ho.get("runaway", {}).items())

@@ -87,7 +87,12 @@ def input_offset(model: HoverModel, prepared: Any) -> np.ndarray:
 
 
 def predict(model: HoverModel, prepared: Any, *, window_s: float = 5.0, use_model_trim: bool = True) -> Prediction:
-    """Score ``model`` on held-out ``prepared`` data (see the module docstring)."""
+    """Score ``model`` on held-out ``prepared`` data (see the module docstring). A model whose
+    ``structure`` is the command-response one predicts with it (:mod:`groundstation.sysid.structure`)."""
+    if getattr(model, "structure", "hover") == "command_response" and model.command is not None:
+        from groundstation.sysid.structure import CommandModel, predict_command
+
+        return predict_command(CommandModel.from_json(model.command), prepared, window_s=window_s)
     win = make_windows(prepared.segments, prepared.dt_s, window_s)
     u = win.inputs + (input_offset(model, prepared)[None, None, :] if use_model_trim else 0.0)
     with threadpool_limits(1):

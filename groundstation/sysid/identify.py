@@ -63,6 +63,7 @@ from groundstation.sysid.model import (
 from groundstation.sysid.optimizers import ALGORITHMS
 from groundstation.sysid.refine import map_objective, with_standard_errors
 from groundstation.sysid.refine import refine as refine_ls
+from groundstation.sysid.settings import IdentifyConfig
 from groundstation.sysid.simulate import kinematic_forcing
 
 #: Parameters that need each input to move.
@@ -78,71 +79,6 @@ VELOCITY_PARAMS: dict[str, tuple[str, ...]] = {
     "v": ("Y_v", "M_v", "L_v", "Y_lon"),
     "w": ("Z_w", "Z_r", "N_w", "Z_col", "Z_ped"),
 }
-
-
-@dataclass(frozen=True)
-class IdentifyConfig:
-    """Identification settings (``[identify]`` TOML table). ``maxiter`` None = algorithm default."""
-
-    window_s: float = 3.0
-    #: a refinement window starts every this many seconds (0 = every ``window_s``: non-overlapping).
-    #: Overlapping windows give the fit more starting points of the same data to predict from: on the
-    #: real TREX 550 log 5-s windows every 2.5 s raised the 5-fold held-out match from 27.5 to 31 %.
-    window_step_s: float = 0.0
-    search_window_s: float = 1.0
-    search_stride: int = 3
-    refine_starts: int = 9
-    #: independent searches per subsystem, each screened and refined; the lowest refined cost wins.
-    #: One colony can settle in a wrong basin (a simulated R-50 flight: L_b with the wrong sign, cost
-    #: 0.98 against 0.36 from most other seeds) and the search cost does not tell the basins apart;
-    #: the refined cost does. Each restart costs a whole search and refinement; two (CABC, then DE)
-    #: is the default everywhere (command line, service, diagnosis): a wrong basin costs more than
-    #: a second search.
-    search_restarts: int = 2
-    #: optimiser of the searches after the first ("" = the same as the first). A different method is
-    #: a more independent second opinion than another seed: on the R-50 flight above both CABC
-    #: restarts of one seed stream agreed on the wrong basin, DE (3 seeds) found the right one, and
-    #: on the trex600 DE reached the same refined cost in 60 % of CABC's time.
-    restart_algorithm: str = "de"
-    screen_max_nfev: int = 5
-    maxiter: int | None = None
-    maxfev: int | None = None
-    refine_passes: int = 2
-    refine_max_nfev: int = 60
-    estimate_all_initial: bool = True
-    varpro: bool = True
-    vertical_iter_factor: float = 2.0
-    estimate_trim: bool = True
-    #: velocity channels (of u, v, w) whose measured kinematic/gravity terms enter as known forcing in the
-    #: refinement (``kinematic_forcing`` of simulate); "" = none. Default w: on the trex600 sim flight the
-    #: heave terms ``q u - p v + g (cos phi cos theta - 1)`` were what biased Z_col (7-11 % low, worse
-    #: with less collective excitation); u and v terms did not help (they bias X_u: the rotor terms
-    #: ``T sin a_s`` they would need are not measured).
-    kinematic_forcing: str = "w"
-    #: residual weighting of the refinement per channel: "noise" (the residual RMS, maximum likelihood)
-    #: or "signal" (the signal's spread, the paper's eq. 11); see :func:`groundstation.sysid.refine.refine`
-    channel_weighting: str = "noise"
-    #: further refinement starts besides the search's, comma-separated: "prior" (the prior's nominal),
-    #: "zero" (every parameter 0, inside the bounds); the lowest refined (MAP) cost wins. On real flights
-    #: the search's best point on short windows can sit in a basin that predicts worse than these.
-    extra_starts: str = ""
-    #: how the data rows count against an aircraft file's prior: "logged" (every sample; the prior
-    #: holds what the flight does not determine) or "effective" (samples over the residual's
-    #: autocorrelation time: a stronger prior). See :func:`groundstation.sysid.refine.refine`.
-    prior_weighting: str = "logged"
-    #: the prior's standard deviations are multiplied by this (a weaker prior above 1): one of the
-    #: settings the held-out selection can compare (choosing the prior's weight by cross-validation)
-    prior_scale: float = 1.0
-    #: other configurations to compare with this one by held-out prediction, ";"-separated: a preset
-    #: name (see :data:`groundstation.sysid.select.PRESETS`) or ``key=value,key=value`` overrides of
-    #: these fields. "" = no comparison. Each is refined from this configuration's model and scored
-    #: over ``select_folds`` contiguous folds; one replaces this configuration only when it predicts
-    #: the held-out blocks better by more than the folds' spread (:mod:`groundstation.sysid.select`).
-    #: "|" starts a further round, applied to the winner, that runs only when the round before it
-    #: switched: the default tries overlapping windows only once the 5-s prediction fit has won.
-    select_candidates: str = "predictive | window_step_s=2.5"
-    #: contiguous folds of the selection (< 2 = no selection)
-    select_folds: int = 5
 
 
 #: Input channels (indices into lat lon col ped) of each subsystem.
@@ -262,6 +198,8 @@ def _check(cfg: IdentifyConfig, algorithm: str, prepared: Any) -> None:
         raise SysidError(f"identify.prior_scale = {cfg.prior_scale}: must be > 0")
     if cfg.prior_weighting not in ("logged", "effective"):
         raise SysidError(f"identify.prior_weighting = {cfg.prior_weighting!r}: choose logged or effective")
+    if cfg.input_kind not in ("blade", "rate_command", "attitude_command", "unknown"):
+        raise SysidError(f"identify.input_kind = {cfg.input_kind!r}: choose blade, rate_command, attitude_command or unknown")
     if not prepared.segments:
         raise SysidError("no in-air segments to identify from")
 
@@ -549,8 +487,51 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
     if refine and cfg.select_candidates.strip() and cfg.select_folds >= 2:
         from groundstation.sysid.select import select_config
 
-        model = select_config(prepared, model, cfg, prior=prior, bounds=bounds, pmap=pmap)
+        model = select_config(prepared, model, cfg, prior=prior, bounds=bounds, pmap=pmap, fit=fit_candidate, refit=refit)
+    if refine and cfg.input_kind != "blade":
+        from groundstation.sysid.structure import attach_command_structure
+
+        model = attach_command_structure(prepared, model, cfg, pmap=pmap, refit=refit)
     return model
+
+
+def fit_candidate(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = None,
+                  bounds: dict | None = None, quick: bool = False) -> HoverModel:
+    """``cfg``'s model of ``prepared``: refinements from ``model0``'s parameters and ``cfg.extra_starts``,
+    the lowest refined (MAP) objective per subsystem; standard errors and report as :func:`identify`'s.
+    ``quick``: one refinement pass from ``model0``'s parameters only (the selection's screening fit)."""
+    from groundstation.sysid.select import best_refinement
+
+    with threadpool_limits(1):
+        plan = _plan(prepared, cfg, True, bounds, prior, search=False)
+        run = _Run(theta=np.clip(model0.theta, plan.bounds[:, 0], plan.bounds[:, 1]))
+        for sub, sub_params in ((0, HOR_PARAMS), (1, VER_PARAMS)):
+            idx = np.array([PARAM_INDEX[p] for p in sub_params])
+            sub_free = np.zeros(N_PARAMS, dtype=bool)
+            sub_free[idx] = plan.free[idx]
+            cost = _refine_cost(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim)
+            if not cost.used.any():
+                continue
+            x, ref = best_refinement(cost, run.theta[sub_free], plan, cfg, sub_free, quick)
+            record_tradeoffs(run, sub_free, ref, None if plan.prior is None else plan.prior[1][sub_free])
+            run.std[np.flatnonzero(sub_free)] = ref.std
+            run.share[np.flatnonzero(sub_free)] = ref.prior_share if plan.prior is not None else 0.0
+            run.sigma[cost.used] = ref.sigma[cost.used]
+            run.theta = cost.full(x)[0]
+            if cfg.estimate_trim:
+                run.delta[list(_SUBS_INPUTS[sub])] = cost.sim.solve_trim(run.theta[None])[sub][0]
+            run.F_total += float(cost(x[None])[0])
+            run.nfev += cost.nfev
+        match, used = _in_sample_match(plan, cfg, run.theta, cfg.estimate_trim)
+    f0 = model0.fit
+    run.F_search = float(f0.get("search_cost", np.nan))
+    run.nit = int(f0.get("iterations", 0))
+    run.nfev += int(f0.get("evaluations", 0))
+    run.histories, run.histories_nfev = dict(f0.get("history", {})), dict(f0.get("history_nfev", {}))
+    run.search_by_sub = dict(f0.get("search_cost_by_subsystem", {}))
+    run.search_alg = dict(f0.get("search_algorithm_by_subsystem", {}))
+    return _model(prepared, plan, cfg, run, match, used, algorithm=str(f0.get("algorithm", "cabc")),
+                  seed=int(f0.get("seed", 0)), refine=True, prior=prior)
 
 
 def _fixed_values(plan: _Plan) -> np.ndarray:

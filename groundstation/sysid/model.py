@@ -262,6 +262,11 @@ class HoverModel:
     fit: dict[str, Any] = field(default_factory=dict)
     source: dict[str, Any] = field(default_factory=dict)
     pinned: list[str] = field(default_factory=list)  # parameters at a search bound
+    #: the stabilised aircraft's command-response structure (``heli-command-response/1`` section,
+    #: :mod:`groundstation.sysid.structure`), when fitted
+    command: dict[str, Any] | None = None
+    #: which structure predicts: "hover" (eq. 8) or "command_response"
+    structure: str = "hover"
 
     @property
     def theta(self) -> np.ndarray:
@@ -290,6 +295,7 @@ class HoverModel:
             "augmentations": list(self.augmentations),
             "fit": dict(self.fit),
             "source": dict(self.source),
+            **({} if self.command is None else {"structure": self.structure, "command_response": dict(self.command)}),
         }
 
     @classmethod
@@ -313,4 +319,6 @@ class HoverModel:
             fit=dict(doc.get("fit", {})),
             source=dict(doc.get("source", {})),
             pinned=list(doc.get("pinned_at_bound", [])),
+            command=dict(doc["command_response"]) if isinstance(doc.get("command_response"), dict) else None,
+            structure=str(doc.get("structure", "hover")),
         )

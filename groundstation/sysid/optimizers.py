@@ -1,6 +1,8 @@
 """Population optimisers with one interface: CABC (the paper), plain ABC, a real-coded GA, and DE;
 and a multi-start least-squares minimiser (:func:`minimize_lsq`, the same shape plus a residual
-function: the plain output-error reference fit of the held-out benchmark).
+function: the plain output-error reference fit of the held-out benchmark) and a grid-then-free
+least-squares minimiser for a delay-like coordinate (:func:`minimize_grid_lsq`: the equivalent
+time delays of the command-response structure, :mod:`groundstation.sysid.structure`).
 
 ``minimize_X(fun, bounds, *, rng, maxiter, maxfev=None, callback=None, **opts) -> OptimizeResult``
 
@@ -327,6 +329,58 @@ def minimize_lsq(fun: Fun, bounds, *, rng=None, maxiter: int = 100, maxfev: int 
         if tr.end_iteration():
             break
     return tr.result("stopped by callback" if tr.stopped else "all starts refined")
+
+
+def minimize_grid_lsq(fun: Fun, bounds, *, rng=None, maxiter: int = 100, maxfev: int | None = None, callback=None,
+                      residuals: Callable[[np.ndarray], np.ndarray], grid_index: int, grid: np.ndarray,
+                      x0: list[np.ndarray] | None = None) -> OptimizeResult:
+    """Least squares over a grid of one coordinate, then with every coordinate free (the same interface).
+
+    For a parameter whose cost has many local minima along it and smooth ones across it (an
+    equivalent time delay: the residual of a delayed response is piecewise linear in the delay, with a
+    minimum near every multiple of the period of whatever oscillates): ``residuals(x (D,)) -> (n,)`` is
+    minimised with coordinate ``grid_index`` held at each value of ``grid`` (from the first ``x0``, or
+    the centre of the bounds, each grid fit at most ``maxiter // 2`` evaluations), then from the best of
+    those with it free (at most ``maxiter``). ``fun`` scores each fit's end point (batch (C, D) -> (C,)),
+    the lowest wins. The result also holds ``jac`` (n, D), the final fit's Jacobian (for standard errors).
+    """
+    from scipy.optimize import least_squares
+
+    b = np.asarray(bounds, dtype=float)
+    lo, hi = b[:, 0], b[:, 1]
+    span = hi - lo
+    start = np.asarray(x0[0], dtype=float) if x0 else (lo + hi) / 2
+    free = np.ones(lo.size, dtype=bool)
+    free[grid_index] = False
+    tr = _Tracker(fun, maxfev, callback)
+
+    def sub(g: float):
+        def r(z: np.ndarray) -> np.ndarray:
+            x = start.copy()
+            x[free], x[grid_index] = z, g
+            return residuals(x)
+        return r
+
+    best: tuple[float, np.ndarray] | None = None
+    for g in np.clip(np.asarray(grid, dtype=float), lo[grid_index], hi[grid_index]):
+        z0 = np.clip(start[free], lo[free] + 1e-9 * span[free], hi[free] - 1e-9 * span[free])
+        res = least_squares(sub(float(g)), z0, bounds=(lo[free], hi[free]), method="trf", x_scale="jac",
+                            max_nfev=max(2, maxiter // 2))
+        x = start.copy()
+        x[free], x[grid_index] = res.x, g
+        f = float(tr(x[None])[0])
+        if best is None or f < best[0]:
+            best = (f, x)
+        if tr.end_iteration():
+            break
+    assert best is not None
+    x = np.clip(best[1], lo + 1e-9 * span, hi - 1e-9 * span)
+    res = least_squares(residuals, x, bounds=(lo, hi), method="trf", x_scale="jac", max_nfev=maxiter)
+    tr(res.x[None])
+    tr.end_iteration()
+    out = tr.result("grid, then every coordinate free")
+    out.jac = res.jac if float(np.sum(res.fun ** 2)) <= out.fun * (1 + 1e-9) else None
+    return out
 
 
 ALGORITHMS: dict[str, Callable[..., OptimizeResult]] = {

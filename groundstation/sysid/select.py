@@ -51,11 +51,10 @@ from functools import partial
 from typing import Any
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from groundstation.errors import SysidError
 from groundstation.parallel import Map, serial_map
-from groundstation.sysid.model import HOR_PARAMS, N_PARAMS, PARAM_INDEX, VER_PARAMS, HoverModel
+from groundstation.sysid.model import HoverModel
 
 #: named candidate configurations (overrides of IdentifyConfig fields)
 PRESETS: dict[str, dict[str, Any]] = {
@@ -83,7 +82,7 @@ SELECT_REFIT_NFEV = 6
 
 def parse_candidates(spec: str) -> list[tuple[str, dict[str, Any]]]:
     """``"predictive; prior_scale=10"`` -> [(name, overrides)]; SysidError naming the bad entry."""
-    from groundstation.sysid.identify import IdentifyConfig
+    from groundstation.sysid.settings import IdentifyConfig
 
     fields = {f.name for f in dataclasses.fields(IdentifyConfig)} - {"select_candidates", "select_folds"}
     out = []
@@ -109,54 +108,7 @@ def parse_candidates(spec: str) -> list[tuple[str, dict[str, Any]]]:
     return out
 
 
-def fit_candidate(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = None,
-                  bounds: dict | None = None, quick: bool = False) -> HoverModel:
-    """``cfg``'s model of ``prepared``: refinements from ``model0``'s parameters and ``cfg.extra_starts``,
-    the lowest refined (MAP) objective per subsystem; standard errors and report as :func:`identify`'s.
-    ``quick``: one refinement pass from ``model0``'s parameters only (the selection's screening fit)."""
-    from groundstation.sysid.identify import (
-        _SUBS_INPUTS,
-        _in_sample_match,
-        _model,
-        _plan,
-        _refine_cost,
-        _Run,
-        record_tradeoffs,
-    )
-
-    with threadpool_limits(1):
-        plan = _plan(prepared, cfg, True, bounds, prior, search=False)
-        run = _Run(theta=np.clip(model0.theta, plan.bounds[:, 0], plan.bounds[:, 1]))
-        for sub, sub_params in ((0, HOR_PARAMS), (1, VER_PARAMS)):
-            idx = np.array([PARAM_INDEX[p] for p in sub_params])
-            sub_free = np.zeros(N_PARAMS, dtype=bool)
-            sub_free[idx] = plan.free[idx]
-            cost = _refine_cost(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim)
-            if not cost.used.any():
-                continue
-            x, ref = _best_refinement(cost, run.theta[sub_free], plan, cfg, sub_free, quick)
-            record_tradeoffs(run, sub_free, ref, None if plan.prior is None else plan.prior[1][sub_free])
-            run.std[np.flatnonzero(sub_free)] = ref.std
-            run.share[np.flatnonzero(sub_free)] = ref.prior_share if plan.prior is not None else 0.0
-            run.sigma[cost.used] = ref.sigma[cost.used]
-            run.theta = cost.full(x)[0]
-            if cfg.estimate_trim:
-                run.delta[list(_SUBS_INPUTS[sub])] = cost.sim.solve_trim(run.theta[None])[sub][0]
-            run.F_total += float(cost(x[None])[0])
-            run.nfev += cost.nfev
-        match, used = _in_sample_match(plan, cfg, run.theta, cfg.estimate_trim)
-    f0 = model0.fit
-    run.F_search = float(f0.get("search_cost", np.nan))
-    run.nit = int(f0.get("iterations", 0))
-    run.nfev += int(f0.get("evaluations", 0))
-    run.histories, run.histories_nfev = dict(f0.get("history", {})), dict(f0.get("history_nfev", {}))
-    run.search_by_sub = dict(f0.get("search_cost_by_subsystem", {}))
-    run.search_alg = dict(f0.get("search_algorithm_by_subsystem", {}))
-    return _model(prepared, plan, cfg, run, match, used, algorithm=str(f0.get("algorithm", "cabc")),
-                  seed=int(f0.get("seed", 0)), refine=True, prior=prior)
-
-
-def _best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_free: np.ndarray,
+def best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_free: np.ndarray,
                      quick: bool) -> tuple[np.ndarray, Any]:
     """The refinement of the lowest (MAP) objective from the model's point and ``cfg.extra_starts``."""
     from groundstation.sysid.refine import map_objective
@@ -207,9 +159,8 @@ def _gain(s: np.ndarray, s0: np.ndarray) -> tuple[float, float]:
     return float(g.mean()), float(g.std(ddof=1) / np.sqrt(g.size))
 
 
-def _crossvalidate(prepared: Any, model: HoverModel, cfg: Any, prior: Any, pmap: Map) -> Any:
+def _crossvalidate(prepared: Any, model: HoverModel, cfg: Any, prior: Any, pmap: Map, refit: Any) -> Any:
     from groundstation.sysid.heldout import crossvalidate
-    from groundstation.sysid.identify import refit
 
     c = dataclasses.replace(cfg, refine_max_nfev=min(int(cfg.refine_max_nfev), SELECT_REFIT_NFEV))
     return crossvalidate(prepared, partial(refit, model=model, config=c, prior=prior), k=int(cfg.select_folds),
@@ -224,7 +175,8 @@ def _row(name: str, c_cfg: Any, cfg: Any, cv: Any) -> dict[str, Any]:
 
 
 def _round(prepared: Any, base: tuple[str, Any, HoverModel, Any], cands: list[tuple[str, dict[str, Any]]],
-           cfg0: Any, prior: Any, bounds: dict | None, pmap: Map) -> tuple[int, list[tuple], list[dict[str, Any]]]:
+           cfg0: Any, prior: Any, bounds: dict | None, pmap: Map, fit: Any, refit: Any
+           ) -> tuple[int, list[tuple], list[dict[str, Any]]]:
     """One comparison: the base (name, config, model, its cross-validation) and the candidates applied
     to its config. Returns the winner's index (0 = the base), the entries and their report rows."""
     name0, cfg, model0, cv0 = base
@@ -232,8 +184,8 @@ def _round(prepared: Any, base: tuple[str, Any, HoverModel, Any], cands: list[tu
     for name, kw in cands:
         c_cfg = dataclasses.replace(cfg, **kw)
         if all(c_cfg != e[1] for e in entries):
-            m = fit_candidate(prepared, model0, c_cfg, prior=prior, bounds=bounds, quick=True)
-            entries.append((name, c_cfg, m, _crossvalidate(prepared, m, c_cfg, prior, pmap)))
+            m = fit(prepared, model0, c_cfg, prior=prior, bounds=bounds, quick=True)
+            entries.append((name, c_cfg, m, _crossvalidate(prepared, m, c_cfg, prior, pmap, refit)))
     rows = [_row(n, c, cfg0, cv) for n, c, _, cv in entries]
     return choose(rows), entries, rows
 
@@ -269,24 +221,29 @@ def choose(rows: list[dict[str, Any]]) -> int:
 
 
 def select_config(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = None, bounds: dict | None = None,
-                  pmap: Map = serial_map) -> HoverModel:
-    """The model of the configuration that predicts held-out data best (see the module docstring)."""
+                  pmap: Map = serial_map, fit: Any, refit: Any) -> HoverModel:
+    """The model of the configuration that predicts held-out data best (see the module docstring).
+
+    ``fit(prepared, model0, cfg, *, prior, bounds, quick)`` fits one candidate configuration from
+    ``model0``'s parameters and ``refit(prepared, *, model, config, prior)`` refits a model on a fold
+    (:func:`groundstation.sysid.identify.fit_candidate` and :func:`~groundstation.sysid.identify.refit`:
+    given by the identification, so this module does not import it back)."""
     rounds = [parse_candidates(r) for r in cfg.select_candidates.split("|")]
     try:
-        cur = ("as configured", cfg, model0, _crossvalidate(prepared, model0, cfg, prior, pmap))
+        cur = ("as configured", cfg, model0, _crossvalidate(prepared, model0, cfg, prior, pmap, refit))
     except ValueError as exc:   # too little data for k folds: keep the configuration as given
         model0.fit["selection"] = {"skipped": str(exc)}
         return model0
     report: list[dict[str, Any]] = []
     for k, cands in enumerate(rounds):
-        best, entries, rows = _round(prepared, cur, cands, cfg, prior, bounds, pmap)
+        best, entries, rows = _round(prepared, cur, cands, cfg, prior, bounds, pmap, fit, refit)
         for r in rows[int(k > 0):]:
             report.append(r | {"round": k + 1})
         if not best:
             break   # a later round refines a switch; with none it has nothing to refine
         name, c_cfg, _, _ = entries[best]
-        model = fit_candidate(prepared, cur[2], c_cfg, prior=prior, bounds=bounds)
-        cv = _crossvalidate(prepared, model, c_cfg, prior, pmap)
+        model = fit(prepared, cur[2], c_cfg, prior=prior, bounds=bounds)
+        cv = _crossvalidate(prepared, model, c_cfg, prior, pmap, refit)
         report[-len(rows) + best]["final"] = _row(name, c_cfg, cfg, cv)
         cur = (name if k == 0 else f"{cur[0]}, {name}", c_cfg, model, cv)
     name, c_cfg, model, cv = cur

@@ -43,6 +43,7 @@ from hil_replay.sim.effects import (
     rotor_sag,
 )
 from hil_replay.sim.pilot import Pilot, PilotConfig, design_gains
+from hil_replay.sim.rateloop import RateLoop, RateLoopState, closed_loop_truth
 from hil_replay.sim.telemetry import FIELD_ORIGIN, MESSAGE_NAMES, Measurement, TelemetryFrame, heartbeat
 
 FRAME_RATE_HZ = 50.0
@@ -89,13 +90,16 @@ class SimulatedSession:
     pre_arm_s, post_s : disarmed time before the first flight and after the last
     linear_kinematics : nonlinear kinematics off: the rigid body linearised about hover (see
         :func:`hil_replay.sim.dynamics.make_stepper`); default False (the full nonlinear equations)
+    rate_loop : a stabiliser between the sticks and the swashplate (:mod:`hil_replay.sim.rateloop`):
+        the log then holds the sticks (rate demands), the rotor gets the loop's output; None = none
     """
 
     def __init__(self, seed: int = 0, flights: int = 1, effects: Sequence[Effect | str] = (),
                  aircraft: Aircraft | str | os.PathLike[str] | None = None, pause_s: float = 10.0, *,
                  flight_duration_s: float | None = None, pre_arm_s: float = 3.0, post_s: float = 2.0,
                  noise: NoiseConfig | None = None, pilot: PilotConfig | None = None,
-                 excitation_scale: float = 1.0, sweeps: bool = True, linear_kinematics: bool = False) -> None:
+                 excitation_scale: float = 1.0, sweeps: bool = True, linear_kinematics: bool = False,
+                 rate_loop: RateLoop | None = None) -> None:
         if int(flights) < 1:
             raise ValueError(f"flights: {flights} must be >= 1")
         if not pause_s >= 0 or not pre_arm_s >= 0 or not post_s >= 0:
@@ -106,6 +110,7 @@ class SimulatedSession:
         self.excitation_scale = float(excitation_scale)
         self.sweeps = bool(sweeps)
         self.linear_kinematics = bool(linear_kinematics)
+        self.rate_loop = rate_loop
         self.seed = int(seed)
         self.n_flights = int(flights)
         base = resolve_aircraft(aircraft)  # type: ignore[arg-type]
@@ -176,6 +181,8 @@ class SimulatedSession:
             "excitation_scale": self.excitation_scale,
             "sweeps": self.sweeps,
             "linear_kinematics": self.linear_kinematics,
+            **({} if self.rate_loop is None else {"rate_loop": asdict(self.rate_loop) | {
+                "closed_loop": closed_loop_truth(ac, self.rate_loop)}}),
             "field_origin": {"lat_deg": FIELD_ORIGIN[0], "lon_deg": FIELD_ORIGIN[1], "alt_m": FIELD_ORIGIN[2]},
         }
 
@@ -205,6 +212,8 @@ class SimulatedSession:
                 gust = GustModel(np.random.default_rng(self._seeds[3]), dt, float(gp["sigma_m_s"]),
                                  float(gp["tau_s"]))
         sensors = _Sensors(self.noise, fx, sf, ac, dt)
+        # the stabiliser runs at the 200 Hz integration rate (a flybarless unit runs faster than the link)
+        loop = RateLoopState(self.rate_loop, ac, dt / SUBSTEPS) if self.rate_loop is not None else None
         trim = [float(ac.trim_pwm[c]) for c in INPUTS]
         ppu = float(ac.pwm_per_unit)
         Z_col = float(ac.parameters["Z_col"])
@@ -256,10 +265,12 @@ class SimulatedSession:
                 avail = avail_gps
             else:
                 avail = avail_all
-            da0 = fx.actuate(dcmd)
+            blade = dcmd if loop is None else loop.blade(dcmd, x)   # the sticks are logged, the rotor gets the loop's
+            da0 = fx.actuate(blade)
             yield TelemetryFrame(meas, fi, avail, tuple(x), tuple(dcmd), tuple(da0), tuple(wind), fast_before)
-            x, landed, fast_before = _integrate(step, fx, ac, x, landed, t, dt, da0, dcmd, wind, armed, seg_kind,
-                                                spinning, air, fast_rng, self.noise)
+            x, landed, fast_before = _integrate(step, fx, ac, x, landed, t, dt, da0, blade, wind, armed, seg_kind,
+                                                spinning, air, fast_rng, self.noise,
+                                                None if loop is None else (lambda xs, st=dcmd: loop.blade(st, xs)))
             if gust is not None:
                 gust.step()
 
@@ -453,7 +464,7 @@ def _landed_state(armed: bool, seg_kind: str, landed: bool) -> int:
 def _integrate(step: Any, fx: _EffectState, ac: Aircraft, x: list[float], landed: bool, t: float, dt: float,
                da0: list[float], dcmd: list[float], wind: list[float], armed: bool, seg_kind: str, spinning: bool,
                air: list[list[float | None]], fast_rng: np.random.Generator | None,
-               nz: NoiseConfig) -> tuple[list[float], bool, tuple[tuple[float, ...], ...]]:
+               nz: NoiseConfig, loop_fn: Any = None) -> tuple[list[float], bool, tuple[tuple[float, ...], ...]]:
     """Integrate from ``t`` to ``t + dt`` in 200 Hz sub-steps: lift-off and touchdown (appended to
     ``air``), and the 200 Hz gyro between two ticks when ``fast_rng`` is given."""
     h = dt / SUBSTEPS
@@ -462,7 +473,8 @@ def _integrate(step: Any, fx: _EffectState, ac: Aircraft, x: list[float], landed
     wn, we, wd = wind
     fast: list[tuple[float, ...]] = []
     for sub in range(SUBSTEPS):
-        da = da0 if sub == 0 else fx.actuate(dcmd)
+        # a stabiliser (``loop_fn(x) -> blade``) acts at every sub-step on the state there
+        da = da0 if sub == 0 else fx.actuate(dcmd if loop_fn is None else loop_fn(x))
         moves = True
         if landed:
             thrust = g - Z_col * da[2] - Z_ped * da[3]
@@ -558,7 +570,8 @@ def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
                flight_duration_s: float | None = None, rates_hz: Mapping[str, float] | None = None,
                pause_s: float = 10.0, packet_loss: float = 0.002, pilot: PilotConfig | None = None,
                excitation_scale: float = 1.0, sweeps: bool = True, linear_kinematics: bool = False,
-               loss_burst: float = 1.0, noise_scale: float = 1.0) -> dict[str, Any]:
+               loss_burst: float = 1.0, noise_scale: float = 1.0,
+               rate_loop: RateLoop | None = None) -> dict[str, Any]:
     """Simulate a session and write ``path`` (.tlog) and ``path.with_suffix('.truth.json')``.
 
     MAVLink 2 frames from sysid 1 compid 1 with a proper sequence number; host timestamps are
@@ -593,7 +606,7 @@ def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
     period = {n: max(1, int(round(FRAME_RATE_HZ / r))) for n, r in rates.items() if r > 0}
     sess = SimulatedSession(seed=seed, flights=flights, effects=effects, aircraft=aircraft, pause_s=pause_s,
                             flight_duration_s=flight_duration_s, pilot=pilot, excitation_scale=excitation_scale,
-                            sweeps=sweeps, linear_kinematics=linear_kinematics,
+                            sweeps=sweeps, linear_kinematics=linear_kinematics, rate_loop=rate_loop,
                             noise=None if noise_scale == 1.0 else NoiseConfig(
                                 **{k: v * float(noise_scale) for k, v in asdict(NoiseConfig()).items()}))
     truth = sess.truth()
