@@ -732,6 +732,19 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
                                    rng, cfg.share_n_boot)
     sh = shares.compute_shares([(_effect_label(c), rem[id(c)]) for c in kept], base_sse, noise_sse, avail,
                                rng, cfg.share_n_boot)
+    if any(c.hyp.effect == "wind_gust" for c in kept):
+        # the air-mass protocol scores the horizontal velocities and the attitude angles only (the
+        # rates carry the air velocity's rough part, which no smooth air velocity predicts, and w no
+        # horizontal air): it cannot say how much of the other channels' gap the air mass is, so the
+        # rule is decided on the channels it is scored on
+        gust_ch = np.zeros(8, bool)
+        gust_ch[list(hypotheses.GUST_CHANNELS)] = True
+        sh_rule = shares.compute_shares([(_effect_label(c), rem[id(c)]) for c in kept], base_sse, noise_sse,
+                                        avail & gust_ch, rng, cfg.share_n_boot)
+        notes.append("an air mass is named: the share rule is decided on the channels the air-mass protocol "
+                     f"scores (u, v, theta, phi): {sh_rule.explained_pct or 0.0:.0f} % of their gap above noise")
+    else:
+        sh_rule = sh
     per_effect: dict[int, dict[str, Any]] = {}
     for c, pe in zip(ranked, sh_all.per_effect, strict=False):
         per_effect[id(c)] = {"share_pct": pe["share_pct"], "share_interval_pct": pe["interval_pct"],
@@ -743,7 +756,7 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
     # (the windows' own spread decides, not the point estimate alone), and only where there is a
     # gap to share: a gap within a few times the noise (not significant, section 1) is a small
     # difference of two large numbers, and the noise floor itself is an estimate
-    explained = sh.interval_pct[1] if sh.interval_pct is not None else sh.explained_pct
+    explained = sh_rule.interval_pct[1] if sh_rule.interval_pct is not None else sh_rule.explained_pct
     named_ok = bool(kept) and (not loc.gap_significant or explained is None
                                or explained >= cfg.explained_share_min_pct)
     verdict, unexplained = dec.verdict, dec.unexplained
@@ -840,7 +853,7 @@ def _headline(kept: list[attribute.Candidate], partial: list[attribute.Candidate
     if rest.get("condition") not in (None, "none"):
         extra.append(f"grows with {rest['condition']}")
     hs = rest.get("halves_excess_share_pct") or []
-    if len(hs) == 2 and all(v is not None for v in hs):
+    if len(hs) == 2 and all(v is not None and 0.0 <= v <= 100.0 for v in hs):
         extra.append(f"{hs[0]:.0f} % of it in the first half, {hs[1]:.0f} % in the second")
     tail = f": it lies in {where}" + (f"; {', '.join(extra)}" if extra else "") if where else ""
     if kept:
@@ -859,6 +872,9 @@ def _headline(kept: list[attribute.Candidate], partial: list[attribute.Candidate
                     f"does: {what}; {100 - x:.0f} % is not explained" + tail)
         return (f"unexplained: {names} {verb} only {x:.0f} % of the gap above noise ({iv}), clearly below the "
                 f"{cfg.explained_share_min_pct:g} % needed to name them; {100 - x:.0f} % is not explained" + tail)
+    if not significant:
+        return (f"no catalogue effect is named; the gap is small (fewer than {cfg.gap_channels_min} channels above "
+                f"{cfg.gap_ratio_significant:g}x their noise)" + tail)
     return "no catalogue effect explains the gap above noise (0 % explained)" + tail
 
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("groundstation", "firmware_interface", "hil_replay")
 #: the top layer: may import anything, imported by nothing else in the packages
@@ -134,3 +136,29 @@ def test_the_walk_sees_circles_and_function_level_imports():
     graph = import_graph()
     # groundstation.analysis imports the diagnosis inside a function only
     assert "groundstation.gap.diagnose" in graph["groundstation.analysis"]
+
+
+#: what the numerical packages never import (DESIGN: dsp, sysid, gap and freq do no IO, no networking,
+#: no event loop and no clock; plots go through matplotlib in their ``plots`` modules only)
+IMPURE = {"asyncio", "serial", "zenoh", "rerun", "time", "socket", "subprocess", "threading", "multiprocessing"}
+
+
+def _imported_top_names(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text())
+    names = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    names |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module and not n.level}
+    return names
+
+
+@pytest.mark.parametrize("package", ["dsp", "sysid", "gap", "freq"])
+def test_numerical_packages_are_pure(package):
+    bad = []
+    for f in sorted((ROOT / "groundstation" / package).rglob("*.py")):
+        for name in _imported_top_names(f):
+            top = name.split(".")[0]
+            if top in IMPURE or (top == "matplotlib" and f.stem != "plots"):
+                bad.append(f"{f.relative_to(ROOT)} imports {name}")
+            if name.startswith(("groundstation.sinks", "groundstation.service", "groundstation.worker",
+                                "groundstation.campaign", "groundstation.analysis", "groundstation.pipeline")):
+                bad.append(f"{f.relative_to(ROOT)} imports {name} (a layer above)")
+    assert not bad, "\n".join(bad)
