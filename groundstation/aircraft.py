@@ -130,7 +130,10 @@ class Aircraft:
         """``base`` (an :class:`groundstation.sysid.identify.IdentifyConfig`) with this file's overrides."""
         from groundstation.sysid.identify import IdentifyConfig
 
-        return replace(base or IdentifyConfig(), **({"input_kind": self.inputs.input_kind} | self.identify))
+        # the file's input kind where it says one (or its RC source implies "unknown"); else the configuration's
+        im = self.inputs
+        kind = {"input_kind": im.input_kind} if im.kind or im.source == "RC_CHANNELS" else {}
+        return replace(base or IdentifyConfig(), **(kind | self.identify))
 
     def prep_config(self, base: Any = None) -> Any:
         """The data-preparation settings (:class:`groundstation.dsp.prepare.PrepConfig`) this file implies."""
