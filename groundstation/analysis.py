@@ -378,7 +378,7 @@ def held_out(model: Any, prepared: Any, cfg: ServiceConfig, aircraft: Any, k: in
             icfg = dataclasses.replace(cfg.identify, **chosen)
             fit_fold = functools.partial(refit, model=model, config=icfg, prior=prior)
             if getattr(model, "structure", "hover") == "command_response":   # the stabilised aircraft's structure
-                from groundstation.sysid.structure import fold_fitter
+                from groundstation.sysid.structure_choice import fold_fitter
 
                 fit_fold = fold_fitter(model)
             cv = crossvalidate(prepared, fit_fold, k=k, pmap=serial_map if pmap is None else pmap)

@@ -41,11 +41,12 @@ def stabilising_controller(prepared: Any, model: Any, *, config: Any = None, pri
     """The finding (see the module docstring), or None when the command-response structure removes none of the gap."""
     from groundstation.sysid.heldout import crossvalidate, feedback_evidence
     from groundstation.sysid.identify import IdentifyConfig, refit
-    from groundstation.sysid.structure import _fit_fold, identify_command
+    from groundstation.sysid.structure import identify_command
+    from groundstation.sysid.structure_choice import fit_command_fold
 
     cfg = config or IdentifyConfig(window_s=5.0, estimate_all_initial=False)
     cv_h = crossvalidate(prepared, partial(refit, model=model, config=cfg, prior=prior), k=k, pmap=pmap)
-    cv_c = crossvalidate(prepared, partial(_fit_fold, model=model, kind=kind), k=k, pmap=pmap)
+    cv_c = crossvalidate(prepared, partial(fit_command_fold, model=model, kind=kind), k=k, pmap=pmap)
     before, after = _gap(cv_h), _gap(cv_c)
     if not after < before:
         return None

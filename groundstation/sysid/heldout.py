@@ -23,7 +23,7 @@ Pure numpy; splitting the data is :mod:`groundstation.dsp.split`'s.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import partial
 from typing import Any
 
@@ -33,6 +33,7 @@ from threadpoolctl import threadpool_limits
 from groundstation.parallel import Map, serial_map
 from groundstation.sysid.cost import make_windows
 from groundstation.sysid.model import INPUTS, OUTPUTS, HoverModel, build_matrices
+from groundstation.sysid.prediction import Prediction
 from groundstation.sysid.simulate import WindowSimulator
 
 #: channels of each subsystem (which outputs a subsystem's instability spoils)
@@ -54,18 +55,6 @@ class UnstableMode:
         osc = f" oscillating at {abs(self.imag_rad_s) / (2 * np.pi):.2f} Hz" if abs(self.imag_rad_s) > 1e-9 else ""
         return (f"{self.subsystem} subsystem unstable: eigenvalue {self.real_1_s:+.3g}{self.imag_rad_s:+.3g}j /s, "
                 f"time constant {self.time_constant_s:.2f} s{osc}")
-
-
-@dataclass(frozen=True)
-class Prediction:
-    """Held-out scores: ``match`` per channel (%), ``mean_match`` over them, window count and length."""
-
-    match: dict[str, float]
-    mean_match: float
-    windows: int
-    window_s: float
-    duration_s: float
-    ratio: dict[str, float] = field(default_factory=dict)  # ||yhat - y|| / ||y|| per channel
 
 
 def unstable_modes(theta: np.ndarray, min_real_1_s: float = 1e-6) -> list[UnstableMode]:

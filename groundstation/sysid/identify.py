@@ -489,7 +489,7 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
 
         model = select_config(prepared, model, cfg, prior=prior, bounds=bounds, pmap=pmap, fit=fit_candidate, refit=refit)
     if refine and cfg.input_kind != "blade":
-        from groundstation.sysid.structure import attach_command_structure
+        from groundstation.sysid.structure_choice import attach_command_structure
 
         model = attach_command_structure(prepared, model, cfg, pmap=pmap, refit=refit)
     return model

@@ -529,7 +529,7 @@ def identify_command(prepared: Any, kind: str = "rate_command", *, window_s: flo
 def predict_command(model: CommandModel, prepared: Any, *, window_s: float = 5.0) -> Any:
     """Held-out prediction as :func:`groundstation.sysid.heldout.predict` (eq. 19 per channel over
     ``window_s`` windows started from the measured states; inputs against the model's trim)."""
-    from groundstation.sysid.heldout import Prediction
+    from groundstation.sysid.prediction import Prediction
 
     ppu = float(prepared.pwm_per_unit)
     off = np.array([(float(prepared.input_trim_pwm.get(k, 0.0)) - float(model.input_trim_pwm.get(k, prepared.input_trim_pwm.get(k, 0.0)))) / ppu
@@ -556,78 +556,3 @@ def predict_command(model: CommandModel, prepared: Any, *, window_s: float = 5.0
     mean = float(np.mean(list(match.values()))) if match else float("nan")
     return Prediction(match=match, mean_match=mean, windows=win.count, window_s=float(window_s),
                       duration_s=float(win.count * win.length * win.dt_s), ratio=ratio)
-
-
-def _as_hover_model(model: Any, cm: CommandModel) -> Any:
-    """``model`` (a :class:`groundstation.sysid.model.HoverModel`) carrying ``cm`` as the structure that predicts."""
-    import dataclasses
-
-    return dataclasses.replace(model, command=cm.to_json(), structure="command_response")
-
-
-def _fit_fold(train: Any, *, model: Any, kind: str) -> Any:
-    """A fold's command-response model (module level: picklable for worker processes)."""
-    return _as_hover_model(model, identify_command(train, kind))
-
-
-def fold_fitter(model: Any) -> Any:
-    """``fit_fold(train) -> model`` of a held-out check of ``model``'s command-response structure (same kind)."""
-    from functools import partial
-
-    return partial(_fit_fold, model=model, kind=str((model.command or {}).get("kind", "rate_command")))
-
-
-def attach_command_structure(prepared: Any, model: Any, cfg: Any, *, prior: Any = None, pmap: Any = None,
-                             refit: Any) -> Any:
-    """``model`` with the command-response structure of ``cfg.input_kind`` fitted to ``prepared``.
-
-    ``rate_command`` / ``attitude_command``: that structure predicts (``structure = "command_response"``).
-    ``unknown``: the rate-command structure and the hover model are cross-validated over the same
-    ``cfg.select_folds`` contiguous folds and compared by the selection's rule
-    (:func:`groundstation.sysid.select.choose`: a prediction that runs away never wins over one that
-    does not; otherwise a gain beyond one standard error or on every fold); ``fit["structure_choice"]``
-    says which and why. ``refit``: the hover model's fold refit (:func:`groundstation.sysid.identify.refit`,
-    given by the identification)."""
-    from functools import partial
-
-    from groundstation.parallel import serial_map
-    from groundstation.sysid.heldout import crossvalidate
-    from groundstation.sysid.select import _crossvalidate, choose, fold_scores
-
-    pmap = pmap or serial_map
-    kind = cfg.input_kind if cfg.input_kind in COMMAND_KINDS else "rate_command"
-    cm = identify_command(prepared, kind)
-    out = _as_hover_model(model, cm)
-    out.fit = dict(model.fit)
-    out.fit["command_response"] = cm.describe()
-    if cfg.input_kind in COMMAND_KINDS or int(cfg.select_folds) < 2:
-        out.fit["structure_choice"] = {"chosen": "command_response", "reason": f"inputs.kind = {cfg.input_kind}"}
-        if "heldout" in out.fit:   # the hover model's, from the selection: not this structure's
-            out.fit["heldout_hover"] = out.fit.pop("heldout")
-        return out
-    try:
-        cv_c = crossvalidate(prepared, partial(_fit_fold, model=model, kind=kind), k=int(cfg.select_folds),
-                             window_s=5.0, pmap=pmap)
-        cv_h = _crossvalidate(prepared, model, cfg, prior, pmap, refit)
-    except ValueError as exc:
-        model.fit["structure_choice"] = {"chosen": "hover", "reason": f"not compared: {exc}"}
-        return model
-    rows = [{"name": "hover (blade inputs)", "fold_score": fold_scores(cv_h).tolist(), "mean_match": cv_h.mean_match,
-             "runaway": {k: list(v) for k, v in cv_h.runaway.items()}},
-            {"name": f"command response ({kind})", "fold_score": fold_scores(cv_c).tolist(), "mean_match": cv_c.mean_match,
-             "runaway": {k: list(v) for k, v in cv_c.runaway.items()}}]
-    win = choose(rows)
-    r = rows[1]
-    why = r.get("reason") or (f"held-out gain {r['gain']:+.1f} +- {r['gain_se']:.1f} points per fold, better on "
-                              f"{r['gain_folds']} of {len(r['fold_score'])} folds")
-    choice = {"chosen": "command_response" if win else "hover", "candidates": rows,
-              "reason": ("the command-response structure predicts held-out data better: " if win else
-                         "the hover model is kept: the command-response structure does not predict better by the "
-                         "selection's rule: ") + why}
-    if win:
-        out.fit["structure_choice"] = choice
-        out.fit["heldout"] = cv_c.to_json()
-        return out
-    model.fit["structure_choice"] = choice
-    model.fit["command_response"] = cm.describe()
-    return model

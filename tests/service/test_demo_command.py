@@ -43,7 +43,8 @@ def _check_demo_recording(rrd: Path, rec: Path) -> None:
     """The recording as the viewer opens it: the latest flight's tab, units, the flight's span, gap pictures."""
     lay = read_layout(rrd)
     tabs = [lay.name(c) for c in lay.children(lay.root)]
-    assert tabs[0].startswith("flight 2") and tabs[1].startswith("flight 1") and tabs[-1].startswith("session")
+    assert tabs[0].startswith("flight 2") and tabs[1].startswith("flight 1")
+    assert tabs[2].startswith("session") and tabs[3:] == ["excitation"]     # the live excitation monitor last
     opening = lay.opening_tab()
     assert lay.name(opening).startswith("flight 2")
     views = [v for c in lay.children(lay.root) for v in lay.views_under(c)]
