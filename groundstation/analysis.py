@@ -84,7 +84,8 @@ class DataSummary:
     @classmethod
     def from_json(cls, doc: dict[str, Any]) -> DataSummary:
         names = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in doc.items() if k in names})
+        kw: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in doc.items() if k in names}
+        return cls(**kw)
 
 
 @dataclass(frozen=True)

@@ -215,6 +215,7 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
     doc = model.to_json()
     model_path = out_dir / f"model-flight{job.flight:02d}.json"
     model_path.write_text(dumps(doc, indent=1))
+    assert res.validation_series is not None   # the validate step ran (analyse raises where it cannot)
     overlay = _overlay(res.validation_series, prepared.output_trim)
     png: tuple[str, ...] = ()
     if cfg.identification.plots and len(overlay["t_fc_s"]):

@@ -301,6 +301,7 @@ def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
         cfg = ServiceConfig().replace("identification", seed=job["seed"])
         try:   # the product's analysis, the diagnosis step only (the model given, or identified by the diagnosis)
             res = analyse([path], config=cfg, steps=("diagnose",), model=model, pmap=pmap or serial_map)
+            assert res.gap is not None   # the diagnosis step ran
             prepared, diag = res.prepared, res.gap.diagnosis
         except ValueError as exc:  # a flight the diagnosis refuses (too little data): counted, not hidden
             out.update(seconds=time.perf_counter() - t0, cpu_s=tree_cpu_s() - c0, flight_s=0.0, verdict="refused", effects=[], sensor_errors=[],
@@ -338,6 +339,7 @@ def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
             eff2 = [random_effect(n, rng2) for n in job["effects"]]  # same draw: same effect and magnitude
             write_tlog(path2, seed=job["seed"] + 100000, flights=1, effects=eff2, **kw)
             d2 = analyse([path2], config=cfg, steps=("diagnose",), model=model).gap
+            assert d2 is not None
             allc = d2.report["effects"] + d2.report["candidates"]
             same = [e for e in allc if e["effect"] == job["effects"][0]]
             out["fresh_shrink_pct"] = same[0]["shrink_pct"] if same else None

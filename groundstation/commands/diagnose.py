@@ -58,6 +58,7 @@ def _run(args: argparse.Namespace, pmap) -> int:
         cfg = cfg.replace("identification", seed=args.seed)
     res = analyse(args.logs, args.aircraft, cfg, steps=("freq", "diagnose"), model=args.model,
                   segments=args.segments, pmap=pmap)
+    assert res.gap is not None   # the diagnosis step ran (analyse raises where it cannot)
     report = res.gap.report
     from groundstation.jsonio import write_atomic
 

@@ -140,6 +140,7 @@ def _run(args: argparse.Namespace, pmap) -> int:
     model = res.model
     write_json(args.out, model.to_json())
     if want_series:
+        assert res.validation is not None and res.validation_series is not None   # the validate step ran
         series, channels = res.validation_series, res.validation["channels"]
         if not args.no_plot:
             from groundstation.sysid.plots import plot_convergence, plot_fit

@@ -477,11 +477,12 @@ def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str], holes: list[float
             req = np.asarray(pwm_ok.all(axis=1) & at_ok.all(axis=1), dtype=bool)
             vel, hor_ok, ver_ok, vel_meas = _velocities(vel_series, t, cfg)
             meas = np.zeros((t.size, 8), dtype=bool)
-            att_m = at_meas.all(axis=1)
+            att_m = np.asarray(at_meas.all(axis=1), dtype=bool)
+            vel_meas = np.asarray(vel_meas, dtype=bool)
             meas[:, 3:] = att_m[:, None]
             meas[:, 0:2] = (vel_meas[:, :2].all(axis=1) & att_m)[:, None]
             meas[:, 2] = vel_meas.all(axis=1) & att_m
-            bridged = ~pwm_meas.all(axis=1)
+            bridged = ~np.asarray(pwm_meas.all(axis=1), dtype=bool)
             alt_t, alt = _altitude(log, float(fl.start_fc_s), float(fl.end_fc_s))
             if alt_t is not None:
                 alt_g, _ = interpolate_onto(alt_t, alt, t, _bridge(cfg, alt_t))

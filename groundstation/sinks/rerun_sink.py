@@ -390,7 +390,7 @@ class RerunSink:
                     path = f"{f}/effects/{lab}/{c}/{kind}"
                     self.stream.log(path, rr.SeriesLines(colors=[_COLORS[kind]], names=[
                         f"{SYMBOL[c]} {'base model' if kind == 'before' else 'with ' + ep.label}"
-                        + (f" ({ep.share})" if kind == "after" and getattr(ep, "share", "") else "")]), static=True)
+                        + (f" ({ep.share})" if kind == "after" and ep.share else "")]), static=True)
                     self._send([path], np.asarray(ep.t_s, dtype=float), np.asarray(y, dtype=float)[:, k:k + 1])
             labels.append(lab)
         return tuple(labels)

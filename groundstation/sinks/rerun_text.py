@@ -162,7 +162,7 @@ def verdict_text(flight: int, gap: Mapping[str, Any]) -> str:
         lines += ["*Partial finding (not named):*"] + _effect_lines(e, alpha)
     from groundstation.gap.report import through_flight_lines
 
-    lines += [f"- {t}" for t in through_flight_lines(gap)] + ([""] if gap.get("through_flight") else [])
+    lines += [f"- {t}" for t in through_flight_lines(dict(gap))] + ([""] if gap.get("through_flight") else [])
     if verdict in ("none", "unexplained"):
         sig = "significant" if g.get("significant") else "not significant"
         found = ("the effects found explain too little of the gap, or change through the flight (partial findings above)"
