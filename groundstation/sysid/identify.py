@@ -39,7 +39,7 @@ while identifying: the batched products are small and threads only contend on a 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
@@ -495,6 +495,25 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
     return model
 
 
+def _subsystem_costs(plan: Any, cfg: Any, run: Any) -> Iterator[tuple[int, np.ndarray, Any]]:
+    """(subsystem, its free-parameter mask, its refinement cost) for each subsystem with measured data,
+    each cost built at ``run.theta`` as the previous subsystem's refinement left it."""
+    for sub, sub_params in ((0, HOR_PARAMS), (1, VER_PARAMS)):
+        idx = np.array([PARAM_INDEX[p] for p in sub_params])
+        sub_free = np.zeros(N_PARAMS, dtype=bool)
+        sub_free[idx] = plan.free[idx]
+        cost = _refine_cost(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim)
+        if cost.used.any():
+            yield sub, sub_free, cost
+
+
+def _take(run: Any, cost: Any, x: np.ndarray, sub: int, cfg: Any) -> None:
+    """``run`` moved to the subsystem's refined parameters ``x`` (and its trims, where estimated)."""
+    run.theta = cost.full(x)[0]
+    if cfg.estimate_trim:
+        run.delta[list(_SUBS_INPUTS[sub])] = cost.sim.solve_trim(run.theta[None])[sub][0]
+
+
 def fit_candidate(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = None,
                   bounds: dict | None = None, quick: bool = False) -> HoverModel:
     """``cfg``'s model of ``prepared``: refinements from ``model0``'s parameters and ``cfg.extra_starts``,
@@ -505,21 +524,13 @@ def fit_candidate(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
     with threadpool_limits(1):
         plan = _plan(prepared, cfg, True, bounds, prior, search=False)
         run = _Run(theta=np.clip(model0.theta, plan.bounds[:, 0], plan.bounds[:, 1]))
-        for sub, sub_params in ((0, HOR_PARAMS), (1, VER_PARAMS)):
-            idx = np.array([PARAM_INDEX[p] for p in sub_params])
-            sub_free = np.zeros(N_PARAMS, dtype=bool)
-            sub_free[idx] = plan.free[idx]
-            cost = _refine_cost(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim)
-            if not cost.used.any():
-                continue
+        for sub, sub_free, cost in _subsystem_costs(plan, cfg, run):
             x, ref = best_refinement(cost, run.theta[sub_free], plan, cfg, sub_free, quick)
             record_tradeoffs(run, sub_free, ref, None if plan.prior is None else plan.prior[1][sub_free])
             run.std[np.flatnonzero(sub_free)] = ref.std
             run.share[np.flatnonzero(sub_free)] = ref.prior_share if plan.prior is not None else 0.0
             run.sigma[cost.used] = ref.sigma[cost.used]
-            run.theta = cost.full(x)[0]
-            if cfg.estimate_trim:
-                run.delta[list(_SUBS_INPUTS[sub])] = cost.sim.solve_trim(run.theta[None])[sub][0]
+            _take(run, cost, x, sub, cfg)
             run.F_total += float(cost(x[None])[0])
             run.nfev += cost.nfev
         match, used = _in_sample_match(plan, cfg, run.theta, cfg.estimate_trim)
@@ -606,20 +617,12 @@ def refit(prepared: Any, model: HoverModel, *, config: IdentifyConfig | None = N
     with threadpool_limits(1):
         plan = _plan(prepared, cfg, True, None, prior, search=False)
         run = _Run(theta=np.clip(model.theta, plan.bounds[:, 0], plan.bounds[:, 1]))
-        for sub, sub_params in ((0, HOR_PARAMS), (1, VER_PARAMS)):
-            idx = np.array([PARAM_INDEX[p] for p in sub_params])
-            sub_free = np.zeros(N_PARAMS, dtype=bool)
-            sub_free[idx] = plan.free[idx]
-            cost = _refine_cost(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim)
-            if not cost.used.any():
-                continue
+        for sub, sub_free, cost in _subsystem_costs(plan, cfg, run):
             pr = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
             ref = refine_ls(cost, run.theta[sub_free], plan.bounds[sub_free], passes=1, max_nfev=cfg.refine_max_nfev,
                             with_std=False, prior=pr, weighting=cfg.channel_weighting,
                         prior_colour=cfg.prior_weighting == "effective")
-            run.theta = cost.full(ref.x)[0]
-            if cfg.estimate_trim:
-                run.delta[list(_SUBS_INPUTS[sub])] = cost.sim.solve_trim(run.theta[None])[sub][0]
+            _take(run, cost, ref.x, sub, cfg)
     return HoverModel(params={n: float(v) for n, v in zip(PARAM_NAMES, run.theta, strict=True)},
                       sample_rate_hz=float(1.0 / prepared.dt_s),
                       input_trim_pwm={k: float(v) + float(run.delta[j]) * float(prepared.pwm_per_unit)
