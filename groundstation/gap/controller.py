@@ -116,7 +116,10 @@ def stabilising_controller(prepared: Any, model: Any, *, sigma: np.ndarray | Non
     if not share > 0:
         return None
     loop = feedback_evidence(model, prepared)
-    cm = identify_command(prepared, kind)
+    from groundstation.sysid.structure import CommandModel
+
+    own = getattr(model, "command", None)
+    cm = CommandModel.from_json(own) if own and own.get("kind") == kind else identify_command(prepared, kind)
     estimate = {a: {"input": f.on_input, "bandwidth_rad_s": f.summary()["bandwidth_rad_s"],
                     "delay_s": f.params["tau"]} for a, f in cm.axes.items()}
     mh = float(np.mean([r[2].mean_match for r in rows]))
