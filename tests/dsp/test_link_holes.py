@@ -45,10 +45,10 @@ def test_holes_are_bridged_and_marked(lossy):
 
 
 def test_output_error_counts_measured_samples_only(lossy):
+    from benchkit.synthetic import EXAMPLE_TRUTH
     from groundstation.sysid.cost import make_windows
     from groundstation.sysid.model import theta_from_dict
     from groundstation.sysid.simulate import WindowSimulator
-    from groundstation.sysid.synthetic import EXAMPLE_TRUTH
 
     p = prepare([lossy[0]])
     win = make_windows(p.segments, p.dt_s, 3.0)
@@ -67,10 +67,10 @@ def test_output_error_counts_measured_samples_only(lossy):
 
 
 def test_gap_residuals_ignore_holes(lossy):
+    from benchkit.synthetic import EXAMPLE_TRUTH
     from groundstation.gap.diagnose import segments_from_prepared
     from groundstation.gap.evaluate import Evaluator
     from groundstation.sysid.model import theta_from_dict
-    from groundstation.sysid.synthetic import EXAMPLE_TRUTH
 
     p = prepare([lossy[0]])
     segs, avail = segments_from_prepared(p)

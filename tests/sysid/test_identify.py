@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
 from groundstation.dsp.prepare import prepared_from_arrays
 from groundstation.sysid.identify import identify
 from groundstation.sysid.model import PARAM_NAMES, HoverModel, theta_from_dict
-from groundstation.sysid.synthetic import EXAMPLE_TRUTH, simulate_flight
 from groundstation.sysid.validate import match_degree, nrmse, pearson, theil_u, validate
 
 KEY = ("M_a", "L_b", "inv_tau_s", "A_lat", "B_lon", "Z_col", "N_ped", "N_r")
