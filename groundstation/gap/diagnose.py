@@ -840,6 +840,11 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
         verdict = "unexplained"
     elif changing:
         partial = changing
+    if verdict == "none" and loc.gap_significant:
+        # the share rule with nothing named: 0 % of a significant gap above noise is explained (a gap
+        # spread evenly over the flight is still a gap: a parameter drifting slowly spreads its own)
+        verdict = "unexplained"
+        notes.append("nothing is named and the held-out gap is significant: 0 % of the gap above noise is explained")
     if verdict == "unexplained" and unexplained is None:
         unexplained = _unexplained_evidence(base, loc, tests, cfg)
     cols = [OUTPUTS.index(n) for n in sh.channels]
