@@ -121,11 +121,14 @@ def _boot_shrink(base: np.ndarray, alt: np.ndarray, energy: np.ndarray, chans: t
 
 
 def score(base: np.ndarray, alt: np.ndarray, energy: np.ndarray, channels: tuple[int, ...],
-          rng: np.random.Generator, n_boot: int = 1000) -> Score:
-    """Score a hypothesis: base/alt held-out costs (W, 8), target energy (W, 8), effect channels."""
+          rng: np.random.Generator, n_boot: int = 1000, test_n_boot: int = 2000) -> Score:
+    """Score a hypothesis: base/alt held-out costs (W, 8), target energy (W, 8), effect channels.
+
+    ``n_boot`` resamples for the shrink interval, ``test_n_boot`` for the paired test's p-value
+    (``DiagnoseConfig.score_n_boot`` and ``n_boot``)."""
     tb, ta = base.sum(axis=1), alt.sum(axis=1)
     sc = 100.0 * (tb.sum() - ta.sum()) / max(tb.sum(), 1e-300)
-    p = paired_bootstrap(tb, ta, rng)
+    p = paired_bootstrap(tb, ta, rng, test_n_boot)
     chans = tuple(c for c in channels if energy[:, c].sum() > 0)
     gb = nrmse(base, energy, chans)
     ga = nrmse(alt, energy, chans)

@@ -81,6 +81,14 @@ class DiagnoseConfig:
     #: 0.65-1.7 m/s sigma were fitted at 1.8-8 m/s. The resolvable level is the larger of this and
     #: ``excitation_snr`` x the velocity sensors' measured white noise.
     gust_min_rms_m_s: float = 0.3
+    #: the air-mass scan's within-window cross-validation: initial states and the air velocity are
+    #: fitted on alternate chunks of this length (s) and scored on the chunks between them
+    gust_chunk_s: float = 0.5
+    #: spacing (s) of the knots of the piecewise-linear air velocity in each window
+    gust_knot_s: float = 1.5
+    #: Levenberg-Marquardt iterations re-identifying the base under the per-window air velocity (0:
+    #: the base as it is)
+    gust_refine_iterations: int = 6
     #: significance of the rank correlation between a window's residual energy and a flight condition
     #: (input amplitude, input rate, height) that the report names as the gap's ``conditions``
     conditions_alpha: float = 0.01

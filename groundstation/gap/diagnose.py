@@ -397,7 +397,7 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
                     seed: int, pmap: Map = serial_map) -> Attributed:
     """Scan, score and test every catalogue hypothesis; the fingerprints; plausibility; encompassing."""
     ev, segs, avail, dt, nf = base.ev, base.segs, base.avail, base.dt_s, loc.nf
-    ctx = hypotheses.Context(ev, segs)
+    ctx = hypotheses.Context(ev, segs, cfg=cfg)
     ctx.pwm_per_unit = float(getattr(prepared, "pwm_per_unit", 500.0))
     hyps = _scan_all(ctx, loc.in_excited, pmap)
 
@@ -424,7 +424,7 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
         if not h.testable or h.sse is None:
             continue
         b = h.extra.get("base_sse", ctx.base_sse)
-        s = attribute.score(b, h.sse, ev.energy, h.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
+        s = attribute.score(b, h.sse, ev.energy, h.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot), test_n_boot=cfg.n_boot)
         s.p_value = candidates.p_value(h, ctx, b, rng, cfg)
         results.append((h, s))
     if lines:  # rotor vibration: scored on the raw residual of the line channels
@@ -503,7 +503,7 @@ def _structure_context(t: structure.StructureTest, base: Base, att: Attributed, 
         ev_s = Evaluator(segs_s, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds,
                          ridge=ev.ridge)
         ev_s.refine(cfg.refit_iterations)
-        ctx_s = hypotheses.Context(ev_s, segs_s)
+        ctx_s = hypotheses.Context(ev_s, segs_s, cfg=cfg)
         ctx_s.pwm_per_unit = att.ctx.pwm_per_unit
         if it == cfg.outer_iterations:
             break
@@ -523,7 +523,7 @@ def _effect_given_structure(c: attribute.Candidate, t: structure.StructureTest, 
         return True, float("inf"), "cannot be re-tested with the structure in the model"
     h.extra = {**c.hyp.extra, **h.extra}
     b = h.extra.get("base_sse", ctx_s.base_sse) if h.effect == "wind_gust" else ctx_s.base_sse
-    s = attribute.score(b, h.sse, ctx_s.ev.energy, h.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
+    s = attribute.score(b, h.sse, ctx_s.ev.energy, h.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot), test_n_boot=cfg.n_boot)
     s.p_value = candidates.p_value(h, ctx_s, b, rng, cfg)
     ok = bool(s.p_value < att.crit and candidates.gain_ok(s, cfg) and candidates.physical(h, cfg))
     return ok, float(s.score_pct), f"{s.score_pct:+.1f}% held-out (p={s.p_value:.2g}) with the {t.input} {t.kind.replace('_', ' ')} in"

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from groundstation.errors import GapError
+from groundstation.gap.config import DiagnoseConfig
 from groundstation.gap.evaluate import Evaluator, SegmentArrays
 from groundstation.gap.linsim import full_matrices
 from groundstation.gap.linsim import simulate as lsim
@@ -121,8 +122,10 @@ def backlash(x: np.ndarray, b: float) -> np.ndarray:
 class Context:
     """Base-model windows plus the cached base held-out cost, shared by every scan."""
 
-    def __init__(self, ev: Evaluator, segments: list[SegmentArrays], given: np.ndarray | None = None):
+    def __init__(self, ev: Evaluator, segments: list[SegmentArrays], given: np.ndarray | None = None,
+                 cfg: DiagnoseConfig | None = None):
         self.ev = ev
+        self.cfg = cfg or DiagnoseConfig()  # the scans' own settings (the air-mass scan's chunks and knots)
         self.segments = segments
         # ``given`` (W, L, 8, K): linear columns of another effect already in the model (conditional
         # scans: does this effect still add anything once the other one is in?)
@@ -465,8 +468,8 @@ def _air_columns(ev: Evaluator, theta: np.ndarray, n_knots: int = 3) -> np.ndarr
     return np.stack(cols, axis=-1) * ev.available[None, None, :, None]
 
 
-def scan_wind_gust(ctx: Context, chunk_s: float = 0.5, refine_iterations: int = 6,
-                   knot_s: float = 1.5) -> Hypothesis:
+def scan_wind_gust(ctx: Context, chunk_s: float | None = None, refine_iterations: int | None = None,
+                   knot_s: float | None = None) -> Hypothesis:
     """Air-mass motion: a smooth horizontal air velocity entering wherever the body velocity does.
 
     In each window the air velocity is piecewise linear in time (three knots per component) and
@@ -482,7 +485,12 @@ def scan_wind_gust(ctx: Context, chunk_s: float = 0.5, refine_iterations: int = 
     under the air velocity, which can also over-fit) are chosen per fold on the other folds'
     windows. Scored on :data:`GUST_CHANNELS` only (the rates also carry the air velocity's rough
     part, which no smooth air velocity predicts between its knots; w sees no horizontal air).
+    ``chunk_s``, ``refine_iterations`` and ``knot_s`` default to the context's ``gust_chunk_s``,
+    ``gust_refine_iterations`` and ``gust_knot_s``.
     """
+    chunk_s = ctx.cfg.gust_chunk_s if chunk_s is None else chunk_s
+    knot_s = ctx.cfg.gust_knot_s if knot_s is None else knot_s
+    refine_iterations = ctx.cfg.gust_refine_iterations if refine_iterations is None else refine_iterations
     ev = ctx.ev
     if not ev.available[[0, 1]].all():
         return Hypothesis("wind_gust", testable=False, reason="no horizontal velocity measurements")
