@@ -216,7 +216,7 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
             raise
         return JobResult(flight=job.flight, tlogs=job.tlogs, error=f"flight {job.flight}: {exc}",
                          seconds=time.perf_counter() - t0, data=job.data)
-    model, prepared, val = res.model, res.prepared, dict(res.validation or {})
+    model, prepared, val = res.model, res.prepared, ({} if res.validation is None else res.validation.to_json())
     cross = _cross_flight(job, model, prepared)
     if cross:
         model.fit["cross_flight"] = cross

@@ -133,7 +133,7 @@ def collect(logs: Sequence[str | os.PathLike[str]], *, config: Any = None, aircr
         parts["prepared"], parts["model"], parts["freq"] = res.prepared, res.model, res.freq
         parts["notes"] = tuple(res.prepared.notes)
         if res.validation is not None:
-            parts["validation"] = {**res.validation, "series": res.validation_series}
+            parts["validation"] = {**res.validation.to_json(), "series": res.validation_series}
         if res.gap is not None:
             from groundstation.gap.pictures import gap_pictures
 
@@ -173,7 +173,8 @@ def assemble(logs: Sequence[str | os.PathLike[str]], cfg: Any, *, prepared: Any,
         from groundstation.sysid.validate import validate
 
         try:
-            validation = validate(model, prepared, return_series=True)
+            v = validate(model, prepared, return_series=True)
+            validation = {**v.to_json(), "series": v.series}
         except Exception as exc:
             errs["validation"] = _line(exc)
     names = tuple(str(p) for p in logs)
