@@ -455,7 +455,7 @@ def _diagnose(model: Any, prepared: Any, logs: Sequence[Any], log_paths: Sequenc
 
     diag = run_diagnosis(model, prepared, seed=cfg.identification.seed, config=cfg.diagnose, pmap=pmap)
     report = diag.report
-    native = native_vibration(list(logs), cfg.prepare.rate_hz)
+    native = native_vibration(list(logs), cfg.prepare.rate_hz, cfg.diagnose)
     if native is not None:
         unfold_rotor_line(report, native, cfg.prepare.rate_hz)
     report["source"] = {"logs": list(log_paths), "model": model_source}
@@ -484,10 +484,14 @@ def frequency_section(model: Any, report: dict, prepared: Any, logs: Sequence[An
     return section(v)
 
 
-def native_vibration(logs: list, grid_rate_hz: float) -> dict | None:
+def native_vibration(logs: list, grid_rate_hz: float, cfg: Any = None) -> dict | None:
     """Vibration lines in the logs' own high-rate gyro (dataflash IMU/GYR faster than twice the grid),
-    over the armed flights; None when no log has one. Adds the logged rotor speed when there is one."""
+    over the armed flights; None when no log has one. Adds the logged rotor speed when there is one.
+    ``cfg``: the :class:`groundstation.gap.config.DiagnoseConfig` (``native_line_*``; None: defaults)."""
+    from groundstation.gap.config import DiagnoseConfig
     from groundstation.gap.fingerprints import native_rate_lines
+
+    cfg = cfg if cfg is not None else DiagnoseConfig()
 
     for log in logs:
         for name in ("GYRO_FAST", "IMU"):
@@ -501,7 +505,8 @@ def native_vibration(logs: list, grid_rate_hz: float) -> dict | None:
             for fl in log.flights:
                 sel |= (s.t_fc_s >= fl.start_fc_s) & (s.t_fc_s <= fl.end_fc_s)
             g = np.stack([s["gx_rad_s"], s["gy_rad_s"], s["gz_rad_s"]], axis=1)[sel]
-            lines = native_rate_lines(g[np.isfinite(g).all(axis=1)], dt)
+            lines = native_rate_lines(g[np.isfinite(g).all(axis=1)], dt, window_s=cfg.native_line_window_s,
+                                      min_hz=cfg.native_line_min_hz, alpha=cfg.native_line_alpha)
             rotor = log.series.get("ROTOR")
             rpm = None
             if rotor is not None and len(rotor):
