@@ -6,7 +6,9 @@
   identification must beat on held-out data (``groundstation bench heldout``);
 - :mod:`benchkit.rerun_inspect`: a saved .rrd read back as a user sees it (tabs, views, entity
   tree, Rerun's chunk check), for the tests and ``groundstation bench rerun``;
-- :mod:`benchkit.telemetry`: synthetic MAVLink telemetry logs (.tlog) for throughput benchmarks.
+- :mod:`benchkit.telemetry`: synthetic MAVLink telemetry logs (.tlog) for throughput benchmarks;
+- :mod:`benchkit.onboard_logs`: large dataflash (.bin) and ULog (.ulg) logs for the log-reading and
+  log-download benchmarks.
 
 Installed beside ``groundstation`` so that ``groundstation bench`` finds it; the ground station
 itself (everything but its ``bench`` commands) never imports it. The scenario sets of the blind

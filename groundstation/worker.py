@@ -216,7 +216,7 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
             raise
         return JobResult(flight=job.flight, tlogs=job.tlogs, error=f"flight {job.flight}: {exc}",
                          seconds=time.perf_counter() - t0, data=job.data)
-    model, prepared, val = res.model, res.prepared, dict(res.validation or {})
+    model, prepared, val = res.model, res.prepared, ({} if res.validation is None else res.validation.to_json())
     cross = _cross_flight(job, model, prepared)
     if cross:
         model.fit["cross_flight"] = cross
@@ -239,7 +239,7 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
                                           else (None, None, None, None))
     trends, trends_error = _trends(job, model, gap, prepared, time.perf_counter() - t0)
     report_path, report_summary, report_error = (
-        _report(job, prepared, model, val, res.validation_series, res.freq, gap, pictures,
+        _report(job, prepared, model, res.validation, res.freq, gap, pictures,
                 {"freq": freq_error, "gap": gap_error, "history": trends_error})
         if cfg.identification.plots else (None, None, None))
     return JobResult(
@@ -268,7 +268,7 @@ def _trends(job: IdentifyJob, model: Any, gap: Any, prepared: Any, seconds: floa
         return None, f"flight {job.flight}: trends: {type(exc).__name__}: {exc}".splitlines()[0]
 
 
-def _report(job: IdentifyJob, prepared: Any, model: Any, val: dict[str, Any], series: Any, verification: Any,
+def _report(job: IdentifyJob, prepared: Any, model: Any, validation: Any, verification: Any,
             gap: Any, pictures: Any, errors: dict[str, str | None]) -> tuple[Any, Any, Any]:
     """(``report-flightNN.html`` path, one-line summary, None) of the flight's page, drawn from what this
     job computed, or (None, None, one-line error): the model stands on its own."""
@@ -281,7 +281,7 @@ def _report(job: IdentifyJob, prepared: Any, model: Any, val: dict[str, Any], se
         label = ""
         if cfg.service.campaign_db and (Path(job.out_dir) / cfg.service.campaign_db).exists():
             history, label = load_history(Path(job.out_dir) / cfg.service.campaign_db, job.vehicle)
-        data = assemble(job.tlogs, cfg, prepared=prepared, model=model, validation={**val, "series": series},
+        data = assemble(job.tlogs, cfg, prepared=prepared, model=model, validation=validation,
                         freq=verification, gap=gap, pictures=pictures, history=history, history_label=label,
                         errors=errors, title=f"{job.vehicle} flight {job.flight}", aircraft=job.vehicle)
         path = write_html(job.file("report", "html"), render_report(data))

@@ -144,7 +144,7 @@ def _identification(con: Any, args: argparse.Namespace, rs: Any, prep: Any, trut
         m = fit()
         n, worst = _key_errors(m.params, truth)
         counts.setdefault(label, []).append(n)
-        ho = "" if heldout is None else f", held-out match on the next flight {validate(m, heldout)['mean_match']:.1f} %"
+        ho = "" if heldout is None else f", held-out match on the next flight {validate(m, heldout).mean_match:.1f} %"
         con.print(f"    {label}: {n}/8 key parameters within 10 % (worst {worst}), J_avg {verify(m.theta, rs).J_avg:.1f}{ho}")
 
 

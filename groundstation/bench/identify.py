@@ -183,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
               f"(worst {worst_key} {key_err[worst_key]:.1f}%); "
               f"|z| <= 3: {int(np.sum(za <= 3))}/{int(np.isfinite(za).sum())} (max {np.nanmax(za):.2f})")
     true_model = HoverModel(params=dict(truth))
-    v_id, v_true = validate(model, val), validate(true_model, val)
+    v_id, v_true = validate(model, val).to_json(), validate(true_model, val).to_json()
     ratio = v_id["mean_match"] / v_true["mean_match"] * 100
     tv = Table(title="match degree on a DIFFERENT flight (%), identified vs true model")
     tv.add_column("model")

@@ -167,10 +167,10 @@ def _score_and_write(args: argparse.Namespace, models: dict[str, Any], rs: Any, 
     for name, m in models.items():
         v = verify(m.theta, rs, delays_from_augmentations(m.augmentations))
         t = validate(m, prepared)
-        scores[name] = {"J_avg": v.J_avg, "J_avg_good": v.good, "mean_match": t["mean_match"],
+        scores[name] = {"J_avg": v.J_avg, "J_avg_good": v.good, "mean_match": t.mean_match,
                         "J": {f"{p.input}->{p.output}": p.J for p in v.pairs}}
         m.fit["scores"] = {"frequency": {k: scores[name][k] for k in ("J_avg", "J_avg_good", "J")},
-                           "time": {"mean_match": t["mean_match"]}}
+                           "time": {"mean_match": t.mean_match}}
         mark_unsupported(m, prepared)
         m.source["logs"] = [str(p) for p in args.logs]
     outs = {"frequency": args.out} if args.domain == "frequency" else {

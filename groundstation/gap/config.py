@@ -104,6 +104,13 @@ class DiagnoseConfig:
     #: a per-window sinusoid fit can raise a window's cost at most by this factor (a fit to pure
     #: noise in a short window is bounded, not unbounded)
     vibration_cost_cap: float = 1.5
+    #: periodogram window (s) of the vibration lines in the log's own high-rate gyro (a dataflash IMU
+    #: faster than twice the grid)
+    native_line_window_s: float = 2.0
+    #: lowest frequency (Hz) tested for a line in the log's own high-rate gyro (below it: the flown motion)
+    native_line_min_hz: float = 10.0
+    #: significance of a line in the log's own high-rate gyro (Bonferroni over bins and axes)
+    native_line_alpha: float = 1e-3
 
     # ------------------------------------------------------------------ unexplained
     #: with nothing named and the gap significant, "unexplained" needs at least this share of the

@@ -103,7 +103,7 @@ def test_output_error_fit_gets_the_key_parameters_and_predicts_another_flight(fl
     assert max(err.values()) <= 0.10, err
     other = flight(150.0, seed=7)
     truth = HoverModel(params=dict(EXAMPLE_TRUTH))
-    assert validate(m, other)["mean_match"] >= 0.99 * validate(truth, other)["mean_match"]
+    assert validate(m, other).mean_match >= 0.99 * validate(truth, other).mean_match
     # responses only (no flight records): Tischler's J, and the model says so
     assert identify_frequency(rs, None, start=truth_theta).fit["weighting"] == "coherence"
 

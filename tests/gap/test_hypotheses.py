@@ -86,7 +86,7 @@ def test_air_mass_scan_settings_come_from_the_diagnosis_configuration(flight_fac
     from groundstation.gap.evaluate import Evaluator
     from groundstation.gap.hypotheses import Context, scan_wind_gust
 
-    prep = flight_factory(T_s=30.0, seed=21, effect=("wind_gust", 2.0, 1.5))
+    prep = flight_factory(T_s=18.0, seed=21, effect=("wind_gust", 2.0, 1.5))
     segs, avail = segments_from_prepared(prep)
     ev = Evaluator(segs, prep.dt_s, paper_theta, avail, window_s=3.0, folds=3)
     cfg = DiagnoseConfig(gust_chunk_s=1.0, gust_knot_s=1.0, gust_refine_iterations=0)

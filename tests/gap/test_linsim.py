@@ -43,6 +43,14 @@ def test_heldout_scoring_and_refine(paper_theta, flight_factory):
     ev = Evaluator([seg], 0.02, paper_theta, np.ones(8, bool))
     sse, train, coef = ev.heldout(ev.r0)
     assert sse.shape == (ev.W, 8) and coef.shape == (3, 0)
+    # the batched re-fit of several variants is the one-by-one re-fit
+    rs = ev.r0[None] * np.array([1.0, 0.5, 2.0])[:, None, None, None] + 0.01 * np.arange(3)[:, None, None, None]
+    s_all, t_all, b_all = ev.heldout_many(rs, chunk_bytes=2 * rs[0].nbytes)
+    for v in range(3):
+        s1, t1, _ = ev.heldout(rs[v])
+        np.testing.assert_allclose(s_all[v], s1, rtol=1e-9)
+        np.testing.assert_allclose(t_all[v], t1, rtol=1e-9)
+        np.testing.assert_allclose(b_all[v], ev.last_blocks, rtol=1e-9)
     # a model 20 % off in every parameter is clearly worse than the truth ...
     ev2 = Evaluator([seg], 0.02, paper_theta * 1.2, np.ones(8, bool))
     assert (ev2.r0 ** 2).sum() > 1.5 * (ev.r0 ** 2).sum()
