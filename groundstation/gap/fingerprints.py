@@ -112,7 +112,8 @@ def spectral_lines(resid: np.ndarray, inputs: np.ndarray, dt_s: float, available
     A line the inputs also carry is left out where the inputs could have put it in the residual: the
     strongest input power at that frequency through the model's largest response from any input to the
     channel, ``max_j |G_j(f)|^2 max_j Pu_j(f)`` (any input: one held still in the log, or not logged,
-    may be the one that moved the aircraft),
+    may be the one that moved the aircraft), or where a stick's line there is not an echo (its power
+    at or above that stick's mean spectral level: a card's or a pilot's oscillation),
     times :data:`STICK_REACH_FACTOR` squared, is at least the residual's line power (above its local
     median). A residual line the sticks could only have made were the model's response wrong by more
     than that factor in amplitude was not made by the sticks: a stabilising loop passes a vibration the
@@ -161,7 +162,11 @@ def spectral_lines(resid: np.ndarray, inputs: np.ndarray, dt_s: float, available
         # model's largest response to any stick (a stick held still in the log may be the one that moves)
         reach = np.nan_to_num(G2).max(axis=2) * Pu.max(axis=1)[:, None]
         r_exc = P * (1.0 - 1.0 / np.maximum(ratio, 1.0))
-        sig &= ~(u_line.any(axis=1)[:, None] & (STICK_REACH_FACTOR ** 2 * reach >= r_exc))
+        # an echo: every stick's line there lies below that stick's mean spectral level (a card's or a
+        # pilot's oscillation is a large part of the stick's motion and is never an echo)
+        mean_psd = 2.0 * dt_s * inputs.reshape(-1, inputs.shape[-1]).var(axis=0)
+        echo = ~(u_line & (Pu >= mean_psd[None, :])).any(axis=1)
+        sig &= ~(u_line.any(axis=1)[:, None] & ((STICK_REACH_FACTOR ** 2 * reach >= r_exc) | ~echo[:, None]))
     lines: list[Line] = []
     used = np.zeros(len(f), bool)
     order = np.argsort(np.where(sig, logp, 0).min(axis=1))
