@@ -141,7 +141,8 @@ def _line(r: dict[str, Any]) -> str:
         return f"{head} CRASH {r['crash']}"
     lk = r.get("link") or {}
     link = (f"lost {lk.get('loss_pct', float('nan')):.1f} %, {lk.get('in_air_holes', 0)} holes "
-            f"(longest {lk.get('longest_gap_s', 0.0):.2f} s, {lk.get('holes_split', 0)} split), "
+            f"(longest {lk.get('longest_gap_s', 0.0):.2f} s, {lk.get('holes_split', 0)} split over "
+            f"{lk.get('max_input_bridge_s') or 0.0:g} s), "
             f"{lk.get('unmeasured_pct', 0.0):.1f} % samples not counted") if lk else ""
     if "refused" in r:
         return f"{head} {link}; refused: {r['refused']} ({r['cpu_s']:.1f} s CPU)"
@@ -155,7 +156,8 @@ def _table(rows: list[dict[str, Any]], diagnose: bool) -> Any:
     from rich.table import Table
 
     t = Table(title="link loss: identification and diagnosis against the loss-free flight")
-    for c in ("seed", "flight", "kind", "loss %", "holes", "longest s", "key 8", "held-out %", "vs 0 %"):
+    for c in ("seed", "flight", "kind", "loss %", "holes", "longest s", "bridge s", "split", "key 8", "held-out %",
+              "vs 0 %"):
         t.add_column(c, justify="right")
     if diagnose:
         t.add_column("verdict")
@@ -164,7 +166,8 @@ def _table(rows: list[dict[str, Any]], diagnose: bool) -> Any:
     for r in rows:
         lk = r.get("link") or {}
         cells = [str(r["seed"]), r["flight"], r["kind"], f"{r['loss_pct']:g}", str(lk.get("in_air_holes", "-")),
-                 f"{lk.get('longest_gap_s', float('nan')):.2f}",
+                 f"{lk.get('longest_gap_s', float('nan')):.2f}", f"{lk.get('max_input_bridge_s') or 0.0:.2f}",
+                 str(lk.get("holes_split", "-")),
                  "crash" if "crash" in r else ("refused" if "refused" in r else str(r["key_within_10"])),
                  f"{r['heldout_match']:.1f}" if "heldout_match" in r else "-",
                  f"{r['heldout_vs_lossfree_pct']:.1f}" if "heldout_vs_lossfree_pct" in r else "-"]
