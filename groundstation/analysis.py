@@ -394,7 +394,8 @@ def held_out(model: Any, prepared: Any, cfg: ServiceConfig, aircraft: Any, k: in
                 from groundstation.sysid.structure_choice import fold_fitter
 
                 fit_fold = fold_fitter(model)
-            cv = crossvalidate(prepared, fit_fold, k=k, pmap=serial_map if pmap is None else pmap)
+            cv = crossvalidate(prepared, fit_fold, k=k, window_s=icfg.heldout_window_s,
+                               runaway_factor=icfg.runaway_factor, pmap=serial_map if pmap is None else pmap)
         except ValueError as exc:
             model.fit["heldout"] = {"skipped": str(exc)}
             return model.fit["heldout"]

@@ -219,6 +219,8 @@ def validate(cfg: ServiceConfig, where: str = "config") -> None:
         (cfg.identification.heldout_folds == 0 or cfg.identification.heldout_folds >= 2,
          "identification.heldout_folds", cfg.identification.heldout_folds, "must be 0 (skip) or >= 2"),
         (cfg.identify.search_restarts >= 1, "identify.search_restarts", cfg.identify.search_restarts, "must be >= 1"),
+        (cfg.identify.heldout_window_s > 0, "identify.heldout_window_s", cfg.identify.heldout_window_s, "must be > 0"),
+        (cfg.identify.runaway_factor > 0, "identify.runaway_factor", cfg.identify.runaway_factor, "must be > 0"),
         (cfg.sim.speed > 0, "sim.speed", cfg.sim.speed, "must be > 0"),
         (cfg.sim.flights >= 1, "sim.flights", cfg.sim.flights, "must be >= 1"),
         (all(1 <= s <= 16 for s in cfg.prepare.input_channels), "prepare.input_channels",

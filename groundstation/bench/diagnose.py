@@ -219,6 +219,7 @@ def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
         out["structure_tests"] = [{k: t.get(k) for k in ("kind", "input", "coefficient", "score_pct", "p_value",
                                                      "significant", "effect_to_noise")} for t in rep.get("structure_tests", [])]
         out["gap_to_noise_ratio"] = rep["gap"].get("gap_to_noise_ratio")
+        out["gap_significant"] = rep["gap"].get("significant")
         sh = rep.get("shares") or {}
         out["explained_pct"] = sh.get("explained_pct")
         out["partial_explained_pct"] = sh.get("partial_explained_pct")
@@ -368,7 +369,8 @@ def print_held_back(held: list[dict]) -> None:
     for r in held:
         print(f"  case {r['case']:3d} {r['truth_effects'] or ['none']} noise x{r['flight'].get('noise_scale', 1.0):g}"
               f" expect {r.get('expect')} -> {r['verdict']} {_named(r)}"
-              f"{' explained ' + str(r['explained_pct']) + '%' if r.get('explained_pct') is not None else ''}")
+              f"{' explained ' + str(r['explained_pct']) + '%' if r.get('explained_pct') is not None else ''}"
+              f"{_gap_text(r)}")
     if rest:
         print(f"held-back top-1 accuracy: {len(right)}/{len(rest)} = {100.0 * len(right) / len(rest):.1f}%")
     if nones:
@@ -377,6 +379,23 @@ def print_held_back(held: list[dict]) -> None:
     if drift:
         ok = sum(r["verdict"] == "unexplained" or _sensor_right(r) for r in drift)
         print(f"held-back drifting / out-of-catalogue flights: unexplained {ok}/{len(drift)}")
+        # a departure no larger than the noise cannot be told from an effect-free flight by any test:
+        # the drifting flights whose held-out gap is significant are the ones the figure can ask for
+        sig = [r for r in drift if r.get("gap_significant")]
+        if len(sig) < len(drift):
+            ok_s = sum(r["verdict"] == "unexplained" or _sensor_right(r) for r in sig)
+            print(f"  of them with a significant held-out gap: unexplained {ok_s}/{len(sig)}; the other "
+                  f"{len(drift) - len(sig)} leave a gap at the noise floor (verdicts "
+                  f"{', '.join(r['verdict'] for r in drift if not r.get('gap_significant'))})")
+
+
+def _gap_text(r: dict) -> str:
+    """`` gap max Nx noise (significant|at the noise floor)`` of a case, when the run recorded it."""
+    g = r.get("gap_to_noise_ratio") or {}
+    if not g or r.get("gap_significant") is None:
+        return ""
+    c = max(g, key=lambda k: g[k])
+    return f" gap {c} {g[c]:g}x noise ({'significant' if r['gap_significant'] else 'not significant'})"
 
 
 def _print_singles(singles: list[dict], classes: list[str]) -> None:

@@ -113,8 +113,9 @@ class DiagnoseConfig:
     native_line_alpha: float = 1e-3
 
     # ------------------------------------------------------------------ unexplained
-    #: with nothing named and the gap significant, "unexplained" needs at least this share of the
-    #: excess residual energy in flagged windows (else the gap is spread evenly: "none")
+    #: with nothing named and the gap significant, the first decision calls it "unexplained" when at
+    #: least this share of the excess residual energy is in flagged windows; the share rule then calls
+    #: any significant gap with nothing named "unexplained" (0 % explained), spread evenly or not
     unexplained_flagged_share: float = 0.5
     #: a structure the linear model cannot have (input asymmetry, amplitude dependence) counts only
     #: when the residual part it explains has an RMS above this many times the noise floor measured

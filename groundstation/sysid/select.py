@@ -177,7 +177,7 @@ def _crossvalidate(prepared: Any, model: HoverModel, cfg: Any, prior: Any, pmap:
 
     c = dataclasses.replace(cfg, refine_max_nfev=min(int(cfg.refine_max_nfev), SELECT_REFIT_NFEV))
     return crossvalidate(prepared, partial(refit, model=model, config=c, prior=prior), k=int(cfg.select_folds),
-                         window_s=5.0, pmap=pmap)
+                         window_s=float(cfg.heldout_window_s), runaway_factor=float(cfg.runaway_factor), pmap=pmap)
 
 
 def _row(name: str, c_cfg: Any, cfg: Any, cv: Any) -> dict[str, Any]:

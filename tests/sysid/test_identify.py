@@ -88,10 +88,11 @@ def test_fit_section_and_validation_are_typed_and_round_trip_unchanged(flights, 
         fit.usable = False  # type: ignore[misc]
     # a held-out check that ran (two folds of the short flight, few iterations)
     m2 = HoverModel.from_json(model.to_json())
-    cfg = ServiceConfig().replace("identify", refine_passes=1, refine_max_nfev=10)
+    cfg = ServiceConfig().replace("identify", refine_passes=1, refine_max_nfev=10, heldout_window_s=4.0)
     held_out(m2, train, cfg, None, 2)
     ho = ModelFit.from_json(m2.fit).heldout
     assert ho is not None and ho.k == 2 and len(ho.folds) == 2 and ho.mean_match is not None
+    assert ho.window_s == 4.0   # [identify] heldout_window_s
     assert json.dumps(ho.to_json()) == json.dumps(m2.fit["heldout"])
 
     v = validate(model, other, return_series=True)
