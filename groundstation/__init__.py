@@ -30,14 +30,17 @@ _API = {
     "Progress": "groundstation.analysis",
     "STEPS": "groundstation.analysis",
     "HoverModel": "groundstation.sysid.model",
+    "ModelFit": "groundstation.sysid.fit_section",
+    "HeldOut": "groundstation.sysid.fit_section",
+    "Validation": "groundstation.sysid.validate",
     "Aircraft": "groundstation.aircraft",
     "load_aircraft": "groundstation.aircraft",
     "ServiceConfig": "groundstation.config",
     "load_config": "groundstation.config",
 }
 
-__all__ = ["STEPS", "Aircraft", "AnalysisResult", "GapReport", "HoverModel", "Progress", "ServiceConfig", "analyse",
-           "diagnose", "identify", "load_aircraft", "load_config", "load_log"]
+__all__ = ["STEPS", "Aircraft", "AnalysisResult", "GapReport", "HeldOut", "HoverModel", "ModelFit", "Progress",
+           "ServiceConfig", "Validation", "analyse", "diagnose", "identify", "load_aircraft", "load_config", "load_log"]
 assert sorted(__all__) == sorted(_API)
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
@@ -45,7 +48,9 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from groundstation.aircraft import Aircraft, load_aircraft
     from groundstation.analysis import STEPS, AnalysisResult, GapReport, Progress, analyse, diagnose, identify
     from groundstation.config import ServiceConfig, load_config
+    from groundstation.sysid.fit_section import HeldOut, ModelFit
     from groundstation.sysid.model import HoverModel
+    from groundstation.sysid.validate import Validation
 
 
 def __getattr__(name: str) -> Any:

@@ -147,7 +147,9 @@ class Aircraft:
         return replace(cfg, input_source="RC_CHANNELS" if im.source == "RC_CHANNELS" else "SERVO_OUTPUT_RAW",
                        input_channels=im.channels, input_trim_pwm=trim,
                        pwm_per_unit=1.0 if im.units == "normalised" else im.pwm_per_unit,
-                       swash_phase_deg=im.swash_phase_deg, measured_outputs=tuple(self.measured))
+                       swash_phase_deg=im.swash_phase_deg, measured_outputs=tuple(self.measured),
+                       rotor_inv_tau_s=float(self.prior.nominal[PARAM_NAMES.index("inv_tau_s")]
+                                             + self.prior.std[PARAM_NAMES.index("inv_tau_s")]))
 
 
 def _err(name: str, key: str, value: Any, why: str) -> AircraftError:

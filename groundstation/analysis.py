@@ -36,6 +36,8 @@ from groundstation.config import ServiceConfig
 from groundstation.errors import GroundstationError
 from groundstation.parallel import Map, serial_map
 from groundstation.pipeline import load_aircraft, load_logs, load_model, prepare_native, with_aircraft
+from groundstation.sysid.fit_section import HeldOut, ModelFit
+from groundstation.sysid.validate import Validation
 
 __all__ = ["STEPS", "AnalysisError", "AnalysisResult", "DataSummary", "GapReport", "Progress", "analyse",
            "analyse_prepared", "diagnose", "identify"]
@@ -122,9 +124,10 @@ class GapReport:
 class AnalysisResult:
     """Everything one analysis produced; a step left out (or failed with ``keep_going``) is None.
 
-    ``model`` is a :class:`groundstation.sysid.model.HoverModel` (its ``fit`` holds the held-out
-    verdict: ``heldout``, ``usable``, ``closed_loop``), ``validation`` the match per channel on the
-    prepared data, ``freq`` the frequency-domain check (a :class:`groundstation.freq.verify.Verification`,
+    ``model`` is a :class:`groundstation.sysid.model.HoverModel` (its ``fit`` section holds the held-out
+    verdict: ``heldout``, ``usable``, ``closed_loop``; :attr:`fit` reads it as a typed
+    :class:`groundstation.sysid.fit_section.ModelFit`), ``validation`` the match per channel on the
+    prepared data (a :class:`groundstation.sysid.validate.Validation`), ``freq`` the frequency-domain check (a :class:`groundstation.freq.verify.Verification`,
     ``to_json()`` gives ``heli-freq-verification/1``), ``gap`` the :class:`GapReport`. ``errors`` maps
     a step that failed to its one-line error (only with ``keep_going``), ``seconds`` each step to its
     wall time.
@@ -132,7 +135,7 @@ class AnalysisResult:
 
     data: DataSummary
     model: Any = None
-    validation: dict[str, Any] | None = None
+    validation: Validation | None = None
     freq: Any = None
     gap: GapReport | None = None
     steps: tuple[str, ...] = ()
@@ -141,17 +144,17 @@ class AnalysisResult:
     config: ServiceConfig = field(default_factory=ServiceConfig, repr=False, compare=False)
     aircraft: Any = field(default=None, repr=False, compare=False)
     prepared: Any = field(default=None, repr=False, compare=False)     # groundstation.dsp.prepare.PreparedData
-    #: validate()'s windowed series (t_s, y, yhat), for plots
+    #: validate()'s windowed series (t_s, y, yhat), for plots (``validation.series``)
     validation_series: dict[str, Any] | None = field(default=None, repr=False, compare=False)
 
     def __repr__(self) -> str:
         parts = [f"{self.data.duration_s:g} s in air in {self.data.segments} segments"]
         if self.model is not None:
-            ho = self.heldout or {}
-            parts.append(f"model (usable={self.usable}, held-out mean match "
-                         f"{ho['mean_match']:.1f} %)" if "mean_match" in ho else f"model (usable={self.usable})")
+            ho = self.heldout
+            parts.append(f"model (usable={self.usable}, held-out mean match {ho.mean_match:.1f} %)"
+                         if ho is not None and ho.mean_match is not None else f"model (usable={self.usable})")
         if self.validation is not None:
-            parts.append(f"validation mean match {self.validation['mean_match']:.1f} %")
+            parts.append(f"validation mean match {self.validation.mean_match:.1f} %")
         if self.freq is not None:
             ja = self.freq.J_avg
             parts.append("frequency check J_avg " + ("-" if ja is None else f"{ja:.0f}"))
@@ -162,19 +165,28 @@ class AnalysisResult:
         return f"AnalysisResult({'; '.join(parts)})"
 
     @property
-    def heldout(self) -> dict[str, Any] | None:
-        """The held-out verdict (``model.fit["heldout"]``), None when not checked."""
-        return None if self.model is None else self.model.fit.get("heldout")
+    def fit(self) -> ModelFit | None:
+        """The model's ``fit`` section, typed (read afresh from the model each time); None without a model."""
+        return None if self.model is None else ModelFit.from_json(self.model.fit)
+
+    @property
+    def heldout(self) -> HeldOut | None:
+        """The held-out verdict (the fit section's ``heldout``), None when not checked."""
+        fit = self.fit
+        return None if fit is None else fit.heldout
 
     @property
     def usable(self) -> bool | None:
-        return None if self.model is None else self.model.fit.get("usable")
+        """False when a subsystem's held-out prediction runs away, None when not checked."""
+        fit = self.fit
+        return None if fit is None else fit.usable
 
     def to_json(self) -> dict[str, Any]:
         """One JSON document of the whole analysis (model, validation, frequency check, gap report)."""
         return {"schema": "heli-analysis/1", "steps": list(self.steps), "data": self.data.to_json(),
                 "model": None if self.model is None else self.model.to_json(),
-                "validation": self.validation, "freq": None if self.freq is None else self.freq.to_json(),
+                "validation": None if self.validation is None else self.validation.to_json(),
+                "freq": None if self.freq is None else self.freq.to_json(),
                 "gap": None if self.gap is None else self.gap.to_json(), "errors": dict(self.errors),
                 "seconds": dict(self.seconds)}
 
@@ -309,7 +321,7 @@ def analyse_prepared(prepared: Any, config: ServiceConfig | None = None, aircraf
         from groundstation.sysid.validate import validate
 
         validation = step("validate", lambda: validate(model, prepared, return_series=True))
-        series = validation.pop("series", None)
+        series = None if validation is None else validation.series
     cache: dict[str, Any] = {} if responses is None else {"responses": responses}
     # a flight too short or too quiet for a frequency analysis is an answer (errors["freq"]), not a failure
     freq = step("freq", lambda: _freq_check(model, prepared, logs, cfg, cache), (ValueError,))
@@ -382,7 +394,8 @@ def held_out(model: Any, prepared: Any, cfg: ServiceConfig, aircraft: Any, k: in
                 from groundstation.sysid.structure_choice import fold_fitter
 
                 fit_fold = fold_fitter(model)
-            cv = crossvalidate(prepared, fit_fold, k=k, pmap=serial_map if pmap is None else pmap)
+            cv = crossvalidate(prepared, fit_fold, k=k, window_s=icfg.heldout_window_s,
+                               runaway_factor=icfg.runaway_factor, pmap=serial_map if pmap is None else pmap)
         except ValueError as exc:
             model.fit["heldout"] = {"skipped": str(exc)}
             return model.fit["heldout"]
@@ -443,7 +456,7 @@ def _diagnose(model: Any, prepared: Any, logs: Sequence[Any], log_paths: Sequenc
 
     diag = run_diagnosis(model, prepared, seed=cfg.identification.seed, config=cfg.diagnose, pmap=pmap)
     report = diag.report
-    native = native_vibration(list(logs), cfg.prepare.rate_hz)
+    native = native_vibration(list(logs), cfg.prepare.rate_hz, cfg.diagnose)
     if native is not None:
         unfold_rotor_line(report, native, cfg.prepare.rate_hz)
     report["source"] = {"logs": list(log_paths), "model": model_source}
@@ -472,10 +485,14 @@ def frequency_section(model: Any, report: dict, prepared: Any, logs: Sequence[An
     return section(v)
 
 
-def native_vibration(logs: list, grid_rate_hz: float) -> dict | None:
+def native_vibration(logs: list, grid_rate_hz: float, cfg: Any = None) -> dict | None:
     """Vibration lines in the logs' own high-rate gyro (dataflash IMU/GYR faster than twice the grid),
-    over the armed flights; None when no log has one. Adds the logged rotor speed when there is one."""
+    over the armed flights; None when no log has one. Adds the logged rotor speed when there is one.
+    ``cfg``: the :class:`groundstation.gap.config.DiagnoseConfig` (``native_line_*``; None: defaults)."""
+    from groundstation.gap.config import DiagnoseConfig
     from groundstation.gap.fingerprints import native_rate_lines
+
+    cfg = cfg if cfg is not None else DiagnoseConfig()
 
     for log in logs:
         for name in ("GYRO_FAST", "IMU"):
@@ -489,7 +506,8 @@ def native_vibration(logs: list, grid_rate_hz: float) -> dict | None:
             for fl in log.flights:
                 sel |= (s.t_fc_s >= fl.start_fc_s) & (s.t_fc_s <= fl.end_fc_s)
             g = np.stack([s["gx_rad_s"], s["gy_rad_s"], s["gz_rad_s"]], axis=1)[sel]
-            lines = native_rate_lines(g[np.isfinite(g).all(axis=1)], dt)
+            lines = native_rate_lines(g[np.isfinite(g).all(axis=1)], dt, window_s=cfg.native_line_window_s,
+                                      min_hz=cfg.native_line_min_hz, alpha=cfg.native_line_alpha)
             rotor = log.series.get("ROTOR")
             rpm = None
             if rotor is not None and len(rotor):

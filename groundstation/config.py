@@ -69,6 +69,11 @@ class ServiceSection:
 class LinkSection:
     url: str = ""                    # empty = built-in simulated flight controller on a pty
     baud: int = 115200               # used for the built-in simulator's serial URL
+    #: what carries the link: "usb" (a cable: fast, loss-free), "radio" (a telemetry radio or network: slow,
+    #: lossy) or "auto" (from the port: USB CDC-ACM such as /dev/ttyACM0 and virtual ports are usb, any other
+    #: serial port, udp and tcp are radio). Decides whether the service fetches a lossy flight's onboard log to
+    #: analyse it instead of the telemetry ([onboard_logs] analyse)
+    kind: str = "auto"
     # MAVLink 2 signing (firmware_interface.signing): key file (chmod 600) or "" = unsigned link;
     # messages accepted unsigned (e.g. RADIO_STATUS from a radio); our link id in signatures
     signing_key_file: str = ""
@@ -122,6 +127,10 @@ class OnboardLogsSection:
     #: a flight whose telemetry lost more than this share of packets (%) gets one line at disarm saying
     #: that the FC's onboard log holds the full data (and how to fetch it when ``download`` is off)
     suggest_above_loss_pct: float = 5.0
+    #: such a flight's onboard log is downloaded and analysed instead of its telemetry (the telemetry's
+    #: results stay published until the onboard log's are ready): "usb" only over a USB link ([link] kind),
+    #: "always" also over a slow radio, "off" never
+    analyse: str = "usb"
 
 
 @dataclass(frozen=True)
@@ -199,6 +208,9 @@ def validate(cfg: ServiceConfig, where: str = "config") -> None:
         (cfg.service.status_rate_hz > 0, "service.status_rate_hz", cfg.service.status_rate_hz, "must be > 0"),
         (cfg.rerun.mode in ("off", "spawn", "connect", "save"), "rerun.mode", cfg.rerun.mode,
          "must be off, spawn, connect or save"),
+        (cfg.link.kind in ("auto", "usb", "radio"), "link.kind", cfg.link.kind, "must be auto, usb or radio"),
+        (cfg.onboard_logs.analyse in ("off", "usb", "always"), "onboard_logs.analyse", cfg.onboard_logs.analyse,
+         "must be off, usb or always"),
         (cfg.rerun.mode != "save" or bool(cfg.rerun.target), "rerun.target", cfg.rerun.target, "save needs a PATH.rrd"),
         (cfg.identification.scope in ("last", "all"), "identification.scope", cfg.identification.scope,
          "must be last or all"),
@@ -207,6 +219,8 @@ def validate(cfg: ServiceConfig, where: str = "config") -> None:
         (cfg.identification.heldout_folds == 0 or cfg.identification.heldout_folds >= 2,
          "identification.heldout_folds", cfg.identification.heldout_folds, "must be 0 (skip) or >= 2"),
         (cfg.identify.search_restarts >= 1, "identify.search_restarts", cfg.identify.search_restarts, "must be >= 1"),
+        (cfg.identify.heldout_window_s > 0, "identify.heldout_window_s", cfg.identify.heldout_window_s, "must be > 0"),
+        (cfg.identify.runaway_factor > 0, "identify.runaway_factor", cfg.identify.runaway_factor, "must be > 0"),
         (cfg.sim.speed > 0, "sim.speed", cfg.sim.speed, "must be > 0"),
         (cfg.sim.flights >= 1, "sim.flights", cfg.sim.flights, "must be >= 1"),
         (all(1 <= s <= 16 for s in cfg.prepare.input_channels), "prepare.input_channels",

@@ -72,18 +72,20 @@ def link_summary(log: Any, bridge_limit_s: float | None = None) -> dict[str, Any
     """The link as a radio delivers it: packets lost (MAVLink sequence numbers), outages (the holes of
     the telemetry streams - intervals over 1.5 of a stream's period - merged where they overlap: a fade
     takes every type at once), their length, packets lost per outage (the burst length), and how many
-    are longer than data preparation's input bridge (``[prepare] max_input_bridge_s``; shorter ones are
+    are longer than data preparation's input bridge (``[prepare] max_input_bridge_s``, else derived from the
+    log's inputs and the default rotor, :func:`groundstation.dsp.prepare.derive_bridge`; shorter ones are
     bridged and their samples left out of every cost)."""
-    from groundstation.dsp.prepare import PrepConfig
+    from groundstation.dsp.prepare import PrepConfig, bridge_why, derive_bridge
 
-    limit = PrepConfig().max_input_bridge_s if bridge_limit_s is None else bridge_limit_s
+    bridge = derive_bridge([log], PrepConfig(max_input_bridge_s=bridge_limit_s))
+    limit = float(bridge["limit_s"])
     st = log.stats
     total = int(st.packets) + int(st.packets_lost)
     loss = 100.0 * st.packets_lost / total if total and st.packets_lost else (0.0 if total else math.nan)
     streams = [log.series[n] for n in _STREAMS if n in log.series and len(log.series[n]) > 3]
     out: dict[str, Any] = {"loss_pct": _num(loss), "outages": 0, "outages_per_min": None, "median_outage_s": None,
                            "longest_outage_s": None, "lost_per_outage": None, "bridge_limit_s": limit,
-                           "outages_split": 0}
+                           "outages_split": 0, "bridge_rule": bridge["rule"], "bridge_why": bridge_why(bridge)}
     iv: list[tuple[float, float]] = []
     t_lo, t_hi = math.inf, -math.inf
     for s in streams:

@@ -8,11 +8,19 @@ events (:meth:`OnboardLogs.on_events`) and calls :meth:`OnboardLogs.tick` from i
 leave through the session's read-only allowlist. Only while disarmed: arming stops the download (the
 FC would not answer anyway), keeps what arrived, and the next disarm resumes it. A finished log is
 written atomically and verified in a thread (:func:`firmware_interface.logtransfer.write_verified`).
+
+A flight whose telemetry lost too much (``suggest_above_loss_pct``) can have its log fetched for
+analysis (``[onboard_logs] analyse``, :func:`analyse_onboard`): the log listed after that flight's
+disarm is remembered as that flight's, and when it is written the ``on_log(flight, path)`` callback
+hands it to the service, which analyses it instead of the telemetry. Whether the link is a USB cable
+or a slow radio is :func:`link_kind`'s answer.
 """
 
 from __future__ import annotations
 
 import asyncio
+import os
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -32,13 +40,50 @@ from firmware_interface.logdownload import (
 from firmware_interface.samples import Heartbeat, LinkLost, LinkRestored, RawPacket
 from groundstation.config import OnboardLogsSection
 
-__all__ = ["OnboardLogs", "OnboardLogsSection"]
+__all__ = ["OnboardLogs", "OnboardLogsSection", "analyse_onboard", "link_kind"]
+
+#: serial devices of the autopilot's own USB port (USB CDC-ACM: Linux ttyACM, macOS usbmodem) and
+#: virtual ports (a pty: the built-in simulated FC, a local SITL bridge)
+_USB_DEVICE = re.compile(r"(^ttyACM\d*$)|(usbmodem)|(^pts/)|(^ttys\d+$)|(^ptmx$)")
+
+
+def link_kind(url: str, configured: str = "auto") -> tuple[str, str]:
+    """``("usb" | "radio", why)``: what carries the link at ``url``, as ``[link] kind`` says or, with
+    ``auto``, from the port. The port's name (symlinks such as /dev/serial/by-id resolved) decides:
+    the autopilot's own USB port enumerates as a CDC-ACM device (``/dev/ttyACM0``,
+    ``/dev/cu.usbmodem1``) and a virtual port is a pty; a telemetry radio (SiK, RFD900) comes through a
+    USB-serial adapter or a UART (``/dev/ttyUSB0``, ``cu.usbserial``, ``ttyS``, ``COM3``) and WiFi
+    telemetry through udp/tcp, all taken as radio. The baud rate is not used: CDC-ACM ignores it and a
+    radio's serial side runs at the same rates as a wire."""
+    if configured in ("usb", "radio"):
+        return configured, f"[link] kind = {configured!r}"
+    from firmware_interface.errors import TransportError
+    from firmware_interface.transports import parse_url
+
+    try:
+        u = parse_url(url)
+    except TransportError:
+        return "radio", f"{url or 'no link'}: not a serial port"
+    if u.scheme != "serial":
+        return "radio", f"{u.scheme} link (network telemetry); set [link] kind = \"usb\" for a local one"
+    real = os.path.realpath(u.path) if os.path.islink(u.path) else u.path
+    name = real.removeprefix("/dev/")
+    if _USB_DEVICE.search(name):
+        return "usb", f"{real} is a USB CDC-ACM or virtual port"
+    return "radio", (f"{real} is a USB-serial adapter or UART, the way telemetry radios connect; "
+                     "set [link] kind = \"usb\" for a cable")
+
+
+def analyse_onboard(config: OnboardLogsSection, kind: str) -> bool:
+    """Whether a lossy flight's onboard log is to be analysed instead of its telemetry over a link of ``kind``."""
+    return config.analyse == "always" or (config.analyse == "usb" and kind == "usb")
 
 
 class OnboardLogs:
     """See the module docstring. ``session`` is the service's MavlinkSession; ``log`` one-line messages."""
 
-    def __init__(self, config: OnboardLogsSection, out_dir: Path, session: Any, log: Callable[[str], None]) -> None:
+    def __init__(self, config: OnboardLogsSection, out_dir: Path, session: Any, log: Callable[[str], None],
+                 on_log: Callable[[int, str], None] | None = None) -> None:
         self.config = config
         self.out_dir = out_dir
         self.session = session
@@ -55,13 +100,19 @@ class OnboardLogs:
         self._writing: set[asyncio.Future[Any]] = set()
         self._last: LogDownloader | None = None
         self.downloaded: list[str] = []
+        self.on_log = on_log
+        self._flight: tuple[int, bool] | None = None    # (flight, analyse it) of the listing to come
+        self._for_analysis: dict[int, int] = {}         # log id -> flight whose analysis waits for it
 
     @property
     def busy(self) -> bool:
         return self._start_at is not None or self._machine is not None or bool(self._writing)
 
-    def flight_ended(self, now: float) -> None:
+    def flight_ended(self, now: float, flight: int | None = None, analyse: bool = False) -> None:
+        """List (after ``after_disarm_s``) and fetch the newest log; with ``analyse`` it is ``flight``'s log
+        and goes to ``on_log`` once written."""
         self._start_at = now + self.config.after_disarm_s
+        self._flight = (flight, analyse) if flight is not None else None
 
     def on_events(self, events: list[Any], now: float) -> None:
         m = self._machine
@@ -103,16 +154,26 @@ class OnboardLogs:
             return  # progress
         self._machine = None
         if isinstance(ev, LogListed):
+            flight, self._flight = self._flight, None
+            if flight is not None and flight[1]:
+                if not ev.entries:
+                    self.log(f"flight {flight[0]}: the FC offers no onboard log; the telemetry's analysis stands")
+                else:   # the newest log after this flight's disarm is this flight's
+                    self._for_analysis[max(e.log_id for e in ev.entries)] = flight[0]
             todo = [e for e in ev.entries if e.log_id not in self._done]
             if todo:
                 self._download(max(todo, key=lambda e: e.log_id), now)
         elif isinstance(ev, LogRequestFailed):
-            self.log(f"onboard log: {ev.reason}")
+            flight, self._flight = self._flight, None
+            self.log(f"onboard log: {ev.reason}" + (f"; flight {flight[0]}'s telemetry analysis stands"
+                                                    if flight is not None and flight[1] else ""))
         elif isinstance(ev, DownloadFailed):
             last = self._last
             if last is not None and last.received_blocks:
                 self._partial[ev.log_id] = (bytes(last.data), bytes(last.have))
-            self.log(f"onboard {ev.reason} (kept; resumes after the next disarm)")
+            flight = self._for_analysis.get(ev.log_id)
+            stands = f"; flight {flight}'s telemetry analysis stands" if flight is not None else ""
+            self.log(f"onboard {ev.reason} (kept; resumes after the next disarm){stands}")
         elif isinstance(ev, DownloadComplete):
             self._done.add(ev.log_id)
             self._partial.pop(ev.log_id, None)
@@ -135,12 +196,15 @@ class OnboardLogs:
         self._writing.add(fut)
 
         def done(f: asyncio.Future[Any]) -> None:
-            self._writing.discard(f)
             exc = f.exception()
             if exc is not None:
                 self.log(f"onboard log {ev.log_id}: {exc}")
             else:
                 self.downloaded.append(str(path))
                 self.log(f"onboard log {ev.log_id}: wrote {path}, verified")
+                flight = self._for_analysis.pop(ev.log_id, None)
+                if flight is not None and self.on_log is not None:
+                    self.on_log(flight, str(path))     # before busy ends: the service's exit waits for its job
+            self._writing.discard(f)
 
         fut.add_done_callback(done)

@@ -79,6 +79,7 @@ class IdentState:
     failed: int = 0
     last_error: str | None = None
     last_seconds: float | None = None
+    last_data: str | None = None    # what the last published result came from: telemetry or onboard_log
 
 
 @dataclass
@@ -156,6 +157,7 @@ class Service:
         self._queue: deque[tuple[IdentifyJob, asyncio.Future[Any]]] = deque()   # waiting for the worker
         self._running: asyncio.Future[Any] | None = None        # the executor's future of the running job
         self._flight_tlogs: dict[int, str] = {}
+        self._jobs: dict[int, IdentifyJob] = {}     # each flight's job, for its onboard log's analysis
         self._rows_buf: list[tuple[np.ndarray, ...]] = []
         self._sm_buf: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._rerun_state = ""
@@ -276,11 +278,11 @@ class Service:
                     SigningConfig(lk.signing_key_file, lk.signing_link_id, lk.signing_accept_unsigned), time.time())
                 self.session = MavlinkSession(verifier=self.signing, signer=signer)
                 ob = self.config.onboard_logs
-                if ob.download:
+                if ob.download or ob.analyse != "off":
                     from groundstation.onboard import OnboardLogs
 
                     self.onboard = OnboardLogs(ob, Path(ob.dir) if ob.dir else self.record_dir / "onboard",
-                                               self.session, self.log)
+                                               self.session, self.log, on_log=self._analyse_onboard_log)
                 self._open_sinks(loop)
                 if self.config.identification.enabled:
                     self._executor = self._new_executor()
@@ -547,9 +549,9 @@ class Service:
             self.report.flight_tlogs.append(path)
         held = f"after {fe.duration_s:.1f} s" if math.isfinite(fe.duration_s) else "(no FC time seen while armed)"
         self.log(f"flight {fe.flight}: disarmed {held}; recorded {path or '(no file)'}")
-        self._suggest_onboard_log(fe.flight)
-        if self.onboard is not None:
-            self.onboard.flight_ended(time.time())
+        analyse = self._suggest_onboard_log(fe.flight)
+        if self.onboard is not None and (analyse or self.config.onboard_logs.download):
+            self.onboard.flight_ended(time.time(), fe.flight, analyse)
         self._rerun_event(f"flight {fe.flight} disarmed {held}", "INFO")
         if self.rerun is not None and self._rerun_calls is not None:
             self._flush_rows_to_rerun()
@@ -560,11 +562,12 @@ class Service:
                      else (path,))
             prev = [k for k in sorted(self._flight_tlogs) if k < fe.flight]
             live = self.excitation.take_freq_spectra(fe.flight) if self.excitation is not None else None
-            self.submit_identification(IdentifyJob(flight=fe.flight, tlogs=tlogs, out_dir=str(Path(path).parent),
-                                                   config=self.config,
-                                                   previous_flight=prev[-1] if prev else -1,
-                                                   previous_tlogs=(self._flight_tlogs[prev[-1]],) if prev else (),
-                                                   live_spectra=live if len(tlogs) == 1 else None))
+            job = IdentifyJob(flight=fe.flight, tlogs=tlogs, out_dir=str(Path(path).parent), config=self.config,
+                              previous_flight=prev[-1] if prev else -1,
+                              previous_tlogs=(self._flight_tlogs[prev[-1]],) if prev else (),
+                              live_spectra=live if len(tlogs) == 1 else None)
+            self._jobs[fe.flight] = dataclasses.replace(job, live_spectra=None)
+            self.submit_identification(job)
         self._check_exit()
 
     def submit_identification(self, job: IdentifyJob) -> asyncio.Future[JobResult]:
@@ -652,12 +655,15 @@ class Service:
         """A new model (and gap report): log, live trim, zenoh, Rerun."""
         flight, model, gap = res.flight, res.model or {}, res.gap
         table = " ".join(f"{k}={v:.1f}" for k, v in res.match_degree.items())
-        self.log(f"flight {flight}: model {res.model_path} ({res.seconds:.1f} s); match % {table}")
+        onboard = res.data == "onboard_log"
+        self.ident.last_data = res.data
+        whence = " from the onboard log, replacing the telemetry's" if onboard else ""
+        self.log(f"flight {flight}: model {res.model_path} ({res.seconds:.1f} s){whence}; match % {table}")
         line = cross_flight_line(flight, (model.get("fit") or {}).get("cross_flight") or {})
         if line:
             self.log(line)
         lq = (model.get("source") or {}).get("link_quality") or {}
-        if lq:
+        if lq and not onboard:        # the status keeps the link's figures, not the onboard log's
             self.last_flight_link = {"flight": flight, **lq}
             if lq.get("in_air_holes"):
                 self.log(f"flight {flight}: link lost {lq.get('loss_pct') or 0:.1f} % of packets, {lq['in_air_holes']} "
@@ -699,19 +705,45 @@ class Service:
         stats = getattr(self.session, "stats", None)
         return int(getattr(stats, "packets", 0) or 0), int(getattr(stats, "packets_lost", 0) or 0)
 
-    def _suggest_onboard_log(self, flight: int) -> None:
-        """One line when the flight's telemetry lost more than ``[onboard_logs] suggest_above_loss_pct``."""
+    def _suggest_onboard_log(self, flight: int) -> bool:
+        """One line when the flight's telemetry lost more than ``[onboard_logs] suggest_above_loss_pct``;
+        True when its onboard log is to be downloaded and analysed instead (``[onboard_logs] analyse``
+        over this kind of link, :func:`groundstation.onboard.link_kind`)."""
         (p0, l0), (p1, l1) = self._link_at_arm, self._link_counts()
         got, lost = p1 - p0, l1 - l0
         ob = self.config.onboard_logs
         if got + lost <= 0 or 100.0 * lost / (got + lost) <= ob.suggest_above_loss_pct:
-            return
+            return False
+        from groundstation.onboard import analyse_onboard, link_kind
+
         pct = 100.0 * lost / (got + lost)
-        how = ("it is being downloaded after this disarm" if ob.download else
-               f"fetch it with `groundstation logs get N --link {self.link_url or 'URL'}` or set [onboard_logs] "
-               "download = true")
+        kind, why = link_kind(self.link_url, self.config.link.kind)
+        analyse = analyse_onboard(ob, kind) and self.onboard is not None and self._executor is not None
+        if analyse:
+            how = (f"downloading it to analyse it instead of the telemetry ({kind} link: {why}); "
+                   "the telemetry's results stand until then")
+        elif ob.download:
+            how = "it is being downloaded after this disarm" + (
+                f" (not analysed automatically over a {kind} link: {why}; [onboard_logs] analyse = \"always\" "
+                "to do it)" if ob.analyse == "usb" and kind == "radio" else "")
+        else:
+            how = (f"fetch it with `groundstation logs get N --link {self.link_url or 'URL'}` or set [onboard_logs] "
+                   "download = true" + (f" (or analyse = \"always\" to have it analysed over this {kind} link)"
+                                        if ob.analyse == "usb" and kind == "radio" else ""))
         self.log(f"flight {flight}: telemetry lost {pct:.1f} % of packets (above [onboard_logs] suggest_above_loss_pct "
                  f"{ob.suggest_above_loss_pct:g}); the FC's onboard log holds the full-rate data: {how}")
+        return analyse
+
+    def _analyse_onboard_log(self, flight: int, path: str) -> None:
+        """The onboard log of a lossy flight is written: analyse it as the flight's telemetry was (its
+        results are published after the telemetry's, marked as coming from the onboard log)."""
+        job = self._jobs.get(flight)
+        if job is None or self._executor is None:
+            return
+        tel = self._flight_tlogs.get(flight)
+        tlogs = tuple(path if t == tel else t for t in job.tlogs)
+        self.log(f"flight {flight}: analysing the onboard log {path} instead of the telemetry")
+        self.submit_identification(dataclasses.replace(job, tlogs=tlogs, live_spectra=None, data="onboard_log"))
 
     def _check_exit(self) -> None:
         k = self.config.service.exit_after_flights
@@ -744,7 +776,8 @@ class Service:
                           "flights": list(self.report.flight_tlogs)},
             "identification": {"state": self.ident.state, "flight": self.ident.flight,
                                "queued": self.ident.queued, "done": self.ident.done, "failed": self.ident.failed,
-                               "last_error": self.ident.last_error, "last_seconds": self.ident.last_seconds},
+                               "last_error": self.ident.last_error, "last_seconds": self.ident.last_seconds,
+                               "last_data": self.ident.last_data},
             "excitation": self._excitation_status(),
             "windows": {"published": self.window_seq_published,
                         "dropped": z.windows_dropped if z is not None else 0,

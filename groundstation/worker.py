@@ -48,10 +48,18 @@ class IdentifyJob:
     #: :class:`groundstation.freq.spectra.IncrementalResponses`), for a job of that flight alone: its
     #: frequency check uses them instead of a second pass over the log
     live_spectra: Any = None
+    #: what the logs are: "telemetry" (the recorded link) or "onboard_log" (the FC's own log of a flight whose
+    #: telemetry lost too much): its files are ``*-flightNN-onboard.*`` and its model and gap report say so
+    data: str = "telemetry"
 
     @property
     def vehicle(self) -> str:
         return self.config.service.vehicle
+
+    def file(self, kind: str, ext: str) -> Path:
+        """Where this job writes its ``kind`` file (``model``, ``gap``, ...): ``kind-flightNN[-onboard].ext``."""
+        tag = "-onboard" if self.data == "onboard_log" else ""
+        return Path(self.out_dir) / f"{kind}-flight{self.flight:02d}{tag}.{ext}"
 
 
 @dataclass(frozen=True)
@@ -91,6 +99,7 @@ class JobResult:
     report_error: str | None = None                 # the page failed (the model is still good)
     identify_s: float | None = None
     seconds: float = 0.0
+    data: str = "telemetry"                         # the job's data: telemetry or onboard_log (IdentifyJob.data)
 
     @property
     def ok(self) -> bool:
@@ -145,7 +154,7 @@ def run_job(job: IdentifyJob) -> JobResult:
         where = f" ({Path(last.filename).name}:{last.lineno})" if last else ""
         return JobResult(flight=job.flight, tlogs=job.tlogs,
                          error=f"flight {job.flight}: {type(exc).__name__}: {exc}{where}".splitlines()[0],
-                         seconds=time.perf_counter() - t0)
+                         seconds=time.perf_counter() - t0, data=job.data)
 
 
 def _cross_flight(job: IdentifyJob, model: Any, prepared: Any) -> dict[str, Any]:
@@ -192,7 +201,6 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
 
     cfg, aircraft = with_aircraft_file(job.config)
     job = dataclasses.replace(job, config=cfg)
-    out_dir = Path(job.out_dir)
     steps = ("identify", "heldout", "validate", "freq") + (("diagnose",) if cfg.identification.diagnose else ())
     validated_s: list[float] = []
 
@@ -207,19 +215,22 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
         if not str(exc).startswith("nothing to identify"):
             raise
         return JobResult(flight=job.flight, tlogs=job.tlogs, error=f"flight {job.flight}: {exc}",
-                         seconds=time.perf_counter() - t0)
-    model, prepared, val = res.model, res.prepared, dict(res.validation or {})
+                         seconds=time.perf_counter() - t0, data=job.data)
+    model, prepared, val = res.model, res.prepared, ({} if res.validation is None else res.validation.to_json())
     cross = _cross_flight(job, model, prepared)
     if cross:
         model.fit["cross_flight"] = cross
+    if job.data == "onboard_log":   # said in the model (and below the gap report): which data it comes from
+        model.source["data"] = "onboard_log"
+        model.source["replaces"] = str(dataclasses.replace(job, data="telemetry").file("model", "json"))
     doc = model.to_json()
-    model_path = out_dir / f"model-flight{job.flight:02d}.json"
+    model_path = job.file("model", "json")
     model_path.write_text(dumps(doc, indent=1))
     assert res.validation_series is not None   # the validate step ran (analyse raises where it cannot)
     overlay = _overlay(res.validation_series, prepared.output_trim)
     png: tuple[str, ...] = ()
     if cfg.identification.plots and len(overlay["t_fc_s"]):
-        png_path = out_dir / f"model-flight{job.flight:02d}.png"
+        png_path = job.file("model", "png")
         _plot(overlay, png_path, f"{job.vehicle} flight {job.flight}: model vs measured")
         png = (str(png_path),)
     identify_s = validated_s[0] if validated_s else time.perf_counter() - t0
@@ -228,7 +239,7 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
                                           else (None, None, None, None))
     trends, trends_error = _trends(job, model, gap, prepared, time.perf_counter() - t0)
     report_path, report_summary, report_error = (
-        _report(job, prepared, model, val, res.validation_series, res.freq, gap, pictures,
+        _report(job, prepared, model, res.validation, res.freq, gap, pictures,
                 {"freq": freq_error, "gap": gap_error, "history": trends_error})
         if cfg.identification.plots else (None, None, None))
     return JobResult(
@@ -239,14 +250,14 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
         gap=gap, gap_path=gap_path, gap_error=gap_error, gap_pictures=pictures, identify_s=identify_s,
         freq=freq, freq_path=freq_path, freq_error=freq_error, freq_pairs=bode, trends=trends, trends_error=trends_error,
         report_path=report_path, report_summary=report_summary, report_error=report_error,
-        seconds=time.perf_counter() - t0)
+        seconds=time.perf_counter() - t0, data=job.data)
 
 
 def _trends(job: IdentifyJob, model: Any, gap: Any, prepared: Any, seconds: float) -> tuple[Any, Any]:
     """(trend summary, None) after putting the flight into ``[service] campaign_db``, (None, None) when
     that is off or the model is of several flights (scope "all"), or (None, one-line error)."""
     cfg = job.config
-    if not cfg.service.campaign_db or len(job.tlogs) != 1:
+    if not cfg.service.campaign_db or len(job.tlogs) != 1 or job.data != "telemetry":   # one row per flight
         return None, None
     try:
         from groundstation.campaign.live import record_flight
@@ -257,7 +268,7 @@ def _trends(job: IdentifyJob, model: Any, gap: Any, prepared: Any, seconds: floa
         return None, f"flight {job.flight}: trends: {type(exc).__name__}: {exc}".splitlines()[0]
 
 
-def _report(job: IdentifyJob, prepared: Any, model: Any, val: dict[str, Any], series: Any, verification: Any,
+def _report(job: IdentifyJob, prepared: Any, model: Any, validation: Any, verification: Any,
             gap: Any, pictures: Any, errors: dict[str, str | None]) -> tuple[Any, Any, Any]:
     """(``report-flightNN.html`` path, one-line summary, None) of the flight's page, drawn from what this
     job computed, or (None, None, one-line error): the model stands on its own."""
@@ -270,10 +281,10 @@ def _report(job: IdentifyJob, prepared: Any, model: Any, val: dict[str, Any], se
         label = ""
         if cfg.service.campaign_db and (Path(job.out_dir) / cfg.service.campaign_db).exists():
             history, label = load_history(Path(job.out_dir) / cfg.service.campaign_db, job.vehicle)
-        data = assemble(job.tlogs, cfg, prepared=prepared, model=model, validation={**val, "series": series},
+        data = assemble(job.tlogs, cfg, prepared=prepared, model=model, validation=validation,
                         freq=verification, gap=gap, pictures=pictures, history=history, history_label=label,
                         errors=errors, title=f"{job.vehicle} flight {job.flight}", aircraft=job.vehicle)
-        path = write_html(Path(job.out_dir) / f"report-flight{job.flight:02d}.html", render_report(data))
+        path = write_html(job.file("report", "html"), render_report(data))
         return str(path), one_line_summary(data), None
     except Exception as exc:
         return None, None, f"flight {job.flight}: report: {type(exc).__name__}: {exc}".splitlines()[0]
@@ -288,8 +299,8 @@ def _freq_files(job: IdentifyJob, res: Any) -> tuple[Any, Any, Any, Any]:
     try:
         from groundstation.sinks.rerun_sink import freq_pairs
 
-        doc = {**res.freq.to_json(), "vehicle": job.vehicle, "flight": job.flight}
-        path = Path(job.out_dir) / f"freq-flight{job.flight:02d}.json"
+        doc = {**res.freq.to_json(), "vehicle": job.vehicle, "flight": job.flight, "data": job.data}
+        path = job.file("freq", "json")
         path.write_text(dumps(doc, indent=1))
         return doc, str(path), None, freq_pairs(res.freq)
     except Exception as exc:
@@ -306,9 +317,11 @@ def _gap_files(job: IdentifyJob, res: Any, model_path: Path) -> tuple[Any, Any, 
 
         report = res.gap.report
         report["source"]["model"] = str(model_path)
+        if job.data == "onboard_log":
+            report["source"]["data"] = "onboard_log"
         pictures = gap_pictures(res.gap.diagnosis)
     except Exception as exc:
         return None, None, f"flight {job.flight}: diagnosis: {type(exc).__name__}: {exc}".splitlines()[0], None
-    gap_path = Path(job.out_dir) / f"gap-flight{job.flight:02d}.json"
+    gap_path = job.file("gap", "json")
     gap_path.write_text(dumps(report, indent=1))
     return report, str(gap_path), None, pictures

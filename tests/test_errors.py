@@ -51,8 +51,8 @@ def _one_line_error(capsys, argv: list[str]) -> str:
 
 @pytest.fixture(scope="module")
 def model_file(tmp_path_factory):
+    from benchkit.synthetic import EXAMPLE_TRUTH
     from groundstation.sysid.model import HoverModel
-    from groundstation.sysid.synthetic import EXAMPLE_TRUTH
 
     path = tmp_path_factory.mktemp("errors") / "model.json"
     path.write_text(json.dumps(HoverModel(params=dict(EXAMPLE_TRUTH)).to_json()))

@@ -73,10 +73,10 @@ def test_diagnose_with_jobs_gives_the_serial_report(two_flights, capsys):
 
 
 def test_reused_jacobian_array_equals_a_fresh_one():
+    from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
     from groundstation.sysid.cost import WindowedCost, Windows
     from groundstation.sysid.model import PARAM_INDEX, theta_from_dict
     from groundstation.sysid.refine import _fd_jacobian
-    from groundstation.sysid.synthetic import EXAMPLE_TRUTH, simulate_flight
 
     theta = theta_from_dict(EXAMPLE_TRUTH)
     u, _, y = simulate_flight(theta, duration_s=30.0, seed=3)

@@ -1,6 +1,7 @@
 """``groundstation bench diagnose --cases N --seed S [--out-of-catalogue K] [--combined M]``: blind test.
 
-Generates simulated flights with ``hil_replay.sim.write_tlog`` (the independent simulator), each
+Generates simulated flights (the scenario sets of :mod:`hil_replay.scenarios`, written with
+``hil_replay.sim.write_tlog``, the independent simulator), each
 with one random catalogue effect (``hil_replay.sim.effects.random_effect``: random channel and
 magnitude) or none, classes taken in turn; K flights with an effect OUTSIDE the catalogue
 (``hil_replay.sim.effects.OUT_OF_CATALOGUE``: gyro scale factor, velocity-sensor scale, rotor speed
@@ -40,24 +41,13 @@ from typing import Any
 
 import numpy as np
 
+from hil_replay import scenarios
+
 HELP = "blind test of the gap diagnosis on simulated flights with hidden random effects"
 
-CLASSES = ("none", "input_delay", "rate_limit", "deadband", "ground_effect", "wind_gust", "quadratic_drag",
-           "gyro_bias", "rotor_vibration", "velocity_latency")
-
-#: kinds of case: one catalogue effect or none, one effect outside the catalogue, two catalogue effects
-KINDS = ("single", "outside", "combined", "held_back")
-
-#: the held-back set, in turn: what is injected ("catalogue": a random catalogue effect at another
-#: noise level) and the right verdict (None: the effect itself; "unexplained": a parameter drifting
-#: through the flight, no constant catalogue effect is it)
-HELD_BACK_CYCLE: tuple[tuple[str, str | None], ...] = (
-    ("none", "none"), ("servo_lag", "input_delay"), ("rotor_droop", "unexplained"),
-    ("asym_deadband", "deadband"), ("growing_delay", "unexplained"), ("backlash", "deadband"),
-    ("drifting_bias", "unexplained"), ("turbulence", "wind_gust"), ("cg_shift", "unexplained"),
-    ("wandering_vibration", "rotor_vibration"), ("catalogue", None), ("none", "none"))
-#: noise levels (x the simulator's sensor noise) of the held-back flights
-HELD_BACK_NOISE = (0.5, 1.0, 1.6, 2.5)
+#: kinds of case (``--kinds``) and classes (``--classes``): see :mod:`hil_replay.scenarios`
+CLASSES = scenarios.CLASSES
+KINDS = scenarios.KINDS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -86,7 +76,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rates", default=None,
                         help="telemetry rates of the simulated autopilot, e.g. ATTITUDE=25,LOCAL_POSITION_NED=10 "
                              "(default: drawn, or the simulator's); a robustness check against other stream set-ups")
-    parser.add_argument("--pilot", choices=tuple(PILOTS), default=None,
+    parser.add_argument("--pilot", choices=tuple(scenarios.PILOTS), default=None,
                         help="synthetic pilot: tight (stiffer loops, less input left on the excited axis), "
                              "loose, or the simulator's default (default: drawn)")
     parser.add_argument("--kinematics", choices=("nonlinear", "linear"), default=None,
@@ -103,27 +93,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--from-json", type=Path, default=None, dest="from_json",
                         help="print the summary of a JSON file written by --json (a whole or a stopped run) "
                              "without running anything")
-
-
-#: Pilot variants for robustness runs: Bryson allowed deviations scaled (smaller = stiffer loops).
-PILOTS: dict[str, dict[str, float]] = {"default": {}, "tight": {"scale": 0.5, "excited_axis_gain": 0.6},
-                                       "loose": {"scale": 1.6, "excited_axis_gain": 0.15}}
-
-
-def pilot_config(name: str) -> Any:
-    """The :class:`hil_replay.sim.pilot.PilotConfig` of a named variant (None for the default)."""
-    from dataclasses import replace
-
-    from hil_replay.sim.pilot import PilotConfig
-
-    v = PILOTS[name]
-    if not v:
-        return None
-    c = PilotConfig()
-    k = v["scale"]
-    return replace(c, vel_m_s=c.vel_m_s * k, att_rad=c.att_rad * k, rate_rad_s=c.rate_rad_s * k,
-                   pos_m=c.pos_m * k, w_m_s=c.w_m_s * k, r_rad_s=c.r_rad_s * k, height_m=c.height_m * k,
-                   heading_rad=c.heading_rad * k, excited_axis_gain=v["excited_axis_gain"])
 
 
 def parse_rates(text: str | None) -> dict[str, float] | None:
@@ -173,75 +142,6 @@ def _estimate_for(name: str, est: dict[str, float]) -> float | None:
     return None if k is None or est.get(k) is None else float(est[k])
 
 
-_STREAM_HZ = (10.0, 12.5, 16.7, 25.0, 50.0)
-
-
-def draw_flight(rng: np.random.Generator, args: argparse.Namespace) -> dict[str, Any]:
-    """The simulator set-up of one varied flight (what the command line fixes is kept)."""
-    plain = bool(getattr(args, "plain", False))
-    kin = getattr(args, "kinematics", None)
-    fl: dict[str, Any] = {"aircraft": args.aircraft, "rates": parse_rates(args.rates), "pilot": args.pilot or "default",
-                          "excitation": 1.0 if args.excitation is None else args.excitation, "sweeps": True,
-                          "scatter": 0.0, "scatter_seed": int(rng.integers(2 ** 31)), "kinematics": kin or "nonlinear"}
-    if plain:
-        return fl
-    if kin is None:
-        # from the flight's own seed, not from ``rng``: every other draw of the run stays as it was
-        fl["kinematics"] = "linear" if np.random.default_rng((fl["scatter_seed"], 7)).random() < 0.5 else "nonlinear"
-    fl["scatter"] = float(args.scatter)
-    if args.aircraft is None:
-        fl["aircraft"] = "r50" if rng.random() < 0.3 else "trex600"
-    if args.pilot is None:
-        fl["pilot"] = str(rng.choice(["default", "tight", "loose"]))
-    if args.excitation is None:
-        fl["excitation"] = round(float(rng.uniform(0.6, 1.3)), 3)
-    fl["sweeps"] = bool(rng.random() < 0.5)
-    if args.rates is None:
-        fl["rates"] = {"ATTITUDE": float(rng.choice(_STREAM_HZ)), "LOCAL_POSITION_NED": float(rng.choice(_STREAM_HZ))}
-    return fl
-
-
-def make_aircraft(name: str | None, scatter: float, seed: int) -> Any:
-    """The named aircraft with every eq.-8 parameter scattered (log-normal ``scatter``, signs kept)
-    such that the synthetic pilot can still fly it (redrawn up to 20 times, else unscattered)."""
-    from hil_replay.sim.aircraft import Aircraft, resolve_aircraft
-    from hil_replay.sim.pilot import PilotConfig, design_gains
-
-    base = resolve_aircraft(name)
-    if scatter <= 0:
-        return base
-    rng = np.random.default_rng(seed)
-    kw = {f: getattr(base, f) for f in base.__dataclass_fields__}
-    for _ in range(20):
-        kw["parameters"] = {k: float(v) * float(np.exp(scatter * rng.standard_normal()))
-                            for k, v in base.parameters.items()}
-        try:
-            ac = Aircraft(**kw)
-            design_gains(ac, PilotConfig())
-            return ac
-        except (ValueError, np.linalg.LinAlgError, ArithmeticError):
-            continue
-    return base
-
-
-def _sim_kwargs(job: dict[str, Any]) -> dict[str, Any]:
-    fl = job["flight"]
-    kw: dict[str, Any] = {"aircraft": make_aircraft(fl["aircraft"], fl["scatter"], fl["scatter_seed"])}
-    if fl.get("rates"):
-        kw["rates_hz"] = fl["rates"]
-    if fl.get("pilot", "default") != "default":
-        kw["pilot"] = pilot_config(fl["pilot"])
-    if fl.get("excitation", 1.0) != 1.0:
-        kw["excitation_scale"] = fl["excitation"]
-    if not fl.get("sweeps", True):
-        kw["sweeps"] = False
-    if fl.get("kinematics", "nonlinear") == "linear":
-        kw["linear_kinematics"] = True
-    if fl.get("noise_scale", 1.0) != 1.0:
-        kw["noise_scale"] = fl["noise_scale"]
-    return kw
-
-
 def tree_cpu_s() -> float:
     """CPU time (s) of this process and of its live descendants (the worker processes of a
     diagnosis's ``--jobs``, which a fork server forks: grandchildren), read from /proc where there is
@@ -281,17 +181,11 @@ def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
     from groundstation.config import ServiceConfig
     from groundstation.parallel import serial_map
     from groundstation.sysid.model import HoverModel
-    from hil_replay.sim import write_tlog
-    from hil_replay.sim.effects import random_effect
-
-    rng = np.random.default_rng(job["seed"])
-    effects = [random_effect(n, rng) for n in job["effects"]]
     out: dict[str, Any] = {"case": job["case"], "kind": job["kind"], "truth_effects": job["effects"],
                            "flight": job["flight"], "expect": job.get("expect")}
     with tempfile.TemporaryDirectory() as td:
         path = Path(td) / f"case{job['case']}.tlog"
-        kw = _sim_kwargs(job)
-        truth = write_tlog(path, seed=job["seed"], flights=1, effects=effects, **kw)
+        truth = scenarios.write_case(path, job)
         out["truth"] = truth.get("effects", [])
         t0 = time.perf_counter()
         c0 = tree_cpu_s()
@@ -325,6 +219,7 @@ def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
         out["structure_tests"] = [{k: t.get(k) for k in ("kind", "input", "coefficient", "score_pct", "p_value",
                                                      "significant", "effect_to_noise")} for t in rep.get("structure_tests", [])]
         out["gap_to_noise_ratio"] = rep["gap"].get("gap_to_noise_ratio")
+        out["gap_significant"] = rep["gap"].get("significant")
         sh = rep.get("shares") or {}
         out["explained_pct"] = sh.get("explained_pct")
         out["partial_explained_pct"] = sh.get("partial_explained_pct")
@@ -335,9 +230,8 @@ def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
                               for e in rep["effects"]]
         if job.get("fresh") and job["effects"]:
             path2 = Path(td) / "fresh.tlog"
-            rng2 = np.random.default_rng(job["seed"])
-            eff2 = [random_effect(n, rng2) for n in job["effects"]]  # same draw: same effect and magnitude
-            write_tlog(path2, seed=job["seed"] + 100000, flights=1, effects=eff2, **kw)
+            # the same effect and magnitude, another flight
+            scenarios.write_case(path2, job, flight_seed=job["seed"] + 100000)
             d2 = analyse([path2], config=cfg, steps=("diagnose",), model=model).gap
             assert d2 is not None
             allc = d2.report["effects"] + d2.report["candidates"]
@@ -346,44 +240,20 @@ def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
     return out
 
 
-def make_jobs(args: argparse.Namespace, classes: list[str]) -> list[dict[str, Any]]:
-    """Single-effect (or none), out-of-catalogue and two-effect cases, each with its flight set-up."""
-    from hil_replay.sim.effects import OUT_OF_CATALOGUE
-
-    rng = np.random.default_rng(args.seed)
-    base = {"model_source": args.model_source, "fresh": args.fresh}
-    jobs = []
-    for i in range(args.cases):
-        name = classes[i % len(classes)]
-        jobs.append({**base, "case": i, "kind": "single", "seed": int(args.seed * 1000 + i),
-                     "effects": [] if name == "none" else [name], "flight": draw_flight(rng, args)})
-    for j in range(args.out_of_catalogue):
-        jobs.append({**base, "case": args.cases + j, "kind": "outside", "seed": int(args.seed * 1000 + 300 + j),
-                     "effects": [OUT_OF_CATALOGUE[(j + args.seed) % len(OUT_OF_CATALOGUE)]],
-                     "flight": draw_flight(rng, args), "fresh": False})
-    real = [c for c in CLASSES if c != "none"]
-    for j in range(args.combined):
-        pair = [str(x) for x in rng.choice(real, 2, replace=False)]
-        jobs.append({**base, "case": args.cases + args.out_of_catalogue + j, "kind": "combined",
-                     "seed": int(args.seed * 1000 + 500 + j), "effects": pair, "flight": draw_flight(rng, args),
-                     "fresh": False})
-    # the held-back set: its own generator, so the cases above are the same flights with or without it
-    hrng = np.random.default_rng((args.seed, 26))
-    n0 = args.cases + args.out_of_catalogue + args.combined
-    for j in range(getattr(args, "held_back", 0)):
-        name, expect = HELD_BACK_CYCLE[j % len(HELD_BACK_CYCLE)]
-        if name == "catalogue":
-            name = str(hrng.choice(real))
-            expect = name
-        fl = draw_flight(hrng, args)
-        if not getattr(args, "plain", False):
-            fl["scatter"] = max(float(args.scatter), 0.35)
-            fl["noise_scale"] = float(hrng.choice(HELD_BACK_NOISE))
-            if args.excitation is None:
-                fl["excitation"] = round(float(hrng.uniform(0.5, 1.4)), 3)
-        jobs.append({**base, "case": n0 + j, "kind": "held_back", "seed": int(args.seed * 1000 + 700 + j),
-                     "effects": [] if name == "none" else [name], "expect": expect, "flight": fl, "fresh": False})
-    return jobs
+def scenario_set(args: argparse.Namespace) -> scenarios.ScenarioSet:
+    """The scenario set of the command line (ValueError naming the option on a bad value)."""
+    classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
+    unknown = set(classes) - set(CLASSES)
+    if unknown:
+        raise ValueError(f"--classes: unknown effect name(s) {sorted(unknown)}; allowed {CLASSES}")
+    kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
+    if not kinds or set(kinds) - set(KINDS):
+        raise ValueError(f"--kinds: {args.kinds!r}: allowed {', '.join(KINDS)}")
+    return scenarios.ScenarioSet(
+        cases=args.cases, seed=args.seed, out_of_catalogue=args.out_of_catalogue, combined=args.combined,
+        held_back=args.held_back, classes=classes, kinds=kinds, model_source=args.model_source, fresh=args.fresh,
+        plain=args.plain, scatter=args.scatter, aircraft=args.aircraft, rates_hz=parse_rates(args.rates),
+        pilot=args.pilot, kinematics=args.kinematics, excitation=args.excitation)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -399,8 +269,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"{len(saved)} cases from {args.from_json}")
         print_summary(sorted(saved, key=lambda r: r["case"]), classes, float("nan"))
         return 0
-    parse_rates(args.rates)  # a bad --rates is reported before any flight is simulated
-    jobs = interleave(select_jobs(args, classes))
+    spec = scenario_set(args)  # a bad --rates or --kinds is reported before any flight is simulated
+    jobs = scenarios.interleave(scenarios.select_jobs(spec))
     t0 = time.perf_counter()
     results: list[dict[str, Any]] = []
     for r in _run_jobs(jobs, args.workers, args.jobs):
@@ -426,33 +296,6 @@ def _run_jobs(jobs: list[dict[str, Any]], workers: int, n_jobs: int) -> Any:
         return
     with ProcessPoolExecutor(max_workers=workers) as pool:
         yield from pool.map(run_case, jobs)
-
-
-def select_jobs(args: argparse.Namespace, classes: list[str]) -> list[dict[str, Any]]:
-    """The jobs of the kinds in ``--kinds``, each the same flight as in a run of every kind."""
-    kinds = {k.strip() for k in args.kinds.split(",") if k.strip()}
-    if not kinds or kinds - set(KINDS):
-        raise ValueError(f"--kinds: {args.kinds!r}: allowed {', '.join(KINDS)}")
-    return [j for j in make_jobs(args, classes) if j["kind"] in kinds]
-
-
-def interleave(jobs: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Jobs in round-robin over their kinds (single, outside, combined), each kind in its own order,
-    so that any prefix of the run covers every kind (case numbers and seeds are unchanged)."""
-    kinds: dict[str, list[dict[str, Any]]] = {}
-    for j in jobs:
-        kinds.setdefault(j["kind"], []).append(j)
-    queues = list(kinds.values())
-    n = [len(q) for q in queues]
-    total = sum(n)
-    out: list[dict[str, Any]] = []
-    taken = [0] * len(queues)
-    while len(out) < total:
-        # the kind furthest behind its share of the run so far goes next
-        k = min((i for i in range(len(queues)) if taken[i] < n[i]), key=lambda i: (taken[i] + 1) / n[i])
-        out.append(queues[k][taken[k]])
-        taken[k] += 1
-    return out
 
 
 def _named(r: dict[str, Any]) -> list[str]:
@@ -526,7 +369,8 @@ def print_held_back(held: list[dict]) -> None:
     for r in held:
         print(f"  case {r['case']:3d} {r['truth_effects'] or ['none']} noise x{r['flight'].get('noise_scale', 1.0):g}"
               f" expect {r.get('expect')} -> {r['verdict']} {_named(r)}"
-              f"{' explained ' + str(r['explained_pct']) + '%' if r.get('explained_pct') is not None else ''}")
+              f"{' explained ' + str(r['explained_pct']) + '%' if r.get('explained_pct') is not None else ''}"
+              f"{_gap_text(r)}")
     if rest:
         print(f"held-back top-1 accuracy: {len(right)}/{len(rest)} = {100.0 * len(right) / len(rest):.1f}%")
     if nones:
@@ -535,6 +379,23 @@ def print_held_back(held: list[dict]) -> None:
     if drift:
         ok = sum(r["verdict"] == "unexplained" or _sensor_right(r) for r in drift)
         print(f"held-back drifting / out-of-catalogue flights: unexplained {ok}/{len(drift)}")
+        # a departure no larger than the noise cannot be told from an effect-free flight by any test:
+        # the drifting flights whose held-out gap is significant are the ones the figure can ask for
+        sig = [r for r in drift if r.get("gap_significant")]
+        if len(sig) < len(drift):
+            ok_s = sum(r["verdict"] == "unexplained" or _sensor_right(r) for r in sig)
+            print(f"  of them with a significant held-out gap: unexplained {ok_s}/{len(sig)}; the other "
+                  f"{len(drift) - len(sig)} leave a gap at the noise floor (verdicts "
+                  f"{', '.join(r['verdict'] for r in drift if not r.get('gap_significant'))})")
+
+
+def _gap_text(r: dict) -> str:
+    """`` gap max Nx noise (significant|at the noise floor)`` of a case, when the run recorded it."""
+    g = r.get("gap_to_noise_ratio") or {}
+    if not g or r.get("gap_significant") is None:
+        return ""
+    c = max(g, key=lambda k: g[k])
+    return f" gap {c} {g[c]:g}x noise ({'significant' if r['gap_significant'] else 'not significant'})"
 
 
 def _print_singles(singles: list[dict], classes: list[str]) -> None:

@@ -15,7 +15,7 @@ Frequency-domain figures on simulated flights with known truth:
    put J's minimum there. The summary gives the median and minimum count over the flights. Each
    model is also scored on the next seed's flight (held-out mean match, eq. 19).
 
-Flights: ``linear`` = the eq.-8 model under a state-feedback pilot (:mod:`groundstation.sysid.synthetic`;
+Flights: ``linear`` = the eq.-8 model under a state-feedback pilot (:mod:`benchkit.synthetic`;
 the delay is a shift of the logged input), ``sim`` = the nonlinear simulator (hil_replay)
 (``hil_replay.sim.write_tlog``, read back through the ordinary .tlog reader; the delay is its
 ``input_delay`` effect).
@@ -51,9 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _linear(seed: int, duration_s: float, delay_s: float = 0.0) -> tuple[Any, dict[str, float]]:
+    from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
     from groundstation.dsp.prepare import prepared_from_arrays
     from groundstation.sysid.model import theta_from_dict
-    from groundstation.sysid.synthetic import EXAMPLE_TRUTH, simulate_flight
 
     dt = 0.02
     d = int(round(delay_s / dt))
@@ -144,7 +144,7 @@ def _identification(con: Any, args: argparse.Namespace, rs: Any, prep: Any, trut
         m = fit()
         n, worst = _key_errors(m.params, truth)
         counts.setdefault(label, []).append(n)
-        ho = "" if heldout is None else f", held-out match on the next flight {validate(m, heldout)['mean_match']:.1f} %"
+        ho = "" if heldout is None else f", held-out match on the next flight {validate(m, heldout).mean_match:.1f} %"
         con.print(f"    {label}: {n}/8 key parameters within 10 % (worst {worst}), J_avg {verify(m.theta, rs).J_avg:.1f}{ho}")
 
 

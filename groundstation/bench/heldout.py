@@ -6,7 +6,7 @@ Held-out prediction on a real flight, the figure that says whether a model predi
   one), and a "train on the first ``--train-first-s`` seconds, predict the rest" split;
 * for each split, (a) the project's identification (``identify`` with the aircraft file's prior)
   and (b) the plain output-error reference (multi-start least squares of the same structure, no
-  prior, :mod:`groundstation.sysid.reference`): the floor to beat;
+  prior, :mod:`benchkit.reference`): the floor to beat;
 * scored by eq. 19 on ``--window-s`` windows started from the measured states (unmeasured states
   by least squares over the window, inputs against the model's trim: :mod:`groundstation.sysid.heldout`),
   per channel and the mean over the channels measured in the held-out part, with any unstable
@@ -89,10 +89,10 @@ def _selection(model: Any) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
+    from benchkit.reference import fit_reference
     from groundstation.config import ServiceConfig
     from groundstation.pipeline import load_aircraft, prepare_logs
     from groundstation.sysid.identify import identify
-    from groundstation.sysid.reference import fit_reference
 
     con = Console()
     aircraft = load_aircraft(args.aircraft)

@@ -12,7 +12,7 @@ The paper's comparison and the identification targets on simulated flights with 
 
 Flights come from the nonlinear simulator (``hil_replay.sim.write_tlog``, read back
 through the ordinary .tlog reader) when available, else from the linear model itself
-(``groundstation.sysid.synthetic``; that only checks the estimator against its own model).
+(``benchkit.synthetic``; that only checks the estimator against its own model).
 """
 
 from __future__ import annotations
@@ -72,15 +72,15 @@ def _flights(args, tmp: Path) -> tuple[Any, Any, dict[str, float], str]:
                 preps.append(prepare([load_log(path)], cfg))
             assert truth is not None
             return preps[0], preps[1], dict(truth["parameters"]), f"hil_replay.sim nonlinear flights (seeds {args.sim_seed}, {args.sim_seed + 1})"
+    from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
     from groundstation.sysid.model import theta_from_dict
-    from groundstation.sysid.synthetic import EXAMPLE_TRUTH, simulate_flight
 
     th = theta_from_dict(EXAMPLE_TRUTH)
     preps = []
     for k in range(2):
         u, _, ym = simulate_flight(th, args.duration_s, 0.02, seed=args.sim_seed + k)
         preps.append(prepared_from_arrays(u, ym, 0.02, smooth_passes=cfg.smooth_passes, source=f"linear{k}"))
-    return preps[0], preps[1], dict(EXAMPLE_TRUTH), "linear eq.-8 model flights (groundstation.sysid.synthetic)"
+    return preps[0], preps[1], dict(EXAMPLE_TRUTH), "linear eq.-8 model flights (benchkit.synthetic)"
 
 
 def _speed(prepared, repeats: int = 7) -> dict[str, float]:
@@ -183,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
               f"(worst {worst_key} {key_err[worst_key]:.1f}%); "
               f"|z| <= 3: {int(np.sum(za <= 3))}/{int(np.isfinite(za).sum())} (max {np.nanmax(za):.2f})")
     true_model = HoverModel(params=dict(truth))
-    v_id, v_true = validate(model, val), validate(true_model, val)
+    v_id, v_true = validate(model, val).to_json(), validate(true_model, val).to_json()
     ratio = v_id["mean_match"] / v_true["mean_match"] * 100
     tv = Table(title="match degree on a DIFFERENT flight (%), identified vs true model")
     tv.add_column("model")

@@ -5,9 +5,9 @@ radio link carries them) are written once loss-free and then with the same fligh
 each ``--losses`` rate, ``--kinds`` bursty (Gilbert fades of ``--burst`` packets of every message
 type, as a radio fade) and/or uniform (independent losses), for ``--seeds`` seeds; ``--effect``
 adds one flight with that effect per seed (``--no-effect-free``: only those). Every log goes through
-the ordinary reader, preparation and identification; the model is scored on a loss-free flight of
-the next seed (eq. 19 mean match, the model's own windows); ``--diagnose`` also runs the gap
-diagnosis with that model. Per case it prints: the link figures preparation measured (loss,
+the product's analysis (:func:`groundstation.analysis.analyse`: reader, preparation, identification,
+and the diagnosis with ``--diagnose``); the model is scored on a loss-free flight of
+the next seed (eq. 19 mean match, the model's own windows). Per case it prints: the link figures preparation measured (loss,
 holes, longest hole, time bridged, samples not counted), key parameters within 10 % of the truth,
 the held-out match against the loss-free flight's, the diagnosis verdict and named effects, CPU
 and wall time. A step that refuses gives its one line; a crash is reported as a crash.
@@ -52,25 +52,21 @@ def _floats(text: str) -> list[float]:
 
 
 def _case(path: Path, truth: dict, val: Any, cfg: Any, diagnose: bool) -> dict[str, Any]:
-    from firmware_interface.readers import load_log
-    from groundstation.dsp.prepare import prepare
-    from groundstation.pipeline import identify_prepared
+    from groundstation.analysis import analyse
     from groundstation.sysid.validate import validate
 
     out: dict[str, Any] = {}
     t0, c0 = time.perf_counter(), time.process_time()
-    try:
-        prepared = prepare([load_log(path)], cfg.prepare)
-        out["link"] = dict(prepared.link_quality)
-        model = identify_prepared(prepared, cfg)
+    try:   # the product's analysis: read, prepare, identify (and diagnose with that model)
+        res = analyse([path], config=cfg, steps=("identify", "diagnose") if diagnose else ("identify",))
+        model = res.model
+        out["link"] = dict(res.prepared.link_quality)
         err = {k: 100.0 * abs(model.params[k] - truth[k]) / abs(truth[k]) for k in KEY}
         out["key_within_10"] = sum(v <= 10.0 for v in err.values())
         out["key_error_pct"] = err
-        out["heldout_match"] = validate(model, val)["mean_match"]
-        if diagnose:
-            from groundstation.gap.diagnose import run_diagnosis
-
-            rep = run_diagnosis(model, prepared, seed=cfg.identification.seed, config=cfg.diagnose).report
+        out["heldout_match"] = validate(model, val).mean_match
+        if res.gap is not None:
+            rep = res.gap.report
             out["verdict"] = rep["verdict"]
             out["named"] = [e["effect"] for e in rep.get("effects", [])]
     except ValueError as exc:  # the one clear line a user would see
@@ -145,7 +141,8 @@ def _line(r: dict[str, Any]) -> str:
         return f"{head} CRASH {r['crash']}"
     lk = r.get("link") or {}
     link = (f"lost {lk.get('loss_pct', float('nan')):.1f} %, {lk.get('in_air_holes', 0)} holes "
-            f"(longest {lk.get('longest_gap_s', 0.0):.2f} s, {lk.get('holes_split', 0)} split), "
+            f"(longest {lk.get('longest_gap_s', 0.0):.2f} s, {lk.get('holes_split', 0)} split over "
+            f"{lk.get('max_input_bridge_s') or 0.0:g} s), "
             f"{lk.get('unmeasured_pct', 0.0):.1f} % samples not counted") if lk else ""
     if "refused" in r:
         return f"{head} {link}; refused: {r['refused']} ({r['cpu_s']:.1f} s CPU)"
@@ -159,7 +156,8 @@ def _table(rows: list[dict[str, Any]], diagnose: bool) -> Any:
     from rich.table import Table
 
     t = Table(title="link loss: identification and diagnosis against the loss-free flight")
-    for c in ("seed", "flight", "kind", "loss %", "holes", "longest s", "key 8", "held-out %", "vs 0 %"):
+    for c in ("seed", "flight", "kind", "loss %", "holes", "longest s", "bridge s", "split", "key 8", "held-out %",
+              "vs 0 %"):
         t.add_column(c, justify="right")
     if diagnose:
         t.add_column("verdict")
@@ -168,7 +166,8 @@ def _table(rows: list[dict[str, Any]], diagnose: bool) -> Any:
     for r in rows:
         lk = r.get("link") or {}
         cells = [str(r["seed"]), r["flight"], r["kind"], f"{r['loss_pct']:g}", str(lk.get("in_air_holes", "-")),
-                 f"{lk.get('longest_gap_s', float('nan')):.2f}",
+                 f"{lk.get('longest_gap_s', float('nan')):.2f}", f"{lk.get('max_input_bridge_s') or 0.0:.2f}",
+                 str(lk.get("holes_split", "-")),
                  "crash" if "crash" in r else ("refused" if "refused" in r else str(r["key_within_10"])),
                  f"{r['heldout_match']:.1f}" if "heldout_match" in r else "-",
                  f"{r['heldout_vs_lossfree_pct']:.1f}" if "heldout_vs_lossfree_pct" in r else "-"]

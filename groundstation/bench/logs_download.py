@@ -23,6 +23,8 @@ import threading
 import time
 from typing import Any
 
+from benchkit.onboard_logs import simulated_dataflash
+
 HELP = "download the simulated FC's onboard log through a pty: kB/s, last-5 % time, faults (byte-identical)"
 
 
@@ -32,20 +34,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--corrupt", type=float, default=0.01, help="bit-flip probability per byte sent (fault run)")
     p.add_argument("--repeat", type=int, default=3, help="throughput runs (median quoted)")
     p.add_argument("--seed", type=int, default=0)
-
-
-def make_log(size_bytes: int, seed: int) -> bytes:
-    """A dataflash log of about ``size_bytes`` from the simulated FC's own writer."""
-    from hil_replay.dataflash import DataflashWriter, chirp_plan, rotor_rpm
-    from hil_replay.sim import SimulatedSession
-
-    sess = SimulatedSession(seed=seed, flights=max(1, int(size_bytes // 6_000_000) + 1))
-    w = DataflashWriter(rotor_rpm(sess), chirp_plan(sess))
-    for frame in sess.frames(fast_gyro=True):
-        w.add(frame)
-        if len(w) >= size_bytes:
-            break
-    return w.getvalue()
 
 
 class _Idle:
@@ -96,9 +84,9 @@ def run(args: argparse.Namespace) -> int:
     from rich.table import Table
 
     con = Console()
-    data = make_log(int(args.size_mb * 1e6), args.seed)
+    data = simulated_dataflash(int(args.size_mb * 1e6), args.seed)
     runs = [download(data, seed=args.seed + k) for k in range(max(1, args.repeat))]
-    small = make_log(int(args.fault_size_kb * 1e3), args.seed + 1)
+    small = simulated_dataflash(int(args.fault_size_kb * 1e3), args.seed + 1)
     fault = download(small, corrupt=args.corrupt, unplug=True, seed=args.seed)
     t = Table(title=f"log download through a pty (921600 baud settings), {len(data) / 1e6:.2f} MB dataflash")
     for c in ("run", "kB/s", "seconds", "last 5 % / share", "identical", "LOG_DATA sent", "requests"):

@@ -33,6 +33,8 @@ import time
 from collections import Counter
 from pathlib import Path
 
+from benchkit.telemetry import sine_flight_tlog
+
 HELP = "replay a 50 Hz full-telemetry flight through a pty into the recorder at max speed"
 
 
@@ -48,47 +50,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fc", action="store_true",
                         help="instead: the simulated FC (hil_replay.fc + hil_replay.sim) at max speed "
                              "into groundstation record; prints its real-time factor")
-
-
-def synthesize_tlog(path: Path, duration_s: float, t0_unix_s: float = 1.7e9) -> int:
-    """Write a 50 Hz full-telemetry synthetic flight; returns the packet count."""
-    import math
-
-    from pymavlink.dialects.v20 import ardupilotmega as mavlink
-
-    from firmware_interface.tlog import TlogWriter
-
-    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-    n = 0
-    with TlogWriter(path) as w:
-        for k in range(int(round(duration_s * 50))):
-            t = k / 50
-            ms, us = int(t * 1000) + 5000, int(t * 1e6) + 5_000_000
-            armed = 5.0 <= t < duration_s - 5.0
-            s = math.sin(2 * math.pi * 0.3 * t)
-            msgs = [
-                mav.attitude_encode(ms, 0.05 * s, -0.03 * s, 1.0, 0.1 * s, 0.05 * s, 0.01),
-                mav.servo_output_raw_encode(us & 0xFFFFFFFF, 0, 1500 + int(40 * s), 1500 - int(30 * s),
-                                            1560, 1480, 0, 0, 0, 0),
-                mav.raw_imu_encode(us, int(100 * s), 2, -1000, 3, 4, 5, 100, 200, 300),
-                mav.local_position_ned_encode(ms, s, 0.5 * s, -2.0, 0.3 * s, 0.1, 0.0),
-                mav.global_position_int_encode(ms, 473977420, 85455940, 500000, 2000, 30, 10, 0, 9000),
-            ]
-            if k % 10 == 0:
-                msgs.append(mav.gps_raw_int_encode(us, 3, 473977420, 85455940, 500000, 100, 100, 30,
-                                                   9000, 12))
-            if k % 25 == 0:
-                msgs.append(mav.sys_status_encode(0, 0, 0, 500, 16000, 1000, 90, 0, 0, 0, 0, 0, 0))
-                msgs.append(mav.extended_sys_state_encode(0, 2 if armed else 1))
-            if k % 50 == 0:
-                base = (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0) | 1
-                msgs.append(mav.heartbeat_encode(mavlink.MAV_TYPE_HELICOPTER,
-                                                 mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, base, 0, 4))
-            for j, m in enumerate(msgs):
-                w.write(m.pack(mav), t0_unix_s + t + 1e-4 * j)
-                mav.seq = (mav.seq + 1) % 256
-                n += 1
-    return n
 
 
 def _make_flight(tmp: Path, args: argparse.Namespace) -> tuple[Path, str]:
@@ -108,7 +69,7 @@ def _make_flight(tmp: Path, args: argparse.Namespace) -> tuple[Path, str]:
             if args.source == "sim":
                 raise
             print(f"# sim unavailable ({exc}); using a synthetic flight", file=sys.stderr)
-    synthesize_tlog(path, args.duration)
+    sine_flight_tlog(path, args.duration)
     return path, f"synthetic {args.duration:.0f} s, 50 Hz full telemetry"
 
 

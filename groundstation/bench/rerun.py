@@ -51,7 +51,7 @@ def _synthetic(path: Path, minutes: float, hop_s: float) -> float:
 
 
 def run(args: argparse.Namespace) -> int:
-    from groundstation.sinks.rerun_inspect import chunk_check, read_layout
+    from benchkit.rerun_inspect import chunk_check, read_layout
 
     with tempfile.TemporaryDirectory(prefix="bench-rerun-") as d:
         path = args.rrd

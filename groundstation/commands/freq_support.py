@@ -150,10 +150,10 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
     if start is not None:
         fm.fit["algorithm"] = "frequency refinement of the time-domain fit"
     models["frequency"] = fm
-    return _score_and_write(args, models, rs, prepared)
+    return _score_and_write(args, models, rs, prepared, cfg.identify)
 
 
-def _score_and_write(args: argparse.Namespace, models: dict[str, Any], rs: Any, prepared: Any) -> int:
+def _score_and_write(args: argparse.Namespace, models: dict[str, Any], rs: Any, prepared: Any, icfg: Any) -> int:
     """Score each model both ways, write them and print the table (``identify --domain``)."""
     from rich.console import Console
 
@@ -167,11 +167,11 @@ def _score_and_write(args: argparse.Namespace, models: dict[str, Any], rs: Any, 
     for name, m in models.items():
         v = verify(m.theta, rs, delays_from_augmentations(m.augmentations))
         t = validate(m, prepared)
-        scores[name] = {"J_avg": v.J_avg, "J_avg_good": v.good, "mean_match": t["mean_match"],
+        scores[name] = {"J_avg": v.J_avg, "J_avg_good": v.good, "mean_match": t.mean_match,
                         "J": {f"{p.input}->{p.output}": p.J for p in v.pairs}}
         m.fit["scores"] = {"frequency": {k: scores[name][k] for k in ("J_avg", "J_avg_good", "J")},
-                           "time": {"mean_match": t["mean_match"]}}
-        mark_unsupported(m, prepared)
+                           "time": {"mean_match": t.mean_match}}
+        mark_unsupported(m, prepared, icfg.runaway_factor, icfg.heldout_window_s)
         m.source["logs"] = [str(p) for p in args.logs]
     outs = {"frequency": args.out} if args.domain == "frequency" else {
         "time": args.out, "frequency": args.out.with_name(args.out.stem + "_freq.json")}
@@ -206,14 +206,15 @@ def _score_and_write(args: argparse.Namespace, models: dict[str, Any], rs: Any, 
     return 0
 
 
-def mark_unsupported(model: Any, prepared: Any, runaway_factor: float = 3.0) -> None:
+def mark_unsupported(model: Any, prepared: Any, runaway_factor: float = 3.0, window_s: float = 5.0) -> None:
     """Record in ``model.fit`` what the flight does not support: ``unstable_modes`` (with their time
-    constants), ``runaway_channels`` (eq. 19 prediction of the flight it was fitted to, 5-s windows from
-    the measured states, error above ``runaway_factor`` times the signal), ``unusable_subsystems`` and
+    constants), ``runaway_channels`` (eq. 19 prediction of the flight it was fitted to, ``window_s``
+    windows from the measured states, error above ``runaway_factor`` times the signal; ``[identify]
+    runaway_factor`` and ``heldout_window_s``), ``unusable_subsystems`` and
     ``usable``. A frequency fit never sees the time histories whole, so this is its first check in time."""
     from groundstation.sysid.heldout import SUBSYSTEM_CHANNELS, predict, runaway_channels, unstable_modes
 
-    ran = runaway_channels(predict(model, prepared), runaway_factor)
+    ran = runaway_channels(predict(model, prepared, window_s=window_s), runaway_factor)
     model.fit["unstable_modes"] = [u.describe() for u in unstable_modes(model.theta)]
     model.fit["runaway_channels"] = ran
     model.fit["unusable_subsystems"] = [s for s, cs in SUBSYSTEM_CHANNELS.items() if any(c in ran for c in cs)]

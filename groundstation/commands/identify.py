@@ -141,7 +141,7 @@ def _run(args: argparse.Namespace, pmap) -> int:
     write_json(args.out, model.to_json())
     if want_series:
         assert res.validation is not None and res.validation_series is not None   # the validate step ran
-        series, channels = res.validation_series, res.validation["channels"]
+        series, channels = res.validation_series, res.validation.to_json()["channels"]
         if not args.no_plot:
             from groundstation.sysid.plots import plot_convergence, plot_fit
 

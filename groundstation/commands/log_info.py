@@ -85,7 +85,7 @@ def _print_tables(info: dict[str, Any]) -> None:
                   f"median {lk['median_outage_s']:.2f} s, longest {lk['longest_outage_s']:.2f} s, "
                   f"~{lk['lost_per_outage']:.1f} packets each); {lk['outages'] - lk['outages_split']} bridged by data "
                   f"preparation (not counted in any cost), {lk['outages_split']} longer than the "
-                  f"{lk['bridge_limit_s']:g} s bridge ([prepare] max_input_bridge_s)")
+                  f"{lk['bridge_limit_s']:g} s bridge ({lk.get('bridge_why', '[prepare] max_input_bridge_s')})")
     if info["chirps"]:
         ct = Table(title="system-identification chirps (SYSID mode)")
         for c in ("#", "axis", "from Hz", "to Hz", "start s", "duration s", "magnitude"):

@@ -67,8 +67,8 @@ def _run(args: argparse.Namespace) -> int:
         raise ValueError("--bode and --rerun need --freq")
     prepared = prepare_logs(args.logs, cfg, args.segments)
     want_series = args.plot is not None or args.rrd is not None
-    res = validate(model, prepared, window_s=args.window_s, return_series=want_series)
-    series = res.pop("series", None)
+    v = validate(model, prepared, window_s=args.window_s, return_series=want_series)
+    series, res = (None if v.series is None else dict(v.series)), v.to_json()
     res["model"] = str(args.model)
     res["logs"] = [str(p) for p in args.logs]
     res["notes"] = list(prepared.notes)

@@ -101,9 +101,14 @@ class PrepConfig:
     velocity_check: bool = True
     #: longest hole in the inputs (packets lost on the link) bridged by linear interpolation, s; the
     #: outputs in the hole are bridged too but marked unmeasured (they never count in a cost); longer
-    #: holes split the segment. 0 = no bridging beyond ordinary sampling (``max_gap_s``).
+    #: holes split the segment. Not set: derived from the flight's inputs and the rotor's time constant
+    #: (:mod:`groundstation.dsp.bridge`: the longest hole whose straight line errs less, in what the rotor
+    #: follows, than the input carries beyond the rotor's band); 0 = no bridging beyond ordinary sampling.
     #: What a bridge costs is measured by ``groundstation bench link-loss``.
-    max_input_bridge_s: float = 0.35
+    max_input_bridge_s: float | None = None
+    #: the rotor's 1/tau_s (1/s) the derived bridge limit uses: the fast end of the prior (nominal + one
+    #: standard deviation: the aircraft file's, else the wide prior's 10 + 6), as the rotor is not identified yet
+    rotor_inv_tau_s: float = 16.0
 
     def __post_init__(self) -> None:
         if self.rate_hz <= 0:
@@ -120,8 +125,10 @@ class PrepConfig:
             raise DspError("prepare.input_channels needs 4 channel numbers (lat lon col ped)")
         if self.swash_phase_deg and len(self.swash_phase_deg) != 3:
             raise DspError(f"prepare.swash_phase_deg needs 3 angles, got {self.swash_phase_deg}")
-        if self.max_input_bridge_s < 0:
+        if self.max_input_bridge_s is not None and self.max_input_bridge_s < 0:
             raise DspError(f"prepare.max_input_bridge_s must be >= 0, got {self.max_input_bridge_s}")
+        if not self.rotor_inv_tau_s > 0:
+            raise DspError(f"prepare.rotor_inv_tau_s must be > 0, got {self.rotor_inv_tau_s}")
         bad = [c for c in self.measured_outputs if c not in OUTPUTS]
         if bad:
             raise DspError(f"prepare.measured_outputs: unknown channel(s) {bad} (allowed: {', '.join(OUTPUTS)})")
@@ -508,7 +515,40 @@ def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str], holes: list[float
 
 def _bridge(cfg: PrepConfig, t_src: np.ndarray) -> float:
     """Longest source interval bridged on the grid: ordinary sampling or a hole up to ``max_input_bridge_s``."""
-    return max(_series_gap(cfg, t_src), cfg.max_input_bridge_s)
+    return max(_series_gap(cfg, t_src), cfg.max_input_bridge_s or 0.0)
+
+
+#: the bridge limit when the flight has too little input without holes to derive one (s): what the
+#: link-loss benchmark measured harmless at up to 20 % bursty loss
+FALLBACK_BRIDGE_S = 0.35
+
+
+def derive_bridge(logs: list[Any], cfg: PrepConfig) -> dict[str, Any]:
+    """The bridge limit the preparation uses and why: ``limit_s``, ``rule`` (``configured``,
+    ``derived`` from the inputs and the rotor, or ``fallback`` when too little input without holes),
+    and for a derived one each input's limit, the rotor's 1/tau_s and the seconds measured."""
+    if cfg.max_input_bridge_s is not None:
+        return {"limit_s": float(cfg.max_input_bridge_s), "rule": "configured"}
+    from groundstation.dsp.bridge import bridge_limit
+
+    found = []
+    for log in logs:
+        if not log.has(cfg.input_source):
+            continue
+        try:
+            pwm = _input_pwm(log, cfg)
+        except DspError:
+            continue
+        t = log.series[cfg.input_source].t_fc_s
+        iv = [ab for fl in log.flights for ab in _in_air_intervals(log, fl, cfg)]
+        x = (pwm - np.nanmedian(pwm, axis=0)) / cfg.pwm_per_unit
+        b = bridge_limit(t, x, iv, _series_gap(cfg, t), cfg.rotor_inv_tau_s)
+        if b.limit_s is not None:
+            found.append(b)
+    if not found:
+        return {"limit_s": FALLBACK_BRIDGE_S, "rule": "fallback", "rotor_inv_tau_s": cfg.rotor_inv_tau_s}
+    best = min(found, key=lambda b: b.limit_s or 0.0)
+    return {"rule": "derived", **best.to_json()}
 
 
 def _velocities(vel_series: Any, t: np.ndarray,
@@ -594,6 +634,8 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
     notes: list[str] = []
     raws: list[_Raw] = []
     holes: list[float] = []
+    bridge = derive_bridge(logs, cfg)
+    cfg = replace(cfg, max_input_bridge_s=bridge["limit_s"])
     for log in logs:
         got = _raw_segments(log, cfg, notes, holes)
         if not got:
@@ -640,10 +682,11 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
     if cfg.velocity_check:
         segs = _drop_inconsistent_velocities(segs, 1.0 / cfg.rate_hz, notes)
     lq = link_quality(logs, raws, holes, cfg)
+    lq["bridge"] = bridge
     if lq["bridged_s"] > 0:
         notes.append(f"link: {lq['loss_pct']:.1f} % of packets lost, longest hole {lq['longest_gap_s']:.2f} s; "
                      f"inputs bridged over {lq['bridged_s']:.1f} s of holes up to {cfg.max_input_bridge_s:g} s "
-                     f"(prepare.max_input_bridge_s), outputs there not counted")
+                     f"({bridge_why(bridge)}), outputs there not counted")
     native = np.array([r.native_s for r in raws], dtype=float)
     native_med = [float(np.nanmedian(native[:, k])) if np.isfinite(native[:, k]).any() else float("nan")
                   for k in range(12)]
@@ -657,6 +700,17 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
         native_interval_s=dict(zip(INPUTS + OUTPUTS, native_med, strict=True)),
         link_quality=lq,
     )
+
+
+def bridge_why(bridge: dict[str, Any]) -> str:
+    """Where the bridge limit comes from, in a few words."""
+    if bridge["rule"] == "configured":
+        return "prepare.max_input_bridge_s"
+    if bridge["rule"] == "fallback":
+        return "too little input without holes to derive it: the default"
+    by = ", ".join(f"{k} {v:g}" for k, v in bridge.get("by_input_s", {}).items())
+    return (f"derived: a straight line errs less, in what a rotor of 1/tau_s {bridge['rotor_inv_tau_s']:g}/s "
+            f"follows, than the inputs carry beyond its band ({by} s)")
 
 
 def link_quality(logs: list[Any], raws: list[_Raw], holes: list[float], cfg: PrepConfig) -> dict[str, Any]:
@@ -678,7 +732,7 @@ def link_quality(logs: list[Any], raws: list[_Raw], holes: list[float], cfg: Pre
         n_br += int(r.bridged.sum())
         m = r.measured[:, r.available]
         n_unm += int((~m).any(axis=1).sum()) if m.size else 0
-    split = [h for h in holes if h > cfg.max_input_bridge_s + 1e-9]
+    split = [h for h in holes if h > (cfg.max_input_bridge_s or 0.0) + 1e-9]
     return {"loss_pct": loss, "packets_lost": lost, "in_air_holes": len(holes), "holes_split": len(split),
             "median_gap_s": float(np.median(holes)) if holes else 0.0,
             "longest_gap_s": float(max(holes)) if holes else 0.0,

@@ -236,33 +236,46 @@ class WindowSpectra:
         self.n_channels = n_channels
         self._sums: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}   # pattern -> (finite (C,), sum (nf, C, C))
         self.counts: list[dict[bytes, int]] = [{}]                     # per segment: pattern -> windows
+        #: per segment: pattern -> (C,) sum over its windows of each channel's measured share (taper-weighted)
+        self.shares: list[dict[bytes, np.ndarray]] = [{}]
         self.segment_rows: list[int] = [0]
         self._tail = np.empty((0, n_channels))     # rows of the open segment from the next window start on
+        self._tail_m = np.empty((0, n_channels), bool)
+        self._w2 = self.taper ** 2 / np.sum(self.taper ** 2)
         self._eff: dict[int, float] = {}
 
-    def add(self, rows: np.ndarray) -> None:
-        """Append rows ``(n, C)`` to the open segment and transform every window they complete."""
+    def add(self, rows: np.ndarray, measured: np.ndarray | None = None) -> None:
+        """Append rows ``(n, C)`` to the open segment and transform every window they complete;
+        ``measured (n, C)`` bool is False where a value only bridges a hole of the link (None: all measured)."""
         rows = np.asarray(rows, dtype=float).reshape(-1, self.n_channels)
         if rows.shape[0] == 0:
             return
+        m = (np.ones(rows.shape, bool) if measured is None
+             else np.asarray(measured, dtype=bool).reshape(-1, self.n_channels))
         self.segment_rows[-1] += rows.shape[0]
         data = np.concatenate([self._tail, rows]) if self._tail.shape[0] else rows
+        mask = np.concatenate([self._tail_m, m]) if self._tail_m.shape[0] else m
         if data.shape[0] < self.length:
-            self._tail = data
+            self._tail, self._tail_m = data, mask
             return
         frames = np.lib.stride_tricks.sliding_window_view(data, self.length, axis=0)[::self.step]  # (K, C, L)
-        self._tail = data[frames.shape[0] * self.step:].copy()
-        self._accumulate(frames)
+        k = frames.shape[0]
+        self._tail = data[k * self.step:].copy()
+        self._tail_m = mask[k * self.step:].copy()
+        share = None
+        if not mask.all():
+            share = np.lib.stride_tricks.sliding_window_view(mask, self.length, axis=0)[::self.step] @ self._w2
+        self._accumulate(frames, share)
 
     def transforms(self, frames: np.ndarray) -> np.ndarray:
         """``(K, C, n_freq)`` transforms of windows ``(K, C, length)`` (NaN samples as zeros)."""
         return _transform(frames, self._op_re, self._op_im)
 
-    def _accumulate(self, frames: np.ndarray) -> None:
+    def _accumulate(self, frames: np.ndarray, share: np.ndarray | None = None) -> None:
         ok = np.isfinite(frames).all(axis=2)                                # (K, C)
         X = self.transforms(frames)
         keys = [k.tobytes() for k in np.packbits(ok, axis=1)]
-        counts = self.counts[-1]
+        counts, shares = self.counts[-1], self.shares[-1]
         for key in dict.fromkeys(keys):
             sel = [i for i, k in enumerate(keys) if k == key]
             Xs = X[sel]
@@ -272,12 +285,16 @@ class WindowSpectra:
             else:
                 self._sums[key] = (ok[sel[0]].copy(), S)
             counts[key] = counts.get(key, 0) + len(sel)
+            got = share[sel].sum(axis=0) if share is not None else np.full(self.n_channels, float(len(sel)))
+            shares[key] = shares[key] + got if key in shares else got
 
     def end_segment(self) -> None:
         """Close the open segment (in-air interval ended, link gap): no window spans the break."""
         self._tail = np.empty((0, self.n_channels))
+        self._tail_m = np.empty((0, self.n_channels), bool)
         if self.segment_rows[-1] > 0:
             self.counts.append({})
+            self.shares.append({})
             self.segment_rows.append(0)
 
     def patterns(self, need: np.ndarray) -> tuple[bytes, ...]:
@@ -294,6 +311,15 @@ class WindowSpectra:
     def averages(self, per_segment: list[int]) -> float:
         """Effective number of averages of ``per_segment`` windows (Welch's overlap correction)."""
         return sum(self._effective(k) for k in per_segment)
+
+    def measured_averages(self, keys: tuple[bytes, ...], per_segment: list[int]) -> np.ndarray:
+        """(C,) effective averages per channel, each segment's counted by its windows' mean measured share:
+        a window half of whose (taper-weighted) samples only bridge holes of the link counts half."""
+        out = np.zeros(self.n_channels)
+        for k, sh in zip(per_segment, self.shares, strict=True):
+            if k:
+                out += self._effective(k) * sum((sh[key] for key in keys if key in sh), np.zeros(self.n_channels)) / k
+        return out
 
     def _effective(self, k: int) -> float:
         got = self._eff.get(k)
@@ -381,8 +407,13 @@ def _one_window(ws: WindowSpectra, f_hz: np.ndarray, active: list[int], outputs:
         ys = [N_INPUTS + j for j in js]
         Sa = S[:, active]
         H, g2 = _miso_spectra(Sa[:, :, active] / K, Sa[:, :, ys] / K, np.real(S[:, ys, ys]) / K)
+        # the random error counts each window by the share of it the link delivered (the output's, and the
+        # inputs' where those were bridged): a window of bridged samples adds no independent average
+        meas = ws.measured_averages(keys, per_seg)
+        share = np.minimum(meas[ys], meas[active].min()) - (q - 1)               # (len(js),)
+        n_d_pair = np.maximum(share, 1e-9)[None, None, :]
         with np.errstate(divide="ignore", invalid="ignore"):
-            eps = np.sqrt((1.0 - g2) / (2.0 * n_d * g2))
+            eps = np.sqrt((1.0 - g2) / (2.0 * n_d_pair * g2))
         for m, j in enumerate(js):
             for a, i in enumerate(active):
                 if want is not None and (i, j) not in want:
@@ -473,9 +504,10 @@ class IncrementalResponses:
         self._avail = np.zeros(len(self.outputs), bool)
         self.rows = 0
 
-    def add(self, inputs: np.ndarray, outputs: np.ndarray) -> None:
+    def add(self, inputs: np.ndarray, outputs: np.ndarray, measured: np.ndarray | None = None) -> None:
         """Append rows to the open segment: ``inputs (n, 4)`` normalised, ``outputs (n, m)`` (NaN where
-        not measured)."""
+        not measured); ``measured (n, m)`` bool False where an output only bridges a hole of the link
+        (the inputs there are bridged too): such samples count in the random error by their share."""
         u = np.asarray(inputs, dtype=float).reshape(-1, N_INPUTS)
         y = np.asarray(outputs, dtype=float).reshape(-1, len(self.outputs))
         if u.shape[0] == 0:
@@ -491,8 +523,13 @@ class IncrementalResponses:
         self._s1 += d.sum(axis=0)
         self._s2 += (d * d).sum(axis=0)
         data = np.concatenate([u, y], axis=1)
+        mask = None
+        if measured is not None:
+            my = np.asarray(measured, dtype=bool).reshape(-1, len(self.outputs))
+            if not my.all():    # a hole of the link takes every stream: the inputs are bridged where no output came
+                mask = np.concatenate([np.repeat(my.any(axis=1, keepdims=True), N_INPUTS, axis=1), my], axis=1)
         for ws in self.windows:
-            ws.add(data)
+            ws.add(data, mask)
 
     def end_segment(self) -> None:
         for ws in self.windows:
@@ -548,6 +585,7 @@ def estimate_responses(prepared: Any, config: FreqConfig | None = None) -> Respo
     cfg = config or FreqConfig()
     dt = float(prepared.dt_s)
     segments = [(np.asarray(s.inputs, float), np.asarray(s.outputs_raw, float)) for s in prepared.segments]
+    masks = [getattr(s, "measured", None) for s in prepared.segments]
     if not segments:
         raise FreqError("no in-air segments to analyse")
     # the grid follows the longest window length the segments give enough averages (cheap: lengths only)
@@ -562,8 +600,8 @@ def estimate_responses(prepared: Any, config: FreqConfig | None = None) -> Respo
             usable.append(w)
     f_hz = _frequency_grid(cfg, dt, max(usable)) if usable and q else np.geomspace(1.0, 2.0, cfg.n_freq)
     inc = IncrementalResponses(dt, cfg, OUTPUTS, f_hz=f_hz)
-    for u, y in segments:
-        inc.add(u, y)
+    for (u, y), m in zip(segments, masks, strict=True):
+        inc.add(u, y, m)
         inc.end_segment()
     return inc.responses()
 

@@ -96,23 +96,46 @@ def nrmse(sse: np.ndarray, energy: np.ndarray, channels: tuple[int, ...] | list[
     return float(np.mean(vals)) if vals else float("nan")
 
 
+def _boot_shrink(base: np.ndarray, alt: np.ndarray, energy: np.ndarray, chans: tuple[int, ...],
+                 idx: np.ndarray) -> np.ndarray:
+    """Shrink (%) of :func:`nrmse` over the channels for every bootstrap resample of the windows
+    (rows of ``idx`` (n_boot, W)), all at once: each resample's sums are its window counts times
+    the per-window costs (0 where the base is not positive, as in :func:`score`)."""
+    n_boot, W = idx.shape
+    ch = list(chans)
+    counts = np.bincount((idx + W * np.arange(n_boot)[:, None]).ravel(),
+                         minlength=n_boot * W).reshape(n_boot, W).astype(float)
+    e = counts @ energy[:, ch]  # (n_boot, nch)
+    ok = e > 0
+    n_ok = ok.sum(axis=1)
+    e_safe = np.where(ok, e, 1.0)
+
+    def _nrmse(sse: np.ndarray) -> np.ndarray:
+        v = np.where(ok, np.sqrt(np.maximum(counts @ sse[:, ch], 0.0) / e_safe), 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(n_ok > 0, v.sum(axis=1) / n_ok, np.nan)
+
+    b, a = _nrmse(base), _nrmse(alt)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(b > 0, 100.0 * (b - a) / np.where(b > 0, b, 1.0), 0.0)
+
+
 def score(base: np.ndarray, alt: np.ndarray, energy: np.ndarray, channels: tuple[int, ...],
-          rng: np.random.Generator, n_boot: int = 1000) -> Score:
-    """Score a hypothesis: base/alt held-out costs (W, 8), target energy (W, 8), effect channels."""
+          rng: np.random.Generator, n_boot: int = 1000, test_n_boot: int = 2000) -> Score:
+    """Score a hypothesis: base/alt held-out costs (W, 8), target energy (W, 8), effect channels.
+
+    ``n_boot`` resamples for the shrink interval, ``test_n_boot`` for the paired test's p-value
+    (``DiagnoseConfig.score_n_boot`` and ``n_boot``)."""
     tb, ta = base.sum(axis=1), alt.sum(axis=1)
     sc = 100.0 * (tb.sum() - ta.sum()) / max(tb.sum(), 1e-300)
-    p = paired_bootstrap(tb, ta, rng)
+    p = paired_bootstrap(tb, ta, rng, test_n_boot)
     chans = tuple(c for c in channels if energy[:, c].sum() > 0)
     gb = nrmse(base, energy, chans)
     ga = nrmse(alt, energy, chans)
     sh = 100.0 * (gb - ga) / gb if gb > 0 else 0.0
     W = base.shape[0]
     idx = rng.integers(0, W, (n_boot, W))
-    boots = []
-    for row in idx:
-        b = nrmse(base[row], energy[row], chans)
-        a = nrmse(alt[row], energy[row], chans)
-        boots.append(100.0 * (b - a) / b if b > 0 else 0.0)
+    boots = _boot_shrink(base, alt, energy, chans, idx)
     lo, hi = np.percentile(boots, [5, 95])
     per = {}
     for c in range(8):

@@ -73,10 +73,10 @@ def refit_input_effect(c: attribute.Candidate, ctx: hypotheses.Context, segs: li
     h.extra["theta_refit"] = ev_a.theta0
     ev_r = Evaluator(segs, ev.dt_s, ev_a.theta0, ev.available, window_s=ev.L * ev.dt_s,
                      folds=ev.folds, ridge=ev.ridge)
-    ctx_r = hypotheses.Context(ev_r, segs)
+    ctx_r = hypotheses.Context(ev_r, segs, cfg=cfg)
     h2 = hypotheses.rescan_input_effect(ctx_r, h)
     assert h2.sse is not None
-    s2 = attribute.score(ctx.base_sse, h2.sse, ev.energy, h2.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
+    s2 = attribute.score(ctx.base_sse, h2.sse, ev.energy, h2.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot), test_n_boot=cfg.n_boot)
     s2.p_value = attribute.combined_p(ctx.base_sse.sum(1), h2.sse.sum(1), rng, cfg.n_boot, cfg.window_alpha,
                                       ctx.base_blocks, ctx_r.blocks[h.effect])
     h2.extra["first_pass"] = h.extra.get("first_pass") or {"estimate": dict(h.estimate),
@@ -118,7 +118,7 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
             ev_a = Evaluator(segs_a, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s,
                              folds=ev.folds, ridge=ev.ridge)
             ev_a.refine(cfg.refit_iterations)
-            hg = hypotheses.scan_wind_gust(hypotheses.Context(ev_a, segs_a))
+            hg = hypotheses.scan_wind_gust(hypotheses.Context(ev_a, segs_a, cfg=cfg))
             assert hg.sse is not None and gust.hyp.sse is not None
             m0, mg = gust.hyp.extra["base_sse"], gust.hyp.sse
             ma, mag = hg.extra["base_sse"], hg.sse
@@ -148,7 +148,7 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
             Xb = b.hyp.extra.get("X")
             if Xb is None:
                 continue
-            ctx_b = hypotheses.Context(ev, segs, given=Xb)
+            ctx_b = hypotheses.Context(ev, segs, given=Xb, cfg=cfg)
             ha = hypotheses.rescan_input_effect(ctx_b, a.hyp)
             assert ha.sse is not None
             p = p_value(ha, ctx_b, ctx_b.base_sse, rng, cfg, conditional=True)
@@ -214,7 +214,7 @@ def vibration_candidate(lines: list[fingerprints.Line], resid_raw: np.ndarray, e
     sse_a[:, chans] /= max(chance, cfg.vibration_chance_floor)  # only where sinusoids were fitted: the others are unchanged
     energy = ((ev.Yraw[:, ev.start:] - ev.Yraw[:, ev.start:].reshape(-1, 8).mean(0)) * ev.w8) ** 2
     sc = attribute.score(sse_b, np.minimum(sse_a, sse_b * cfg.vibration_cost_cap), energy.sum(axis=1), tuple(chans),
-                         rng, n_boot=cfg.vibration_n_boot)
+                         rng, n_boot=cfg.vibration_n_boot, test_n_boot=cfg.n_boot)
     sc.p_value = 10 ** max(min(ln.log10_p for ln in lines), -300)
     top = lines[0]
     h = hypotheses.Hypothesis("rotor_vibration", estimate={"frequency_hz": round(top.frequency_hz, 3),
@@ -260,12 +260,12 @@ def conditioned_context(a: attribute.Candidate, ctx: hypotheses.Context, segs: l
     def on(segs_x: list[SegmentArrays], theta: np.ndarray) -> hypotheses.Context:
         ev_x = Evaluator(segs_x, ev.dt_s, theta, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds,
                          ridge=ev.ridge)
-        return hypotheses.Context(ev_x, segs_x)
+        return hypotheses.Context(ev_x, segs_x, cfg=ctx.cfg)
 
     if h.effect in hypotheses.INPUT_EFFECTS:
         return on(hypotheses.apply_input_effect(h, segs, ev.dt_s), h.extra.get("theta_refit", ev.theta0))
     if h.effect in ("ground_effect", "quadratic_drag") and h.extra.get("X") is not None:
-        return hypotheses.Context(ev, segs, given=h.extra["X"])
+        return hypotheses.Context(ev, segs, given=h.extra["X"], cfg=ctx.cfg)
     if h.effect == "gyro_bias" and h.output:
         c = OUTPUTS.index(h.output)
         b = float(h.estimate.get("bias_rad_s", 0.0))
@@ -324,7 +324,7 @@ def _conditional_score(b: attribute.Candidate, hb: hypotheses.Hypothesis | None,
         return None
     hb.extra = {**{k: v for k, v in b.hyp.extra.items() if k not in hb.extra}, **hb.extra}
     base = hb.extra.get("base_sse", cctx.base_sse) if hb.effect == "wind_gust" else cctx.base_sse
-    s = attribute.score(base, hb.sse, cctx.ev.energy, hb.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
+    s = attribute.score(base, hb.sse, cctx.ev.energy, hb.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot), test_n_boot=cfg.n_boot)
     s.p_value = p_value(hb, cctx, base, rng, cfg, conditional=True)
     return hb, s, structure.effect_to_noise(base, hb.sse, cctx.ev.energy, floor)
 
@@ -458,7 +458,7 @@ def _with_effect_removed(b: attribute.Candidate, ctx: hypotheses.Context, segs: 
         w = np.where(ev.w8 > 0, ev.w8, 1.0)
         ev_b.Y = ev.Y - np.einsum("wlck,k->wlc", X, c) / w
         ev_b.set_theta(ev.theta0)
-        return hypotheses.Context(ev_b, segs)
+        return hypotheses.Context(ev_b, segs, cfg=ctx.cfg)
     return conditioned_context(b, ctx, segs)
 
 
@@ -495,7 +495,7 @@ def second_given_air_mass(top: attribute.Candidate, cands: list[attribute.Candid
     for b, hg in zip(todo, scans, strict=True):
         if hg is None or hg.sse is None:
             continue
-        s = attribute.score(m_g, hg.sse, ctx.ev.energy, b.hyp.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
+        s = attribute.score(m_g, hg.sse, ctx.ev.energy, b.hyp.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot), test_n_boot=cfg.n_boot)
         s.p_value = attribute.paired_bootstrap(m_g.sum(1), hg.sse.sum(1), rng, cfg.n_boot)
         b.hyp.extra["p_given_wind_gust"] = s.p_value
         b.hyp.extra.update(sse_given=hg.sse, base_given=m_g, share_ref=top.hyp.extra.get("base_sse"))

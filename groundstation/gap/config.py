@@ -81,6 +81,14 @@ class DiagnoseConfig:
     #: 0.65-1.7 m/s sigma were fitted at 1.8-8 m/s. The resolvable level is the larger of this and
     #: ``excitation_snr`` x the velocity sensors' measured white noise.
     gust_min_rms_m_s: float = 0.3
+    #: the air-mass scan's within-window cross-validation: initial states and the air velocity are
+    #: fitted on alternate chunks of this length (s) and scored on the chunks between them
+    gust_chunk_s: float = 0.5
+    #: spacing (s) of the knots of the piecewise-linear air velocity in each window
+    gust_knot_s: float = 1.5
+    #: Levenberg-Marquardt iterations re-identifying the base under the per-window air velocity (0:
+    #: the base as it is)
+    gust_refine_iterations: int = 6
     #: significance of the rank correlation between a window's residual energy and a flight condition
     #: (input amplitude, input rate, height) that the report names as the gap's ``conditions``
     conditions_alpha: float = 0.01
@@ -96,10 +104,18 @@ class DiagnoseConfig:
     #: a per-window sinusoid fit can raise a window's cost at most by this factor (a fit to pure
     #: noise in a short window is bounded, not unbounded)
     vibration_cost_cap: float = 1.5
+    #: periodogram window (s) of the vibration lines in the log's own high-rate gyro (a dataflash IMU
+    #: faster than twice the grid)
+    native_line_window_s: float = 2.0
+    #: lowest frequency (Hz) tested for a line in the log's own high-rate gyro (below it: the flown motion)
+    native_line_min_hz: float = 10.0
+    #: significance of a line in the log's own high-rate gyro (Bonferroni over bins and axes)
+    native_line_alpha: float = 1e-3
 
     # ------------------------------------------------------------------ unexplained
-    #: with nothing named and the gap significant, "unexplained" needs at least this share of the
-    #: excess residual energy in flagged windows (else the gap is spread evenly: "none")
+    #: with nothing named and the gap significant, the first decision calls it "unexplained" when at
+    #: least this share of the excess residual energy is in flagged windows; the share rule then calls
+    #: any significant gap with nothing named "unexplained" (0 % explained), spread evenly or not
     unexplained_flagged_share: float = 0.5
     #: a structure the linear model cannot have (input asymmetry, amplitude dependence) counts only
     #: when the residual part it explains has an RMS above this many times the noise floor measured

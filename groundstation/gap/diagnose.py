@@ -42,6 +42,7 @@ from groundstation.gap import (
     attribute,
     candidates,
     compat,
+    controller,
     fingerprints,
     hypotheses,
     locate,
@@ -60,7 +61,7 @@ __all__ = ["CATALOGUE", "VERDICTS", "DiagnoseConfig", "Diagnosis", "diagnose", "
 CATALOGUE = ("input_delay", "rate_limit", "deadband", "ground_effect", "wind_gust", "quadratic_drag",
              "gyro_bias", "rotor_vibration", "velocity_latency")
 #: every verdict a report can carry
-VERDICTS = (*CATALOGUE, "sensor_error", "unexplained", "none")
+VERDICTS = (*CATALOGUE, "stabilising_controller", "sensor_error", "unexplained", "none")
 
 
 @dataclass
@@ -224,12 +225,70 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
     report.update(info)
     for e, c in zip(report["effects"], dec.ranked, strict=True):
         e.update(verdict_info["per_effect"].get(id(c), {}))
+    if controller.may_be_commands(model):
+        _controller_finding(report, prepared, model, loc, cfg, seed, pmap)
     report["structure_tests"] = [{**dataclasses.asdict(t), "effect_to_noise": round(t.effect_to_noise, 2)
                                   if np.isfinite(t.effect_to_noise) else None} for t in tests]
     arrays = {"t_s": ev.T, "Y": ev.Y, "Yraw": ev.Yraw, "yhat": loc.yhat_ho, "mask": ev.mask, "flag": loc.flag,
               "spectra": att.spectra, "band": loc.band, "candidates": att.candidates, "evaluator": ev,
               "ctx": att.ctx}
     return Diagnosis(report=report, arrays=arrays)
+
+
+def _controller_finding(report: dict[str, Any], prepared: Any, model: HoverModel, loc: Located, cfg: DiagnoseConfig,
+                        seed: int, pmap: Map) -> None:
+    """"A stabilising controller in the loop" as a finding of the report, with its share
+    (:mod:`groundstation.gap.controller`), looked for only when the model's inputs may be commands.
+
+    Named when the inputs follow the model's output error and the command-response structure removes
+    a share of the held-out gap above noise whose interval (over contiguous folds) is above zero. It
+    is ranked with the named effects by its share; it is the verdict when it is first and the share
+    rule holds for it (not clearly below ``explained_share_min_pct``), or when nothing else is named
+    (the verdict was ``none`` or ``unexplained``). Changes ``report`` in place."""
+    kind = "attitude_command" if (getattr(model, "command", None) or {}).get("kind") == "attitude_command" \
+        else "rate_command"
+    try:
+        f = controller.stabilising_controller(prepared, model, sigma=loc.nf["sigma_smoothed"], k=cfg.folds, kind=kind,
+                                              pmap=pmap, n_boot=cfg.share_n_boot, seed=seed)
+    except (ValueError, ArithmeticError) as exc:
+        report["notes"] = list(report.get("notes", [])) + [f"a stabilising controller in the loop not checked: {exc}"]
+        return
+    report["controller"] = None if f is None else {k: v for k, v in f.items() if k != "describe"}
+    if f is None or not f["named"]:
+        return
+    entry = {k: f[k] for k in ("effect", "input", "output", "estimate", "gap_before", "gap_after", "shrink_pct",
+                               "score", "evidence", "share_pct", "share_interval_pct")}
+    entry["consistency"] = {"status": "not_checked", "why": f"checked over {f['folds']} contiguous folds of the flight"}
+    sh = report["shares"]
+    lo, hi = f["share_interval_pct"]
+    rule_ok = hi >= cfg.explained_share_min_pct or not loc.gap_significant
+    others = sh.get("explained_pct") if report["effects"] else None
+    first = rule_ok and (others is None or f["share_pct"] > others)
+    x = min(max(f["share_pct"], 0.0), 100.0)
+    text = (f"{x:.0f} % of the gap above noise is explained by a stabilising controller in the loop (interval "
+            f"{min(max(lo, 0.0), 100.0):.0f} to {min(max(hi, 0.0), 100.0):.0f} % over {f['folds']} contiguous folds): "
+            f"the inputs are commands to a stabilised aircraft, identify it with the command-response structure")
+    if first:
+        report["effects"] = [entry] + list(report["effects"])
+        if report["verdict"] == "unexplained" and report.get("partial_findings"):
+            report["effects"] += list(report["partial_findings"])
+            report["partial_findings"] = []
+        names = ", ".join(e["effect"].replace("_", " ") + (f" {e['input'] or e['output']}" if e["input"] or e["output"]
+                                                           else "") for e in report["effects"][1:])
+        report["verdict"] = controller.EFFECT
+        report["unexplained"] = None
+        # the named finding's share (its own protocol: contiguous folds) is the report's explained share
+        sh.update(explained_pct=round(f["share_pct"], 1), interval_pct=[round(lo, 1), round(hi, 1)],
+                  unexplained_pct=round(100.0 - x, 1), partial_explained_pct=None,
+                  per_effect=[{"effect": "stabilising controller", "share_pct": entry["share_pct"],
+                               "interval_pct": entry["share_interval_pct"]}] + list(sh.get("per_effect") or []))
+        sh["headline"] = text + (f"; beside it: {names}" if names else "")
+    elif report["verdict"] == "unexplained":
+        report["partial_findings"] = list(report.get("partial_findings", [])) + [entry]
+        sh["headline"] += f"; {text.replace(' is explained by', ' is removed by')}, below the share needed to name it"
+    else:
+        report["effects"] = list(report["effects"]) + [entry]
+        sh["headline"] += f"; and {x:.0f} % by a stabilising controller in the loop"
 
 
 def compat_stage(prepared: Any, cfg: DiagnoseConfig) -> tuple[compat.Compatibility, Any]:
@@ -397,7 +456,7 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
                     seed: int, pmap: Map = serial_map) -> Attributed:
     """Scan, score and test every catalogue hypothesis; the fingerprints; plausibility; encompassing."""
     ev, segs, avail, dt, nf = base.ev, base.segs, base.avail, base.dt_s, loc.nf
-    ctx = hypotheses.Context(ev, segs)
+    ctx = hypotheses.Context(ev, segs, cfg=cfg)
     ctx.pwm_per_unit = float(getattr(prepared, "pwm_per_unit", 500.0))
     hyps = _scan_all(ctx, loc.in_excited, pmap)
 
@@ -407,7 +466,8 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
     # lines are looked for in the body rates and attitude only: the velocities come from a slower
     # position estimate resampled to the grid, whose interpolation images are not vibration
     line_ch = avail & (np.arange(8) >= 3)
-    lines, spectra = fingerprints.spectral_lines(resid_raw, ev.U[:, ev.start:], dt, line_ch, alpha=cfg.alpha)
+    lines, spectra = fingerprints.spectral_lines(resid_raw, ev.U[:, ev.start:], dt, line_ch, alpha=cfg.alpha,
+                                                 response=_response(ev.theta0, dt))
     # a line above the Nyquist frequency of the stream a channel was sent at is an interpolation image
     lines = fingerprints.resolvable_lines(lines, loc.out_stride, dt)
     kin = fingerprints.kinematic_rate_offsets(ev.Y, dt, avail, trims=_trims(prepared))
@@ -424,7 +484,7 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
         if not h.testable or h.sse is None:
             continue
         b = h.extra.get("base_sse", ctx.base_sse)
-        s = attribute.score(b, h.sse, ev.energy, h.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
+        s = attribute.score(b, h.sse, ev.energy, h.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot), test_n_boot=cfg.n_boot)
         s.p_value = candidates.p_value(h, ctx, b, rng, cfg)
         results.append((h, s))
     if lines:  # rotor vibration: scored on the raw residual of the line channels
@@ -444,6 +504,13 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
     candidates.conditional_names(ranked, cands, ctx, segs, [c for c in range(4) if loc.in_excited[c]], kin_sig,
                                  rng, cfg, crit, np.asarray(nf["nrmse_floor"], float), pmap)
     return Attributed(ctx=ctx, hyps=hyps, candidates=cands, kin=kin, lines=lines, spectra=spectra, crit=crit)
+
+
+def _response(theta: np.ndarray, dt_s: float) -> Any:
+    """``f_hz -> (F, 8, 4)`` the base model's discrete frequency response (for the spectral-line test)."""
+    from groundstation.freq.model_response import model_response
+
+    return partial(model_response, np.asarray(theta, float), dt_s=dt_s)
 
 
 def rank_named(cands: list[attribute.Candidate]) -> list[attribute.Candidate]:
@@ -503,7 +570,7 @@ def _structure_context(t: structure.StructureTest, base: Base, att: Attributed, 
         ev_s = Evaluator(segs_s, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds,
                          ridge=ev.ridge)
         ev_s.refine(cfg.refit_iterations)
-        ctx_s = hypotheses.Context(ev_s, segs_s)
+        ctx_s = hypotheses.Context(ev_s, segs_s, cfg=cfg)
         ctx_s.pwm_per_unit = att.ctx.pwm_per_unit
         if it == cfg.outer_iterations:
             break
@@ -523,7 +590,7 @@ def _effect_given_structure(c: attribute.Candidate, t: structure.StructureTest, 
         return True, float("inf"), "cannot be re-tested with the structure in the model"
     h.extra = {**c.hyp.extra, **h.extra}
     b = h.extra.get("base_sse", ctx_s.base_sse) if h.effect == "wind_gust" else ctx_s.base_sse
-    s = attribute.score(b, h.sse, ctx_s.ev.energy, h.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
+    s = attribute.score(b, h.sse, ctx_s.ev.energy, h.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot), test_n_boot=cfg.n_boot)
     s.p_value = candidates.p_value(h, ctx_s, b, rng, cfg)
     ok = bool(s.p_value < att.crit and candidates.gain_ok(s, cfg) and candidates.physical(h, cfg))
     return ok, float(s.score_pct), f"{s.score_pct:+.1f}% held-out (p={s.p_value:.2g}) with the {t.input} {t.kind.replace('_', ' ')} in"
@@ -717,6 +784,7 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
             if any(c.hyp.effect == "rotor_vibration" for c in ranked):
                 yfit = ev.simulate(ev.theta0)[0]
                 arrays = {"resid_raw": (ev.Yraw - yfit)[:, ev.start:], "U": ev.U[:, ev.start:],
+                          "response": _response(ev.theta0, ev.dt_s),
                           "line_channels": base.avail & (np.arange(8) >= 3), "stride": loc.out_stride}
             for c in ranked:
                 cons[id(c)] = shares.consistency(
@@ -728,6 +796,11 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
     rem = {id(c): shares.removal(c, base_sse, first=(i == 0)) for i, c in enumerate(ranked)}
     if kept and kept[0] is not ranked[0]:
         rem[id(kept[0])] = shares.removal(kept[0], base_sse, first=True)
+    kept, unconfirmed = _confirm_beside_first(kept, rem, cons, base_sse, noise_sse, avail, rng, cfg, att.crit,
+                                              lambda c, first: _line_given_first(c, first, base=base, loc=loc,
+                                                                                 att=att, cfg=cfg))
+    if unconfirmed:
+        ranked = [c for c in ranked if c not in unconfirmed]
     sh_all = shares.compute_shares([(_effect_label(c), rem[id(c)]) for c in ranked], base_sse, noise_sse, avail,
                                    rng, cfg.share_n_boot)
     sh = shares.compute_shares([(_effect_label(c), rem[id(c)]) for c in kept], base_sse, noise_sse, avail,
@@ -767,6 +840,11 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
         verdict = "unexplained"
     elif changing:
         partial = changing
+    if verdict == "none" and loc.gap_significant:
+        # the share rule with nothing named: 0 % of a significant gap above noise is explained (a gap
+        # spread evenly over the flight is still a gap: a parameter drifting slowly spreads its own)
+        verdict = "unexplained"
+        notes.append("nothing is named and the held-out gap is significant: 0 % of the gap above noise is explained")
     if verdict == "unexplained" and unexplained is None:
         unexplained = _unexplained_evidence(base, loc, tests, cfg)
     cols = [OUTPUTS.index(n) for n in sh.channels]
@@ -812,9 +890,105 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
                                                                for v in cons.values()),
                               **over_time, "changes": changes},
            "verdict": verdict, "unexplained": unexplained}
-    new = dataclasses.replace(dec, verdict=verdict, ranked=kept, unexplained=unexplained)
+    new = dataclasses.replace(dec, verdict=verdict, ranked=kept, unexplained=unexplained,
+                              others=list(dec.others) + unconfirmed)
     rep["notes_add"] = notes
     return new, {"report": rep, "per_effect": per_effect}
+
+
+def _confirm_beside_first(kept: list[attribute.Candidate], rem: dict[int, np.ndarray], cons: dict[int, dict[str, Any]],
+                          base_sse: np.ndarray, noise_sse: np.ndarray, avail: np.ndarray, rng: np.random.Generator,
+                          cfg: DiagnoseConfig, crit: float, line_test: Any = None
+                          ) -> tuple[list[attribute.Candidate], list[attribute.Candidate]]:
+    """Effects named beside the first, confirmed with the held-out *windows* as the unit.
+
+    Each must remove, once the first effect is in, a part of the held-out gap above the noise that is
+    positive window by window beyond chance (one-sided Wilcoxon signed-rank test over the windows'
+    removals, in noise units, at the per-test level ``crit`` the effects were first named at), with a
+    share whose 5-95 % interval (bootstrap over windows) lies above zero.
+
+    Why: the first effect named is often an approximation of the aircraft's physics (a first-order
+    servo lag read as a delay, backlash as a deadband, turbulence as a smooth air mass), and what it
+    leaves is systematic and input-linked: the pilot's corrective inputs follow every disturbance the
+    model misses. A second catalogue effect can soak up a sliver of that remainder and pass the
+    conditional test, whose ~0.5 s blocks are counted as independent pieces of evidence; the
+    remainder is not noise, so neighbouring blocks of a window agree and the evidence is overcounted.
+    The 3-s held-out windows are the unit the residual's dependence stays inside: a real second
+    effect removes cost window after window (or in a few windows by a large margin, where its input
+    was swept), a sliver of a remainder does not. A spectral line (a fingerprint of the raw residual,
+    which the smoothed held-out gap barely shows) is confirmed instead by ``line_test``: the line must
+    still be in the raw residual of the model with the first effect in (:func:`_line_given_first`).
+    Effects failing are not named: they stay among the scored candidates with the reason. Returns
+    (named, not confirmed)."""
+    from scipy import stats
+
+    if len(kept) < 2:
+        return kept, []
+    named = [kept[0]]
+    out = []
+    for c in kept[1:]:
+        if c.hyp.effect == "rotor_vibration":
+            ok, why_line = line_test(c, kept[0]) if line_test is not None else (True, "")
+            if ok:
+                named.append(c)
+            else:
+                c.significant = False
+                c.evidence += f"; not named beside the {kept[0].hyp.effect}: {why_line}"
+                out.append(c)
+            continue
+        sh = shares.compute_shares([(_effect_label(c), rem[id(c)])], base_sse, noise_sse, avail, rng,
+                                   cfg.share_n_boot)
+        pe = sh.per_effect[0] if sh.per_effect else None
+        num = shares.window_removal(rem[id(c)], base_sse, noise_sse, avail)
+        try:
+            p = float(stats.wilcoxon(num, alternative="greater").pvalue) if np.any(num != 0) else 1.0
+        except ValueError:
+            p = 1.0
+        c.hyp.extra["p_windows_beside_first"] = p
+        why = []
+        if pe is None or not pe["interval_pct"][0] > 0:
+            iv = "no gap above noise to share" if pe is None else \
+                f"{pe['share_pct']:.1f} % of the gap above noise, interval {pe['interval_pct'][0]:.1f} to {pe['interval_pct'][1]:.1f} %"
+            why.append(f"its share once the {kept[0].hyp.effect} is in does not exclude zero ({iv})")
+        if not p < crit:
+            why.append(f"what it removes once the {kept[0].hyp.effect} is in is not positive window by window "
+                       f"(Wilcoxon signed-rank over {num.size} held-out windows, p={p:.2g} against {crit:.2g})")
+        if why:
+            c.significant = False
+            c.evidence += f"; not named beside the {kept[0].hyp.effect}: " + "; ".join(why)
+            out.append(c)
+        else:
+            c.evidence += (f"; confirmed beside the {kept[0].hyp.effect} window by window "
+                           f"(Wilcoxon p={p:.2g}, share {pe['share_pct']:.1f} %)" if pe else "")
+            named.append(c)
+    return named, out
+
+
+def _line_given_first(c: attribute.Candidate, first: attribute.Candidate, *, base: Base, loc: Located,
+                      att: Attributed, cfg: DiagnoseConfig) -> tuple[bool, str]:
+    """Is rotor line ``c`` still in the raw residual once ``first`` is in the model? (the conditional
+    test of a line: a first effect that only approximates the physics, e.g. a delay standing for a
+    servo lag, leaves its misfit where its input has power, which can stand out as a peak of the base
+    model's residual; a rotor line does not care what the model of the stick is). Same test as the
+    first (:func:`groundstation.gap.fingerprints.spectral_lines`, resolvable lines only), a line within
+    two bins (or 0.3 Hz) of ``c``'s frequency. A first effect that cannot be put in the model (the air
+    mass) leaves the line as it was named."""
+    cctx = candidates.conditioned_context(first, att.ctx, base.segs)
+    if cctx is None or cctx.given is not None:
+        return True, ""
+    ev = cctx.ev
+    resid = (ev.Yraw - ev.simulate(ev.theta0)[0])[:, ev.start:]
+    line_ch = base.avail & (np.arange(8) >= 3)
+    lines, sp = fingerprints.spectral_lines(resid, ev.U[:, ev.start:], base.dt_s, line_ch, alpha=cfg.alpha,
+                                            response=_response(ev.theta0, base.dt_s))
+    lines = fingerprints.resolvable_lines(lines, loc.out_stride, base.dt_s)
+    f0 = float(c.hyp.estimate.get("frequency_hz", np.nan))
+    f = sp.get("f_hz")
+    tol = max(0.3, 2.0 * float(f[1] - f[0])) if f is not None and len(f) > 1 else 0.3
+    if any(abs(ln.frequency_hz - f0) <= tol for ln in lines):
+        return True, ""
+    return False, (f"the line at {f0:.2f} Hz is not in the raw residual once the {first.hyp.effect} is in the model "
+                   f"(the first effect's misfit stood out there)")
 
 
 def _rest_of_gap(sh: shares.Shares, loc: Located, over_time: dict, unexplained: dict | None) -> dict[str, Any]:

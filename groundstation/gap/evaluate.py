@@ -167,14 +167,18 @@ class Evaluator:
         self.r0 = r[0]
         # d residual / d theta ; column-normalised for conditioning
         J = (r[1:] - r[0][None]) / h[:, None, None, None]  # (31, W, L, 8)
-        self.J = np.moveaxis(J, 0, -1)  # (W, L, 8, 31)
+        # C order: a worker process gets this array unpickled in C order, and products of another
+        # layout round differently (the report must not depend on --jobs)
+        self.J = np.ascontiguousarray(np.moveaxis(J, 0, -1))  # (W, L, 8, 31)
         self._prepare_folds()
 
     def _prepare_folds(self) -> None:
         Jf = self.J.reshape(self.W, -1, N_PARAMS)
         self.Jw = Jf
         self.col = np.sqrt((Jf ** 2).sum(axis=(0, 1))) + 1e-30
-        self.JtJ = np.einsum("wni,wnj->wij", Jf / self.col, Jf / self.col)  # per window (W, 31, 31)
+        #: column-normalised Jacobian per window (W, n, 31), formed once for every held-out re-fit
+        self.Jn = Jf / self.col
+        self.JtJ = np.matmul(np.swapaxes(self.Jn, 1, 2), self.Jn)  # per window (W, 31, 31)
 
     # ---------------------------------------------------------------------------------------
     def heldout(self, r: np.ndarray, X: np.ndarray | None = None,
@@ -197,41 +201,97 @@ class Evaluator:
         ridge = self.ridge if ridge is None else ridge
         W = self.W
         rf = r.reshape(W, -1)
-        Jn = self.Jw / self.col
+        Jn = self.Jn
         K = 0 if X is None else X.shape[-1]
+        # normal matrices per window in blocks: J^T J is the base model's (formed once), only the
+        # variant's own columns X are new
+        JtT = np.swapaxes(Jn, 1, 2)
+        Mtr = np.matmul(JtT, rf[..., None])[..., 0]  # (W, 31)
         if K:
             assert X is not None
             Xf = X.reshape(W, -1, K)
             xs = np.sqrt((Xf ** 2).sum(axis=(0, 1))) + 1e-30
-            M = np.concatenate([Jn, Xf / xs], axis=2)
-            MtM = np.einsum("wni,wnj->wij", M, M)
+            Xn = Xf / xs
+            XtT = np.swapaxes(Xn, 1, 2)
+            JtX = np.matmul(JtT, Xn)  # (W, 31, K)
+            MtM = np.empty((W, N_PARAMS + K, N_PARAMS + K))
+            MtM[:, :N_PARAMS, :N_PARAMS] = self.JtJ
+            MtM[:, :N_PARAMS, N_PARAMS:] = JtX
+            MtM[:, N_PARAMS:, :N_PARAMS] = np.swapaxes(JtX, 1, 2)
+            MtM[:, N_PARAMS:, N_PARAMS:] = np.matmul(XtT, Xn)
+            Mtr = np.concatenate([Mtr, np.matmul(XtT, rf[..., None])[..., 0]], axis=1)
         else:
-            M = Jn
             xs = np.ones(0)
             MtM = self.JtJ
-        P = M.shape[2]
-        Mtr = np.einsum("wni,wn->wi", M, rf)
+        P = N_PARAMS + K
         rr = (rf ** 2).sum(axis=1)
-        sse = np.empty((W, 8))
-        blocks = np.empty((W, self.n_blocks))
         train = np.empty(self.folds)
         coef = np.zeros((self.folds, K))
+        D = np.empty((P, self.folds))
         for f in range(self.folds):
             tr = self.fold != f
-            te = ~tr
             G = MtM[tr].sum(0)
             b = Mtr[tr].sum(0)
             lam = ridge * np.trace(G) / P
             d = np.linalg.solve(G + lam * np.eye(P), b)
             train[f] = rr[tr].sum() - 2 * d @ b + d @ G @ d
-            e = rf[te] - np.einsum("wni,i->wn", M[te], d)
-            e2 = e.reshape(int(te.sum()), self.L, 8) ** 2
-            sse[te] = e2.sum(axis=1)
-            blocks[te] = self.to_blocks(e2.sum(axis=2))
+            D[:, f] = d
             if K:
                 coef[f] = d[N_PARAMS:] / xs
+        # every window's prediction under every fold's step in one product; each window keeps its own fold's
+        fit = np.matmul(Jn, D[:N_PARAMS])  # (W, n, folds)
+        if K:
+            fit += np.matmul(Xn, D[N_PARAMS:])
+        e = rf - np.take_along_axis(fit, self.fold[:, None, None], axis=2)[..., 0]
+        e2 = e.reshape(W, self.L, 8) ** 2
+        sse = e2.sum(axis=1)
+        blocks = self.to_blocks(e2.sum(axis=2))
         self.last_blocks = blocks
         return sse, train, coef
+
+    def heldout_many(self, rs: np.ndarray, ridge: float | None = None,
+                     chunk_bytes: float = 8e6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`heldout` (no linear columns) of V variants at once: ``rs`` (V, W, L, 8).
+
+        The re-fit's normal matrix is the base model's for every variant, so each fold is factored
+        once and the variants are its right-hand sides; the Jacobian is read once per chunk of
+        variants, not twice per variant. Returns ``sse`` (V, W, 8), ``train`` (V, folds) and the
+        held-out cost per block (V, W, n_blocks), the same numbers as V calls of :meth:`heldout`
+        to round-off.
+        """
+        ridge = self.ridge if ridge is None else ridge
+        V, W = rs.shape[0], self.W
+        Jn = self.Jn
+        JtT = np.swapaxes(Jn, 1, 2)
+        P = N_PARAMS
+        Gf, lams = [], []
+        for f in range(self.folds):
+            G = self.JtJ[self.fold != f].sum(0)
+            lams.append(ridge * np.trace(G) / P)
+            Gf.append(G)
+        sse = np.empty((V, W, 8))
+        blocks = np.empty((V, W, self.n_blocks))
+        train = np.empty((V, self.folds))
+        vc = max(1, int(chunk_bytes // max(rs[0].nbytes, 1)))
+        for v0 in range(0, V, vc):
+            v1 = min(V, v0 + vc)
+            R = rs[v0:v1].reshape(v1 - v0, W, -1)
+            Rt = np.moveaxis(R, 0, 2).copy(order="C")  # (W, n, Vc), a copy: corrected in place below
+            Mtr = np.matmul(JtT, Rt)  # (W, 31, Vc)
+            rr = (R ** 2).sum(axis=2)  # (Vc, W)
+            Dw = np.empty((W, P, v1 - v0))
+            for f in range(self.folds):
+                tr = self.fold != f
+                G = Gf[f]
+                b = Mtr[tr].sum(0)  # (31, Vc)
+                d = np.linalg.solve(G + lams[f] * np.eye(P), b)
+                train[v0:v1, f] = rr[:, tr].sum(axis=1) - 2 * (d * b).sum(0) + (d * (G @ d)).sum(0)
+                Dw[~tr] = d
+            Rt -= np.matmul(Jn, Dw)  # held-out residual of every window under its own fold's re-fit
+            e2 = np.moveaxis(Rt, 2, 0).reshape(v1 - v0, W, self.L, 8) ** 2
+            sse[v0:v1] = e2.sum(axis=2)
+            blocks[v0:v1] = self.to_blocks(e2.sum(axis=3).reshape(-1, self.L)).reshape(v1 - v0, W, -1)
+        return sse, train, blocks
 
     def to_blocks(self, e2: np.ndarray) -> np.ndarray:
         """Sum (W, L) squared residuals over blocks of ``block`` samples: (W, n_blocks)."""
@@ -243,8 +303,8 @@ class Evaluator:
         ridge = self.ridge if ridge is None else ridge
         W = self.W
         rf = r.reshape(W, -1)
-        Jn = self.Jw / self.col
-        Mtr = np.einsum("wni,wn->wi", Jn, rf)
+        Jn = self.Jn
+        Mtr = np.matmul(np.swapaxes(Jn, 1, 2), rf[..., None])[..., 0]
         out = np.empty_like(rf)
         for f in range(self.folds):
             tr = self.fold != f
@@ -260,7 +320,7 @@ class Evaluator:
         """One Gauss-Newton step on all windows: returns (d_theta (31,), linear params (K,))."""
         W = self.W
         rf = r.reshape(W, -1)
-        Jn = self.Jw / self.col
+        Jn = self.Jn
         K = 0 if X is None else X.shape[-1]
         if X is not None and K:
             Xf = X.reshape(W, -1, K)
@@ -269,8 +329,9 @@ class Evaluator:
         else:
             xs = np.ones(0)
             M = Jn
-        G = np.einsum("wni,wnj->ij", M, M)
-        b = np.einsum("wni,wn->i", M, rf)
+        Mf = M.reshape(-1, M.shape[2])
+        G = Mf.T @ Mf
+        b = Mf.T @ rf.ravel()
         lam = ridge * np.trace(G) / M.shape[2]
         d = np.linalg.solve(G + lam * np.eye(M.shape[2]), b)
         # residual r = y - yhat; r ~ M d  =>  yhat_new = yhat + M d  => theta_new = theta0 - d/col

@@ -16,11 +16,17 @@ Arrays: windows ``(W, L, C)``. Pure numpy/scipy.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy import stats
 
 from groundstation.sysid.model import OUTPUTS
+
+
+#: how far (amplitude ratio) the model's response may be wrong before a residual line the sticks also
+#: carry is said not to come from them (:func:`spectral_lines`)
+STICK_REACH_FACTOR = 10.0
 
 
 @dataclass
@@ -99,8 +105,18 @@ def _line_stats(P: np.ndarray, n_avg: int, half: int = 6, guard: int = 2,
 
 
 def spectral_lines(resid: np.ndarray, inputs: np.ndarray, dt_s: float, available: np.ndarray,
-                   *, alpha: float = 1e-3, min_hz: float | None = None) -> tuple[list[Line], dict]:
-    """Significant narrow spectral lines in output residuals that the inputs do not contain.
+                   *, alpha: float = 1e-3, min_hz: float | None = None,
+                   response: Any = None) -> tuple[list[Line], dict]:
+    """Significant narrow spectral lines in output residuals that the inputs do not explain.
+
+    A line the inputs also carry is left out where the inputs could have put it in the residual: their
+    power at that frequency through the model's response to the channel, ``sum_j |G_j(f)|^2 Pu_j(f)``,
+    times :data:`STICK_REACH_FACTOR` squared, is at least the residual's line power (above its local
+    median). A residual line the sticks could only have made were the model's response wrong by more
+    than that factor in amplitude was not made by the sticks: a stabilising loop passes a vibration the
+    gyros see into the servo outputs, where it is the consequence, not the cause (at a rotor line the
+    hover model's response is orders of magnitude below that; in the band the card excites it is not). ``response(f_hz) -> (F, 8, 4)`` complex model response; None:
+    any input line leaves the bin out.
 
     Parameters
     ----------
@@ -134,8 +150,15 @@ def spectral_lines(resid: np.ndarray, inputs: np.ndarray, dt_s: float, available
     thr = np.log10(alpha / n_tests)
     z_thr = stats.norm.isf(alpha / n_tests)
     sig = test & (logp < thr) & (z_med > z_thr)
-    in_input = (ulogp < np.log10(alpha / max(Pu.size, 1))).any(axis=1)
-    sig &= ~in_input[:, None]
+    u_line = ulogp < np.log10(alpha / max(Pu.size, 1))  # (F, 4)
+    if response is None:
+        sig &= ~u_line.any(axis=1)[:, None]
+    elif u_line.any():
+        G2 = np.abs(np.asarray(response(f))) ** 2  # (F, 8, 4)
+        # what the sticks can put in each output at that frequency (their whole power there, through the model)
+        reach = np.einsum("fcj,fj->fc", np.nan_to_num(G2), Pu)
+        r_exc = P * (1.0 - 1.0 / np.maximum(ratio, 1.0))
+        sig &= ~(u_line.any(axis=1)[:, None] & (STICK_REACH_FACTOR ** 2 * reach >= r_exc))
     lines: list[Line] = []
     used = np.zeros(len(f), bool)
     order = np.argsort(np.where(sig, logp, 0).min(axis=1))

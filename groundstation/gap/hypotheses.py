@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from groundstation.errors import GapError
+from groundstation.gap.config import DiagnoseConfig
 from groundstation.gap.evaluate import Evaluator, SegmentArrays
 from groundstation.gap.linsim import full_matrices
 from groundstation.gap.linsim import simulate as lsim
@@ -121,8 +122,10 @@ def backlash(x: np.ndarray, b: float) -> np.ndarray:
 class Context:
     """Base-model windows plus the cached base held-out cost, shared by every scan."""
 
-    def __init__(self, ev: Evaluator, segments: list[SegmentArrays], given: np.ndarray | None = None):
+    def __init__(self, ev: Evaluator, segments: list[SegmentArrays], given: np.ndarray | None = None,
+                 cfg: DiagnoseConfig | None = None):
         self.ev = ev
+        self.cfg = cfg or DiagnoseConfig()  # the scans' own settings (the air-mass scan's chunks and knots)
         self.segments = segments
         # ``given`` (W, L, 8, K): linear columns of another effect already in the model (conditional
         # scans: does this effect still add anything once the other one is in?)
@@ -140,7 +143,7 @@ class Context:
         ev = self.ev
         V = len(U_list) if U_list is not None else len(Y_list or [])
         U = np.concatenate(U_list) if U_list is not None else np.tile(ev.U, (V, 1, 1))
-        Y = np.concatenate(Y_list) if Y_list is not None else np.tile(ev.Y, (V, 1, 1))
+        Y = np.concatenate(Y_list) if Y_list is not None else ev.Y  # the simulation repeats it per variant
         yh = lsim(ev.theta0, U, Y, ev.dt_s, weights=ev.w8, available=ev.available, start=ev.start)[0]
         yh = yh.reshape(V, ev.W, ev.L, 8)
         return yh
@@ -154,16 +157,23 @@ class Context:
         """
         ev = self.ev
         sses, trains, coefs, blks = [], [], [], []
-        for _, r, X in variants:
-            k_own = 0 if X is None else X.shape[-1]
-            if self.given is not None:
-                X = self.given if X is None else np.concatenate([X, self.given], axis=-1)
-            s, t, c = ev.heldout(r, X)
-            sses.append(s)
-            trains.append(t)
-            coefs.append(c[:, :k_own])
-            blks.append(ev.last_blocks.copy())
-        T = np.array(trains)  # (V, folds)
+        if self.given is None and len(variants) > 1 and all(X is None for _, _, X in variants):
+            # input variants: one batched re-fit (the normal matrix is the base model's for all)
+            s_all, T, b_all = ev.heldout_many(np.stack([r for _, r, _ in variants]))
+            sses, blks = list(s_all), list(b_all)
+            ev.last_blocks = b_all[-1].copy()
+            coefs = [np.zeros((ev.folds, 0))] * len(variants)
+        else:
+            for _, r, X in variants:
+                k_own = 0 if X is None else X.shape[-1]
+                if self.given is not None:
+                    X = self.given if X is None else np.concatenate([X, self.given], axis=-1)
+                s, t, c = ev.heldout(r, X)
+                sses.append(s)
+                trains.append(t)
+                coefs.append(c[:, :k_own])
+                blks.append(ev.last_blocks.copy())
+            T = np.array(trains)  # (V, folds)
         out = np.empty((ev.W, 8))
         out_b = np.empty((ev.W, ev.n_blocks))
         for f in range(ev.folds):
@@ -458,8 +468,8 @@ def _air_columns(ev: Evaluator, theta: np.ndarray, n_knots: int = 3) -> np.ndarr
     return np.stack(cols, axis=-1) * ev.available[None, None, :, None]
 
 
-def scan_wind_gust(ctx: Context, chunk_s: float = 0.5, refine_iterations: int = 6,
-                   knot_s: float = 1.5) -> Hypothesis:
+def scan_wind_gust(ctx: Context, chunk_s: float | None = None, refine_iterations: int | None = None,
+                   knot_s: float | None = None) -> Hypothesis:
     """Air-mass motion: a smooth horizontal air velocity entering wherever the body velocity does.
 
     In each window the air velocity is piecewise linear in time (three knots per component) and
@@ -475,7 +485,12 @@ def scan_wind_gust(ctx: Context, chunk_s: float = 0.5, refine_iterations: int = 
     under the air velocity, which can also over-fit) are chosen per fold on the other folds'
     windows. Scored on :data:`GUST_CHANNELS` only (the rates also carry the air velocity's rough
     part, which no smooth air velocity predicts between its knots; w sees no horizontal air).
+    ``chunk_s``, ``refine_iterations`` and ``knot_s`` default to the context's ``gust_chunk_s``,
+    ``gust_refine_iterations`` and ``gust_knot_s``.
     """
+    chunk_s = ctx.cfg.gust_chunk_s if chunk_s is None else chunk_s
+    knot_s = ctx.cfg.gust_knot_s if knot_s is None else knot_s
+    refine_iterations = ctx.cfg.gust_refine_iterations if refine_iterations is None else refine_iterations
     ev = ctx.ev
     if not ev.available[[0, 1]].all():
         return Hypothesis("wind_gust", testable=False, reason="no horizontal velocity measurements")

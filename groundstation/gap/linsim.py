@@ -47,6 +47,64 @@ def full_matrices(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return A, B
 
 
+#: time-lifting block (samples): the block-start states come from a recursion over L / LIFT_BLOCK
+#: blocks and every output sample from one product per candidate (see :func:`_lifted_outputs`)
+LIFT_BLOCK = 10
+#: windows are simulated in chunks of about this many bytes of output per candidate batch, so that
+#: product, residual and least squares stay in cache and a large batch of variants needs no
+#: multi-hundred-megabyte temporaries
+CHUNK_BYTES = 4e6
+
+
+def _lift(Ad: np.ndarray, Bd: np.ndarray, b: int, nb: int):
+    """Lifted maps of blocks of ``b`` samples, per candidate.
+
+    Returns ``AbT`` (C, 11, 11) = (A^b)^T; ``CbT`` (C, b m, 11): block input-to-state map transposed
+    (row ``(l, input)``: ``(A^(b-1-l) B)^T``); ``TT`` (C, b m, b 8): block-Toeplitz Markov parameters
+    transposed (``y_j = sum_{l<j} C A^(j-1-l) B u_l``); ``ObT`` (C, 11, b 8): ``(C A^j)^T``;
+    ``Phi`` (C, nb b, 8, 11): free response ``C A^t`` of every initial state at every sample.
+    """
+    C, n, m = Bd.shape
+    pw = [np.broadcast_to(np.eye(n), (C, n, n)), Ad]
+    for _ in range(b - 1):
+        pw.append(np.matmul(Ad, pw[-1]))
+    Apow = np.stack(pw, axis=1)  # (C, b+1, n, n)
+    AB = np.matmul(Apow[:, :b], Bd[:, None])  # (C, b, n, m): A^q B
+    Cb = AB[:, ::-1].transpose(0, 2, 1, 3).reshape(C, n, b * m)  # column block l: A^(b-1-l) B
+    CAB = np.concatenate([AB[:, :, OUT_STATE, :], np.zeros((C, 1, 8, m))], axis=1)  # (C, b+1, 8, m)
+    jj, ll = np.meshgrid(np.arange(b), np.arange(b), indexing="ij")
+    Tq = CAB[:, np.where(ll < jj, jj - 1 - ll, b)]  # (C, b(j), b(l), 8, m)
+    TT = np.ascontiguousarray(Tq.transpose(0, 2, 4, 1, 3).reshape(C, b * m, b * 8))
+    Ob = Apow[:, :b][:, :, OUT_STATE, :]  # (C, b, 8, n): C A^j
+    ObT = np.ascontiguousarray(Ob.reshape(C, b * 8, n).transpose(0, 2, 1))
+    # free responses C A^j (A^b)^i at t = i b + j
+    Abp = [np.broadcast_to(np.eye(n), (C, n, n))]
+    for _ in range(nb - 1):
+        Abp.append(np.matmul(Abp[-1], Apow[:, b]))
+    Phi = np.matmul(Ob.reshape(C, 1, b * 8, n), np.stack(Abp, axis=1)).reshape(C, nb * b, 8, n)
+    return np.swapaxes(Apow[:, b], 1, 2), np.swapaxes(Cb, 1, 2), TT, ObT, Phi
+
+
+def _lifted_outputs(x0: np.ndarray, u: np.ndarray, AbT: np.ndarray, CbT: np.ndarray, TT: np.ndarray,
+                    ObT: np.ndarray, b: int) -> tuple[np.ndarray, np.ndarray]:
+    """Outputs (C, W, nb b, 8) of ``x[k+1] = A x[k] + B u[k]``, ``y[k] = x[k][OUT_STATE]`` from ``x0``
+    (C, W, 11) and inputs ``u`` (W, nb b, m) (zero-padded to whole blocks), by time lifting: the
+    block-start states ``x_(i+1) = A^b x_i + Cb U_i`` (nb - 1 small steps) and then every sample of every
+    block ``Y_i = Ob x_i + T U_i`` in two products. The same numbers as stepping sample by sample, up to
+    round-off. Also returns the block-start states (C, W, nb, 11) (for the runaway check)."""
+    C, W, n = x0.shape
+    nb = u.shape[1] // b
+    Ub = u.reshape(W * nb, -1)  # rows (window, block), columns (sample in block, input)
+    UC = np.matmul(Ub, CbT).reshape(C, W, nb, n)  # block input contributions to the next block start
+    xs = np.empty((C, W, nb, n))
+    xs[:, :, 0] = x0
+    for i in range(nb - 1):
+        xs[:, :, i + 1] = np.matmul(xs[:, :, i], AbT) + UC[:, :, i]
+    Y = np.matmul(Ub, TT)  # (C, W nb, b 8)
+    Y += np.matmul(xs.reshape(C, W * nb, n), ObT)
+    return Y.reshape(C, W, nb * b, 8), xs
+
+
 def simulate(
     theta: np.ndarray,
     inputs: np.ndarray,
@@ -71,7 +129,8 @@ def simulate(
     ----------
     theta : array (C, 31) or (31,)
     inputs : array (W, L, 4), normalised inputs
-    outputs : array (W, L, 8), measured outputs (initial states and the LS target)
+    outputs : array (W, L, 8), measured outputs (initial states and the LS target); or (W0, L, 8)
+        with W0 dividing W: window w's are ``outputs[w % W0]`` (input variants of the same windows)
     dt_s : float, sample period (s)
     forcing : array (W, L, 11) or None, state-derivative forcing added to every state row
     weights : array (8,) or None, per-channel weights (1/scale) of the initial-state least squares
@@ -99,73 +158,94 @@ def simulate(
     Ad, Bd = discretize(A, B, dt_s)  # (C,11,11), (C,11,15)
     C = th.shape[0]
     u_all = inputs if forcing is None else np.concatenate([inputs, forcing], axis=2)
-    Bd_use = Bd[:, :, : u_all.shape[2]]
-    AdT = np.swapaxes(Ad, 1, 2)
-    BdT = np.swapaxes(Bd_use, 1, 2)
+    m = u_all.shape[2]
+    b = max(1, min(LIFT_BLOCK, L))
+    nb = -(-L // b)
+    up = np.zeros((Wn, nb * b, m))
+    up[:, :L] = u_all
     # unknown initial states: unmeasured ones and unavailable channels
     unknown = list(UNMEASURED) + [int(OUT_STATE[c]) for c in range(8) if not avail[c] or all_initial]
     nu = len(unknown)
-    x = np.zeros((C, Wn, N_STATES))
-    x[:, :, OUT_STATE[avail]] = outputs[None, :, 0, avail]
-    # free responses of the unknown initial states: (C, nu, 11) propagated alongside
-    e = np.zeros((C, nu, N_STATES))
-    for j, s in enumerate(unknown):
-        e[:, j, s] = 1.0
-    forced_u = np.einsum("wlm,cmn->lcwn", u_all, BdT, optimize=True)  # (L, C, W, 11)
-    ys = np.empty((L, C, Wn, N_STATES))
-    fs = np.empty((L, C, nu, N_STATES))
+    W0 = outputs.shape[0]
+    if Wn % W0:
+        raise ValueError(f"outputs: {W0} windows do not divide the inputs' {Wn}")
+    x0 = np.zeros((Wn, N_STATES))
+    x0[:, OUT_STATE[avail]] = np.tile(outputs[:, 0, avail], (Wn // W0, 1))
+    yhat = np.empty((C, Wn, L, 8))
+    runaway = np.zeros(C, bool)
     # an unstable candidate (a search or a Levenberg-Marquardt trial step) can overflow within a
     # window: it is simulated without warnings, zeroed for the least squares and returned as NaN
-    with np.errstate(over="ignore", invalid="ignore"):
-        for k in range(L):
-            ys[k] = x
-            fs[k] = e
-            x = np.matmul(x, AdT) + forced_u[k]
-            e = np.matmul(e, AdT)
-    runaway = ~(np.isfinite(ys).all(axis=(0, 2, 3)) & np.isfinite(fs).all(axis=(0, 2, 3))
-                & (np.abs(ys).max(axis=(0, 2, 3), initial=0.0) < 1e150))
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        AbT, CbT, TT, ObT, Phi = _lift(Ad, Bd[:, :, :m], b, nb)
+        S = np.ascontiguousarray(np.moveaxis(Phi[:, :L, :, unknown], 3, 1))  # (C, nu, L, 8), every window
+        # a NaN propagates through max and fails the comparison like an overflow does
+        runaway |= ~(np.abs(S).max(axis=(1, 2, 3), initial=0.0) < 1e150)
+        wc = max(1, min(Wn, int(CHUNK_BYTES // (8 * C * L * 8))))
+        for w0 in range(0, Wn, wc):
+            w1 = min(Wn, w0 + wc)
+            y, xs = _lifted_outputs(np.broadcast_to(x0[None, w0:w1], (C, w1 - w0, N_STATES)), up[w0:w1],
+                                    AbT, CbT, TT, ObT, b)
+            yhat[:, w0:w1] = y[:, :, :L]
+            runaway |= ~((np.abs(y).max(axis=(1, 2, 3), initial=0.0) < 1e150)
+                         & (np.abs(xs).max(axis=(1, 2, 3), initial=0.0) < 1e150))
     if runaway.any():
-        ys[:, runaway] = 0.0
-        fs[:, runaway] = 0.0
-    yhat = np.moveaxis(ys[..., OUT_STATE], 0, 2)  # (C, W, L, 8)
+        yhat[runaway] = 0.0
+        S[runaway] = 0.0
     if not fit_initial:
         if runaway.any():
             yhat[runaway] = np.nan
         return yhat
-    S = np.moveaxis(fs[..., OUT_STATE], 0, 2)  # (C, nu, L, 8): the same in every window
-    r = outputs[None] - yhat  # (C, W, L, 8)
     sel = slice(start, stop) if fit_mask is None else np.flatnonzero(fit_mask)
-    # normal equations in blocks: the free responses S do not depend on the window, so their Gram
-    # matrix is formed once and never broadcast over the windows (the nuisance columns do)
-    Sw = (S[:, :, sel, :] * w8).reshape(C, nu, -1)  # (C, nu, n)
-    rw = (r[:, :, sel, :] * w8).reshape(C, Wn, -1)  # (C, W, n)
-    Gss = np.einsum("cil,cjl->cij", Sw, Sw)
-    hs = np.einsum("cil,cwl->cwi", Sw, rw)
+    Sw = np.ascontiguousarray((S[:, :, sel, :] * w8).reshape(C, nu, -1))  # (C, nu, n)
+    SwT = np.swapaxes(Sw, 1, 2)
+    # the free responses S do not depend on the window: their Gram matrix is formed once
+    Gss = np.matmul(Sw, SwT)  # (C, nu, nu)
+    S2 = S.reshape(C, nu, L * 8)
+    K = 0 if nuisance is None else nuisance.shape[-1]
+    coef = np.empty((C, Wn, nu + K)) if return_coef else None
     if nuisance is None:
-        G = np.broadcast_to(Gss[:, None], (C, Wn, nu, nu))
-        h = hs
+        # one normal matrix per candidate: one factorisation, every window a right-hand side
+        ridge = 1e-9 * np.trace(Gss, axis1=1, axis2=2)[:, None, None] / nu + 1e-12
+        Gr = Gss + ridge * np.eye(nu)
     else:
-        K = nuisance.shape[-1]
-        Nw = (np.moveaxis(nuisance, 3, 1)[:, :, sel, :] * w8).reshape(Wn, K, -1)  # (W, K, n)
-        Gsn = np.einsum("cil,wkl->cwik", Sw, Nw)
-        Gnn = np.einsum("wkl,wml->wkm", Nw, Nw)
-        G = np.empty((C, Wn, nu + K, nu + K))
-        G[:, :, :nu, :nu] = Gss[:, None]
-        G[:, :, :nu, nu:] = Gsn
-        G[:, :, nu:, :nu] = np.swapaxes(Gsn, 2, 3)
-        G[:, :, nu:, nu:] = Gnn[None]
-        h = np.concatenate([hs, np.einsum("wkl,cwl->cwk", Nw, rw)], axis=2)
-    ridge = 1e-9 * np.trace(G, axis1=2, axis2=3)[..., None, None] / G.shape[-1] + 1e-12
-    Gr = G + ridge * np.eye(G.shape[-1])
-    if nuisance is not None and nuisance_prec is not None:
-        idx = np.arange(G.shape[-1] - K, G.shape[-1])
-        Gr[..., idx, idx] += np.asarray(nuisance_prec, float)
-    a = np.linalg.solve(Gr, h[..., None])[..., 0]
-    yhat = yhat + np.einsum("cwi,cilk->cwlk", a[..., :nu], S)
-    if nuisance is not None:
-        yhat = yhat + np.einsum("cwk,wlmk->cwlm", a[..., nu:], nuisance)
+        Nall = np.moveaxis(nuisance, 3, 1)  # (W, K, L, 8) view
+        Gss_b = Gss[:, None]
+        prec = None if nuisance_prec is None else np.asarray(nuisance_prec, float)
+    for w0 in range(0, Wn, wc):
+        w1 = min(Wn, w0 + wc)
+        Wc = w1 - w0
+        yc = yhat[:, w0:w1]  # view: corrected in place
+        yo = outputs[w0:w1] if W0 == Wn else outputs[np.arange(w0, w1) % W0]
+        rw = ((yo[None] - yc)[:, :, sel, :] * w8).reshape(C, Wc, -1)  # (C, Wc, n)
+        hs = np.matmul(rw, SwT)  # (C, Wc, nu)
+        if nuisance is None:
+            a = np.swapaxes(np.linalg.solve(Gr, np.swapaxes(hs, 1, 2)), 1, 2)  # (C, Wc, nu)
+            yc += np.matmul(a, S2).reshape(C, Wc, L, 8)
+        else:
+            Nw = np.ascontiguousarray((Nall[w0:w1, :, sel, :] * w8).reshape(Wc, K, -1))  # (Wc, K, n)
+            Gsn = np.matmul(Sw[:, None], np.swapaxes(Nw, 1, 2)[None])  # (C, Wc, nu, K)
+            Gnn = np.matmul(Nw, np.swapaxes(Nw, 1, 2))  # (Wc, K, K)
+            G = np.empty((C, Wc, nu + K, nu + K))
+            G[:, :, :nu, :nu] = Gss_b
+            G[:, :, :nu, nu:] = Gsn
+            G[:, :, nu:, :nu] = np.swapaxes(Gsn, 2, 3)
+            G[:, :, nu:, nu:] = Gnn[None]
+            hn = np.matmul(Nw[None], rw[..., None])[..., 0]  # (C, Wc, K)
+            h = np.concatenate([hs, hn], axis=2)
+            ridge = 1e-9 * np.trace(G, axis1=2, axis2=3)[..., None, None] / G.shape[-1] + 1e-12
+            G += ridge * np.eye(nu + K)
+            if prec is not None:
+                idx = np.arange(nu, nu + K)
+                G[..., idx, idx] += prec
+            a = np.linalg.solve(G, h[..., None])[..., 0]  # (C, Wc, nu + K)
+            yc += np.matmul(a[..., :nu], S2).reshape(C, Wc, L, 8)
+            # nuisance responses: per window (L 8, K) @ (K, C)
+            yc += np.moveaxis(np.matmul(nuisance[w0:w1].reshape(Wc, L * 8, K),
+                                        np.moveaxis(a[..., nu:], 0, 2)), 2, 0).reshape(C, Wc, L, 8)
+        if coef is not None:
+            coef[:, w0:w1] = a
     if runaway.any():
         yhat[runaway] = np.nan
-    if return_coef:
-        return yhat, a
+    if coef is not None:
+        return yhat, coef
     return yhat

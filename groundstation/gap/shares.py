@@ -86,6 +86,15 @@ def removal(c: attribute.Candidate, base_sse: np.ndarray, first: bool = True) ->
     return R
 
 
+def window_removal(removed: np.ndarray, base_sse: np.ndarray, noise_sse: np.ndarray, available: np.ndarray) -> np.ndarray:
+    """(W,) what ``removed`` (W, 8) takes off each held-out window, in multiples of each channel's noise,
+    over the channels whose gap is above their noise (those :func:`compute_shares` totals)."""
+    unit = np.where(noise_sse > 0, 1.0 / np.where(noise_sse > 0, noise_sse, 1.0), 0.0)
+    E = ((base_sse - noise_sse) * unit).sum(axis=0)
+    cols = [c for c in range(8) if available[c] and E[c] > 0]
+    return (removed * unit)[:, cols].sum(axis=1) if cols else np.zeros(base_sse.shape[0])
+
+
 @dataclass
 class Shares:
     """Shares of the held-out gap above the noise (percent); None where there is no gap to share."""
@@ -389,7 +398,7 @@ def _line_consistency(c: attribute.Candidate, ev: Evaluator, arrays: dict[str, A
         if sel.sum() < 3:
             out["why"] = "a half of the flight is too short"
             return out
-        lines, sp = fingerprints.spectral_lines(resid[sel], U[sel], dt, ch, alpha=level)
+        lines, sp = fingerprints.spectral_lines(resid[sel], U[sel], dt, ch, alpha=level, response=arrays.get("response"))
         lines = fingerprints.resolvable_lines(lines, arrays.get("stride"), dt)
         f = sp["f_hz"] if isinstance(sp, dict) and "f_hz" in sp else None
         tol = max(0.3, 2.0 * float(f[1] - f[0])) if f is not None and len(f) > 1 else 0.3

@@ -103,7 +103,7 @@ def _one_test(ctx: hypotheses.Context, c: int, kind: str, rng: np.random.Generat
     out_ch = tuple(int(k) for k in np.flatnonzero(ev.available))
     X, _ = _feature_columns(ctx, c, kind)
     sse, _, coefs = ctx.nested(f"{kind}_{c}", [({}, ev.r0, X)])
-    s = attribute.score(ctx.base_sse, sse, ev.energy, out_ch, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot))
+    s = attribute.score(ctx.base_sse, sse, ev.energy, out_ch, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot), test_n_boot=cfg.n_boot)
     s.p_value = attribute.combined_p(ctx.base_sse.sum(1), sse.sum(1), rng, cfg.n_boot, cfg.window_alpha,
                                      ctx.base_blocks, ctx.blocks[f"{kind}_{c}"])
     coef = float(np.mean(coefs[0][:, 0]))

@@ -22,6 +22,7 @@ import numpy as np
 
 from groundstation.parallel import Map, serial_map
 from groundstation.report.data import FlightReportData, Timeline
+from groundstation.sysid.validate import Validation
 
 #: ArduCopter (helicopter frame) flight modes by HEARTBEAT custom_mode
 COPTER_MODES = {0: "STABILIZE", 1: "ACRO", 2: "ALT_HOLD", 3: "AUTO", 4: "GUIDED", 5: "LOITER", 6: "RTL",
@@ -133,7 +134,7 @@ def collect(logs: Sequence[str | os.PathLike[str]], *, config: Any = None, aircr
         parts["prepared"], parts["model"], parts["freq"] = res.prepared, res.model, res.freq
         parts["notes"] = tuple(res.prepared.notes)
         if res.validation is not None:
-            parts["validation"] = {**res.validation, "series": res.validation_series}
+            parts["validation"] = res.validation
         if res.gap is not None:
             from groundstation.gap.pictures import gap_pictures
 
@@ -157,7 +158,7 @@ def collect(logs: Sequence[str | os.PathLike[str]], *, config: Any = None, aircr
 
 
 def assemble(logs: Sequence[str | os.PathLike[str]], cfg: Any, *, prepared: Any, model: Any,
-             validation: dict[str, Any] | None = None, freq: Any = None, gap: dict[str, Any] | None = None,
+             validation: Validation | None = None, freq: Any = None, gap: dict[str, Any] | None = None,
              pictures: Any = None, history: tuple[dict[str, Any], ...] = (), history_label: str = "",
              errors: dict[str, str | None] | None = None, title: str | None = None,
              aircraft: str | None = None) -> FlightReportData:

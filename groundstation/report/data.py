@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.sysid.validate import Validation
+
 #: the sections of a flight page, in page order (id, heading)
 SECTIONS: tuple[tuple[str, str], ...] = (
     ("flight", "The flight"),
@@ -44,7 +46,7 @@ class FlightReportData:
     ``log_info``: :func:`groundstation.commands.log_info.summarise` of each log; ``prepared``: a
     :class:`groundstation.dsp.prepare.PreparedData`; ``model``: a :class:`groundstation.sysid.model.HoverModel`
     (its ``fit`` carries the held-out check, the prior and the closed-loop notes); ``validation``: the
-    training-window scores with ``series``; ``freq``: a :class:`groundstation.freq.verify.FreqVerification`;
+    training-window scores (a :class:`groundstation.sysid.validate.Validation` with its ``series``); ``freq``: a :class:`groundstation.freq.verify.FreqVerification`;
     ``gap``: the ``heli-gap-report/1`` document; ``pictures``: its :class:`groundstation.gap.pictures.GapPictures`;
     ``history``: campaign-table rows of this aircraft's flights (oldest first), this flight included or not.
     """
@@ -57,7 +59,7 @@ class FlightReportData:
     timelines: tuple[Timeline, ...] = ()
     prepared: Any = None
     model: Any = None
-    validation: dict[str, Any] | None = None
+    validation: Validation | None = None
     freq: Any = None
     gap: dict[str, Any] | None = None
     pictures: Any = None

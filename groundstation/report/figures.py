@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from groundstation.sysid.model import INPUTS, OUTPUT_UNITS, OUTPUTS, PARAM_NAMES
+from groundstation.sysid.validate import Validation
 
 #: grid and report colours (colour-blind safe pair for measured/model)
 C_MEAS, C_MODEL, C_BAND = "0.45", "#d62728", "#1f77b4"
@@ -275,10 +276,10 @@ def modes_figure(model: Any) -> Figure | None:
                   "unstable; a time constant well under the prediction window makes long predictions run away.")
 
 
-def fit_figure(validation: Any, output_trim: dict[str, float] | None = None) -> Figure | None:
-    if not validation or "series" not in validation:
+def fit_figure(validation: Validation | None, output_trim: dict[str, float] | None = None) -> Figure | None:
+    if validation is None or validation.series is None:
         return None
-    s = validation["series"]
+    s = validation.series
     t = np.asarray(s["t_s"], float).reshape(-1)
     if not t.size:
         return None
@@ -287,7 +288,7 @@ def fit_figure(validation: Any, output_trim: dict[str, float] | None = None) -> 
     order = np.argsort(t, kind="stable")
     t, y, yh = t[order], y[order], yh[order]
     brk: Any = np.flatnonzero(np.diff(t) > 1.5 * np.median(np.diff(t))) + 1 if t.size > 2 else []
-    chans = validation.get("channels", {})
+    chans = validation.channels
     fig, axes = _new(10, 8.5, 4, 2, sharex=True)
     for i, (ax, c) in enumerate(zip(axes.T.ravel(), OUTPUTS, strict=True)):
         ax.plot(t, y[:, i], ".", ms=1.0, color=C_MEAS, label="measured (smoothed)")
@@ -295,14 +296,14 @@ def fit_figure(validation: Any, output_trim: dict[str, float] | None = None) -> 
         yy = np.insert(yy, brk, np.nan) if len(brk) else yy
         tt = np.insert(t, brk, np.nan) if len(brk) else t
         ax.plot(tt, yy, "-", lw=0.7, color=C_MODEL, label="model")
-        m = chans.get(c, {}).get("match")
+        m = chans[c].match if c in chans else None
         ax.set_title(f"{c}" + (f": match {m:.1f} %" if m is not None else ": not measured"), fontsize=8, loc="left")
         ax.set_ylabel(f"{c} ({OUTPUT_UNITS[c]})")
     for ax in axes[-1]:
         ax.set_xlabel("FC time (s)")
     axes[0, 0].legend(fontsize=7, loc="upper right", markerscale=4)
     return finish(fig, "fit", "Measured vs model (training windows)",
-                  f"Each {validation.get('window_s', 0):g}-s window simulated from its measured initial state; "
+                  f"Each {validation.window_s:g}-s window simulated from its measured initial state; "
                   "perturbations from trim.", dense=True)
 
 

@@ -149,11 +149,11 @@ def model_view(d: FlightReportData) -> dict[str, Any]:
         warnings.append(f"{name} {why}.")
     notes = list(fit.get("fixed_reasons", [])) + list(fit.get("notes", [])) + list(fit.get("closed_loop", []))
     figs = [F.parameters_figure(m), F.modes_figure(m), F.fit_figure(d.validation), F.heldout_figure(ho)]
-    train = (d.validation or {}).get("channels", {})
+    train = d.validation.channels if d.validation is not None else {}
     head = (f"{str(fit.get('algorithm', '?')).upper()} fit, cost F = {_f(fit.get('cost'), '.4f')}, "
             f"{fit.get('evaluations', '?')} evaluations; {len(m.augmentations)} augmentation(s)")
     return {"error": None, "head": head, "lines": lines, "warnings": warnings, "notes": notes, "params": params,
-            "train": [{"channel": c, "match": _f(v.get("match"), ".1f"), "unit": OUTPUT_UNITS[c]}
+            "train": [{"channel": c, "match": _f(v.match, ".1f"), "unit": OUTPUT_UNITS[c]}
                       for c, v in train.items()],
             "figures": [f for f in figs if f is not None],
             "validation_error": d.errors.get("validation")}

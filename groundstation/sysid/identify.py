@@ -272,10 +272,11 @@ def _score(cost: WindowedCost, r: Any, sig_eff: np.ndarray, prior: tuple[np.ndar
 
 def _search_once(alg: str, it: int, label: str, costs: tuple, plan: _Plan, cfg: IdentifyConfig, sub_free: np.ndarray,
                  refine: bool, rng: np.random.Generator, cb: Callable, callback: Callable | None,
-                 sub_name: str) -> tuple[float, np.ndarray, Any, Any]:
+                 sub_name: str) -> tuple[float, np.ndarray, Any]:
     """One search, then (with ``refine``) successive-halving screening of its best distinct points (and
-    the prior's nominal) on the search windows and a full refinement of the winner: (F, x, opt, refinement).
-    With a prior, F is the refinement's MAP cost (data misfit plus prior penalty)."""
+    the prior's nominal) on the search windows: (F, x, opt), x the screening's winner, the start of
+    the full refinement (:func:`_full_refine`), F nan; without ``refine`` the search's best point and
+    its cost."""
     cost, cost_s, cost_v = costs
     bfree = plan.bounds[sub_free]
     prior = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
@@ -287,7 +288,7 @@ def _search_once(alg: str, it: int, label: str, costs: tuple, plan: _Plan, cfg: 
     opt = ALGORITHMS[alg](cost_v, plan.bounds[cost_v.free], rng=rng, maxiter=it, maxfev=cfg.maxfev, callback=cb)
     if not refine:
         xr = to_free(opt.x)
-        return float(cost(xr[None])[0]), xr, opt, None
+        return float(cost(xr[None])[0]), xr, opt
     vb = plan.bounds[cost_v.free]
     starts = [to_free(xv) for xv in _starts(opt, cfg.refine_starts, vb[:, 1] - vb[:, 0])]
     if prior is not None:
@@ -306,11 +307,18 @@ def _search_once(alg: str, it: int, label: str, costs: tuple, plan: _Plan, cfg: 
         starts = [sx for _, sx in scored[: max(1, len(scored) // 3)]]
         screen_f = scored[0][0]
         nfev_round *= 2
-    _progress(callback, f"refine {sub_name}{label}", screen_f, cost_s.nfev + cost.nfev)
-    ref = refine_ls(cost, starts[0], bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev, prior=prior,
-                    weighting=cfg.channel_weighting, with_std=False,
-                    prior_colour=cfg.prior_weighting == "effective")
-    return float(ref.fun), ref.x, opt, ref
+    _progress(callback, f"screened {sub_name}{label}", screen_f, cost_s.nfev + cost.nfev)
+    return float("nan"), starts[0], opt
+
+
+def _full_refine(cost: WindowedCost, bfree: np.ndarray, cfg: IdentifyConfig,
+                 prior: tuple[np.ndarray, np.ndarray] | None, x0: np.ndarray) -> Any:
+    """The full refinement of one start (a search's screened winner or an extra start), without
+    standard errors; module-level so that worker processes can run the starts side by side."""
+    with threadpool_limits(1):
+        return refine_ls(cost, x0, bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev, prior=prior,
+                         weighting=cfg.channel_weighting, with_std=False,
+                         prior_colour=cfg.prior_weighting == "effective")
 
 
 def _screen_refine(cost: WindowedCost, bfree: np.ndarray, max_nfev: int, prior: tuple[np.ndarray, np.ndarray] | None,
@@ -321,9 +329,8 @@ def _screen_refine(cost: WindowedCost, bfree: np.ndarray, max_nfev: int, prior: 
                          weighting=weighting, prior_colour=prior_colour)
 
 
-def _extra_starts(best: tuple, costs: tuple, plan: _Plan, cfg: IdentifyConfig, sub_free: np.ndarray,
-                  sig_ref: np.ndarray | None) -> tuple:
-    """``best`` or a refinement from one of ``cfg.extra_starts`` with a lower refined (MAP) cost."""
+def _extra_start_points(plan: _Plan, cfg: IdentifyConfig, sub_free: np.ndarray) -> list[tuple[str, np.ndarray]]:
+    """(name, start) of each of ``cfg.extra_starts`` that applies (the prior's nominal, zero), inside the bounds."""
     names = [n.strip() for n in cfg.extra_starts.split(",") if n.strip()]
     bad = [n for n in names if n not in ("prior", "zero")]
     if bad:
@@ -331,18 +338,13 @@ def _extra_starts(best: tuple, costs: tuple, plan: _Plan, cfg: IdentifyConfig, s
     bfree = plan.bounds[sub_free]
     span = bfree[:, 1] - bfree[:, 0]
     prior = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
+    out = []
     for n in names:
         if n == "prior" and prior is None:
             continue
         x0 = prior[0] if n == "prior" and prior is not None else np.zeros(int(sub_free.sum()))
-        x0 = np.clip(x0, bfree[:, 0] + 1e-6 * span, bfree[:, 1] - 1e-6 * span)
-        ref = refine_ls(costs[0], x0, bfree, passes=cfg.refine_passes, max_nfev=cfg.refine_max_nfev, prior=prior,
-                        weighting=cfg.channel_weighting, with_std=False,
-                        prior_colour=cfg.prior_weighting == "effective")
-        F = float(ref.fun) if prior is None or sig_ref is None else map_objective(costs[0], ref.x, sig_ref, prior)
-        if F < best[0]:
-            best = (F, ref.x, best[2], ref, f"{best[4]}+{n} start")
-    return best
+        out.append((n, np.clip(x0, bfree[:, 0] + 1e-6 * span, bfree[:, 1] - 1e-6 * span)))
+    return out
 
 
 def _identify_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], plan: _Plan, cfg: IdentifyConfig,
@@ -370,22 +372,44 @@ def _identify_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], pl
     best: tuple[float, np.ndarray, Any, Any, str] | None = None   # (F, x, opt, refinement, algorithm)
     pr = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
     sig_ref = None   # with a prior, restarts are compared by the MAP objective at the first one's scales
+    found: list[tuple[float, np.ndarray, Any, str]] = []
     for restart in range(max(1, cfg.search_restarts if refine else 1)):
         alg = algorithm if restart == 0 or not cfg.restart_algorithm else cfg.restart_algorithm
         it = sub_iters
         if alg != algorithm and not (maxiter or cfg.maxiter):
             it = DEFAULT_MAXITER[alg] if sub == 0 else int(DEFAULT_MAXITER[alg] * cfg.vertical_iter_factor)
-        F, xr, opt, ref = _search_once(alg, it, f" (search {restart + 1})" if restart else "", costs, plan, cfg,
-                                       sub_free, refine, rng, cb, callback, sub_name)
-        if ref is not None and pr is not None:
-            sig_ref = ref.sig_eff if sig_ref is None else sig_ref
-            F = map_objective(cost, xr, sig_ref, pr)
+        F, xr, opt = _search_once(alg, it, f" (search {restart + 1})" if restart else "", costs, plan, cfg,
+                                  sub_free, refine, rng, cb, callback, sub_name)
         run.nit += int(opt.nit)
-        if best is None or F < best[0]:
-            best = (F, xr, opt, ref, alg)
-    assert best is not None
+        found.append((F, xr, opt, alg))
     if refine:
-        best = _extra_starts(best, costs, plan, cfg, sub_free, sig_ref)
+        # the full refinements of every search's winner and of the extra starts are independent (and
+        # draw no random numbers): side by side in the worker processes, compared in the same order
+        extra = _extra_start_points(plan, cfg, sub_free)
+        x0s = [xr for _, xr, _, _ in found] + [x0 for _, x0 in extra]
+        _progress(callback, f"refine {sub_name} ({len(x0s)} start{'s' if len(x0s) > 1 else ''})",
+                  float(found[0][2].fun), sum(c.nfev for c in costs))
+        nfev0 = cost.nfev
+        refs = plan.pmap(partial(_full_refine, cost, plan.bounds[sub_free], cfg, pr), x0s)
+        if cost.nfev == nfev0:    # refined in worker processes, on copies of the cost
+            cost.nfev += sum(int(r.nfev) for r in refs)
+        for (_, _, opt, alg), r in zip(found, refs[:len(found)], strict=True):
+            F = float(r.fun)
+            if pr is not None:
+                sig_ref = r.sig_eff if sig_ref is None else sig_ref
+                F = map_objective(cost, r.x, sig_ref, pr)
+            if best is None or F < best[0]:
+                best = (F, r.x, opt, r, alg)
+        assert best is not None
+        for (n, _), r in zip(extra, refs[len(found):], strict=True):
+            F = float(r.fun) if pr is None or sig_ref is None else map_objective(cost, r.x, sig_ref, pr)
+            if F < best[0]:
+                best = (F, r.x, best[2], r, f"{best[4]}+{n} start")
+    else:
+        for F, xr, opt, alg in found:
+            if best is None or F < best[0]:
+                best = (F, xr, opt, None, alg)
+    assert best is not None
     F, x, opt, ref, won = best
     if ref is not None:   # the standard errors of the winner only (each restart's refinement skips them)
         ref = with_standard_errors(cost, ref, plan.bounds[sub_free], pr)
@@ -515,7 +539,7 @@ def _take(run: Any, cost: Any, x: np.ndarray, sub: int, cfg: Any) -> None:
 
 
 def fit_candidate(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = None,
-                  bounds: dict | None = None, quick: bool = False) -> HoverModel:
+                  bounds: dict | None = None, quick: bool = False, pmap: Map = serial_map) -> HoverModel:
     """``cfg``'s model of ``prepared``: refinements from ``model0``'s parameters and ``cfg.extra_starts``,
     the lowest refined (MAP) objective per subsystem; standard errors and report as :func:`identify`'s.
     ``quick``: one refinement pass from ``model0``'s parameters only (the selection's screening fit)."""
@@ -525,7 +549,7 @@ def fit_candidate(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
         plan = _plan(prepared, cfg, True, bounds, prior, search=False)
         run = _Run(theta=np.clip(model0.theta, plan.bounds[:, 0], plan.bounds[:, 1]))
         for sub, sub_free, cost in _subsystem_costs(plan, cfg, run):
-            x, ref = best_refinement(cost, run.theta[sub_free], plan, cfg, sub_free, quick)
+            x, ref = best_refinement(cost, run.theta[sub_free], plan, cfg, sub_free, quick, pmap)
             record_tradeoffs(run, sub_free, ref, None if plan.prior is None else plan.prior[1][sub_free])
             run.std[np.flatnonzero(sub_free)] = ref.std
             run.share[np.flatnonzero(sub_free)] = ref.prior_share if plan.prior is not None else 0.0

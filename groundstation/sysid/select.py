@@ -108,11 +108,21 @@ def parse_candidates(spec: str) -> list[tuple[str, dict[str, Any]]]:
     return out
 
 
-def best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_free: np.ndarray,
-                     quick: bool) -> tuple[np.ndarray, Any]:
-    """The refinement of the lowest (MAP) objective from the model's point and ``cfg.extra_starts``."""
-    from groundstation.sysid.refine import map_objective
+def _refine_start(cost: Any, bfree: np.ndarray, kw: dict[str, Any], x0: np.ndarray) -> Any:
+    """One refinement of :func:`best_refinement` (module-level: worker processes run the starts)."""
+    from threadpoolctl import threadpool_limits
+
     from groundstation.sysid.refine import refine as refine_ls
+
+    with threadpool_limits(1):
+        return refine_ls(cost, x0, bfree, **kw)
+
+
+def best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_free: np.ndarray,
+                    quick: bool, pmap: Map = serial_map) -> tuple[np.ndarray, Any]:
+    """The refinement of the lowest (MAP) objective from the model's point and ``cfg.extra_starts``
+    (the starts' refinements are independent: ``pmap`` may run them side by side)."""
+    from groundstation.sysid.refine import map_objective
 
     bfree = plan.bounds[sub_free]
     span = bfree[:, 1] - bfree[:, 0]
@@ -125,12 +135,15 @@ def best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_fre
         starts.append(np.zeros(int(sub_free.sum())))
     best: tuple[float, np.ndarray, Any] | None = None
     sig_ref = None
-    for x0 in starts:
-        x0 = np.clip(x0, bfree[:, 0] + 1e-6 * span, bfree[:, 1] - 1e-6 * span)
-        ref = refine_ls(cost, x0, bfree, passes=1 if quick else cfg.refine_passes, prior=prior,
-                        max_nfev=min(int(cfg.refine_max_nfev), SELECT_REFIT_NFEV) if quick else cfg.refine_max_nfev,
-                        weighting=cfg.channel_weighting, prior_colour=cfg.prior_weighting == "effective",
-                        with_std=False)
+    kw = dict(passes=1 if quick else cfg.refine_passes, prior=prior,
+              max_nfev=min(int(cfg.refine_max_nfev), SELECT_REFIT_NFEV) if quick else cfg.refine_max_nfev,
+              weighting=cfg.channel_weighting, prior_colour=cfg.prior_weighting == "effective", with_std=False)
+    x0s = [np.clip(x0, bfree[:, 0] + 1e-6 * span, bfree[:, 1] - 1e-6 * span) for x0 in starts]
+    nfev0 = cost.nfev
+    refs = pmap(partial(_refine_start, cost, bfree, kw), x0s)
+    if cost.nfev == nfev0:    # refined in worker processes, on copies of the cost
+        cost.nfev += sum(int(r.nfev) for r in refs)
+    for ref in refs:
         if prior is not None:
             sig_ref = ref.sig_eff if sig_ref is None else sig_ref
             F = map_objective(cost, ref.x, sig_ref, prior)
@@ -164,7 +177,7 @@ def _crossvalidate(prepared: Any, model: HoverModel, cfg: Any, prior: Any, pmap:
 
     c = dataclasses.replace(cfg, refine_max_nfev=min(int(cfg.refine_max_nfev), SELECT_REFIT_NFEV))
     return crossvalidate(prepared, partial(refit, model=model, config=c, prior=prior), k=int(cfg.select_folds),
-                         window_s=5.0, pmap=pmap)
+                         window_s=float(cfg.heldout_window_s), runaway_factor=float(cfg.runaway_factor), pmap=pmap)
 
 
 def _row(name: str, c_cfg: Any, cfg: Any, cv: Any) -> dict[str, Any]:
@@ -224,7 +237,7 @@ def select_config(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
                   pmap: Map = serial_map, fit: Any, refit: Any) -> HoverModel:
     """The model of the configuration that predicts held-out data best (see the module docstring).
 
-    ``fit(prepared, model0, cfg, *, prior, bounds, quick)`` fits one candidate configuration from
+    ``fit(prepared, model0, cfg, *, prior, bounds, quick[, pmap])`` fits one candidate configuration from
     ``model0``'s parameters and ``refit(prepared, *, model, config, prior)`` refits a model on a fold
     (:func:`groundstation.sysid.identify.fit_candidate` and :func:`~groundstation.sysid.identify.refit`:
     given by the identification, so this module does not import it back)."""
@@ -242,7 +255,7 @@ def select_config(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
         if not best:
             break   # a later round refines a switch; with none it has nothing to refine
         name, c_cfg, _, _ = entries[best]
-        model = fit(prepared, cur[2], c_cfg, prior=prior, bounds=bounds)
+        model = fit(prepared, cur[2], c_cfg, prior=prior, bounds=bounds, pmap=pmap)
         cv = _crossvalidate(prepared, model, c_cfg, prior, pmap, refit)
         report[-len(rows) + best]["final"] = _row(name, c_cfg, cfg, cv)
         cur = (name if k == 0 else f"{cur[0]}, {name}", c_cfg, model, cv)

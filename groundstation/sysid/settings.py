@@ -69,6 +69,12 @@ class IdentifyConfig:
     select_candidates: str = "predictive | window_step_s=2.5"
     #: contiguous folds of the selection (< 2 = no selection)
     select_folds: int = 5
+    #: held-out prediction (the selection's folds and the held-out check): each left-out block is
+    #: predicted in windows of this length (s), each from its measured initial state
+    heldout_window_s: float = 5.0
+    #: a channel's held-out prediction "runs away" when its error is more than this many times the
+    #: signal itself (the subsystem is then not usable)
+    runaway_factor: float = 3.0
     #: what the inputs are (the aircraft file's ``[inputs] kind``): "blade" (the eq.-8 hover model only),
     #: "rate_command" / "attitude_command" (also the stabilised aircraft's command-response structure,
     #: which then predicts), "unknown" (both, held-out prediction chooses):

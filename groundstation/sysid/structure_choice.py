@@ -57,7 +57,7 @@ def attach_command_structure(prepared: Any, model: Any, cfg: Any, *, prior: Any 
         return out
     try:
         cv_c = crossvalidate(prepared, partial(fit_command_fold, model=model, kind=kind), k=int(cfg.select_folds),
-                             window_s=5.0, pmap=pmap)
+                             window_s=float(cfg.heldout_window_s), runaway_factor=float(cfg.runaway_factor), pmap=pmap)
         cv_h = _crossvalidate(prepared, model, cfg, prior, pmap, refit)
     except ValueError as exc:
         model.fit["structure_choice"] = {"chosen": "hover", "reason": f"not compared: {exc}"}

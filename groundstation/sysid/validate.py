@@ -15,12 +15,16 @@ numpy; printing and JSON are the CLI's.
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
 from groundstation.sysid.cost import make_windows
+from groundstation.sysid.fit_section import JsonSection
 from groundstation.sysid.model import OUTPUTS, HoverModel
 from groundstation.sysid.simulate import WindowSimulator
 
@@ -78,13 +82,41 @@ def channel_metrics(yhat: np.ndarray, y: np.ndarray, mask: np.ndarray) -> dict[s
     return out
 
 
-def validate(model: HoverModel, prepared: Any, *, window_s: float | None = None,
-             return_series: bool = False) -> dict[str, Any]:
-    """Score ``model`` on ``prepared`` (validation segments or another flight).
+@dataclass(frozen=True)
+class ChannelScore(JsonSection):
+    """One output channel's figures (percent, except Theil U and the correlation)."""
 
-    Returns ``{"channels": {ch: {"match", "fit", "tic"}}, "mean_match", "mean_fit", "cost",
-    "windows", "window_s", "duration_s", "channels_used"}`` (plus ``"series"`` with t_s, y and yhat
-    arrays of shape (W, L) / (W, L, 8) when ``return_series``).
+    match: float = float("nan")   # match degree, eq. 19
+    fit: float = float("nan")     # NRMSE fit
+    tic: float = float("nan")     # Theil U (0 perfect)
+    corr: float = 0.0             # Pearson correlation
+
+
+@dataclass(frozen=True)
+class Validation(JsonSection):
+    """What :func:`validate` measured; ``to_json()`` is the ``validation`` object of the JSON outputs
+    (``groundstation validate --json``, the analysis document), ``series`` the windowed arrays
+    behind it (``t_s`` (W, L), ``y`` and ``yhat`` (W, L, 8), ``inputs``) when asked for, never
+    written."""
+
+    channels: Mapping[str, ChannelScore] = field(default_factory=dict)
+    mean_match: float = float("nan")
+    mean_fit: float = float("nan")
+    #: sum over the used channels of ||yhat - y|| / ||y - mean y||
+    cost: float = float("nan")
+    windows: int = 0
+    window_s: float = 0.0
+    duration_s: float = 0.0
+    channels_used: tuple[str, ...] = ()
+    series: Mapping[str, np.ndarray] | None = field(default=None, repr=False, compare=False,
+                                                    metadata={"json": False})
+
+
+def validate(model: HoverModel, prepared: Any, *, window_s: float | None = None,
+             return_series: bool = False) -> Validation:
+    """Score ``model`` on ``prepared`` (validation segments or another flight): the figures per
+    channel, their means, the cost, the windows (and ``series`` with the t_s, y and yhat arrays of
+    shape (W, L) / (W, L, 8) when ``return_series``).
     """
     ws = float(window_s if window_s is not None else model.fit.get("window_s", 3.0) or 3.0)
     est_all = bool(model.fit.get("estimate_all_initial", True))
@@ -109,9 +141,10 @@ def validate(model: HoverModel, prepared: Any, *, window_s: float | None = None,
         "cost": cost, "windows": win.count, "window_s": ws, "duration_s": float(win.count * win.length * win.dt_s),
         "channels_used": used,
     }
+    series = None
     if return_series:
         t = win.t0_s[:, None] + np.arange(win.length)[None, :] * win.dt_s
         m3 = mask if mask.ndim == 3 else mask[:, None, :]
-        res["series"] = {"t_s": t, "y": np.where(m3, y, np.nan),
-                         "yhat": np.where(sim.mask[:, None, :], yhat, np.nan), "inputs": win.inputs}
-    return res
+        series = {"t_s": t, "y": np.where(m3, y, np.nan),
+                  "yhat": np.where(sim.mask[:, None, :], yhat, np.nan), "inputs": win.inputs}
+    return dataclasses.replace(Validation.from_json(res), series=series)

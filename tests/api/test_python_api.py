@@ -52,7 +52,7 @@ def test_the_documented_example_runs(tmp_path, monkeypatch):
     result = ns["result"]
     # what the page says it prints
     assert result.data.outputs_measured == ("p", "q", "r", "theta", "phi")
-    assert result.usable is True and 20 < result.heldout["mean_match"] < 45
+    assert result.usable is True and 20 < result.heldout.mean_match < 45
     from groundstation.gap.diagnose import VERDICTS
 
     assert result.gap.verdict in VERDICTS
@@ -63,7 +63,13 @@ def test_the_documented_example_runs(tmp_path, monkeypatch):
     assert gap_doc["schema"].startswith("heli-gap-report/") and "frequency" in gap_doc
     # the JSON round trips
     from groundstation.analysis import DataSummary, GapReport
+    from groundstation.sysid.fit_section import ModelFit
+    from groundstation.sysid.validate import Validation
 
     assert GapReport.from_json(gap_doc).to_json() == gap_doc
+    assert json.dumps(ModelFit.from_json(model_doc["fit"]).to_json()) == json.dumps(model_doc["fit"])
+    assert result.fit is not None and result.fit.heldout == result.heldout and result.fit.usable is True
+    assert result.validation is not None
+    assert Validation.from_json(json.loads(json.dumps(result.validation.to_json()))) == result.validation
     assert DataSummary.from_json(json.loads(json.dumps(result.data.to_json()))) == result.data
     assert json.loads(json.dumps(result.to_json(), default=float))["schema"] == "heli-analysis/1"

@@ -45,10 +45,10 @@ def test_holes_are_bridged_and_marked(lossy):
 
 
 def test_output_error_counts_measured_samples_only(lossy):
+    from benchkit.synthetic import EXAMPLE_TRUTH
     from groundstation.sysid.cost import make_windows
     from groundstation.sysid.model import theta_from_dict
     from groundstation.sysid.simulate import WindowSimulator
-    from groundstation.sysid.synthetic import EXAMPLE_TRUTH
 
     p = prepare([lossy[0]])
     win = make_windows(p.segments, p.dt_s, 3.0)
@@ -67,10 +67,10 @@ def test_output_error_counts_measured_samples_only(lossy):
 
 
 def test_gap_residuals_ignore_holes(lossy):
+    from benchkit.synthetic import EXAMPLE_TRUTH
     from groundstation.gap.diagnose import segments_from_prepared
     from groundstation.gap.evaluate import Evaluator
     from groundstation.sysid.model import theta_from_dict
-    from groundstation.sysid.synthetic import EXAMPLE_TRUTH
 
     p = prepare([lossy[0]])
     segs, avail = segments_from_prepared(p)
@@ -89,3 +89,27 @@ def test_frequency_responses_from_gapped_windows(lossy):
     ok_l = sum(int(pr.coherent.sum()) for pr in lossy_set.pairs)
     ok_c = sum(int(pr.coherent.sum()) for pr in clean_set.pairs)
     assert ok_l > 0.35 * ok_c  # windows with short holes are kept, not dropped
+
+
+def test_frequency_response_errors_count_windows_with_holes_by_their_measured_share(lossy):
+    """The bridged samples carry no independent information: the random-error bounds of the frequency
+    responses grow with the share of each window the link lost, the responses themselves stay."""
+    import dataclasses
+
+    from groundstation.freq.spectra import estimate_responses
+
+    p = prepare([lossy[0]])
+    assert any(s.measured is not None for s in p.segments)
+    as_whole = dataclasses.replace(p, segments=[dataclasses.replace(s, measured=None) for s in p.segments])
+    by_share, whole = estimate_responses(p), estimate_responses(as_whole)
+    grew = []
+    for a, b in zip(by_share.with_response, whole.with_response, strict=True):
+        assert (a.input, a.output) == (b.input, b.output)
+        ok = np.isfinite(a.random_error) & np.isfinite(b.random_error)
+        assert ok.any()
+        np.testing.assert_allclose(np.abs(a.response[ok]), np.abs(b.response[ok]), rtol=0.05)
+        ratio = a.random_error[ok] / b.random_error[ok]
+        assert np.all(ratio >= 1.0 - 1e-9)
+        grew.append(float(np.median(ratio)))
+    # the flight lost about a tenth of its samples: errors grow by about sqrt(1 / 0.9), not by a factor
+    assert 1.01 < float(np.median(grew)) < 1.3, grew

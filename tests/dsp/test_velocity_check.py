@@ -9,12 +9,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
 from firmware_interface.readers import load_log
 from groundstation.aircraft import load_aircraft
 from groundstation.dsp.prepare import prepare, prepared_from_arrays
 from groundstation.dsp.velocity_check import check_horizontal
 from groundstation.sysid.model import theta_from_dict
-from groundstation.sysid.synthetic import EXAMPLE_TRUTH, simulate_flight
 from tests.dsp.test_real_inputs import EXAMPLES
 from tests.realdata import real_log
 

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
 from groundstation.dsp.prepare import prepared_from_arrays
 from groundstation.freq.spectra import estimate_responses
 from groundstation.sysid.model import theta_from_dict
-from groundstation.sysid.synthetic import EXAMPLE_TRUTH, simulate_flight
 
 
 def flight(duration_s: float = 150.0, seed: int = 1, delay_samples: dict[int, int] | None = None, dt_s: float = 0.02):

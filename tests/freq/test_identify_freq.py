@@ -8,11 +8,11 @@ import json
 import numpy as np
 import pytest
 
+from benchkit.synthetic import EXAMPLE_TRUTH
 from groundstation.cli import main
 from groundstation.freq.identify import FreqIdentifyConfig, identify_frequency
 from groundstation.freq.spectra import FreqConfig, estimate_responses
 from groundstation.freq.verify import verify
-from groundstation.sysid.synthetic import EXAMPLE_TRUTH
 from tests.freq.conftest import flight
 
 KEY = ("M_a", "L_b", "inv_tau_s", "A_lat", "B_lon", "Z_col", "N_ped", "N_r")
@@ -67,10 +67,10 @@ def test_random_error_weighting_from_the_truth(flight150, truth_theta, responses
 def test_output_error_transform_is_exact_on_noise_free_data(truth_theta):
     """The windows' transforms obey the model exactly once the end states are solved: the true model
     leaves no residual on a noise-free flight; a model with another flapping time constant does."""
+    from benchkit.synthetic import simulate_flight
     from groundstation.dsp.prepare import prepared_from_arrays
     from groundstation.freq.fdoe import FdoeCost
     from groundstation.sysid.model import PARAM_INDEX
-    from groundstation.sysid.synthetic import simulate_flight
 
     u, y, _ = simulate_flight(truth_theta, 30.0, 0.02, seed=4)
     prep = prepared_from_arrays(u, y, 0.02)
@@ -103,7 +103,7 @@ def test_output_error_fit_gets_the_key_parameters_and_predicts_another_flight(fl
     assert max(err.values()) <= 0.10, err
     other = flight(150.0, seed=7)
     truth = HoverModel(params=dict(EXAMPLE_TRUTH))
-    assert validate(m, other)["mean_match"] >= 0.99 * validate(truth, other)["mean_match"]
+    assert validate(m, other).mean_match >= 0.99 * validate(truth, other).mean_match
     # responses only (no flight records): Tischler's J, and the model says so
     assert identify_frequency(rs, None, start=truth_theta).fit["weighting"] == "coherence"
 

@@ -2,8 +2,8 @@
 
 import json
 
-from groundstation.bench.diagnose import interleave
 from groundstation.cli import main
+from hil_replay.scenarios import interleave
 
 
 def test_any_prefix_of_the_run_covers_every_kind_in_order():
@@ -70,26 +70,22 @@ def test_summary_of_a_missing_file_is_one_clear_error(tmp_path, capsys):
     assert len(err) == 1 and "--from-json" in err[0] and "nope.json" in err[0]
 
 
-def _args(*extra):
-    import argparse
+def _spec(**extra):
+    from hil_replay.scenarios import ScenarioSet
 
-    from groundstation.bench.diagnose import add_arguments
-
-    p = argparse.ArgumentParser()
-    add_arguments(p)
-    return p.parse_args(["--cases", "10", "--out-of-catalogue", "4", "--combined", "3", "--seed", "5", *extra])
+    return ScenarioSet(cases=10, out_of_catalogue=4, combined=3, seed=5, **extra)
 
 
 def test_kinds_select_cases_without_changing_their_flights():
-    from groundstation.bench.diagnose import CLASSES, select_jobs
+    from hil_replay.scenarios import select_jobs
 
-    every = select_jobs(_args(), list(CLASSES))
-    combined = select_jobs(_args("--kinds", "combined"), list(CLASSES))
+    every = select_jobs(_spec())
+    combined = select_jobs(_spec(kinds=("combined",)))
     assert [j["kind"] for j in combined] == ["combined"] * 3
     assert combined == [j for j in every if j["kind"] == "combined"]
     # nonlinear kinematics on and off are both drawn; --kinematics fixes it without moving the other draws
     assert {j["flight"]["kinematics"] for j in every} == {"linear", "nonlinear"}
-    fixed = select_jobs(_args("--kinematics", "linear"), list(CLASSES))
+    fixed = select_jobs(_spec(kinematics="linear"))
     assert {j["flight"]["kinematics"] for j in fixed} == {"linear"}
     strip = [{**j, "flight": {k: v for k, v in j["flight"].items() if k != "kinematics"}} for j in every]
     assert strip == [{**j, "flight": {k: v for k, v in j["flight"].items() if k != "kinematics"}} for j in fixed]

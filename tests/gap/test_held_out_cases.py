@@ -6,21 +6,17 @@ Bench cases run as ``groundstation bench diagnose`` runs them: simulated, read b
 identified and diagnosed with the label hidden.
 """
 
-import argparse
-
 import numpy as np
 
 from groundstation.bench import diagnose as bd
 from groundstation.gap import structure
 from groundstation.gap.candidates import second_level
 from groundstation.gap.config import DiagnoseConfig
+from hil_replay import scenarios
 
 
 def _job(seed: int, case: int) -> dict:
-    p = argparse.ArgumentParser()
-    bd.add_arguments(p)
-    a = p.parse_args(["--cases", "20", "--out-of-catalogue", "6", "--combined", "4", "--seed", str(seed)])
-    return next(j for j in bd.make_jobs(a, list(bd.CLASSES)) if j["case"] == case)
+    return scenarios.job(scenarios.ScenarioSet(cases=20, out_of_catalogue=6, combined=4, seed=seed), case)
 
 
 def _knots(W: int, K: int, L: int, u: np.ndarray, follow: float, rng: np.random.Generator) -> np.ndarray:
@@ -67,15 +63,11 @@ def test_roll_gyro_scale_on_a_quiet_axis_is_found_from_the_attitude_it_integrate
 
     from firmware_interface.readers import load_log
     from groundstation.dsp.prepare import prepare
-    from hil_replay.sim import write_tlog
-    from hil_replay.sim.effects import random_effect
-
     gd = importlib.import_module("groundstation.gap.diagnose")
     job = _job(2, 22)
-    effects = [random_effect(n, np.random.default_rng(job["seed"])) for n in job["effects"]]
     with tempfile.TemporaryDirectory() as td:
         path = Path(td) / "c.tlog"
-        truth = write_tlog(path, seed=job["seed"], flights=1, effects=effects, **bd._sim_kwargs(job))
+        truth = scenarios.write_case(path, job)
         prepared = prepare([load_log(path)])
     comp, _ = gd.compat_stage(prepared, gd.DiagnoseConfig())
     true_e = truth["effects"][0]["params"]["scale_error"]

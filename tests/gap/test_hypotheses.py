@@ -77,6 +77,36 @@ def test_air_mass_predicts_velocities_between_its_chunks_and_leaves_rates_alone(
     assert h0.sse.sum() > 0.97 * h0.extra["base_sse"].sum()
 
 
+def test_air_mass_scan_settings_come_from_the_diagnosis_configuration(flight_factory, paper_theta):
+    """``[diagnose] gust_chunk_s / gust_knot_s / gust_refine_iterations`` reach the air-mass scan
+    through its context (the same scan as with the values passed by hand, another one than the
+    defaults)."""
+    from groundstation.gap.config import DiagnoseConfig
+    from groundstation.gap.diagnose import segments_from_prepared
+    from groundstation.gap.evaluate import Evaluator
+    from groundstation.gap.hypotheses import Context, scan_wind_gust
+
+    prep = flight_factory(T_s=18.0, seed=21, effect=("wind_gust", 2.0, 1.5))
+    segs, avail = segments_from_prepared(prep)
+    ev = Evaluator(segs, prep.dt_s, paper_theta, avail, window_s=3.0, folds=3)
+    cfg = DiagnoseConfig(gust_chunk_s=1.0, gust_knot_s=1.0, gust_refine_iterations=0)
+    h_cfg = scan_wind_gust(Context(ev, segs, cfg=cfg))
+    h_arg = scan_wind_gust(Context(ev, segs), chunk_s=1.0, knot_s=1.0, refine_iterations=0)
+    np.testing.assert_array_equal(h_cfg.sse, h_arg.sse)
+    h_def = scan_wind_gust(Context(ev, segs), refine_iterations=0)
+    assert not np.array_equal(h_cfg.sse, h_def.sse)
+
+
+def test_score_takes_its_test_resamples_from_the_caller():
+    from groundstation.gap.attribute import score
+
+    rng = np.random.default_rng(0)
+    base = rng.random((12, 8)) + 1.0
+    energy = np.ones((12, 8))
+    s = score(base, 0.5 * base, energy, (0, 1), np.random.default_rng(1), n_boot=20, test_n_boot=9)
+    assert s.p_value == pytest.approx(1 / 10)   # (0 + 1) / (9 + 1): every resample favours the alternative
+
+
 def test_air_mass_slower_than_the_velocity_sensors_resolve_is_not_physical():
     from groundstation.gap.candidates import physical
     from groundstation.gap.config import DiagnoseConfig

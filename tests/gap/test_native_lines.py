@@ -37,3 +37,27 @@ def test_report_effect_gets_the_unfolded_frequency():
     est = report["effects"][0]["estimate"]
     assert est["frequency_hz"] == 37.3 and est["frequency_hz_on_grid"] == 12.7
     assert report["vibration_native"] is native
+
+
+def test_native_line_settings_come_from_the_diagnosis_configuration():
+    """``[diagnose] native_line_min_hz`` (and its window and level) reach the native-rate line search."""
+    from types import SimpleNamespace
+
+    from groundstation.analysis import native_vibration
+    from groundstation.gap.config import DiagnoseConfig
+
+    g = _gyro(12.5, 0.002)
+    t = np.arange(len(g)) / 200.0
+
+    class _Series(dict):
+        t_fc_s = t
+
+        def __len__(self) -> int:
+            return len(t)
+
+    imu = _Series(gx_rad_s=g[:, 0], gy_rad_s=g[:, 1], gz_rad_s=g[:, 2])
+    log = SimpleNamespace(series={"IMU": imu}, flights=[SimpleNamespace(start_fc_s=0.0, end_fc_s=t[-1])],
+                          source="x.bin")
+    found = native_vibration([log], 50.0)
+    assert found is not None and abs(found["lines"][0]["frequency_hz"] - 12.5) < 0.5   # within a bin
+    assert native_vibration([log], 50.0, DiagnoseConfig(native_line_min_hz=15.0))["lines"] == []

@@ -5,17 +5,13 @@ Each case runs as ``groundstation bench diagnose`` runs it: simulated, read back
 identified and diagnosed with the label hidden (nonlinear kinematics, as the flights were drawn).
 """
 
-import argparse
-
 from groundstation.bench import diagnose as bd
+from hil_replay import scenarios
 
 
 def _job(seed: int, case: int) -> dict:
-    p = argparse.ArgumentParser()
-    bd.add_arguments(p)
-    a = p.parse_args(["--cases", "20", "--out-of-catalogue", "6", "--combined", "4", "--seed", str(seed),
-                      "--kinematics", "nonlinear"])
-    return next(j for j in bd.make_jobs(a, list(bd.CLASSES)) if j["case"] == case)
+    spec = scenarios.ScenarioSet(cases=20, out_of_catalogue=6, combined=4, seed=seed, kinematics="nonlinear")
+    return scenarios.job(spec, case)
 
 
 def test_second_effect_diluted_by_the_first_is_named_given_it():

@@ -108,8 +108,8 @@ def _one_line_or_ok(code, err, log):
 def test_every_command_reads_the_ulog_and_px4log(sample, tmp_path, capsys):
     """Each command runs on the ULog and the .px4log; where the log cannot support the command (a
     bench ULog, a ground run: never in the air) it says why in one line naming the file."""
+    from benchkit.synthetic import EXAMPLE_TRUTH
     from groundstation.sysid.model import HoverModel
-    from groundstation.sysid.synthetic import EXAMPLE_TRUTH
 
     px4log = real_log("px4/trex550_groundrun.px4log")
     model = tmp_path / "m.json"  # a model to validate and diagnose with (neither log is a flight to identify)

@@ -13,7 +13,7 @@ import sys
 import time
 from pathlib import Path
 
-from groundstation.bench.replay import synthesize_tlog
+from benchkit.telemetry import sine_flight_tlog
 from hil_replay.player import TlogPlayer, read_tlog_packets
 from hil_replay.pty import VirtualSerialPort
 
@@ -37,7 +37,7 @@ def _wait_recorded(rec_dir: Path, n: int, timeout_s: float = 60.0) -> None:
 
 
 def test_corrupted_unplugged_replay_into_record(tmp_path):
-    synthesize_tlog(tmp_path / "flight.tlog", duration_s=20.0)
+    sine_flight_tlog(tmp_path / "flight.tlog", duration_s=20.0)
     packets = read_tlog_packets(tmp_path / "flight.tlog")
     out_dir = tmp_path / "rec"
     with VirtualSerialPort(tmp_path / "ttyFC") as port:
@@ -72,7 +72,7 @@ def test_corrupted_unplugged_replay_into_record(tmp_path):
 
 def test_replay_command_into_record_command(tmp_path):
     """The same through the two commands only (flags --corrupt --drop --unplug-at --report)."""
-    synthesize_tlog(tmp_path / "flight.tlog", duration_s=12.0)
+    sine_flight_tlog(tmp_path / "flight.tlog", duration_s=12.0)
     packets = read_tlog_packets(tmp_path / "flight.tlog")
     link = tmp_path / "ttyREPLAY"
     replay = subprocess.Popen(

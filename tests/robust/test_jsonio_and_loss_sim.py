@@ -58,4 +58,5 @@ def test_log_info_reports_the_links_outages(tmp_path):
     lk = summarise(load_log(path))["link"]
     assert 6.0 < lk["loss_pct"] < 15.0 and lk["outages"] > 10
     assert lk["lost_per_outage"] > 3.0 and lk["longest_outage_s"] >= lk["median_outage_s"] > 0.05
-    assert 0 <= lk["outages_split"] <= lk["outages"] and lk["bridge_limit_s"] == 0.35
+    assert 0 <= lk["outages_split"] <= lk["outages"] and 0.1 < lk["bridge_limit_s"] <= 1.0
+    assert lk["bridge_rule"] == "derived" and "rotor" in lk["bridge_why"]

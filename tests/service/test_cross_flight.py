@@ -7,9 +7,9 @@ import json
 
 import numpy as np
 
+from benchkit.synthetic import EXAMPLE_TRUTH
 from groundstation.dsp.prepare import prepare
 from groundstation.sysid.model import HoverModel
-from groundstation.sysid.synthetic import EXAMPLE_TRUTH
 from groundstation.worker import IdentifyJob, _cross_flight
 from tests.realdata import real_log
 

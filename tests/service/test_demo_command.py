@@ -10,7 +10,7 @@ from pathlib import Path
 
 from rerun.chunk import RrdReader
 
-from groundstation.sinks.rerun_inspect import chunk_check, read_layout
+from benchkit.rerun_inspect import chunk_check, read_layout
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -56,7 +56,7 @@ def _sweep_input_std(sess: SimulatedSession) -> tuple[float, float]:
 
 def test_pilot_variants_and_excitation_scale() -> None:
     """The robustness knobs of ``bench diagnose`` (--pilot, --excitation) do what they say and still fly."""
-    from groundstation.bench.diagnose import pilot_config
+    from hil_replay.scenarios import pilot_config
 
     base, _ = _sweep_input_std(SimulatedSession(seed=4, flight_duration_s=60.0))
     half = SimulatedSession(seed=4, flight_duration_s=60.0, excitation_scale=0.5)

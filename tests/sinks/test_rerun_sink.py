@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
+from benchkit.rerun_inspect import chunk_check, read_layout
 from groundstation.gap.pictures import EffectPicture, GapPictures
-from groundstation.sinks.rerun_inspect import chunk_check, read_layout
 from groundstation.sinks.rerun_layout import OUTPUTS, UNITS
 from groundstation.sinks.rerun_sink import INPUTS, RerunSink, RerunSinkError, _check_reachable
 from groundstation.sinks.zenoh_sink import free_tcp_port
@@ -132,10 +132,10 @@ def test_unwritable_rrd_and_unreachable_viewer_are_one_line(tmp_path):
 
 
 def test_frequency_verification_is_drawn_as_bode_per_scored_pair(tmp_path):
+    from benchkit.synthetic import EXAMPLE_TRUTH
     from groundstation.freq.spectra import estimate_responses
     from groundstation.freq.verify import verify
     from groundstation.sysid.model import theta_from_dict
-    from groundstation.sysid.synthetic import EXAMPLE_TRUTH
     from tests.freq.conftest import flight
 
     v = verify(theta_from_dict(EXAMPLE_TRUTH), estimate_responses(flight(60.0, seed=3)))

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-PACKAGES = ("groundstation", "firmware_interface", "hil_replay")
+PACKAGES = ("groundstation", "firmware_interface", "hil_replay", "benchkit")
 #: the top layer: may import anything, imported by nothing else in the packages
 TOP = ("groundstation.cli", "groundstation.commands", "groundstation.bench", "groundstation.service")
 
@@ -125,6 +125,16 @@ def test_nothing_below_the_top_layer_imports_it():
     up = sorted(f"{m} imports {d}" for m, deps in import_graph().items() if not _top(m)
                 for d in deps if _top(d))
     assert not up, "upward imports:\n" + "\n".join(up)
+
+
+def test_test_and_bench_support_is_not_part_of_the_product():
+    """benchkit (known-truth flights of our own model, the reference fit, .rrd read-back) serves the
+    tests and the bench commands; the product never needs it, and the simulator does not either."""
+    into = sorted(f"{m} imports {d}" for m, deps in import_graph().items()
+                  if not m.startswith(("benchkit", "groundstation.bench")) for d in deps if d.startswith("benchkit"))
+    assert not into, "\n".join(into)
+    assert not any((ROOT / "groundstation" / p).exists() for p in ("sysid/synthetic.py", "sysid/reference.py",
+                                                                   "sinks/rerun_inspect.py"))
 
 
 def test_the_walk_sees_circles_and_function_level_imports():

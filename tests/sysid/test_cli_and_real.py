@@ -93,8 +93,8 @@ def test_real_trex550_log_identifies_what_it_supports():
     for name in ("X_lat", "M_lat", "L_lat", "A_lat"):
         assert name in m.fit["fixed"] and m.params[name] == 0.0 and m.parameter_std[name] is None
     v = validate(m, prep)
-    assert {"p", "q", "r", "theta", "phi"} <= set(v["channels"])
-    assert all(np.isfinite(c["match"]) for c in v["channels"].values())
+    assert {"p", "q", "r", "theta", "phi"} <= set(v.channels)
+    assert all(np.isfinite(c.match) for c in v.channels.values())
 
 
 def test_identify_real_log_with_aircraft_file_reports_heldout_prior_and_closed_loop(tmp_path, capsys):

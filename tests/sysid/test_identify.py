@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
 from groundstation.dsp.prepare import prepared_from_arrays
 from groundstation.sysid.identify import identify
 from groundstation.sysid.model import PARAM_NAMES, HoverModel, theta_from_dict
-from groundstation.sysid.synthetic import EXAMPLE_TRUTH, simulate_flight
 from groundstation.sysid.validate import match_degree, nrmse, pearson, theil_u, validate
 
 KEY = ("M_a", "L_b", "inv_tau_s", "A_lat", "B_lon", "Z_col", "N_ped", "N_r")
@@ -59,8 +59,50 @@ def test_identified_matches_truth_on_another_flight(flights, model):
     truth = HoverModel(params=dict(EXAMPLE_TRUTH))
     v_id = validate(model, other)
     v_true = validate(truth, other)
-    assert v_id["mean_match"] >= 0.99 * v_true["mean_match"]
-    assert set(v_id["channels"]) == set(v_true["channels"])
+    assert v_id.mean_match >= 0.99 * v_true.mean_match
+    assert set(v_id.channels) == set(v_true.channels)
+
+
+def test_fit_section_and_validation_are_typed_and_round_trip_unchanged(flights, model):
+    """The fit section and the validation read as frozen objects and write back the same JSON, key
+    for key and in order (the file formats do not change)."""
+    import dataclasses
+    import json
+
+    from groundstation.analysis import held_out
+    from groundstation.config import ServiceConfig
+    from groundstation.sysid.fit_section import HeldOut, ModelFit
+    from groundstation.sysid.validate import ChannelScore, Validation
+
+    _, train, other = flights
+    m = HoverModel.from_json(model.to_json())
+    m.fit["heldout"] = {"skipped": "not checked here"}
+    m.fit["usable"], m.fit["closed_loop"] = True, ["a note"]
+    doc = json.loads(json.dumps(m.to_json()))["fit"]
+    fit = ModelFit.from_json(doc)
+    assert fit.algorithm == "cabc" and fit.evaluations == doc["evaluations"] > 0 and fit.usable is True
+    assert fit.channels == tuple(doc["channels"]) and fit.closed_loop == ("a note",)
+    assert fit.heldout == HeldOut(skipped="not checked here") and "history" in fit.extra
+    assert json.dumps(fit.to_json()) == json.dumps(doc)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        fit.usable = False  # type: ignore[misc]
+    # a held-out check that ran (two folds of the short flight, few iterations)
+    m2 = HoverModel.from_json(model.to_json())
+    cfg = ServiceConfig().replace("identify", refine_passes=1, refine_max_nfev=10, heldout_window_s=4.0)
+    held_out(m2, train, cfg, None, 2)
+    ho = ModelFit.from_json(m2.fit).heldout
+    assert ho is not None and ho.k == 2 and len(ho.folds) == 2 and ho.mean_match is not None
+    assert ho.window_s == 4.0   # [identify] heldout_window_s
+    assert json.dumps(ho.to_json()) == json.dumps(m2.fit["heldout"])
+
+    v = validate(model, other, return_series=True)
+    assert isinstance(v.channels["q"], ChannelScore) and v.series is not None and v.series["y"].ndim == 3
+    vd = json.loads(json.dumps(v.to_json()))
+    assert "series" not in vd and list(vd) == ["channels", "mean_match", "mean_fit", "cost", "windows", "window_s",
+                                               "duration_s", "channels_used"]
+    assert list(vd["channels"]["q"]) == ["match", "fit", "tic", "corr"]
+    again = Validation.from_json(vd)
+    assert again == v and json.dumps(again.to_json()) == json.dumps(vd)
 
 
 def test_pinned_parameters_are_flagged(flights):

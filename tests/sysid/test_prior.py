@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
 from groundstation.dsp.prepare import prepared_from_arrays
 from groundstation.sysid.cost import WindowedCost, make_windows
 from groundstation.sysid.model import PARAM_INDEX, VER_PARAMS, HoverModel, theta_from_dict
 from groundstation.sysid.refine import refine
-from groundstation.sysid.synthetic import EXAMPLE_TRUTH, simulate_flight
 
 
 @pytest.fixture(scope="module")

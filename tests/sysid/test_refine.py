@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
+from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
 from groundstation.sysid.cost import WindowedCost, Windows
 from groundstation.sysid.model import PARAM_INDEX, VER_PARAMS, bounds_array, theta_from_dict
 from groundstation.sysid.refine import levenberg_marquardt, refine
-from groundstation.sysid.synthetic import EXAMPLE_TRUTH, simulate_flight
 
 
 def _cost():

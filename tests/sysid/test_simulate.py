@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from benchkit.synthetic import EXAMPLE_TRUTH
 from groundstation.sysid.model import build_matrices, discretize, theta_from_dict
 from groundstation.sysid.simulate import WindowSimulator, objective, simulate_windows
-from groundstation.sysid.synthetic import EXAMPLE_TRUTH
 
 HOR_OUT = ((0, 0), (1, 1), (5, 3), (4, 4), (2, 6), (3, 7))
 VER_OUT = ((0, 2), (1, 5))

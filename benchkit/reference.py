@@ -16,6 +16,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from groundstation.sysid.cost import WindowedCost, make_windows
+from groundstation.sysid.identify import free_mask
 from groundstation.sysid.model import N_PARAMS, HoverModel, bounds_array, theta_to_dict
 from groundstation.sysid.optimizers import minimize_lsq
 from groundstation.sysid.refine import _fd_step
@@ -24,8 +25,6 @@ from groundstation.sysid.refine import _fd_step
 def fit_reference(prepared: Any, *, starts: int = 4, seed: int = 0, window_s: float = 5.0,
                   max_nfev: int = 60) -> HoverModel:
     """Plain multi-start least-squares output-error fit (see the module docstring)."""
-    from groundstation.sysid.identify import free_mask
-
     free, _ = free_mask(prepared)
     b = bounds_array()[free]
     span = b[:, 1] - b[:, 0]
