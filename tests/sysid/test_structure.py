@@ -71,13 +71,13 @@ def test_a_first_order_system_with_delay_is_recovered():
 
 
 def test_a_command_logged_late_is_found_as_a_negative_delay_and_called_a_time_skew():
-    prep, truth = _prepared(tau_s=-0.12)
+    prep, truth = _prepared(n=3000, tau_s=-0.12)
     m = identify_command(prep, "rate_command")
     f = m.axes["pitch"]
     assert f.params["tau"] == pytest.approx(truth["tau"], abs=0.01)
     assert f.params["T"] == pytest.approx(truth["T"], rel=0.05)
     assert any("time skew" in line for line in m.describe())
-    other, _ = _prepared(seed=1, tau_s=-0.12)
+    other, _ = _prepared(seed=1, n=3000, tau_s=-0.12)
     assert predict_command(m, other).match["q"] > 90
 
 
