@@ -171,8 +171,8 @@ class OnboardLogs:
             last = self._last
             if last is not None and last.received_blocks:
                 self._partial[ev.log_id] = (bytes(last.data), bytes(last.have))
-            flight = self._for_analysis.get(ev.log_id)
-            stands = f"; flight {flight}'s telemetry analysis stands" if flight is not None else ""
+            flight_no = self._for_analysis.get(ev.log_id)
+            stands = f"; flight {flight_no}'s telemetry analysis stands" if flight_no is not None else ""
             self.log(f"onboard {ev.reason} (kept; resumes after the next disarm){stands}")
         elif isinstance(ev, DownloadComplete):
             self._done.add(ev.log_id)

@@ -143,7 +143,7 @@ class Context:
         ev = self.ev
         V = len(U_list) if U_list is not None else len(Y_list or [])
         U = np.concatenate(U_list) if U_list is not None else np.tile(ev.U, (V, 1, 1))
-        Y = np.concatenate(Y_list) if Y_list is not None else np.tile(ev.Y, (V, 1, 1))
+        Y = np.concatenate(Y_list) if Y_list is not None else ev.Y  # the simulation repeats it per variant
         yh = lsim(ev.theta0, U, Y, ev.dt_s, weights=ev.w8, available=ev.available, start=ev.start)[0]
         yh = yh.reshape(V, ev.W, ev.L, 8)
         return yh

@@ -129,7 +129,8 @@ def simulate(
     ----------
     theta : array (C, 31) or (31,)
     inputs : array (W, L, 4), normalised inputs
-    outputs : array (W, L, 8), measured outputs (initial states and the LS target)
+    outputs : array (W, L, 8), measured outputs (initial states and the LS target); or (W0, L, 8)
+        with W0 dividing W: window w's are ``outputs[w % W0]`` (input variants of the same windows)
     dt_s : float, sample period (s)
     forcing : array (W, L, 11) or None, state-derivative forcing added to every state row
     weights : array (8,) or None, per-channel weights (1/scale) of the initial-state least squares
@@ -165,8 +166,11 @@ def simulate(
     # unknown initial states: unmeasured ones and unavailable channels
     unknown = list(UNMEASURED) + [int(OUT_STATE[c]) for c in range(8) if not avail[c] or all_initial]
     nu = len(unknown)
+    W0 = outputs.shape[0]
+    if Wn % W0:
+        raise ValueError(f"outputs: {W0} windows do not divide the inputs' {Wn}")
     x0 = np.zeros((Wn, N_STATES))
-    x0[:, OUT_STATE[avail]] = outputs[:, 0, avail]
+    x0[:, OUT_STATE[avail]] = np.tile(outputs[:, 0, avail], (Wn // W0, 1))
     yhat = np.empty((C, Wn, L, 8))
     runaway = np.zeros(C, bool)
     # an unstable candidate (a search or a Levenberg-Marquardt trial step) can overflow within a
@@ -174,15 +178,15 @@ def simulate(
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         AbT, CbT, TT, ObT, Phi = _lift(Ad, Bd[:, :, :m], b, nb)
         S = np.ascontiguousarray(np.moveaxis(Phi[:, :L, :, unknown], 3, 1))  # (C, nu, L, 8), every window
-        runaway |= ~(np.isfinite(S).all(axis=(1, 2, 3)) & (np.abs(S).max(axis=(1, 2, 3), initial=0.0) < 1e150))
+        # a NaN propagates through max and fails the comparison like an overflow does
+        runaway |= ~(np.abs(S).max(axis=(1, 2, 3), initial=0.0) < 1e150)
         wc = max(1, min(Wn, int(CHUNK_BYTES // (8 * C * L * 8))))
         for w0 in range(0, Wn, wc):
             w1 = min(Wn, w0 + wc)
             y, xs = _lifted_outputs(np.broadcast_to(x0[None, w0:w1], (C, w1 - w0, N_STATES)), up[w0:w1],
                                     AbT, CbT, TT, ObT, b)
             yhat[:, w0:w1] = y[:, :, :L]
-            runaway |= ~(np.isfinite(y).all(axis=(1, 2, 3)) & np.isfinite(xs).all(axis=(1, 2, 3))
-                         & (np.abs(y).max(axis=(1, 2, 3), initial=0.0) < 1e150)
+            runaway |= ~((np.abs(y).max(axis=(1, 2, 3), initial=0.0) < 1e150)
                          & (np.abs(xs).max(axis=(1, 2, 3), initial=0.0) < 1e150))
     if runaway.any():
         yhat[runaway] = 0.0
@@ -211,7 +215,8 @@ def simulate(
         w1 = min(Wn, w0 + wc)
         Wc = w1 - w0
         yc = yhat[:, w0:w1]  # view: corrected in place
-        rw = ((outputs[None, w0:w1] - yc)[:, :, sel, :] * w8).reshape(C, Wc, -1)  # (C, Wc, n)
+        yo = outputs[w0:w1] if W0 == Wn else outputs[np.arange(w0, w1) % W0]
+        rw = ((yo[None] - yc)[:, :, sel, :] * w8).reshape(C, Wc, -1)  # (C, Wc, n)
         hs = np.matmul(rw, SwT)  # (C, Wc, nu)
         if nuisance is None:
             a = np.swapaxes(np.linalg.solve(Gr, np.swapaxes(hs, 1, 2)), 1, 2)  # (C, Wc, nu)

@@ -393,7 +393,7 @@ def _identify_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], pl
         refs = plan.pmap(partial(_full_refine, cost, plan.bounds[sub_free], cfg, pr), x0s)
         if cost.nfev == nfev0:    # refined in worker processes, on copies of the cost
             cost.nfev += sum(int(r.nfev) for r in refs)
-        for (_, _, opt, alg), r in zip(found, refs):
+        for (_, _, opt, alg), r in zip(found, refs[:len(found)], strict=True):
             F = float(r.fun)
             if pr is not None:
                 sig_ref = r.sig_eff if sig_ref is None else sig_ref
@@ -401,7 +401,7 @@ def _identify_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], pl
             if best is None or F < best[0]:
                 best = (F, r.x, opt, r, alg)
         assert best is not None
-        for (n, _), r in zip(extra, refs[len(found):]):
+        for (n, _), r in zip(extra, refs[len(found):], strict=True):
             F = float(r.fun) if pr is None or sig_ref is None else map_objective(cost, r.x, sig_ref, pr)
             if F < best[0]:
                 best = (F, r.x, best[2], r, f"{best[4]}+{n} start")

@@ -26,7 +26,9 @@ Identification is output error on windows started from the measured states (the 
 the held-out prediction, :mod:`groundstation.sysid.heldout`), each axis on its own (its rate,
 attitude and velocity channels, each weighted by the inverse of its signal norm: the residual sum is
 then the sum of squared eq.-19 mismatch ratios), the delay by a grid of fixed delays and a free
-refinement (:func:`groundstation.sysid.optimizers.minimize_grid_lsq`), standard errors from the
+refinement (:func:`groundstation.sysid.optimizers.minimize_grid_lsq`; the grid runs below zero: a
+negative equivalent delay is a command logged late against the response, a time skew between the
+logged channels, and is reported as that, not as a dynamic), standard errors from the
 Jacobian (Cramér-Rao bound under white residuals: a lower bound on real data).
 
 Reported per axis: gain, time constant (or natural frequency and damping), equivalent delay, the
@@ -61,11 +63,13 @@ AXES: dict[str, tuple[str, str | None, str, str | None]] = {
 }
 #: a coupling is kept when its estimate exceeds this many standard errors
 COUPLING_T = 3.0
-#: equivalent delays searched, s
+#: equivalent delays searched, s; a negative one means the logged command lags the response it drives:
+#: a time skew between the logged channels (data consistency), reported as such, not a dynamic
 MAX_DELAY_S = 0.3
+MIN_DELAY_S = -0.25
 DELAY_GRID_S = 0.04
 BOUNDS: dict[str, tuple[float, float]] = {
-    "K": (-30.0, 30.0), "T": (0.02, 5.0), "tau": (0.0, MAX_DELAY_S), "b": (-3.0, 3.0), "C": (-30.0, 30.0),
+    "K": (-30.0, 30.0), "T": (0.02, 5.0), "tau": (MIN_DELAY_S, MAX_DELAY_S), "b": (-3.0, 3.0), "C": (-30.0, 30.0),
     "wn": (0.3, 40.0), "zeta": (0.05, 3.0), "X": (-3.0, 0.5), "X0": (-3.0, 3.0),
 }
 
@@ -116,6 +120,12 @@ class _Axis:
         return A, B
 
 
+def delay_grid() -> np.ndarray:
+    """The fixed delays the fit starts from (s): every ``DELAY_GRID_S`` from ``MIN_DELAY_S`` to ``MAX_DELAY_S``, 0 included."""
+    return np.concatenate([-np.arange(DELAY_GRID_S, -MIN_DELAY_S + 1e-9, DELAY_GRID_S)[::-1],
+                           np.arange(0.0, MAX_DELAY_S + 1e-9, DELAY_GRID_S)])
+
+
 def _discretize(A: np.ndarray, B: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
     n, m = B.shape
     M = np.zeros((n + m, n + m))
@@ -126,15 +136,17 @@ def _discretize(A: np.ndarray, B: np.ndarray, dt_s: float) -> tuple[np.ndarray, 
 
 @dataclass(frozen=True, eq=False)
 class CommandWindows:
-    """Windows with input history for delays: inputs (W, P + L, 4) (P samples before each window, the
-    segment's first sample repeated where the segment starts later), outputs (W, L, 8), mask (W, 8)
-    (channel measured over the whole window)."""
+    """Windows with input history for delays: inputs (W, P + L + F, 4) (P samples before each window, the
+    segment's first sample repeated where the segment starts later, and F after it for a negative
+    delay, the last sample repeated past the segment's end), outputs (W, L, 8), mask (W, 8) (channel
+    measured over the whole window)."""
 
     inputs: np.ndarray
     outputs: np.ndarray
     mask: np.ndarray
     pre: int
     dt_s: float
+    post: int = 0
 
     @property
     def count(self) -> int:
@@ -146,7 +158,7 @@ class CommandWindows:
 
     def delayed(self, tau_s: float, cols: list[int]) -> np.ndarray:
         """(W, L, len(cols)) inputs ``cols`` delayed by ``tau_s`` (linear interpolation between samples)."""
-        s = min(max(tau_s / self.dt_s, 0.0), self.pre - 1.0)
+        s = min(max(tau_s / self.dt_s, 1.0 - self.post if self.post else 0.0), self.pre - 1.0)
         k = int(np.floor(s))
         f = s - k
         L, P = self.length, self.pre
@@ -160,25 +172,27 @@ class CommandWindows:
 def command_windows(segments: list, dt_s: float, window_s: float, step_s: float = 0.0,
                     offset: np.ndarray | None = None) -> CommandWindows:
     """Windows of ``window_s`` every ``step_s`` (0 = non-overlapping) with ``MAX_DELAY_S`` of input
-    history; ``offset`` (4,) is added to the inputs (the model's trim against the data's)."""
+    history and ``-MIN_DELAY_S`` of input after the window; ``offset`` (4,) is added to the inputs (the
+    model's trim against the data's)."""
     L = int(round(window_s / dt_s))
     S = L if step_s <= 0 else max(1, int(round(step_s / dt_s)))
     P = int(np.ceil(MAX_DELAY_S / dt_s)) + 2
+    F = int(np.ceil(max(-MIN_DELAY_S, 0.0) / dt_s)) + 2
     ins, outs, masks = [], [], []
     off = np.zeros(4) if offset is None else np.asarray(offset, dtype=float)
     for s in segments:
         u = np.asarray(s.inputs, dtype=float) + off[None, :]
-        u = np.concatenate([np.repeat(u[:1], P, axis=0), u])
+        u = np.concatenate([np.repeat(u[:1], P, axis=0), u, np.repeat(u[-1:], F, axis=0)])
         y = np.asarray(s.outputs, dtype=float)
         for a in range(0, s.n - L + 1, S):
             yw = y[a:a + L]
-            ins.append(u[a:a + P + L])
+            ins.append(u[a:a + P + L + F])
             outs.append(yw)
             masks.append(np.asarray(s.available, dtype=bool) & np.isfinite(yw).all(axis=0))
     if not ins:
         longest = max((s.duration_s for s in segments), default=0.0)
         raise SysidError(f"window_s = {window_s:g}: no in-air segment is that long (longest {longest:.1f} s)")
-    return CommandWindows(np.stack(ins), np.stack(outs), np.stack(masks), P, float(dt_s))
+    return CommandWindows(np.stack(ins), np.stack(outs), np.stack(masks), P, float(dt_s), F)
 
 
 #: parameters the response is linear in (solved by least squares inside the cost: variable projection)
@@ -417,9 +431,15 @@ class CommandModel:
                    if s.get("attitude_bandwidth_rad_s") else "")
             cpl = ", ".join(f"{c} {v:+.3g}" for c, v in s["couplings"].items()) or "none the data support"
             out.append(f"{a} ({f.on_input or 'no input'} -> {AXES[a][0]}): gain {s['gain']:+.3g}, {dyn}, "
-                       f"delay {s['delay_s'] * 1000:.0f} ms, bandwidth {s['bandwidth_rad_s']:.2f} rad/s{att}; "
+                       f"delay {s['delay_s'] * 1000:.0f} ms{_skew_note(s['delay_s'])}, bandwidth {s['bandwidth_rad_s']:.2f} rad/s{att}; "
                        f"couplings: {cpl}")
         return out
+
+
+def _skew_note(delay_s: float) -> str:
+    """What a negative equivalent delay says: the response leads the logged command."""
+    return (" (negative: the logged command lags the response it drives, a time skew between the logged "
+            "channels, not a dynamic of the aircraft)" if delay_s < -0.5 * DELAY_GRID_S else "")
 
 
 def _has_vel(f: AxisFit) -> bool:
@@ -457,7 +477,7 @@ def fit_axis(axis: _Axis, win: CommandWindows, *, x0: np.ndarray | None = None, 
     names_nl = [n for n, keep in zip(axis.param_names, nl, strict=True) if keep]
     r = minimize_grid_lsq(lambda Z: np.array([float(np.sum(res(z) ** 2)) for z in Z]), b[nl], rng=rng,
                           maxiter=maxiter, residuals=res, x0=[start[nl]], grid_index=names_nl.index("tau"),
-                          grid=np.arange(0.0, MAX_DELAY_S + 1e-9, DELAY_GRID_S))
+                          grid=delay_grid())
     x, e = cost.solve(full(np.asarray(r.x, dtype=float)))
     # linear parameters outside their bounds (an input that barely moves): clipped
     x = np.clip(x, b[:, 0], b[:, 1])

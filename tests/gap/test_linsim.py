@@ -144,5 +144,9 @@ def test_lifted_simulation_is_the_stepped_one_stable_and_unstable(paper_theta):
                 ok = np.isfinite(want)
                 scale = np.abs(want[ok]).max()
                 np.testing.assert_allclose(got[ok], want[ok], rtol=0, atol=1e-9 * scale)
+        # input variants of the same windows: the outputs given once stand for every repetition
+        u2 = np.concatenate([inputs, 1.5 * inputs])
+        np.testing.assert_array_equal(simulate(th, u2, outputs, 0.02),
+                                      simulate(th, u2, np.concatenate([outputs, outputs]), 0.02))
     finally:
         linsim.CHUNK_BYTES = old

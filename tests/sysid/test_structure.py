@@ -27,17 +27,18 @@ def _lowpass(x: np.ndarray, T: float) -> np.ndarray:
     return y
 
 
-def _prepared(seed: int = 0, n: int = 6000) -> tuple[PreparedData, dict[str, float]]:
-    """Pitch rate q = K lon(t - tau) / (T s + 1) plus a small col coupling, theta = int q; noise."""
+def _prepared(seed: int = 0, n: int = 6000, tau_s: float = 0.1) -> tuple[PreparedData, dict[str, float]]:
+    """Pitch rate q = K lon(t - tau) / (T s + 1) plus a small col coupling, theta = int q; noise. A
+    negative ``tau_s``: the logged stick lags the response (a time skew between the logged channels)."""
     rng = np.random.default_rng(seed)
     t = np.arange(n) * DT
     u = np.zeros((n, 4))
     u[:, 1] = _lowpass(np.repeat(rng.uniform(-0.2, 0.2, n // 25), 25), 0.05)   # random steps, lon
     u[:, 2] = 0.05 * np.sin(0.7 * t) + 0.03 * np.sin(2.3 * t)                   # col
-    truth = {"K": 1.8, "T": 0.25, "tau": 0.1, "C_col": -0.6}   # a delay of 5 samples
+    truth = {"K": 1.8, "T": 0.25, "tau": tau_s, "C_col": -0.6}   # a delay of 5 samples
     k = int(round(truth["tau"] / DT))
     drive = truth["K"] * u[:, 1] + truth["C_col"] * u[:, 2]
-    drive = np.concatenate([np.zeros(k), drive[:-k]])
+    drive = np.concatenate([np.zeros(k), drive[:-k]]) if k > 0 else np.concatenate([drive[-k:], np.full(-k, drive[-1])])
     q = _lowpass(drive, truth["T"])
     y = np.full((n, 8), np.nan)
     y[:, 4] = q + 0.005 * rng.standard_normal(n)
@@ -67,6 +68,17 @@ def test_a_first_order_system_with_delay_is_recovered():
     other, _ = _prepared(seed=1)
     p = predict_command(m, other)
     assert p.match["q"] > 90 and p.match["theta"] > 90
+
+
+def test_a_command_logged_late_is_found_as_a_negative_delay_and_called_a_time_skew():
+    prep, truth = _prepared(n=3000, tau_s=-0.12)
+    m = identify_command(prep, "rate_command")
+    f = m.axes["pitch"]
+    assert f.params["tau"] == pytest.approx(truth["tau"], abs=0.01)
+    assert f.params["T"] == pytest.approx(truth["T"], rel=0.05)
+    assert any("time skew" in line for line in m.describe())
+    other, _ = _prepared(seed=1, n=3000, tau_s=-0.12)
+    assert predict_command(m, other).match["q"] > 90
 
 
 def test_model_file_carries_the_section_and_heldout_prediction_uses_it():
