@@ -840,6 +840,11 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
         verdict = "unexplained"
     elif changing:
         partial = changing
+    if verdict == "sensor_error" and loc.gap_significant:
+        # the sensor error was undone before the diagnosis: a significant gap left after it is not explained by it
+        verdict = "unexplained"
+        notes.append("a sensor scale error was found and undone, but the held-out gap left is significant: "
+                     "the sensor error does not explain it")
     if verdict == "none" and loc.gap_significant:
         # the share rule with nothing named: 0 % of a significant gap above noise is explained (a gap
         # spread evenly over the flight is still a gap: a parameter drifting slowly spreads its own)
