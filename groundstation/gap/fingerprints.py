@@ -109,8 +109,11 @@ def spectral_lines(resid: np.ndarray, inputs: np.ndarray, dt_s: float, available
                    response: Any = None) -> tuple[list[Line], dict]:
     """Significant narrow spectral lines in output residuals that the inputs do not explain.
 
-    A line the inputs also carry is left out where the inputs could have put it in the residual: their
-    power at that frequency through the model's response to the channel, ``sum_j |G_j(f)|^2 Pu_j(f)``,
+    A line the inputs also carry is left out where the inputs could have put it in the residual: the
+    strongest input power at that frequency through the model's largest response from any input to the
+    channel, ``max_j |G_j(f)|^2 max_j Pu_j(f)`` (any input: one held still in the log, or not logged,
+    may be the one that moved the aircraft), or where a stick's line there is not an echo (its power
+    at or above that stick's mean spectral level: a card's or a pilot's oscillation),
     times :data:`STICK_REACH_FACTOR` squared, is at least the residual's line power (above its local
     median). A residual line the sticks could only have made were the model's response wrong by more
     than that factor in amplitude was not made by the sticks: a stabilising loop passes a vibration the
@@ -155,10 +158,15 @@ def spectral_lines(resid: np.ndarray, inputs: np.ndarray, dt_s: float, available
         sig &= ~u_line.any(axis=1)[:, None]
     elif u_line.any():
         G2 = np.abs(np.asarray(response(f))) ** 2  # (F, 8, 4)
-        # what the sticks can put in each output at that frequency (their whole power there, through the model)
-        reach = np.einsum("fcj,fj->fc", np.nan_to_num(G2), Pu)
+        # what a stick can put in each output at that frequency: the strongest stick power there through the
+        # model's largest response to any stick (a stick held still in the log may be the one that moves)
+        reach = np.nan_to_num(G2).max(axis=2) * Pu.max(axis=1)[:, None]
         r_exc = P * (1.0 - 1.0 / np.maximum(ratio, 1.0))
-        sig &= ~(u_line.any(axis=1)[:, None] & (STICK_REACH_FACTOR ** 2 * reach >= r_exc))
+        # an echo: every stick's line there lies below that stick's mean spectral level (a card's or a
+        # pilot's oscillation is a large part of the stick's motion and is never an echo)
+        mean_psd = 2.0 * dt_s * inputs.reshape(-1, inputs.shape[-1]).var(axis=0)
+        echo = ~(u_line & (Pu >= mean_psd[None, :])).any(axis=1)
+        sig &= ~(u_line.any(axis=1)[:, None] & ((STICK_REACH_FACTOR ** 2 * reach >= r_exc) | ~echo[:, None]))
     lines: list[Line] = []
     used = np.zeros(len(f), bool)
     order = np.argsort(np.where(sig, logp, 0).min(axis=1))
