@@ -225,7 +225,7 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
     report.update(info)
     for e, c in zip(report["effects"], dec.ranked, strict=True):
         e.update(verdict_info["per_effect"].get(id(c), {}))
-    if controller.may_be_commands(model):
+    if model is not None and controller.may_be_commands(model):
         _controller_finding(report, prepared, model, loc, cfg, seed, pmap)
     report["structure_tests"] = [{**dataclasses.asdict(t), "effect_to_noise": round(t.effect_to_noise, 2)
                                   if np.isfinite(t.effect_to_noise) else None} for t in tests]

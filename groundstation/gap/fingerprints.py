@@ -23,7 +23,6 @@ from scipy import stats
 
 from groundstation.sysid.model import OUTPUTS
 
-
 #: how far (amplitude ratio) the model's response may be wrong before a residual line the sticks also
 #: carry is said not to come from them (:func:`spectral_lines`)
 STICK_REACH_FACTOR = 10.0
