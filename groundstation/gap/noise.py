@@ -35,6 +35,8 @@ def _step(key: float) -> int:
 
 
 def _mad_std(d2: np.ndarray) -> float:
+    if not np.isfinite(d2).any():      # a channel never measured: no noise figure, and no warning
+        return float("nan")
     med = np.nanmedian(d2)
     return float(_MAD_TO_STD * np.nanmedian(np.abs(d2 - med)) / np.sqrt(6.0))
 
@@ -105,7 +107,9 @@ def smoothing_gain(raw: list[np.ndarray], smoothed: list[np.ndarray], sigma: np.
                    strides: np.ndarray | None = None, calibration_seed: int = 12345) -> np.ndarray:
     """Per channel: fraction of the raw (grid) noise variance left in the smoothed outputs."""
     diff = np.concatenate([s - r for s, r in zip(smoothed, raw, strict=True)])
-    v = np.nanvar(diff, axis=0)
+    seen = np.isfinite(diff).sum(axis=0)
+    v = np.full(diff.shape[1], np.nan)
+    v[seen > 0] = np.nanvar(diff[:, seen > 0], axis=0)   # a channel never measured stays NaN, quietly
     st = np.ones(v.shape[0]) if strides is None else np.asarray(strides, dtype=float)
     gains = np.empty(v.shape[0])
     for c in range(v.shape[0]):
@@ -129,6 +133,8 @@ def noise_floor(raw: list[np.ndarray], smoothed: list[np.ndarray],
     gain = smoothing_gain(raw, smoothed, sigma, strides, calibration_seed)
     sig_s = sigma * np.sqrt(gain)
     y = np.concatenate(smoothed)
-    sd = np.nanstd(y, axis=0)
+    seen = np.isfinite(y).any(axis=0)
+    sd = np.full(y.shape[1], np.nan)
+    sd[seen] = np.nanstd(y[:, seen], axis=0)      # a channel never measured: NaN, without a warning
     floor = np.where(sd > 0, sig_s / np.where(sd > 0, sd, 1.0), np.inf)
     return {"sigma_raw": sigma, "sigma_smoothed": sig_s, "nrmse_floor": floor, "signal_std": sd}
