@@ -123,7 +123,8 @@ class OnboardLogsSection:
     dir: str = ""                   # default: <record_dir>/onboard
     after_disarm_s: float = 2.0     # let the FC close its log before listing
     give_up_s: float = 8.0          # the FC sends nothing this long: keep what came, resume after the next disarm
-    list_timeout_s: float = 1.5     # no answer to a list request this long: ask again (three times in all)
+    list_timeout_s: float = 1.5     # no answer to a list request this long: ask again
+    list_retries: int = 3           # asked again this many times before the FC is taken for one without logs
     #: a flight whose telemetry lost more than this share of packets (%) gets one line at disarm saying
     #: that the FC's onboard log holds the full data (and how to fetch it when ``download`` is off)
     suggest_above_loss_pct: float = 5.0

@@ -88,7 +88,8 @@ class OnboardLogs:
         self.out_dir = out_dir
         self.session = session
         self.log = log
-        self.dl_config = DownloadConfig(give_up_s=config.give_up_s, list_timeout_s=config.list_timeout_s)
+        self.dl_config = DownloadConfig(give_up_s=config.give_up_s, list_timeout_s=config.list_timeout_s,
+                                        list_retries=config.list_retries)
         self._decoder = mavlink2.MAVLink(None, 255, 190)
         self._decoder.robust_parsing = True
         self._fc: tuple[int, int] | None = None

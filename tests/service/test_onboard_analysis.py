@@ -50,9 +50,11 @@ def test_lossy_flight_ends_with_the_onboard_logs_model(tmp_path):
                          identification={"refine": False, "diagnose": False, "plots": False, "heldout_folds": 0},
                          excitation={"enabled": False},
                          # download stays off: the lossy flight's log is fetched for its analysis alone.
-                         # The FC answers within milliseconds; long timeouts keep a starved machine from
+                         # The link loses 10 % of the list requests' answers too: a lost one is asked again
+                         # after 2 s, and many retries (not a long timeout) keep a starved machine from
                          # being taken for a silent FC
-                         onboard_logs={"after_disarm_s": 0.5, "list_timeout_s": 60.0, "give_up_s": 120.0})
+                         onboard_logs={"after_disarm_s": 0.5, "list_timeout_s": 2.0, "list_retries": 60,
+                                       "give_up_s": 120.0})
     lines: list[str] = []
     fc = FcConfig(seed=6, packet_loss=0.10, record_dataflash=True)
     service = Service(cfg, sim_options={"flight_duration_s": 40.0, "pause_s": 2.0}, fc_config=fc, log=lines.append)
