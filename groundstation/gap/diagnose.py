@@ -112,6 +112,12 @@ def segments_from_prepared(prepared: Any, share_min: float = 0.7) -> tuple[list[
     return cleaned, avail
 
 
+def _grid_offsets(segs: list[SegmentArrays], dt_s: float) -> list[int]:
+    """Each segment's first grid index on its flight's grid (noise estimates read one phase of a
+    slower stream the same way in every segment, wherever holes of the link split them)."""
+    return noise.grid_offsets([float(s.t_s[0]) for s in segs], [s.flight for s in segs], dt_s)
+
+
 def _trims(prepared: Any) -> np.ndarray:
     tr = getattr(prepared, "output_trim", None)
     if tr is None:
@@ -296,7 +302,8 @@ def compat_stage(prepared: Any, cfg: DiagnoseConfig) -> tuple[compat.Compatibili
     segs, avail = segments_from_prepared(prepared, cfg.channel_share_min)
     stride = getattr(prepared, "native_stride", None)
     sigma = noise.raw_noise_std([s.raw_measured() for s in segs], stride(OUTPUTS) if stride is not None else None,
-                                cfg.noise_calibration_seed) if segs else np.full(8, np.nan)
+                                cfg.noise_calibration_seed, _grid_offsets(segs, float(prepared.dt_s))) \
+        if segs else np.full(8, np.nan)
     comp = compat.check(segs, avail, float(prepared.dt_s), sigma, _trims(prepared), window_s=cfg.compat_window_s,
                         alpha=cfg.alpha, min_windows=cfg.min_windows,
                         min_effect_to_noise=cfg.compat_min_effect_to_noise,
@@ -391,11 +398,13 @@ def locate_stage(base: Base, prepared: Any, cfg: DiagnoseConfig) -> Located:
     out_stride = stride(OUTPUTS) if stride is not None else None
     in_stride = stride(INPUTS) if stride is not None else None
     # noise from measured samples only: a straight line bridged across a hole of the link has none
+    offs = _grid_offsets(segs, dt)
     nf = noise.noise_floor([s.raw_measured() for s in segs], [s.measured_only(s.outputs) for s in segs], out_stride,
-                           cfg.noise_calibration_seed)
+                           cfg.noise_calibration_seed, offs)
     out_excited = avail & (nf["signal_std"] > cfg.excitation_snr * nf["sigma_smoothed"])
     u_all = np.concatenate([s.inputs for s in segs])
-    u_noise = noise.raw_noise_std([s.measured_only(s.inputs) for s in segs], in_stride, cfg.noise_calibration_seed)
+    u_noise = noise.raw_noise_std([s.measured_only(s.inputs) for s in segs], in_stride, cfg.noise_calibration_seed,
+                                  offs)
     u_std = u_all.std(axis=0)
     in_excited = (u_std > cfg.excitation_snr * np.maximum(u_noise, 1e-12)) & (u_std > cfg.input_std_min)
 
