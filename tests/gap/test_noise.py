@@ -53,7 +53,7 @@ def test_segments_split_by_holes_give_the_same_noise_with_their_grid_offsets():
     rng = np.random.default_rng(1)
     cuts = np.sort(rng.choice(np.arange(200, 11800), 40, replace=False))
     starts, ends = np.r_[0, cuts + 7], np.r_[cuts, 12000]     # holes of 7 samples: parity flips
-    keep = [(a, b) for a, b in zip(starts, ends) if b - a > 20]
+    keep = [(a, b) for a, b in zip(starts, ends, strict=True) if b - a > 20]
     parts = [y[a:b, None] for a, b in keep]
     whole = raw_noise_std([y[:, None]], np.array([2.0]))[0]
     with_offsets = raw_noise_std(parts, np.array([2.0]), offsets=[int(a) for a, _ in keep])[0]
