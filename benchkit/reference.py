@@ -16,6 +16,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from groundstation.sysid.cost import WindowedCost, make_windows
+from groundstation.sysid.fit_section import ModelFit
 from groundstation.sysid.identify import free_mask
 from groundstation.sysid.model import N_PARAMS, HoverModel, bounds_array, theta_to_dict
 from groundstation.sysid.optimizers import minimize_lsq
@@ -46,5 +47,5 @@ def fit_reference(prepared: Any, *, starts: int = 4, seed: int = 0, window_s: fl
     return HoverModel(params=theta_to_dict(theta), sample_rate_hz=1.0 / prepared.dt_s,
                       input_trim_pwm=dict(prepared.input_trim_pwm), pwm_per_unit=float(prepared.pwm_per_unit),
                       output_trim=dict(prepared.output_trim),
-                      fit={"algorithm": "reference-lsq", "cost": float(res.fun), "starts": int(starts),
-                           "window_s": float(window_s), "estimate_all_initial": False})
+                      fit=ModelFit.make(algorithm="reference-lsq", cost=float(res.fun), starts=int(starts),
+                                        window_s=float(window_s), estimate_all_initial=False))
