@@ -512,7 +512,8 @@ def scan_wind_gust(ctx: Context, chunk_s: float | None = None, refine_iterations
     L = ev.L
     # prior: air velocity of the order of the measured horizontal speed (weighted-residual units)
     s_air = float(np.sqrt((ev.Y[:, :, :2] ** 2).mean())) + 1e-6
-    sig2 = float((ev.r0 ** 2).sum() / max(ev.mask.sum() * ev.W * ev.available.sum(), 1))
+    n_scored = ev.mask.sum() * ev.W * ev.available.sum() if ev.M is None else (ev.score_mask & ev.available).sum()
+    sig2 = float((ev.r0 ** 2).sum() / max(n_scored, 1))
     n_knots = max(int(round(L * ev.dt_s / knot_s)) + 1, 2)
     prec = np.full(2 * n_knots, sig2 / s_air ** 2)
     evg = Evaluator(ctx.segments, ev.dt_s, ev.theta0, ev.available, window_s=L * ev.dt_s,
@@ -532,7 +533,8 @@ def scan_wind_gust(ctx: Context, chunk_s: float | None = None, refine_iterations
         for fit_m, score_m in ((even, odd), (odd, even)):
             y, coef = lsim(theta, ev.U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available, nuisance=nuis,
                            fit_mask=fit_m, return_coef=True, nuisance_prec=None if nuis is None else prec)
-            sse += (((ev.Y - y[0]) * ev.w8)[:, score_m] ** 2).sum(axis=1)
+            e2 = ((ev.Y - y[0]) * ev.w8)[:, score_m] ** 2
+            sse += (e2 if ev.M is None else e2 * ev.M[:, score_m]).sum(axis=1)   # holes of the link not scored
         return sse, coef
 
     sse_b, _ = chunk_cv(ev.theta0, None)

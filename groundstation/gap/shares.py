@@ -58,8 +58,9 @@ PARAMETER = {"input_delay": "delay_s", "rate_limit": "rate_limit_per_s", "deadba
 def noise_cost(ev: Evaluator, sigma_smoothed: np.ndarray) -> np.ndarray:
     """(W, 8) held-out cost a perfect model would still show: the measured noise in the cost's weights."""
     s = np.nan_to_num(np.asarray(sigma_smoothed, float))
-    per = float(ev.mask.sum()) * (s * ev.w8) ** 2
-    return np.broadcast_to(per, (ev.W, 8)).copy()
+    if ev.M is None:
+        return np.broadcast_to(float(ev.mask.sum()) * (s * ev.w8) ** 2, (ev.W, 8)).copy()
+    return ev.score_mask.sum(axis=1) * (s * ev.w8) ** 2   # per window: its measured samples only
 
 
 def removal(c: attribute.Candidate, base_sse: np.ndarray, first: bool = True) -> np.ndarray:
