@@ -62,7 +62,7 @@ def _cut(seg: Any, a_s: float, b_s: float) -> Any:
                    alt_m=seg.alt_m[k], measured=None if m is None else m[k])
 
 
-def shift_profile(prepared: Any, *, grid_s: tuple[float, ...] = tuple(np.round(np.arange(-0.1, 0.201, 0.02), 3)),
+def shift_profile(prepared: Any, *, grid_s: tuple[float, ...] = tuple(np.round(np.arange(-0.08, 0.201, 0.04), 3)),
                   seed: int = 0, window_s: float = 5.0) -> dict[str, Any]:
     """The plain reference fit's in-sample cost for each common input shift of ``grid_s`` (inputs
     advanced by it, :func:`groundstation.dsp.timeskew.shift_inputs`), every shift on the same samples

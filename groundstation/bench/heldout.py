@@ -10,6 +10,8 @@ Held-out prediction on a real flight, the figure that says whether a model predi
 * ``--input-shift-s`` advances the logged inputs of every split (a time skew between the logged
   channels, :mod:`groundstation.dsp.timeskew`); ``auto`` measures it per split on the training part
   (:func:`benchkit.reference.shift_profile`), and the held-out part gets the same shift;
+* with ``--linear``, (c) an unconstrained linear predictor from the logged inputs and the window's
+  start state (:mod:`benchkit.linear`): how much of each channel any linear model could predict;
 * scored by eq. 19 on ``--window-s`` windows started from the measured states (unmeasured states
   by least squares over the window, inputs against the model's trim: :mod:`groundstation.sysid.heldout`),
   per channel and the mean over the channels measured in the held-out part, with any unstable
@@ -28,6 +30,9 @@ from typing import Any
 
 import numpy as np
 
+#: the predictors a split may score: the project's identification, the plain reference, the linear ceiling
+KINDS = ("project", "reference", "linear")
+
 HELP = "held-out prediction on real flights: project identification vs a plain least-squares reference, k-fold"
 
 
@@ -41,6 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-reference", action="store_true", help="score only the project's identification")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=None, help="write the figures here")
+    parser.add_argument("--linear", action="store_true",
+                        help="also score an unconstrained linear predictor from the logged inputs (a ceiling, "
+                             ":mod:`benchkit.linear`)")
     parser.add_argument("--input-shift-s", default="0", metavar="S|S1,S2,..|auto",
                         help="advance the logged inputs by S s in every split (both models), or by one value per split "
                              "in the order printed; auto: per split, the shift that minimises the plain reference fit's "
@@ -134,6 +142,11 @@ def run(args: argparse.Namespace) -> int:
             t0 = time.perf_counter()
             ref = fit_reference(train, starts=args.reference_starts, seed=args.seed, window_s=args.window_s)
             row["reference"] = _score(ref, val, args.window_s) | {"seconds": time.perf_counter() - t0}
+        if args.linear:
+            from benchkit.linear import linear_heldout
+
+            t0 = time.perf_counter()
+            row["linear"] = linear_heldout(train, val, window_s=args.window_s) | {"seconds": time.perf_counter() - t0}
         results.append(row)
         _print_split(con, row)
     summary = _summary(results)
@@ -146,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
 def _print_split(con: Any, row: dict[str, Any]) -> None:
     from rich.table import Table
 
-    kinds = [k for k in ("project", "reference") if k in row]
+    kinds = [k for k in KINDS if k in row]
     chans = list(row["project"]["match"])
     shift = f", inputs advanced {row['input_shift_s'] * 1000:.0f} ms" if row.get("input_shift_s") else ""
     t = Table(title=f"{row['split']}: train {row['train_s']:.0f} s, predict {row['val_s']:.0f} s{shift} (match %, eq. 19)")
@@ -177,7 +190,7 @@ def _print_split(con: Any, row: dict[str, Any]) -> None:
 def _summary(results: list[dict[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     folds = [r for r in results if r["split"].startswith("fold")]
-    for k in ("project", "reference"):
+    for k in KINDS:
         if not results or k not in results[0]:
             continue
         s: dict[str, Any] = {}
