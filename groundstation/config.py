@@ -45,8 +45,8 @@ from groundstation.errors import GroundstationError
 from groundstation.freq.settings import FreqIdentifyConfig
 from groundstation.freq.spectra import FreqConfig
 from groundstation.gap.config import DiagnoseConfig
-from groundstation.sysid.identify import IdentifyConfig
 from groundstation.sysid.model import PARAM_NAMES
+from groundstation.sysid.settings import IdentifyConfig
 from groundstation.trends.settings import TrendConfig
 
 

@@ -121,6 +121,8 @@ def run(args: argparse.Namespace) -> int:
                              **_case(path, truth["parameters"], val, cfg, args.diagnose)}
                         if loss == 0:
                             base = r
+                        if base is not None and "key_within_10" in base:
+                            r["key_lossfree"] = base["key_within_10"]
                         if base is not None and "heldout_match" in r and "heldout_match" in base:
                             r["heldout_vs_lossfree_pct"] = 100.0 * r["heldout_match"] / base["heldout_match"]
                         if base is not None and "verdict" in r and "verdict" in base:
@@ -131,6 +133,8 @@ def run(args: argparse.Namespace) -> int:
                         if args.json is not None:
                             args.json.write_text(json.dumps(rows, indent=1, default=float))
     con.print(_table(rows, args.diagnose))
+    if len(seeds) > 1:
+        con.print(_rates(rows, args.diagnose))
     con.print(f"load average at end {os.getloadavg()[0]:.1f}")
     return 0
 
@@ -174,5 +178,35 @@ def _table(rows: list[dict[str, Any]], diagnose: bool) -> Any:
         if diagnose:
             cells += [r.get("verdict", "-"), ",".join(r.get("invented", [])) or "-"]
         cells.append(f"{r['cpu_s']:.1f}")
+        t.add_row(*cells)
+    return t
+
+
+def _rates(rows: list[dict[str, Any]], diagnose: bool) -> Any:
+    """Over the seeds, per flight, link kind and loss: how often each target is met."""
+    import statistics
+
+    from rich.table import Table
+
+    t = Table(title="link loss over the seeds: cases meeting each target")
+    for c in ("flight", "kind", "loss %", "cases", "crash/refused", "8/8 key", "key as loss-free", "held-out >= 97 %",
+              "median held-out %"):
+        t.add_column(c, justify="right")
+    if diagnose:
+        for c in ("false alarm", "same verdict", "invented"):
+            t.add_column(c, justify="right")
+    groups: dict[tuple, list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault((r["flight"], r["kind"], r["loss_pct"]), []).append(r)
+    for (flight, kind, loss), rs in groups.items():
+        ok = [r for r in rs if "key_within_10" in r]
+        rel = [r["heldout_vs_lossfree_pct"] for r in ok if "heldout_vs_lossfree_pct" in r]
+        cells = [flight, kind, f"{loss:g}", str(len(rs)), str(len(rs) - len(ok)),
+                 str(sum(r["key_within_10"] == 8 for r in ok)),
+                 str(sum(r["key_within_10"] >= r.get("key_lossfree", 8) for r in ok)),
+                 str(sum(v >= 97.0 for v in rel)), f"{statistics.median(rel):.1f}" if rel else "-"]
+        if diagnose:
+            cells += [str(sum(r.get("verdict") not in (None, "none") for r in ok)) if flight == "none" else "-",
+                      str(sum(bool(r.get("same_verdict")) for r in ok)), str(sum(bool(r.get("invented")) for r in ok))]
         t.add_row(*cells)
     return t

@@ -48,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true")
     parser.add_argument("--jobs", type=int, default=None,
                         help="worker processes for reading the logs, the searches' screening refinements and the "
-                             "held-out folds (default: all cores but one; the model is the same for any number)")
+                             "held-out folds (default: every core; the model is the same for any number)")
     parser.add_argument("--domain", choices=("time", "frequency", "both"), default="time",
                         help="time: the paper's output-error fit (default); frequency: minimise Tischler's J over the "
                              "flight's frequency responses; both: the time fit, then the frequency cost as a "
@@ -97,10 +97,10 @@ SEGMENTS_HELP = ("which data to use: 'flights' (every in-air interval, default) 
 
 
 def run(args: argparse.Namespace) -> int:
-    from groundstation.parallel import worker_map
+    from groundstation.parallel import IDENTIFY_PRELOAD, worker_map
     from groundstation.pipeline import about_logs
 
-    with about_logs(args.logs), worker_map(args.jobs) as pmap:
+    with about_logs(args.logs), worker_map(args.jobs, IDENTIFY_PRELOAD) as pmap:
         return _run(args, pmap)
 
 

@@ -156,6 +156,8 @@ class Segment:
     source : log name
     measured : (n, 8) bool or None; False where the sample lies in a hole of the link (bridged, not
         measured: a cost must not count it); None = every sample of the available channels measured
+    inputs_bridged : (n,) bool or None; True where the inputs are a straight line over a hole of the
+        link; None = no input sample bridged
     """
 
     t_s: np.ndarray
@@ -167,6 +169,7 @@ class Segment:
     flight: int
     source: str
     measured: np.ndarray | None = None
+    inputs_bridged: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -684,7 +687,8 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
         unmeasured = ~r.measured[:, r.available]
         segs.append(Segment(t_s=r.t_s, inputs=inputs, outputs=sm, outputs_raw=raw_out, alt_m=r.alt_m,
                             available=r.available.copy(), flight=r.flight, source=r.source,
-                            measured=r.measured.copy() if unmeasured.any() else None))
+                            measured=r.measured.copy() if unmeasured.any() else None,
+                            inputs_bridged=r.bridged.copy() if r.bridged.any() else None))
     if cfg.velocity_check:
         segs = _drop_inconsistent_velocities(segs, 1.0 / cfg.rate_hz, notes)
     lq = link_quality(logs, raws, holes, cfg)

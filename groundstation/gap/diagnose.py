@@ -40,6 +40,7 @@ import numpy as np
 from groundstation.errors import GapError
 from groundstation.gap import (
     attribute,
+    bridging,
     candidates,
     compat,
     controller,
@@ -83,9 +84,11 @@ def segments_from_prepared(prepared: Any, share_min: float = 0.7) -> tuple[list[
         raw = getattr(s, "outputs_raw", None)
         out = np.asarray(s.outputs, float)
         meas = s.measured_mask() if getattr(s, "measured", None) is not None else None
+        br = getattr(s, "inputs_bridged", None)
         segs.append(SegmentArrays(t_s=np.asarray(s.t_s, float), inputs=np.asarray(s.inputs, float),
                                   outputs=out, outputs_raw=out if raw is None else np.asarray(raw, float),
-                                  alt_m=alt, flight=int(getattr(s, "flight", 0)), measured=meas))
+                                  alt_m=alt, flight=int(getattr(s, "flight", 0)), measured=meas,
+                                  bridged=None if br is None else np.asarray(br, bool)))
         a = getattr(s, "available", None)
         avails.append(np.isfinite(out).all(axis=0) if a is None else np.asarray(a, bool))
     # channels measured in most of the data are kept; segments lacking one of them are left out
@@ -108,8 +111,15 @@ def segments_from_prepared(prepared: Any, share_min: float = 0.7) -> tuple[list[
                                      outputs=np.where(avail, np.nan_to_num(s.outputs), 0.0),
                                      outputs_raw=np.where(avail, np.nan_to_num(s.outputs_raw), 0.0),
                                      alt_m=s.alt_m, flight=s.flight,
-                                     measured=None if s.measured is None else s.measured | ~avail))
+                                     measured=None if s.measured is None else s.measured | ~avail,
+                                     bridged=s.bridged))
     return cleaned, avail
+
+
+def _grid_offsets(segs: list[SegmentArrays], dt_s: float) -> list[int]:
+    """Each segment's first grid index on its flight's grid (noise estimates read one phase of a
+    slower stream the same way in every segment, wherever holes of the link split them)."""
+    return noise.grid_offsets([float(s.t_s[0]) for s in segs], [s.flight for s in segs], dt_s)
 
 
 def _trims(prepared: Any) -> np.ndarray:
@@ -296,7 +306,8 @@ def compat_stage(prepared: Any, cfg: DiagnoseConfig) -> tuple[compat.Compatibili
     segs, avail = segments_from_prepared(prepared, cfg.channel_share_min)
     stride = getattr(prepared, "native_stride", None)
     sigma = noise.raw_noise_std([s.raw_measured() for s in segs], stride(OUTPUTS) if stride is not None else None,
-                                cfg.noise_calibration_seed) if segs else np.full(8, np.nan)
+                                cfg.noise_calibration_seed, _grid_offsets(segs, float(prepared.dt_s))) \
+        if segs else np.full(8, np.nan)
     comp = compat.check(segs, avail, float(prepared.dt_s), sigma, _trims(prepared), window_s=cfg.compat_window_s,
                         alpha=cfg.alpha, min_windows=cfg.min_windows,
                         min_effect_to_noise=cfg.compat_min_effect_to_noise,
@@ -391,14 +402,20 @@ def locate_stage(base: Base, prepared: Any, cfg: DiagnoseConfig) -> Located:
     out_stride = stride(OUTPUTS) if stride is not None else None
     in_stride = stride(INPUTS) if stride is not None else None
     # noise from measured samples only: a straight line bridged across a hole of the link has none
+    offs = _grid_offsets(segs, dt)
     nf = noise.noise_floor([s.raw_measured() for s in segs], [s.measured_only(s.outputs) for s in segs], out_stride,
-                           cfg.noise_calibration_seed)
+                           cfg.noise_calibration_seed, offs)
     out_excited = avail & (nf["signal_std"] > cfg.excitation_snr * nf["sigma_smoothed"])
     u_all = np.concatenate([s.inputs for s in segs])
-    u_noise = noise.raw_noise_std([s.measured_only(s.inputs) for s in segs], in_stride, cfg.noise_calibration_seed)
+    u_noise = noise.raw_noise_std([s.measured_only(s.inputs) for s in segs], in_stride, cfg.noise_calibration_seed,
+                                  offs)
     u_std = u_all.std(axis=0)
     in_excited = (u_std > cfg.excitation_snr * np.maximum(u_noise, 1e-12)) & (u_std > cfg.input_std_min)
 
+    # the straight lines over holes of the link drive the model wrong: a perfect model shows that error too
+    bridge = bridging.bridge_error_nrmse(ev, segs, ev.theta0, np.random.default_rng(cfg.noise_calibration_seed))
+    nf = {**nf, "nrmse_sensor": nf["nrmse_floor"], "bridge_nrmse": bridge,
+          "nrmse_floor": np.sqrt(nf["nrmse_floor"] ** 2 + bridge ** 2)}
     e_w = ev.heldout_residual(ev.r0)  # weighted
     e = e_w / np.where(ev.w8 > 0, ev.w8, 1.0)
     chan = locate.channel_metrics(ev.Y, ev.Y - e, ev.score_mask, avail)

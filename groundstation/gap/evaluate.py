@@ -32,7 +32,8 @@ class SegmentArrays:
 
     Attributes: ``t_s (n,)``, ``inputs (n, 4)``, ``outputs (n, 8)`` smoothed, ``outputs_raw (n, 8)``,
     ``alt_m (n,)`` (NaN if unknown), ``flight`` index, ``measured (n, 8)`` bool (False in holes of
-    the link, where the values are bridged; None: all measured).
+    the link, where the values are bridged; None: all measured), ``bridged (n,)`` bool (True where
+    the inputs are a straight line over a hole; None: none).
     """
 
     t_s: np.ndarray
@@ -42,6 +43,7 @@ class SegmentArrays:
     alt_m: np.ndarray
     flight: int = 0
     measured: np.ndarray | None = None
+    bridged: np.ndarray | None = None
 
     def raw_measured(self) -> np.ndarray:
         """``outputs_raw`` with NaN in the holes of the link (for noise estimates)."""
@@ -127,8 +129,9 @@ class Evaluator:
         self.wmask = self.mask[:, None] if self.M is None else (self.mask[None, :, None] & self.M).astype(float)
         #: samples scored: (L,) or, with holes, (W, L, 8) bool
         self.score_mask = self.mask if self.M is None else self.mask[None, :, None] & self.M
-        # per-window, per-channel energy of the (weighted) target about the overall mean
-        yc = (self.Y - self.Y[:, self.start:].reshape(-1, 8).mean(0)) * self.w8
+        # per-window, per-channel energy of the (weighted) target about the overall mean, over the
+        # samples the residuals count (measured ones: a ratio of the two then reads the same with holes)
+        yc = (self.Y - self.Y[:, self.start:].reshape(-1, 8).mean(0)) * self.w8 * self.wmask
         self.energy = (yc[:, self.start:] ** 2).sum(axis=1)  # (W, 8)
         self.set_theta(self.theta0)
 

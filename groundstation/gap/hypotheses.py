@@ -423,29 +423,44 @@ def scan_quadratic_drag(ctx: Context) -> Hypothesis:
     return Hypothesis("quadratic_drag", estimate=est, sse=sse, channels=(0, 1), extra={"X": X})
 
 
+def heights(ev: Evaluator, segments: list[SegmentArrays]) -> np.ndarray | None:
+    """(W, L) height above ground of each window's samples (m, >= 0), None without altitude."""
+    alt = np.concatenate([s.alt_m for s in segments])
+    if np.isfinite(alt).mean() < 0.5:
+        return None
+    A = ev.cut([np.nan_to_num(s.alt_m, nan=np.nanmedian(alt)) for s in segments])
+    return np.maximum(A, 0.0)
+
+
+def ground_effect_columns(ctx: Context, h: np.ndarray, h0: float, kind: str, hmin: float) -> np.ndarray:
+    """Sensitivities (W, L, 8, 1) to a w force of shape ``kind`` ("exp" or "inv_square") decaying over
+    ``h0`` (m) from the reference height ``hmin`` (m), heights ``h`` (W, L)."""
+    shape = np.exp(-(h - hmin) / h0) if kind == "exp" else (h0 / (h - hmin + h0)) ** 2
+    F = np.zeros((ctx.ev.W, ctx.ev.L, 11))
+    F[:, :, 8] = shape
+    return _forcing_columns(ctx, [F])
+
+
 def scan_ground_effect(ctx: Context) -> Hypothesis:
     ev = ctx.ev
-    alt = np.concatenate([s.alt_m for s in ctx.segments])
-    finite = np.isfinite(alt)
-    if finite.mean() < 0.5:
+    h = heights(ev, ctx.segments)
+    if h is None:
         return Hypothesis("ground_effect", testable=False, reason="no altitude in the log")
-    A = ev.cut([np.nan_to_num(s.alt_m, nan=np.nanmedian(alt)) for s in ctx.segments])
-    h = np.maximum(A, 0.0)
     hmin = float(np.quantile(h, 0.02))
     variants, labels = [], []
     for h0 in GROUND_DECAY_M:
         # two shapes: exponential decay and the Cheeseman-Bennett-like inverse square
-        for kind, shape in (("exp", np.exp(-(h - hmin) / h0)), ("inv_square", (h0 / (h - hmin + h0)) ** 2)):
-            F = np.zeros((ev.W, ev.L, 11))
-            F[:, :, 8] = shape
-            X = _forcing_columns(ctx, [F])
-            variants.append(({"h0": h0, "kind": kind}, ev.r0, X))
+        for kind in ("exp", "inv_square"):
+            variants.append(({"h0": h0, "kind": kind}, ev.r0, ground_effect_columns(ctx, h, h0, kind, hmin)))
             labels.append(h0)
     sse, best, coefs = ctx.nested("ground_effect", variants)
     span = float(np.quantile(h, 0.98) - hmin)
+    # the shape (decay, kind, reference height) is kept: an estimate on part of the flight (a half) is
+    # comparable with another part's only as the amplitude of the same function of height
     return Hypothesis("ground_effect", estimate={"accel_m_s2": float(-coefs[best].mean()),
                                                   "decay_height_m": labels[best]},
                       sse=sse, channels=(2,), extra={"height_span_m": span, "min_height_m": hmin,
+                                                     "shape": dict(variants[best][0], hmin=hmin),
                                                      "X": variants[best][2]})
 
 
@@ -497,7 +512,8 @@ def scan_wind_gust(ctx: Context, chunk_s: float | None = None, refine_iterations
     L = ev.L
     # prior: air velocity of the order of the measured horizontal speed (weighted-residual units)
     s_air = float(np.sqrt((ev.Y[:, :, :2] ** 2).mean())) + 1e-6
-    sig2 = float((ev.r0 ** 2).sum() / max(ev.mask.sum() * ev.W * ev.available.sum(), 1))
+    n_scored = ev.mask.sum() * ev.W * ev.available.sum() if ev.M is None else (ev.score_mask & ev.available).sum()
+    sig2 = float((ev.r0 ** 2).sum() / max(n_scored, 1))
     n_knots = max(int(round(L * ev.dt_s / knot_s)) + 1, 2)
     prec = np.full(2 * n_knots, sig2 / s_air ** 2)
     evg = Evaluator(ctx.segments, ev.dt_s, ev.theta0, ev.available, window_s=L * ev.dt_s,
@@ -517,7 +533,8 @@ def scan_wind_gust(ctx: Context, chunk_s: float | None = None, refine_iterations
         for fit_m, score_m in ((even, odd), (odd, even)):
             y, coef = lsim(theta, ev.U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available, nuisance=nuis,
                            fit_mask=fit_m, return_coef=True, nuisance_prec=None if nuis is None else prec)
-            sse += (((ev.Y - y[0]) * ev.w8)[:, score_m] ** 2).sum(axis=1)
+            e2 = ((ev.Y - y[0]) * ev.w8)[:, score_m] ** 2
+            sse += (e2 if ev.M is None else e2 * ev.M[:, score_m]).sum(axis=1)   # holes of the link not scored
         return sse, coef
 
     sse_b, _ = chunk_cv(ev.theta0, None)

@@ -41,16 +41,22 @@ def _mad_std(d2: np.ndarray) -> float:
     return float(_MAD_TO_STD * np.nanmedian(np.abs(d2 - med)) / np.sqrt(6.0))
 
 
-def _d2_scale(parts: list[np.ndarray], step: int) -> float:
+def _d2_scale(parts: list[np.ndarray], step: int, offsets: list[int] | None = None) -> float:
     """White-noise std from second differences of 1-D ``parts``, each sampled every ``step`` grid steps.
 
     With ``step > 1`` the grid is read at every phase 0..step-1 and the estimates combined in
     quadrature: a phase next to a source sample sees the source noise, one half-way between two sees
     their average; over all phases the figure does not depend on where the source samples fell.
+    ``offsets``: grid index of each part's first sample, so that a phase means the same grid
+    samples in every part (parts split by holes of the link start at any index; read from their own
+    first sample, a phase would mix on-source and half-way samples, and the median-based figure of
+    such a mixture falls below the noise, by 15 % on a flight with 10 % of its packets lost).
     """
+    offs = [0] * len(parts) if offsets is None else [int(o) for o in offsets]
     ests = []
     for ph in range(step):
-        d2 = [np.diff(p[ph::step], n=2) for p in parts if p[ph::step].shape[0] > 3]
+        d2 = [np.diff(p[(ph - o) % step::step], n=2) for p, o in zip(parts, offs, strict=True)
+              if p[(ph - o) % step::step].shape[0] > 3]
         if d2:
             ests.append(_mad_std(np.concatenate(d2)))
     return float(np.sqrt(np.mean(np.square(ests)))) if ests else float("nan")
@@ -86,21 +92,35 @@ def _key(stride: float) -> float:
 
 
 def raw_noise_std(raw: list[np.ndarray], strides: np.ndarray | None = None,
-                  calibration_seed: int = 12345) -> np.ndarray:
+                  calibration_seed: int = 12345, offsets: list[int] | None = None) -> np.ndarray:
     """Noise standard deviation on the grid per channel, from second differences of raw segments (n, C).
 
     ``strides`` (C,) source interval / grid step per channel (None: all sent at the grid rate);
-    ``calibration_seed``: seed of the Monte-Carlo calibration for interpolated streams (a constant).
+    ``calibration_seed``: seed of the Monte-Carlo calibration for interpolated streams (a constant);
+    ``offsets``: grid index of each segment's first sample on its flight's grid (see
+    :func:`grid_offsets`; None: every segment starts a grid of its own).
     """
     C = raw[0].shape[1]
     st = np.ones(C) if strides is None else np.asarray(strides, dtype=float)
+    offs = [0] * len(raw) if offsets is None else list(offsets)
     out = np.empty(C)
     for c in range(C):
         key = _key(st[c])
         step = _step(key)
-        parts = [r[:, c] for r in raw if r.shape[0] > 3 * step]
-        out[c] = _d2_scale(parts, step) / _calibration(key, calibration_seed)[0] if parts else np.nan
+        keep = [i for i, r in enumerate(raw) if r.shape[0] > 3 * step]
+        out[c] = (_d2_scale([raw[i][:, c] for i in keep], step, [offs[i] for i in keep])
+                  / _calibration(key, calibration_seed)[0]) if keep else np.nan
     return out
+
+
+def grid_offsets(t_starts_s: list[float], flights: list[int], dt_s: float) -> list[int]:
+    """Grid index of each segment's first sample, counted from the first segment of its flight.
+
+    Segments of one flight are slices of one grid (``dt_s`` apart), so these are whole numbers."""
+    first: dict[int, float] = {}
+    for t0, f in zip(t_starts_s, flights, strict=True):
+        first[f] = min(first.get(f, t0), t0)
+    return [int(round((t0 - first[f]) / dt_s)) for t0, f in zip(t_starts_s, flights, strict=True)]
 
 
 def smoothing_gain(raw: list[np.ndarray], smoothed: list[np.ndarray], sigma: np.ndarray,
@@ -124,12 +144,13 @@ def smoothing_gain(raw: list[np.ndarray], smoothed: list[np.ndarray], sigma: np.
 
 
 def noise_floor(raw: list[np.ndarray], smoothed: list[np.ndarray],
-                strides: np.ndarray | None = None, calibration_seed: int = 12345) -> dict[str, np.ndarray]:
+                strides: np.ndarray | None = None, calibration_seed: int = 12345,
+                offsets: list[int] | None = None) -> dict[str, np.ndarray]:
     """Noise figures per channel: ``sigma_raw``, ``sigma_smoothed``, ``nrmse_floor`` (sigma / signal std).
 
-    ``strides``, ``calibration_seed``: see :func:`raw_noise_std`.
+    ``strides``, ``calibration_seed``, ``offsets``: see :func:`raw_noise_std`.
     """
-    sigma = raw_noise_std(raw, strides, calibration_seed)
+    sigma = raw_noise_std(raw, strides, calibration_seed, offsets)
     gain = smoothing_gain(raw, smoothed, sigma, strides, calibration_seed)
     sig_s = sigma * np.sqrt(gain)
     y = np.concatenate(smoothed)

@@ -69,7 +69,9 @@ def build_report(*, verdict: str, channels: dict, worst: list[str], windows_s: l
         "per_channel_shrink": top["per_channel_shrink"] if top else {},
         "noise_floor": {OUTPUTS[c]: {"sigma_raw": _r(noise["sigma_raw"][c], 6),
                                      "sigma_smoothed": _r(noise["sigma_smoothed"][c], 6),
-                                     "nrmse_floor": _r(noise["nrmse_floor"][c], 4)} for c in range(8)},
+                                     "nrmse_floor": _r(noise["nrmse_floor"][c], 4),
+                                     **({"bridge_nrmse": _r(noise["bridge_nrmse"][c], 4)}
+                                        if "bridge_nrmse" in noise else {})} for c in range(8)},
         "excitation": excitation,
         "fingerprints": {
             "kinematic_rate_offsets": {k: {"offset_rad_s": _r(v.offset_rad_s, 6), "t": _r(v.t_stat, 2),

@@ -19,8 +19,11 @@ Two questions a flight-test engineer asks before acting on a name:
   ``consistency_min_loss`` of the effect's gain in that half); it *changes* when both do (a half
   whose data accept the other half's value holds the two estimates within its uncertainty); it is
   *not checked* when a half is too short for the windows and folds, or the effect does not lower
-  that half's held-out cost significantly (its input barely moved there). The gap itself over
-  time (its excess above the noise per half) is reported with it.
+  that half's held-out cost significantly (its input barely moved there). An effect whose size
+  depends on the flight condition (ground effect: height; drag: speed along u and v) is compared
+  only over the windows of each half inside the range both halves flew (:func:`condition`): an
+  estimate says nothing about conditions its half did not reach. The gap itself over time (its
+  excess above the noise per half) is reported with it.
 
 Units. Each channel's excess and removal are counted in multiples of that channel's own noise
 (held-out cost over the noise cost), the scale of the report's gap-to-noise ratios: a channel
@@ -54,8 +57,9 @@ PARAMETER = {"input_delay": "delay_s", "rate_limit": "rate_limit_per_s", "deadba
 def noise_cost(ev: Evaluator, sigma_smoothed: np.ndarray) -> np.ndarray:
     """(W, 8) held-out cost a perfect model would still show: the measured noise in the cost's weights."""
     s = np.nan_to_num(np.asarray(sigma_smoothed, float))
-    per = float(ev.mask.sum()) * (s * ev.w8) ** 2
-    return np.broadcast_to(per, (ev.W, 8)).copy()
+    if ev.M is None:
+        return np.broadcast_to(float(ev.mask.sum()) * (s * ev.w8) ** 2, (ev.W, 8)).copy()
+    return ev.score_mask.sum(axis=1) * (s * ev.w8) ** 2   # per window: its measured samples only
 
 
 def removal(c: attribute.Candidate, base_sse: np.ndarray, first: bool = True) -> np.ndarray:
@@ -238,16 +242,37 @@ def _fit_half(c: attribute.Candidate, ev: Evaluator, segs: list[SegmentArrays]) 
         _, _, coef = ev.heldout(ev.r0, X)
         v = float(coef[:, 0].mean())
         return HalfFit(ev, segs, v, v, X)
-    if e in ("quadratic_drag", "ground_effect"):
-        hh = hypotheses.scan_quadratic_drag(ctx) if e == "quadratic_drag" else hypotheses.scan_ground_effect(ctx)
+    if e == "ground_effect":
+        # the whole flight's shape of height in both halves: only its amplitude is estimated again
+        shape, hgt = h.extra.get("shape"), hypotheses.heights(ev, segs)
+        if shape is None or hgt is None:
+            return None
+        X = hypotheses.ground_effect_columns(ctx, hgt, float(shape["h0"]), str(shape["kind"]), float(shape["hmin"]))
+        _, _, coef = ev.heldout(ev.r0, X)
+        v = coef.mean(axis=0)
+        return HalfFit(ev, segs, v, -float(np.mean(v)), X)
+    if e == "quadratic_drag":
+        hh = hypotheses.scan_quadratic_drag(ctx)
         Xf = hh.extra.get("X")
         if not hh.testable or Xf is None:
             return None
         X = np.asarray(Xf)
         _, _, coef = ev.heldout(ev.r0, X)
         v = coef.mean(axis=0)
-        shown = float(hh.estimate.get("accel_m_s2", float(np.mean(v))))
-        return HalfFit(ev, segs, v, shown, X)
+        return HalfFit(ev, segs, v, float(np.mean(v)), X)
+    return None
+
+
+def condition(c: attribute.Candidate, ev: Evaluator) -> tuple[str, np.ndarray] | None:
+    """The flight condition an effect's size grows with, per window ((W, k) and its name): for ground
+    effect the window's lowest height, negated (the effect grows as the height falls); for drag its
+    largest speed along u and v. None for effects whose size does not depend on where the aircraft flies."""
+    if c.hyp.effect == "ground_effect":
+        hgt = hypotheses.heights(ev, ev.segments)
+        return None if hgt is None else ("height", -hgt[:, ev.start:].min(axis=1)[:, None])
+    if c.hyp.effect == "quadratic_drag":
+        ax = [j for j in (0, 1) if ev.available[j]]
+        return ("speed", np.abs(ev.Y[:, ev.start:, ax]).max(axis=1)) if ax else None
     return None
 
 
@@ -284,25 +309,93 @@ def consistency(c: attribute.Candidate, segs_h: tuple[list[SegmentArrays], list[
         return _gust_consistency(c, ev, level, out)
     if e == "rotor_vibration":
         return _line_consistency(c, ev, arrays, level, out)
-    evs = []
-    for s in segs_h:
-        try:
-            eh = Evaluator(s, ev.dt_s, theta, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds, ridge=ev.ridge)
-        except Exception:  # too few windows for the folds
-            eh = None
-        if eh is None or eh.W < min_windows:
-            out["why"] = "a half of the flight is too short to estimate the effect on its own"
-            return out
-        evs.append(eh)
+    e1, e2 = (_evaluator(s, ev, theta, min_windows) for s in segs_h)
+    if e1 is None or e2 is None:
+        out["why"] = "a half of the flight is too short to estimate the effect on its own"
+        return out
+    halves_ev, common = _where_both_flew(c, (e1, e2), ev, theta, min_windows)
+    if halves_ev is None:
+        out["why"] = common
+        return out
+    evs, segs_h = halves_ev, (halves_ev[0].segments, halves_ev[1].segments)
     fits = [_fit_half(c, eh, s) for eh, s in zip(evs, segs_h, strict=True)]
-    if any(f is None for f in fits):
+    if fits[0] is None or fits[1] is None:
         out["why"] = "the effect cannot be estimated again on a half of the flight"
         return out
-    assert fits[0] is not None and fits[1] is not None
     out["first"], out["second"] = _round(fits[0].shown), _round(fits[1].shown)
+    resolved, rejected, out["p_values"] = _compare(c, fits[0], fits[1], level, min_loss, rng, n_boot, window_alpha)
+    if not all(resolved):
+        half = "first" if not resolved[0] else "second"
+        where = f" ({c.hyp.input} little excited there)" if c.hyp.input else ""
+        out["why"] = f"the effect does not lower the held-out cost of the {half} half{common} significantly{where}"
+        return out
+    if all(rejected):
+        # each half's data reject the other half's value: the estimates disagree beyond both
+        # halves' uncertainty. One half alone rejecting the other's value is a half that
+        # determines the effect poorly (its data accept the other value: they agree within it)
+        out["status"] = "changes"
+        out["why"] = (f"{par} {out['first']} in the first half, {out['second']} in the second{common}: each half's "
+                      f"data reject the other half's value")
+    else:
+        out["status"] = "holds"
+        out["why"] = (f"{par} {out['first']} and {out['second']} in the two halves{common}: neither half rejects "
+                      f"the other's value")
+    return out
+
+
+def _where_both_flew(c: attribute.Candidate, evs: tuple[Evaluator, Evaluator], ev: Evaluator, theta: np.ndarray,
+                     min_windows: int) -> tuple[tuple[Evaluator, Evaluator] | None, str]:
+    """The halves to compare, and the text naming the range compared (or why there is none).
+
+    An effect whose size depends on where the aircraft flies (height, speed) is compared only where
+    both halves flew: an estimate says nothing about conditions its half did not reach (a drag
+    coefficient along an axis a half never flew fast on). Along each of the condition's axes both
+    halves flew up to the smaller of their two extremes (the effect vanishes at the other end: low
+    speed, large height). Other effects: the halves as they are."""
+    c1, c2 = (condition(c, eh) for eh in evs)
+    if c1 is None or c2 is None:
+        return evs, ""
+    cond = (c1[1], c2[1])
+    top = np.minimum(cond[0].max(axis=0), cond[1].max(axis=0))
+    name, unit, sign = {"height": ("height", "m", -1.0), "speed": ("speed", "m/s", 1.0)}[c1[0]]
+    common = f" where both halves flew ({name} {'down to' if sign < 0 else 'up to'} {_span(sign * top)} {unit})"
+    e1, e2 = (_evaluator(_window_segments(eh, np.all(x <= top, axis=1)), ev, theta, min_windows)
+              for eh, x in zip(evs, cond, strict=True))
+    if e1 is None or e2 is None:
+        return None, (f"the halves flew to different {name}s (first {_span(sign * cond[0].max(axis=0))} {unit}, "
+                      f"second {_span(sign * cond[1].max(axis=0))} {unit}): too few windows where both flew to "
+                      f"compare them")
+    return (e1, e2), common
+
+
+def _evaluator(segs: list[SegmentArrays], ev: Evaluator, theta: np.ndarray, min_windows: int) -> Evaluator | None:
+    """An evaluator like ``ev`` on ``segs``; None when they hold fewer than ``min_windows`` windows."""
+    try:
+        eh = Evaluator(segs, ev.dt_s, theta, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds, ridge=ev.ridge)
+    except Exception:  # too few windows for the folds
+        return None
+    return eh if eh.W >= min_windows else None
+
+
+def _window_segments(ev: Evaluator, keep: np.ndarray) -> list[SegmentArrays]:
+    """The windows ``keep`` (W,) of ``ev`` as segments of one window each."""
+    out = []
+    for (si, i0), k in zip(ev.starts, keep, strict=True):
+        if k:
+            s, sl = ev.segments[si], slice(i0, i0 + ev.L)
+            out.append(SegmentArrays(t_s=s.t_s[sl], inputs=s.inputs[sl], outputs=s.outputs[sl],
+                                     outputs_raw=s.outputs_raw[sl], alt_m=s.alt_m[sl], flight=s.flight,
+                                     measured=None if s.measured is None else s.measured[sl]))
+    return out
+
+
+def _compare(c: attribute.Candidate, h1: HalfFit, h2: HalfFit, level: float, min_loss: float,
+             rng: np.random.Generator, n_boot: int, window_alpha: float) -> tuple[list[bool], list[bool], dict[str, float]]:
+    """Per half: does the effect lower its held-out cost (resolved), and do its data reject the other
+    half's value (paired tests on the held-out blocks, and a loss above ``min_loss`` of the gain)."""
     pv: dict[str, float] = {}
     resolved, rejected = [], []
-    for k, (hf, other) in enumerate(((fits[0], fits[1]), (fits[1], fits[0]))):
+    for k, (hf, other) in enumerate(((h1, h2), (h2, h1))):
         ev_h = hf.ev
         base, _, _ = ev_h.heldout(ev_h.r0)
         bb = ev_h.last_blocks.copy()
@@ -319,23 +412,11 @@ def consistency(c: attribute.Candidate, segs_h: tuple[list[SegmentArrays], list[
         pv[f"{name}_rejects_other"] = float(f"{p_rej:.3g}")
         resolved.append(p_res < level and gain > 0)
         rejected.append(p_rej < level and gain > 0 and loss > min_loss * gain)
-    out["p_values"] = pv
-    if not all(resolved):
-        half = "first" if not resolved[0] else "second"
-        where = f" ({c.hyp.input} little excited there)" if c.hyp.input else ""
-        out["why"] = f"the effect does not lower the held-out cost of the {half} half significantly{where}"
-        return out
-    if all(rejected):
-        # each half's data reject the other half's value: the estimates disagree beyond both
-        # halves' uncertainty. One half alone rejecting the other's value is a half that
-        # determines the effect poorly (its data accept the other value: they agree within it)
-        out["status"] = "changes"
-        out["why"] = (f"{par} {out['first']} in the first half, {out['second']} in the second: each half's "
-                      f"data reject the other half's value")
-    else:
-        out["status"] = "holds"
-        out["why"] = f"{par} {out['first']} and {out['second']} in the two halves: neither half rejects the other's value"
-    return out
+    return resolved, rejected, pv
+
+
+def _span(x: np.ndarray) -> str:
+    return ", ".join(f"{v:.2g}" for v in np.atleast_1d(x))
 
 
 def _other_value(c: attribute.Candidate, other: Any, own: Any) -> Any:

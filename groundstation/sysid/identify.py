@@ -367,7 +367,7 @@ def _identify_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], pl
                                   "fun": float(res.fun), "nfev": res.nfev}))
         return False
 
-    # the vertical/yaw search has fewer dimensions and costs a fraction: give it more iterations
+    # the vertical/yaw search's iterations relative to the horizontal one's (cfg.vertical_iter_factor)
     sub_iters = iters if sub == 0 else int(iters * cfg.vertical_iter_factor)
     best: tuple[float, np.ndarray, Any, Any, str] | None = None   # (F, x, opt, refinement, algorithm)
     pr = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])

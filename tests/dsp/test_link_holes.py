@@ -113,3 +113,51 @@ def test_frequency_response_errors_count_windows_with_holes_by_their_measured_sh
         grew.append(float(np.median(ratio)))
     # the flight lost about a tenth of its samples: errors grow by about sqrt(1 / 0.9), not by a factor
     assert 1.01 < float(np.median(grew)) < 1.3, grew
+
+
+def _bridged_copy(segs, rng, share=0.1):
+    """The segments with random holes: inputs a straight line over each, outputs there unmeasured."""
+    from dataclasses import replace
+
+    from groundstation.gap.bridging import line_error
+
+    out = []
+    for s in segs:
+        n = s.t_s.shape[0]
+        br = np.zeros(n, bool)
+        for a in rng.choice(np.arange(2, n - 16), max(1, int(share * n / 8)), replace=False):
+            br[a:a + int(rng.integers(3, 13))] = True
+        br[0] = br[-1] = False
+        u = s.inputs.copy()
+        d = np.diff(np.r_[0, br.astype(int), 0])
+        for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=True):
+            u[a:b] -= line_error(s.inputs[a - 1:b + 1])
+        out.append(replace(s, inputs=u, bridged=br, measured=np.repeat(~br[:, None], 8, axis=1)))
+    return out
+
+
+def test_bridge_error_floor_matches_what_straight_lines_cost(lossy):
+    """The floor the bridged inputs add (measured from the flight's own inputs) is the mean-square
+    held-out error straight lines over holes really cause, over many placements of the holes."""
+    from benchkit.synthetic import EXAMPLE_TRUTH
+    from groundstation.gap.bridging import bridge_error_nrmse
+    from groundstation.gap.diagnose import segments_from_prepared
+    from groundstation.gap.evaluate import Evaluator
+    from groundstation.sysid.model import theta_from_dict
+
+    th = theta_from_dict(EXAMPLE_TRUTH)
+    clean, avail = segments_from_prepared(prepare([lossy[1]]))
+    ev0 = Evaluator(clean, 0.02, th, avail, window_s=3.0, folds=3)
+    assert not bridge_error_nrmse(ev0, clean, th, np.random.default_rng(0)).any()   # no bridge, no floor
+    rng = np.random.default_rng(3)
+    true2, floor2 = [], []
+    for _ in range(6):
+        segs = _bridged_copy(clean, rng)
+        ev = Evaluator(segs, 0.02, th, avail, window_s=3.0, folds=3)
+        r = ev.residual(ev.simulate(th[None], U=ev0.U)[0]) - ev.residual(ev.simulate(th[None])[0])
+        true2.append((ev.heldout_residual(r)[:, ev.start:] ** 2).sum(axis=(0, 1)) / ev.energy.sum(0))
+        floor2.append(bridge_error_nrmse(ev, segs, th, rng, draws=8) ** 2)
+    true_rms, floor_rms = np.sqrt(np.mean(true2, axis=0)), np.sqrt(np.mean(floor2, axis=0))
+    assert (floor_rms > 0).all()
+    ratio = np.sqrt(np.sum(floor_rms ** 2) / np.sum(true_rms ** 2))
+    assert 0.6 < ratio < 1.6, (ratio, true_rms, floor_rms)

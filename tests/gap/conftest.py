@@ -33,7 +33,9 @@ def linear_flight(T_s: float = 90.0, dt: float = 0.02, seed: int = 0, effect: tu
             ("drifting_bias", output index, rad/s at the end) |
             ("rotor_vibration", frequency_hz, amplitude) | ("velocity_latency", None, samples) |
             ("deadband", channel, half_width) | ("wind_gust", tau_s, sigma_m_s) (horizontal air velocity,
-            Gauss-Markov, entering through the u and v columns of A; the pilot answers it)
+            Gauss-Markov, entering through the u and v columns of A; the pilot answers it) |
+            ("ground_effect", accel_m_s2, decay_m) (an upward force decaying with height above 0.3 m; the
+            first half of the flight is flown down to 0.3 m, the second no lower than 1.3 m)
     """
     rng = np.random.default_rng(seed)
     th = theta_from_dict(PAPER)
@@ -55,6 +57,9 @@ def linear_flight(T_s: float = 90.0, dt: float = 0.02, seed: int = 0, effect: tu
         exc[s, c] = 0.08 * np.sin(2 * np.pi * np.cumsum(f) * dt)
     s = slice(4 * blk, n)
     exc[s] = 0.05 * np.sign(np.sin(2 * np.pi * 0.4 * t[s, None] + rng.uniform(0, 6, 4)))
+    height = 3 + 0.5 * np.sin(t / 10)
+    if effect and effect[0] == "ground_effect":
+        height = np.where(t < t[-1] / 2, 1.1 + 0.8 * np.cos(2 * np.pi * t / 15), 2.3 + np.cos(2 * np.pi * t / 15))
     x = np.zeros(11)
     y = np.zeros((n, 8))
     u = np.zeros((n, 4))
@@ -76,6 +81,8 @@ def linear_flight(T_s: float = 90.0, dt: float = 0.02, seed: int = 0, effect: tu
             a = np.exp(-dt / effect[1])
             air = a * air + effect[2] * np.sqrt(1 - a * a) * gust_rng.standard_normal(2)
             x = x - dt * (A[0][:, 0] * air[0] + A[0][:, 1] * air[1])  # forces act on airspeed
+        if effect and effect[0] == "ground_effect":
+            x[8] -= dt * effect[1] * np.exp(-(height[k] - 0.3) / effect[2])  # w is positive down
     if effect and effect[0] == "velocity_latency":
         d = effect[2]
         y[d:, :3] = y[:-d, :3].copy()
@@ -86,7 +93,7 @@ def linear_flight(T_s: float = 90.0, dt: float = 0.02, seed: int = 0, effect: tu
     y = y + NOISE_SD * rng.standard_normal(y.shape)
     if effect and effect[0] == "rotor_vibration":
         y[:, 3:6] += effect[2] * np.sin(2 * np.pi * effect[1] * t)[:, None] * np.array([1.0, 0.7, 0.4])
-    height = 3 + 0.5 * np.sin(t / 10) if alt else np.full(n, np.nan)
+    height = height if alt else np.full(n, np.nan)
     seg = SimpleNamespace(t_s=t, inputs=u, outputs=smooth5(y, 2), outputs_raw=y, alt_m=height,
                           available=np.ones(8, bool), flight=0)
     return SimpleNamespace(segments=[seg], dt_s=dt, notes=[], output_trim={k: 0.0 for k in "u v w p q r theta phi".split()},

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from groundstation.dsp.smoothing import smooth5
-from groundstation.gap.noise import noise_floor
+from groundstation.gap.noise import grid_offsets, noise_floor, raw_noise_std
 
 
 def _interpolated(stride: float, phase: float, sigma: float, seed: int, n: int = 9000):
@@ -44,3 +44,27 @@ def test_grid_rate_channels_unchanged_by_the_stride_argument():
     a = noise_floor(raw, sm, np.array([1.0]))
     b = noise_floor(raw, sm)
     assert a["sigma_raw"][0] == b["sigma_raw"][0] and a["sigma_smoothed"][0] == b["sigma_smoothed"][0]
+
+
+def test_segments_split_by_holes_give_the_same_noise_with_their_grid_offsets():
+    # a 25 Hz stream on the 50 Hz grid, cut by holes of the link into parts that start at odd and
+    # even grid indices, as a lossy radio leaves it
+    y, g = _interpolated(2.0, 0.0, sigma=0.05, seed=7, n=12000)
+    rng = np.random.default_rng(1)
+    cuts = np.sort(rng.choice(np.arange(200, 11800), 40, replace=False))
+    starts, ends = np.r_[0, cuts + 7], np.r_[cuts, 12000]     # holes of 7 samples: parity flips
+    keep = [(a, b) for a, b in zip(starts, ends, strict=True) if b - a > 20]
+    parts = [y[a:b, None] for a, b in keep]
+    whole = raw_noise_std([y[:, None]], np.array([2.0]))[0]
+    with_offsets = raw_noise_std(parts, np.array([2.0]), offsets=[int(a) for a, _ in keep])[0]
+    without = raw_noise_std(parts, np.array([2.0]))[0]
+    assert with_offsets == pytest.approx(whole, rel=0.05)
+    assert with_offsets == pytest.approx(g.std(), rel=0.2)
+    # read from each part's own first sample the phases mix and the median-based figure falls low
+    assert without < 0.92 * with_offsets
+
+
+def test_grid_offsets_count_from_each_flights_first_segment():
+    dt = 0.02
+    t0 = [10.013, 10.013 + 37 * dt, 10.013 + 120 * dt, 55.5]
+    assert grid_offsets(t0, [0, 0, 0, 1], dt) == [0, 37, 120, 0]

@@ -52,3 +52,14 @@ def test_a_flight_too_short_to_split_says_so_and_checks_nothing(flight_factory, 
     assert len(notes) == 1
     for e in r["effects"] + r["partial_findings"]:
         assert e["consistency"]["status"] == "not_checked"
+
+
+def test_a_ground_effect_flown_lower_in_one_half_is_compared_where_both_halves_flew(flight_factory, paper_theta):
+    # the first half hovers down to 0.3 m, the second no lower than 1.3 m: the same ground effect
+    # estimated on each half alone reads as a change (each half's amplitude at its own lowest height)
+    r = diagnose(_start(paper_theta), flight_factory(T_s=90.0, seed=21, effect=("ground_effect", 0.8, 0.5)), seed=0)
+    assert r["verdict"] == "ground_effect"
+    assert not r["through_flight"]["changes"]
+    ge = next(e for e in r["effects"] if e["effect"] == "ground_effect")
+    assert ge["consistency"]["status"] in ("holds", "not_checked")
+    assert "where both halves flew (height down to 1.3 m)" in ge["consistency"]["why"]

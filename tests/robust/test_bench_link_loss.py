@@ -22,3 +22,23 @@ def test_bench_link_loss_smoke(tmp_path, capsys):
     assert lossy["link"]["in_air_holes"] > 0 and lossy["link"]["unmeasured_pct"] > 0
     assert 0 <= lossy["key_within_10"] <= 8 and lossy["heldout_vs_lossfree_pct"] > 0
     assert "held-out match" in capsys.readouterr().out
+
+
+def test_rates_table_counts_the_targets_over_seeds():
+    from rich.console import Console
+
+    from groundstation.bench.link_loss import _rates
+
+    rows = [
+        {"seed": 1, "flight": "none", "kind": "bursty", "loss_pct": 10.0, "key_within_10": 8, "key_lossfree": 8,
+         "heldout_vs_lossfree_pct": 99.0, "verdict": "none", "same_verdict": True, "invented": []},
+        {"seed": 2, "flight": "none", "kind": "bursty", "loss_pct": 10.0, "key_within_10": 6, "key_lossfree": 5,
+         "heldout_vs_lossfree_pct": 95.0, "verdict": "unexplained", "same_verdict": False, "invented": []},
+        {"seed": 3, "flight": "none", "kind": "bursty", "loss_pct": 10.0, "crash": "ValueError: x"},
+    ]
+    con = Console(width=200, record=True)
+    con.print(_rates(rows, diagnose=True))
+    line = next(ln for ln in con.export_text().splitlines() if "bursty" in ln)
+    cells = [c.strip() for c in line.split("│") if c.strip()]
+    # flight kind loss cases crash 8/8 as-loss-free >=97% median false-alarm same invented
+    assert cells == ["none", "bursty", "10", "3", "1", "1", "2", "1", "97.0", "1", "1", "0"]
