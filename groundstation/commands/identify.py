@@ -147,9 +147,9 @@ def _run(args: argparse.Namespace, pmap) -> int:
 
             plot_fit(series, channels, args.out.with_suffix(".png"),
                      title=f"{algorithm.upper()} model on its training data ({', '.join(p.name for p in args.logs)})")
-            curves = {f"{algorithm} {sub}": [(np.asarray(model.fit["history_nfev"][sub], dtype=float),
+            curves = {f"{algorithm} {sub}": [(np.asarray(model.fit.history_nfev[sub], dtype=float),
                                                    np.asarray(h, dtype=float))]
-                      for sub, h in model.fit["history"].items() if len(h) > 1}
+                      for sub, h in model.fit.history.items() if len(h) > 1}
             if curves:
                 plot_convergence(curves, args.out.with_name(args.out.stem + "_convergence.png"),
                                  title="search convergence per subsystem: fitness 1/(1+F) vs evaluations")
