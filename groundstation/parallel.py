@@ -42,12 +42,13 @@ PRELOAD = ("numpy", "scipy.optimize", "threadpoolctl", "pymavlink.dialects.v20.a
            "firmware_interface.readers", "groundstation.campaign.job", "groundstation.pipeline",
            "groundstation.dsp.split", "groundstation.dsp.velocity_check", "groundstation.sysid.select",
            "groundstation.sysid.heldout", "groundstation.gap.diagnose")
-#: what ``identify``'s workers need (no diagnosis): its fork server imports in 0.6 s of CPU what
-#: :data:`PRELOAD` imports in 1.5 s
+#: what ``identify``'s workers need (no diagnosis; the plots, which its workers draw): its fork
+#: server imports in about 1 s of CPU, while the first search runs, what :data:`PRELOAD` imports in 1.5 s
 IDENTIFY_PRELOAD = ("numpy", "scipy.optimize", "threadpoolctl", "pymavlink.dialects.v20.ardupilotmega",
                     "firmware_interface.readers", "groundstation.pipeline", "groundstation.dsp.split",
                     "groundstation.dsp.velocity_check", "groundstation.sysid.identify", "groundstation.sysid.select",
-                    "groundstation.sysid.heldout")
+                    "groundstation.sysid.heldout", "matplotlib.figure", "matplotlib.backends.backend_agg",
+                    "groundstation.sysid.plots")
 
 # glibc mallopt parameters (malloc.h)
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
