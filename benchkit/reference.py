@@ -16,6 +16,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from groundstation.sysid.cost import WindowedCost, make_windows
+from groundstation.sysid.fit_section import ModelFit
 from groundstation.sysid.identify import free_mask
 from groundstation.sysid.model import N_PARAMS, HoverModel, bounds_array, theta_to_dict
 from groundstation.sysid.optimizers import minimize_lsq
@@ -23,8 +24,9 @@ from groundstation.sysid.refine import _fd_step
 
 
 def fit_reference(prepared: Any, *, starts: int = 4, seed: int = 0, window_s: float = 5.0,
-                  max_nfev: int = 60) -> HoverModel:
-    """Plain multi-start least-squares output-error fit (see the module docstring)."""
+                  max_nfev: int = 60, theta0: np.ndarray | None = None) -> HoverModel:
+    """Plain multi-start least-squares output-error fit (see the module docstring); ``theta0`` (all
+    parameters) replaces the zero start."""
     free, _ = free_mask(prepared)
     b = bounds_array()[free]
     span = b[:, 1] - b[:, 0]
@@ -40,11 +42,50 @@ def fit_reference(prepared: Any, *, starts: int = 4, seed: int = 0, window_s: fl
             R = cost.residuals(np.vstack([x[None], x[None] + np.diag(h)])).reshape(x.size + 1, -1)
             return ((R[1:] - R[0]) / h[:, None]).T
 
-        zero = np.clip(np.zeros(int(free.sum())), b[:, 0], b[:, 1])
+        zero = np.clip(np.zeros(int(free.sum())) if theta0 is None else np.asarray(theta0)[free], b[:, 0], b[:, 1])
         res = minimize_lsq(cost, b, rng=seed, maxiter=max_nfev, residuals=residuals, jac=jac, x0=[zero], starts=starts)
         theta = cost.full(res.x[None])[0]
     return HoverModel(params=theta_to_dict(theta), sample_rate_hz=1.0 / prepared.dt_s,
                       input_trim_pwm=dict(prepared.input_trim_pwm), pwm_per_unit=float(prepared.pwm_per_unit),
                       output_trim=dict(prepared.output_trim),
-                      fit={"algorithm": "reference-lsq", "cost": float(res.fun), "starts": int(starts),
-                           "window_s": float(window_s), "estimate_all_initial": False})
+                      fit=ModelFit.make(algorithm="reference-lsq", cost=float(res.fun), starts=int(starts),
+                                        window_s=float(window_s), estimate_all_initial=False))
+
+
+def _cut(seg: Any, a_s: float, b_s: float) -> Any:
+    """``seg`` restricted to the times a_s..b_s."""
+    from dataclasses import replace
+
+    k = (seg.t_s >= a_s - 1e-9) & (seg.t_s <= b_s + 1e-9)
+    m = seg.measured
+    return replace(seg, t_s=seg.t_s[k], inputs=seg.inputs[k], outputs=seg.outputs[k], outputs_raw=seg.outputs_raw[k],
+                   alt_m=seg.alt_m[k], measured=None if m is None else m[k])
+
+
+def shift_profile(prepared: Any, *, grid_s: tuple[float, ...] = tuple(np.round(np.arange(-0.08, 0.201, 0.04), 3)),
+                  seed: int = 0, window_s: float = 5.0) -> dict[str, Any]:
+    """The plain reference fit's in-sample cost for each common input shift of ``grid_s`` (inputs
+    advanced by it, :func:`groundstation.dsp.timeskew.shift_inputs`), every shift on the same samples
+    (the times all of them have inputs for) and refined from the same point (the multi-start fit
+    without a shift), so the profile is smooth; the shift at the minimum (parabola through it and its
+    neighbours). A measurement for the bench: one single-start refinement per grid point."""
+    from dataclasses import replace
+
+    from groundstation.dsp.timeskew import shift_inputs
+
+    lo, hi = max(0.0, -min(grid_s)), max(0.0, max(grid_s))
+    span = [(s.t_s[0] + lo, s.t_s[-1] - hi) for s in prepared.segments]
+    costs = []
+    theta0 = fit_reference(prepared, seed=seed, window_s=window_s).theta
+    for g in grid_s:
+        one = [shift_inputs(replace(prepared, segments=[s]), g).segments for s in prepared.segments]
+        segs = [_cut(ss[0], a, b) for ss, (a, b) in zip(one, span, strict=True) if ss and b - a > window_s]
+        fit = fit_reference(replace(prepared, segments=segs), starts=1, seed=seed, window_s=window_s, theta0=theta0).fit
+        costs.append(float("nan") if fit.cost is None else fit.cost)
+    i = int(np.argmin(costs))
+    best = float(grid_s[i])
+    if 0 < i < len(costs) - 1:
+        den = costs[i - 1] - 2 * costs[i] + costs[i + 1]
+        if den > 0:
+            best += 0.5 * (costs[i - 1] - costs[i + 1]) / den * (grid_s[i + 1] - grid_s[i])
+    return {"shift_s": round(best, 4), "grid_s": [float(g) for g in grid_s], "cost": costs}

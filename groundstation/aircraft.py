@@ -17,6 +17,7 @@
     trim = { col = 1560 }         # optional fixed trims; the others: median in-air value
     swash_servos = [1, 2, 3]      # SWASHPLATE only: the three swashplate servos ...
     swash_phase_deg = [0, 120, 240]   # ... and their positions around the swashplate (0 = front)
+    shift_s = 0.06                # the logged inputs are late against the outputs by this much: advanced by it
     [outputs]
     measured = ["u", "v", "w", "p", "q", "r", "theta", "phi"]
     [identify]                    # optional IdentifyConfig overrides for this aircraft's flights
@@ -88,6 +89,9 @@ class InputMap:
     #: "attitude_command" (sticks to a stabilised aircraft), "unknown" (both structures fitted, held-out
     #: prediction chooses); "" = from the source (servo outputs and swashplate: blade; RC channels: unknown)
     kind: str = ""
+    #: the logged inputs are late against the outputs by this much, s (advanced by it in data
+    #: preparation, ``prepare.input_shift_s``); None = the configuration's (0: as logged)
+    shift_s: float | None = None
 
     @property
     def input_kind(self) -> str:
@@ -144,7 +148,8 @@ class Aircraft:
         trim = None
         if im.trim:
             trim = tuple(float(im.trim.get(k, np.nan)) for k in INPUTS)
-        return replace(cfg, input_source="RC_CHANNELS" if im.source == "RC_CHANNELS" else "SERVO_OUTPUT_RAW",
+        shift = {} if im.shift_s is None else {"input_shift_s": im.shift_s}
+        return replace(cfg, **shift, input_source="RC_CHANNELS" if im.source == "RC_CHANNELS" else "SERVO_OUTPUT_RAW",
                        input_channels=im.channels, input_trim_pwm=trim,
                        pwm_per_unit=1.0 if im.units == "normalised" else im.pwm_per_unit,
                        swash_phase_deg=im.swash_phase_deg, measured_outputs=tuple(self.measured),
@@ -164,7 +169,7 @@ def _channel(name: str, key: str, v: Any) -> int:
 
 def _parse_inputs(t: dict[str, Any], name: str) -> InputMap:
     allowed = {"source", "lat", "lon", "col", "ped", "units", "pwm_per_unit", "trim", "swash_servos", "swash_phase_deg",
-               "kind"}
+               "kind", "shift_s"}
     for k in t:
         if k not in allowed:
             raise _err(name, f"inputs.{k}", t[k], f"unknown key (allowed: {', '.join(sorted(allowed))})")
@@ -196,7 +201,11 @@ def _parse_inputs(t: dict[str, Any], name: str) -> InputMap:
     kind = t.get("kind", "")
     if kind not in ("", "blade", "rate_command", "attitude_command", "unknown"):
         raise _err(name, "inputs.kind", kind, "blade, rate_command, attitude_command or unknown")
-    return InputMap(src, ch, units, float(ppu), {k: float(v) for k, v in trim.items()}, phase, kind)  # type: ignore[arg-type]
+    shift = t.get("shift_s")
+    if shift is not None and (not isinstance(shift, int | float) or isinstance(shift, bool) or not abs(shift) < 1.0):
+        raise _err(name, "inputs.shift_s", shift, "seconds the logged inputs are late, within +-1 s")
+    return InputMap(src, ch, units, float(ppu), {k: float(v) for k, v in trim.items()}, phase, kind,  # type: ignore[arg-type]
+                    None if shift is None else float(shift))
 
 
 def _parse_prior(t: dict[str, Any], name: str) -> Prior:

@@ -42,6 +42,13 @@ PRELOAD = ("numpy", "scipy.optimize", "threadpoolctl", "pymavlink.dialects.v20.a
            "firmware_interface.readers", "groundstation.campaign.job", "groundstation.pipeline",
            "groundstation.dsp.split", "groundstation.dsp.velocity_check", "groundstation.sysid.select",
            "groundstation.sysid.heldout", "groundstation.gap.diagnose")
+#: what ``identify``'s workers need (no diagnosis; the plots, which its workers draw): its fork
+#: server imports in about 1 s of CPU, while the first search runs, what :data:`PRELOAD` imports in 1.5 s
+IDENTIFY_PRELOAD = ("numpy", "scipy.optimize", "threadpoolctl", "pymavlink.dialects.v20.ardupilotmega",
+                    "firmware_interface.readers", "groundstation.pipeline", "groundstation.dsp.split",
+                    "groundstation.dsp.velocity_check", "groundstation.sysid.identify", "groundstation.sysid.select",
+                    "groundstation.sysid.heldout", "matplotlib.figure", "matplotlib.backends.backend_agg",
+                    "groundstation.sysid.plots")
 
 # glibc mallopt parameters (malloc.h)
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
@@ -53,8 +60,10 @@ TOP_PAD_BYTES = 16 << 20
 
 
 def default_jobs() -> int:
-    """All cores but one (a live service keeps its core), at least one."""
-    return max(1, (os.cpu_count() or 2) - 1)
+    """Every core: the commands that open a worker map (``identify``, ``diagnose``, ``report``, the
+    benchmarks) are offline work. The live service does not use this: it analyses each flight in
+    one worker process of its own and keeps the other cores for the link."""
+    return max(1, os.cpu_count() or 1)
 
 
 def serial_map(fn: Callable[[Any], Any], items: Iterable[Any]) -> list[Any]:
@@ -82,45 +91,51 @@ def keep_freed_memory() -> bool:
                                                 (_M_TOP_PAD, TOP_PAD_BYTES)))
 
 
-def warm() -> int:
-    """Import :data:`PRELOAD` in this process and keep freed memory (a worker's initializer; the
-    imports are free when forked from the fork server); returns the process id."""
-    for m in PRELOAD:
+def warm(preload: tuple[str, ...] = PRELOAD) -> int:
+    """Import ``preload`` in this process and keep freed memory (a worker's initializer; the
+    imports are free when forked from a fork server that imported the same); returns the process id."""
+    for m in preload:
         importlib.import_module(m)
     keep_freed_memory()
     return os.getpid()
 
 
-def init_worker() -> None:
-    """Worker initializer: :func:`warm`, and one BLAS/OpenMP thread per worker (the workers are the
-    parallelism)."""
+def init_worker(preload: tuple[str, ...] = PRELOAD) -> None:
+    """Worker initializer: :func:`warm` (with the fork server's ``preload``: a module the server did
+    not import would be imported by every worker), and one BLAS/OpenMP thread per worker (the
+    workers are the parallelism)."""
     from threadpoolctl import threadpool_limits
 
-    warm()
+    warm(preload)
     threadpool_limits(1)
 
 
-def fork_context(extra: tuple[str, ...] = ()) -> Any:
-    """The ``forkserver`` multiprocessing context, its server started with ``extra`` and
-    :data:`PRELOAD` imported unless it already runs (``spawn`` where there is no fork server). The
-    import is paid once per calling process, whatever the number of workers, pools and runs."""
+def fork_context(extra: tuple[str, ...] = (), *, preload: tuple[str, ...] = PRELOAD, wait: bool = True) -> Any:
+    """The ``forkserver`` multiprocessing context, its server started with ``extra`` and ``preload``
+    imported unless it already runs (``spawn`` where there is no fork server). The import is paid
+    once per calling process, whatever the number of workers, pools and runs. ``wait=False``
+    returns at once: the server imports while this process works, and the first worker starts
+    when it is done."""
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return multiprocessing.get_context("spawn")
     from multiprocessing import forkserver
 
     ctx = multiprocessing.get_context("forkserver")
-    ctx.set_forkserver_preload([*extra, *PRELOAD])
+    ctx.set_forkserver_preload([*extra, *preload])
     forkserver.ensure_running()
-    p = ctx.Process(target=os.getpid)  # answered once the server has imported everything
-    p.start()
-    p.join()
+    if wait:
+        p = ctx.Process(target=os.getpid)  # answered once the server has imported everything
+        p.start()
+        p.join()
     return ctx
 
 
 @contextmanager
-def worker_map(jobs: int | None) -> Iterator[Map]:
+def worker_map(jobs: int | None, preload: tuple[str, ...] = PRELOAD) -> Iterator[Map]:
     """A map over ``jobs`` worker processes (None: :func:`default_jobs`); 1 is the serial map (in
-    this process, which then keeps freed memory like a worker).
+    this process, which then keeps freed memory like a worker). The fork server (importing
+    ``preload``) starts at once but in the background; the workers start with the first map of
+    more than one item, so a command that fails early, or maps nothing, starts none.
 
     This process, too, runs with one BLAS thread while the map is open: the products are small
     enough that a second BLAS thread saves little wall time and costs CPU (measured on ``diagnose``
@@ -136,8 +151,9 @@ def worker_map(jobs: int | None) -> Iterator[Map]:
         with threadpool_limits(1):
             yield serial_map
         return
-    with threadpool_limits(1), ProcessPoolExecutor(max_workers=n, mp_context=fork_context(),
-                                                   initializer=init_worker) as ex:
+    ctx = fork_context(preload=preload, wait=False)
+    with threadpool_limits(1), ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=init_worker,
+                                                   initargs=(preload,)) as ex:
 
         def pmap(fn: Callable[[Any], Any], items: Iterable[Any]) -> list[Any]:
             xs = list(items)

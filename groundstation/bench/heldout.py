@@ -7,6 +7,11 @@ Held-out prediction on a real flight, the figure that says whether a model predi
 * for each split, (a) the project's identification (``identify`` with the aircraft file's prior)
   and (b) the plain output-error reference (multi-start least squares of the same structure, no
   prior, :mod:`benchkit.reference`): the floor to beat;
+* ``--input-shift-s`` advances the logged inputs of every split (a time skew between the logged
+  channels, :mod:`groundstation.dsp.timeskew`); ``auto`` measures it per split on the training part
+  (:func:`benchkit.reference.shift_profile`), and the held-out part gets the same shift;
+* with ``--linear``, (c) an unconstrained linear predictor from the logged inputs and the window's
+  start state (:mod:`benchkit.linear`): how much of each channel any linear model could predict;
 * scored by eq. 19 on ``--window-s`` windows started from the measured states (unmeasured states
   by least squares over the window, inputs against the model's trim: :mod:`groundstation.sysid.heldout`),
   per channel and the mean over the channels measured in the held-out part, with any unstable
@@ -25,6 +30,9 @@ from typing import Any
 
 import numpy as np
 
+#: the predictors a split may score: the project's identification, the plain reference, the linear ceiling
+KINDS = ("project", "reference", "linear")
+
 HELP = "held-out prediction on real flights: project identification vs a plain least-squares reference, k-fold"
 
 
@@ -38,6 +46,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-reference", action="store_true", help="score only the project's identification")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=None, help="write the figures here")
+    parser.add_argument("--linear", action="store_true",
+                        help="also score an unconstrained linear predictor from the logged inputs (a ceiling, "
+                             ":mod:`benchkit.linear`)")
+    parser.add_argument("--input-shift-s", default="0", metavar="S|S1,S2,..|auto",
+                        help="advance the logged inputs by S s in every split (both models), or by one value per split "
+                             "in the order printed; auto: per split, the shift that minimises the plain reference fit's "
+                             "in-sample cost on the training part")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override an IdentifyConfig field of the project's identification (repeatable)")
 
@@ -70,6 +85,23 @@ def _splits(prepared: Any, args: argparse.Namespace) -> list[tuple[str, Any, Any
     return out
 
 
+def _shifted(train: Any, val: Any, args: argparse.Namespace, row: dict[str, Any], i: int) -> tuple[Any, Any]:
+    """Split ``i`` with its inputs advanced by ``--input-shift-s`` (measured on ``train`` with ``auto``)."""
+    from groundstation.dsp.timeskew import shift_inputs
+
+    if args.input_shift_s == "auto":
+        from benchkit.reference import shift_profile
+
+        prof = shift_profile(train, seed=args.seed, window_s=args.window_s)
+        row["input_shift_profile"] = prof
+        shift = prof["shift_s"]
+    else:
+        given = [float(v) for v in args.input_shift_s.split(",")]
+        shift = given[i] if len(given) > 1 else given[0]
+    row["input_shift_s"] = shift
+    return shift_inputs(train, shift), shift_inputs(val, shift)
+
+
 def _score(model: Any, val: Any, window_s: float) -> dict[str, Any]:
     from groundstation.sysid.heldout import predict, runaway_channels, unstable_modes
 
@@ -80,9 +112,9 @@ def _score(model: Any, val: Any, window_s: float) -> dict[str, Any]:
 
 def _selection(model: Any) -> dict[str, Any]:
     """The configuration the identification chose by held-out prediction on its training part."""
-    sel = model.fit.get("selection") or {}
+    sel, ho = model.fit.selection, model.fit.heldout
     return {"chosen": sel.get("chosen"), "scores": {r["name"]: r["mean_match"] for r in sel.get("candidates", [])},
-            "not_predicted": list((model.fit.get("heldout") or {}).get("not_predicted", [])),
+            "not_predicted": [] if ho is None else list(ho.not_predicted),
             "inv_tau_s": float(model.params["inv_tau_s"]), "pinned": sorted(model.pinned)}
 
 
@@ -99,8 +131,9 @@ def run(args: argparse.Namespace) -> int:
     id_cfg = _identify_config(args.set, aircraft)
     prepared = prepare_logs(args.logs, ServiceConfig(), aircraft=aircraft)
     results: list[dict[str, Any]] = []
-    for name, train, val in _splits(prepared, args):
+    for i, (name, train, val) in enumerate(_splits(prepared, args)):
         row: dict[str, Any] = {"split": name, "train_s": train.duration_s, "val_s": val.duration_s}
+        train, val = _shifted(train, val, args, row, i)
         t0 = time.perf_counter()
         model = identify(train, seed=args.seed, prior=aircraft.prior if aircraft else None, config=id_cfg)
         row["project"] = _score(model, val, args.window_s) | {"seconds": time.perf_counter() - t0,
@@ -109,6 +142,11 @@ def run(args: argparse.Namespace) -> int:
             t0 = time.perf_counter()
             ref = fit_reference(train, starts=args.reference_starts, seed=args.seed, window_s=args.window_s)
             row["reference"] = _score(ref, val, args.window_s) | {"seconds": time.perf_counter() - t0}
+        if args.linear:
+            from benchkit.linear import linear_heldout
+
+            t0 = time.perf_counter()
+            row["linear"] = linear_heldout(train, val, window_s=args.window_s) | {"seconds": time.perf_counter() - t0}
         results.append(row)
         _print_split(con, row)
     summary = _summary(results)
@@ -121,9 +159,10 @@ def run(args: argparse.Namespace) -> int:
 def _print_split(con: Any, row: dict[str, Any]) -> None:
     from rich.table import Table
 
-    kinds = [k for k in ("project", "reference") if k in row]
+    kinds = [k for k in KINDS if k in row]
     chans = list(row["project"]["match"])
-    t = Table(title=f"{row['split']}: train {row['train_s']:.0f} s, predict {row['val_s']:.0f} s (match %, eq. 19)")
+    shift = f", inputs advanced {row['input_shift_s'] * 1000:.0f} ms" if row.get("input_shift_s") else ""
+    t = Table(title=f"{row['split']}: train {row['train_s']:.0f} s, predict {row['val_s']:.0f} s{shift} (match %, eq. 19)")
     t.add_column("model")
     for c in chans + ["mean", "s"]:
         t.add_column(c, justify="right")
@@ -151,7 +190,7 @@ def _print_split(con: Any, row: dict[str, Any]) -> None:
 def _summary(results: list[dict[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     folds = [r for r in results if r["split"].startswith("fold")]
-    for k in ("project", "reference"):
+    for k in KINDS:
         if not results or k not in results[0]:
             continue
         s: dict[str, Any] = {}

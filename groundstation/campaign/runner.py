@@ -41,8 +41,8 @@ LOCAL_DASK = {"distributed.worker.profile.enabled": False, "distributed.admin.ti
 
 
 def default_workers() -> int:
-    """Every core: a campaign is offline work, nothing else needs a spare core (the live service,
-    which keeps one for the link, uses :func:`groundstation.parallel.default_jobs`)."""
+    """Every core: a campaign is offline work, nothing else needs a spare core (as for
+    :func:`groundstation.parallel.default_jobs`; the live service keeps one for the link)."""
     return max(1, os.cpu_count() or 1)
 
 

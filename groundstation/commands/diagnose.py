@@ -36,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no terminal table")
     parser.add_argument("--jobs", type=int, default=None,
                         help="worker processes for reading the logs, the base model's identification and the "
-                             "catalogue scans (default: all cores but one; the report is the same for any number)")
+                             "catalogue scans (default: every core; the report is the same for any number)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -48,7 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true")
     parser.add_argument("--jobs", type=int, default=None,
                         help="worker processes for reading the logs, the searches' screening refinements and the "
-                             "held-out folds (default: all cores but one; the model is the same for any number)")
+                             "held-out folds (default: every core; the model is the same for any number)")
     parser.add_argument("--domain", choices=("time", "frequency", "both"), default="time",
                         help="time: the paper's output-error fit (default); frequency: minimise Tischler's J over the "
                              "flight's frequency responses; both: the time fit, then the frequency cost as a "
@@ -97,10 +98,10 @@ SEGMENTS_HELP = ("which data to use: 'flights' (every in-air interval, default) 
 
 
 def run(args: argparse.Namespace) -> int:
-    from groundstation.parallel import worker_map
+    from groundstation.parallel import IDENTIFY_PRELOAD, worker_map
     from groundstation.pipeline import about_logs
 
-    with about_logs(args.logs), worker_map(args.jobs) as pmap:
+    with about_logs(args.logs), worker_map(args.jobs, IDENTIFY_PRELOAD) as pmap:
         return _run(args, pmap)
 
 
@@ -143,16 +144,18 @@ def _run(args: argparse.Namespace, pmap) -> int:
         assert res.validation is not None and res.validation_series is not None   # the validate step ran
         series, channels = res.validation_series, res.validation.to_json()["channels"]
         if not args.no_plot:
-            from groundstation.sysid.plots import plot_convergence, plot_fit
+            from groundstation.sysid.plots import draw
 
-            plot_fit(series, channels, args.out.with_suffix(".png"),
-                     title=f"{algorithm.upper()} model on its training data ({', '.join(p.name for p in args.logs)})")
-            curves = {f"{algorithm} {sub}": [(np.asarray(model.fit["history_nfev"][sub], dtype=float),
+            title = f"{algorithm.upper()} model on its training data ({', '.join(p.name for p in args.logs)})"
+            figures: list[tuple[str, tuple[Any, ...], dict[str, Any]]] = [
+                ("plot_fit", (series, channels, args.out.with_suffix(".png")), {"title": title})]
+            curves = {f"{algorithm} {sub}": [(np.asarray(model.fit.history_nfev[sub], dtype=float),
                                                    np.asarray(h, dtype=float))]
-                      for sub, h in model.fit["history"].items() if len(h) > 1}
+                      for sub, h in model.fit.history.items() if len(h) > 1}
             if curves:
-                plot_convergence(curves, args.out.with_name(args.out.stem + "_convergence.png"),
-                                 title="search convergence per subsystem: fitness 1/(1+F) vs evaluations")
+                figures.append(("plot_convergence", (curves, args.out.with_name(args.out.stem + "_convergence.png")),
+                                {"title": "search convergence per subsystem: fitness 1/(1+F) vs evaluations"}))
+            pmap(draw, figures)   # on the workers (whose fork server imported matplotlib early): side by side
         if args.rrd is not None:
             from groundstation.commands.validate import write_rrd
 

@@ -52,6 +52,7 @@ from groundstation.dsp.grid import (
     uniform_grid,
 )
 from groundstation.dsp.smoothing import smooth5
+from groundstation.dsp.timeskew import shift_inputs
 from groundstation.errors import DspError
 
 INPUTS: tuple[str, ...] = ("lat", "lon", "col", "ped")
@@ -113,6 +114,9 @@ class PrepConfig:
     #: input stretch are not counted either: the rotor is still following the bridge's error there
     #: (0 = only the hole itself)
     settle_after_bridge_tau: float = 3.0
+    #: the logged inputs are late against the outputs by this much, s (a skew between logged channels):
+    #: every segment's inputs are advanced by it (:mod:`groundstation.dsp.timeskew`); 0 = as logged
+    input_shift_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.rate_hz <= 0:
@@ -135,6 +139,8 @@ class PrepConfig:
             raise DspError(f"prepare.settle_after_bridge_tau must be >= 0, got {self.settle_after_bridge_tau}")
         if not self.rotor_inv_tau_s > 0:
             raise DspError(f"prepare.rotor_inv_tau_s must be > 0, got {self.rotor_inv_tau_s}")
+        if not abs(self.input_shift_s) < 1.0:
+            raise DspError(f"prepare.input_shift_s must be within +-1 s (a skew between logged channels), got {self.input_shift_s}")
         bad = [c for c in self.measured_outputs if c not in OUTPUTS]
         if bad:
             raise DspError(f"prepare.measured_outputs: unknown channel(s) {bad} (allowed: {', '.join(OUTPUTS)})")
@@ -715,7 +721,7 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
     native = np.array([r.native_s for r in raws], dtype=float)
     native_med = [float(np.nanmedian(native[:, k])) if np.isfinite(native[:, k]).any() else float("nan")
                   for k in range(12)]
-    return PreparedData(
+    return shift_inputs(PreparedData(
         segments=segs,
         dt_s=1.0 / cfg.rate_hz,
         input_trim_pwm={n: float(v) for n, v in zip(INPUTS, trim_pwm, strict=True)},
@@ -724,7 +730,7 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
         notes=notes,
         native_interval_s=dict(zip(INPUTS + OUTPUTS, native_med, strict=True)),
         link_quality=lq,
-    )
+    ), cfg.input_shift_s)
 
 
 def bridge_why(bridge: dict[str, Any]) -> str:

@@ -4,6 +4,7 @@ identification and the held-out selection of settings (:mod:`groundstation.sysid
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -30,6 +31,31 @@ class IdentifyConfig:
     #: restarts of one seed stream agreed on the wrong basin, DE (3 seeds) found the right one, and
     #: on the trex600 DE reached the same refined cost in 60 % of CABC's time.
     restart_algorithm: str = "de"
+    #: bee colonies (cabc, abc; :mod:`groundstation.sysid.optimizers`): food sources (employed bees)
+    colony_size: int = 20
+    #: bee colonies: trials without improvement before a food source is abandoned (the scout)
+    colony_limit: int = 5
+    #: cabc's chaotic search around the best source (the paper's step 7): points per iteration
+    chaos_points: int = 10
+    #: cabc: the chaotic search's first radius, a fraction of each parameter's range (it shrinks
+    #: geometrically to ``chaos_radius_end`` over the iterations)
+    chaos_radius0: float = 0.05
+    #: cabc: the chaotic search's last radius (a fraction of the range)
+    chaos_radius_end: float = 1e-4
+    #: ga: population size
+    ga_population: int = 20
+    #: ga: probability of the blend crossover of two parents
+    ga_crossover: float = 0.8
+    #: ga: probability that a child mutates (one random gene)
+    ga_mutation: float = 0.2
+    #: ga: best individuals kept unchanged each generation
+    ga_elite: int = 2
+    #: ga: tournament size of the parent selection
+    ga_tournament: int = 2
+    #: ga: standard deviation of a mutation, a fraction of the gene's range
+    ga_mutation_scale: float = 0.1
+    #: de: population per free parameter (scipy's ``popsize``)
+    de_popsize: int = 1
     screen_max_nfev: int = 5
     maxiter: int | None = None
     maxfev: int | None = None
@@ -37,7 +63,12 @@ class IdentifyConfig:
     refine_max_nfev: int = 60
     estimate_all_initial: bool = True
     varpro: bool = True
-    vertical_iter_factor: float = 2.0
+    #: the vertical/yaw searches' iterations over the horizontal ones'. 1: the same number. Twice as
+    #: many (the earlier default) cost 0.8 s of CPU per simulated flight and changed no model: the
+    #: same refined cost and parameters within 0.001 % on five simulated trex600 and two R-50
+    #: flights, and the same model of the real TREX 550 log (seeds 0 and 1); the refinement starts
+    #: from the screened best points, and the few vertical parameters are found by either search.
+    vertical_iter_factor: float = 1.0
     estimate_trim: bool = True
     #: velocity channels (of u, v, w) whose measured kinematic/gravity terms enter as known forcing in the
     #: refinement (``kinematic_forcing`` of simulate); "" = none. Default w: on the trex600 sim flight the
@@ -69,14 +100,50 @@ class IdentifyConfig:
     select_candidates: str = "predictive | window_step_s=2.5"
     #: contiguous folds of the selection (< 2 = no selection)
     select_folds: int = 5
+    #: a candidate replaces the configuration when its mean held-out gain over the folds exceeds this many
+    #: standard errors of that gain (the "one-standard-error rule" of cross-validated model choice:
+    #: Hastie, Tibshirani & Friedman, ESL 7.10), or it gains on every fold (3 or more)
+    select_gain_z: float = 1.0
+    #: a fold's score is the mean over channels of the held-out match (%), each channel floored at this
+    #: (a prediction that runs away counts as twice as bad as predicting no motion, so one fold cannot
+    #: swamp the others)
+    select_match_floor_pct: float = -100.0
+    #: Jacobians per subsystem of each fold's refit in the selection (a local polish from a whole-flight
+    #: fit: on a simulated flight 4, 8, 20 and 60 gave the same held-out scores to 0.3 %; on the real
+    #: TREX 550 log fewer make a candidate whose screening fit is far from its optimum look worse, which
+    #: keeps the configuration: the cautious side). 6 keeps the selection within half the identification's time.
+    select_refit_nfev: int = 6
     #: held-out prediction (the selection's folds and the held-out check): each left-out block is
     #: predicted in windows of this length (s), each from its measured initial state
     heldout_window_s: float = 5.0
     #: a channel's held-out prediction "runs away" when its error is more than this many times the
     #: signal itself (the subsystem is then not usable)
     runaway_factor: float = 3.0
+    #: the closed-loop notes (``fit.closed_loop``): the model's output error is simulated in windows of
+    #: this length (s) from the measured states ...
+    feedback_window_s: float = 5.0
+    #: ... and an input "follows" it when the input's change up to this lag (s) later correlates with it ...
+    feedback_max_lag_s: float = 1.0
+    #: ... beyond this many times 1 / sqrt(effective samples) (the chance level)
+    feedback_z: float = 3.0
+    #: two refinement starts taken from the search's best points are at least this far apart (the RMS
+    #: over the parameters of their difference as a fraction of each parameter's search range)
+    refine_start_min_dist: float = 0.2
     #: what the inputs are (the aircraft file's ``[inputs] kind``): "blade" (the eq.-8 hover model only),
     #: "rate_command" / "attitude_command" (also the stabilised aircraft's command-response structure,
     #: which then predicts), "unknown" (both, held-out prediction chooses):
     #: :mod:`groundstation.sysid.structure`
     input_kind: str = "blade"
+
+    def search_options(self, algorithm: str) -> dict[str, Any]:
+        """The keyword arguments of ``algorithm``'s optimiser (:data:`groundstation.sysid.optimizers.ALGORITHMS`)
+        from these settings."""
+        bees: dict[str, Any] = {"colony_size": self.colony_size, "limit": self.colony_limit}
+        options: dict[str, dict[str, Any]] = {
+            "cabc": {**bees, "chaos_points": self.chaos_points, "radius0": self.chaos_radius0,
+                     "radius_end": self.chaos_radius_end},
+            "abc": bees,
+            "ga": {"population": self.ga_population, "crossover": self.ga_crossover, "mutation": self.ga_mutation,
+                   "elite": self.ga_elite, "tournament": self.ga_tournament, "mutation_scale": self.ga_mutation_scale},
+            "de": {"popsize": self.de_popsize}}
+        return options.get(algorithm, {})

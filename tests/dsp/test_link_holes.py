@@ -178,3 +178,10 @@ def test_outputs_after_a_bridged_hole_are_not_counted_while_the_rotor_settles(lo
     assert seg.inputs_bridged is not None
     after = _settling(seg.inputs_bridged, PrepConfig())
     assert after.any() and not seg.measured_mask()[after].any()
+
+
+def test_inputs_shifted_for_a_time_skew_keep_where_they_were_bridged(lossy):
+    p = prepare([lossy[0]], PrepConfig(input_shift_s=0.06))
+    for s in p.segments:
+        assert s.inputs_bridged is None or s.inputs_bridged.shape == s.t_s.shape
+    assert any(s.inputs_bridged is not None and s.inputs_bridged.any() for s in p.segments)

@@ -66,3 +66,21 @@ def test_stage_timer_charges_the_innermost_stage_and_restores_the_functions(monk
     assert parallel.serial_map is original and ident.serial_map is original
     table = {name: (cpu, calls) for name, cpu, calls in st.table()}
     assert table["mapping"][1] == 1 and table["mapping"][0] > 0
+
+
+def test_lagged_products_by_fft_are_the_sum_over_lags():
+    """The colour-corrected sandwich's lagged Jacobian products, all lags at once by FFT, against the
+    plain sum over lags (windows of a length that is no power of two; coloured columns)."""
+    from groundstation.sysid.refine import lagged_products
+
+    rng = np.random.default_rng(3)
+    D, W, L, nch, K = 4, 5, 37, 3, 20
+    Jt4 = np.cumsum(rng.standard_normal((D, W, L, nch)), axis=2)
+    wts = rng.standard_normal((K + 1, nch))
+    M = np.zeros((D, D))
+    for k in range(K + 1):
+        P = np.einsum("dwtc,ewtc,c->de", Jt4[:, :, : L - k], Jt4[:, :, k:], wts[k])
+        M += P if k == 0 else P + P.T
+    got = lagged_products(Jt4, wts)
+    assert np.allclose(got, M, rtol=1e-12, atol=1e-12 * np.abs(M).max())
+    assert np.allclose(got, got.T)
