@@ -16,6 +16,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from groundstation.sysid.cost import WindowedCost, make_windows
+from groundstation.sysid.fit_section import ModelFit
 from groundstation.sysid.identify import free_mask
 from groundstation.sysid.model import N_PARAMS, HoverModel, bounds_array, theta_to_dict
 from groundstation.sysid.optimizers import minimize_lsq
@@ -47,9 +48,8 @@ def fit_reference(prepared: Any, *, starts: int = 4, seed: int = 0, window_s: fl
     return HoverModel(params=theta_to_dict(theta), sample_rate_hz=1.0 / prepared.dt_s,
                       input_trim_pwm=dict(prepared.input_trim_pwm), pwm_per_unit=float(prepared.pwm_per_unit),
                       output_trim=dict(prepared.output_trim),
-                      fit={"algorithm": "reference-lsq", "cost": float(res.fun), "starts": int(starts),
-                           "window_s": float(window_s), "estimate_all_initial": False})
-
+                      fit=ModelFit.make(algorithm="reference-lsq", cost=float(res.fun), starts=int(starts),
+                                        window_s=float(window_s), estimate_all_initial=False))
 
 
 def _cut(seg: Any, a_s: float, b_s: float) -> Any:
@@ -87,12 +87,13 @@ def shift_profile(prepared: Any, *, grid_s: tuple[float, ...] = tuple(np.round(n
         data = replace(prepared, segments=[_cut(ss[0], a, b) for ss, (a, b) in zip(one, span, strict=True)
                                            if ss and b - a > window_s])
         if folds < 2:
-            score.append(-float(fit_reference(data, starts=1, seed=seed, window_s=window_s, theta0=theta0).fit["cost"]))
+            cost = fit_reference(data, starts=1, seed=seed, window_s=window_s, theta0=theta0).fit.cost
+            score.append(float("nan") if cost is None else -float(cost))
             continue
         m = [predict(fit_reference(tr, starts=1, seed=seed, window_s=window_s, theta0=theta0), va,
                      window_s=window_s).mean_match for tr, va in contiguous_kfold(data, folds) if tr.segments and va.segments]
         score.append(float(np.mean(m)))
-    i = int(np.argmax(score))
+    i = int(np.nanargmax(score))
     best = float(grid_s[i])
     if 0 < i < len(score) - 1:
         den = score[i - 1] - 2 * score[i] + score[i + 1]

@@ -166,8 +166,8 @@ class AnalysisResult:
 
     @property
     def fit(self) -> ModelFit | None:
-        """The model's ``fit`` section, typed (read afresh from the model each time); None without a model."""
-        return None if self.model is None else ModelFit.from_json(self.model.fit)
+        """The model's ``fit`` section; None without a model."""
+        return None if self.model is None else self.model.fit
 
     @property
     def heldout(self) -> HeldOut | None:
@@ -303,7 +303,7 @@ def analyse_prepared(prepared: Any, config: ServiceConfig | None = None, aircraf
             t = time.perf_counter()
             m = identify_prepared(prepared, cfg, aircraft=aircraft, pmap=pmap,
                                   callback=lambda info: note("identify", "running", info) and False)
-            m.fit["seconds"] = round(_since(t), 3)
+            m.fit = m.fit.set(seconds=round(_since(t), 3))
             m.source["logs"] = list(log_paths)
             return m
 
@@ -375,19 +375,20 @@ def summarize(prepared: Any, log_paths: Sequence[str] = ()) -> DataSummary:
         pwm_per_unit=float(prepared.pwm_per_unit), notes=tuple(prepared.notes))
 
 
-def held_out(model: Any, prepared: Any, cfg: ServiceConfig, aircraft: Any, k: int, pmap: Map | None = None) -> dict:
+def held_out(model: Any, prepared: Any, cfg: ServiceConfig, aircraft: Any, k: int,
+             pmap: Map | None = None) -> HeldOut:
     """Cross-validate ``model`` (refinement from its parameters on k-1 contiguous blocks, prediction of
     the k-th) and record the verdicts in ``model.fit``: ``heldout`` (per channel and fold), ``usable``
     (False when a subsystem's prediction runs away in some fold) and ``closed_loop`` (what the closed
-    loop means for this model). Returns ``model.fit["heldout"]``."""
+    loop means for this model). Returns ``model.fit.heldout``."""
     from groundstation.sysid.heldout import crossvalidate
     from groundstation.sysid.identify import refit
 
     prior = aircraft.prior if aircraft is not None else None
-    done = model.fit.get("heldout") or {}
-    if done.get("k") != k:   # not already checked by the configuration's held-out selection
+    done = model.fit.heldout or HeldOut()
+    if done.k != k:   # not already checked by the configuration's held-out selection
         try:
-            chosen = (model.fit.get("selection") or {}).get("overrides", {})
+            chosen = model.fit.selection.get("overrides", {})
             icfg = dataclasses.replace(cfg.identify, **chosen)
             fit_fold = functools.partial(refit, model=model, config=icfg, prior=prior)
             if getattr(model, "structure", "hover") == "command_response":   # the stabilised aircraft's structure
@@ -397,13 +398,12 @@ def held_out(model: Any, prepared: Any, cfg: ServiceConfig, aircraft: Any, k: in
             cv = crossvalidate(prepared, fit_fold, k=k, window_s=icfg.heldout_window_s,
                                runaway_factor=icfg.runaway_factor, pmap=serial_map if pmap is None else pmap)
         except ValueError as exc:
-            model.fit["heldout"] = {"skipped": str(exc)}
-            return model.fit["heldout"]
-        done = cv.to_json()
-    model.fit["heldout"] = done
-    model.fit["unusable_subsystems"] = list(done["unusable_subsystems"])
-    model.fit["usable"] = not done["unusable_subsystems"]
-    model.fit["closed_loop"] = closed_loop_notes(model, prepared, cfg)
+            model.fit = model.fit.set(heldout=HeldOut.make(skipped=str(exc)))
+            return model.fit.heldout
+        done = HeldOut.from_json(cv.to_json())
+    model.fit = model.fit.set(heldout=done, unusable_subsystems=done.unusable_subsystems,
+                              usable=not done.unusable_subsystems)
+    model.fit = model.fit.set(closed_loop=closed_loop_notes(model, prepared, cfg))
     return done
 
 
@@ -411,7 +411,9 @@ def closed_loop_notes(model: Any, prepared: Any, cfg: ServiceConfig) -> list[str
     """What the closed loop means for this model: inputs that follow the output error, stick inputs."""
     from groundstation.sysid.heldout import feedback_evidence
 
-    notes = feedback_evidence(model, prepared)
+    ic = cfg.identify
+    notes = feedback_evidence(model, prepared, window_s=ic.feedback_window_s, max_lag_s=ic.feedback_max_lag_s,
+                              z=ic.feedback_z)
     if notes:
         notes.append("with the loop closed the inputs correlate with the disturbances the model does not see: "
                      "output error stays consistent only where the feedback acts on measured outputs; expect damping "

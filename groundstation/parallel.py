@@ -42,12 +42,13 @@ PRELOAD = ("numpy", "scipy.optimize", "threadpoolctl", "pymavlink.dialects.v20.a
            "firmware_interface.readers", "groundstation.campaign.job", "groundstation.pipeline",
            "groundstation.dsp.split", "groundstation.dsp.velocity_check", "groundstation.sysid.select",
            "groundstation.sysid.heldout", "groundstation.gap.diagnose")
-#: what ``identify``'s workers need (no diagnosis): its fork server imports in 0.6 s of CPU what
-#: :data:`PRELOAD` imports in 1.5 s
+#: what ``identify``'s workers need (no diagnosis; the plots, which its workers draw): its fork
+#: server imports in about 1 s of CPU, while the first search runs, what :data:`PRELOAD` imports in 1.5 s
 IDENTIFY_PRELOAD = ("numpy", "scipy.optimize", "threadpoolctl", "pymavlink.dialects.v20.ardupilotmega",
                     "firmware_interface.readers", "groundstation.pipeline", "groundstation.dsp.split",
                     "groundstation.dsp.velocity_check", "groundstation.sysid.identify", "groundstation.sysid.select",
-                    "groundstation.sysid.heldout")
+                    "groundstation.sysid.heldout", "matplotlib.figure", "matplotlib.backends.backend_agg",
+                    "groundstation.sysid.plots")
 
 # glibc mallopt parameters (malloc.h)
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
@@ -90,21 +91,22 @@ def keep_freed_memory() -> bool:
                                                 (_M_TOP_PAD, TOP_PAD_BYTES)))
 
 
-def warm() -> int:
-    """Import :data:`PRELOAD` in this process and keep freed memory (a worker's initializer; the
-    imports are free when forked from the fork server); returns the process id."""
-    for m in PRELOAD:
+def warm(preload: tuple[str, ...] = PRELOAD) -> int:
+    """Import ``preload`` in this process and keep freed memory (a worker's initializer; the
+    imports are free when forked from a fork server that imported the same); returns the process id."""
+    for m in preload:
         importlib.import_module(m)
     keep_freed_memory()
     return os.getpid()
 
 
-def init_worker() -> None:
-    """Worker initializer: :func:`warm`, and one BLAS/OpenMP thread per worker (the workers are the
-    parallelism)."""
+def init_worker(preload: tuple[str, ...] = PRELOAD) -> None:
+    """Worker initializer: :func:`warm` (with the fork server's ``preload``: a module the server did
+    not import would be imported by every worker), and one BLAS/OpenMP thread per worker (the
+    workers are the parallelism)."""
     from threadpoolctl import threadpool_limits
 
-    warm()
+    warm(preload)
     threadpool_limits(1)
 
 
@@ -150,7 +152,8 @@ def worker_map(jobs: int | None, preload: tuple[str, ...] = PRELOAD) -> Iterator
             yield serial_map
         return
     ctx = fork_context(preload=preload, wait=False)
-    with threadpool_limits(1), ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=init_worker) as ex:
+    with threadpool_limits(1), ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=init_worker,
+                                                   initargs=(preload,)) as ex:
 
         def pmap(fn: Callable[[Any], Any], items: Iterable[Any]) -> list[Any]:
             xs = list(items)

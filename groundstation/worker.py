@@ -219,7 +219,7 @@ def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
     model, prepared, val = res.model, res.prepared, ({} if res.validation is None else res.validation.to_json())
     cross = _cross_flight(job, model, prepared)
     if cross:
-        model.fit["cross_flight"] = cross
+        model.fit = model.fit.set(cross_flight=cross)
     if job.data == "onboard_log":   # said in the model (and below the gap report): which data it comes from
         model.source["data"] = "onboard_log"
         model.source["replaces"] = str(dataclasses.replace(job, data="telemetry").file("model", "json"))

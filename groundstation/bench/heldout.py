@@ -112,9 +112,9 @@ def _score(model: Any, val: Any, window_s: float) -> dict[str, Any]:
 
 def _selection(model: Any) -> dict[str, Any]:
     """The configuration the identification chose by held-out prediction on its training part."""
-    sel = model.fit.get("selection") or {}
+    sel, ho = model.fit.selection, model.fit.heldout
     return {"chosen": sel.get("chosen"), "scores": {r["name"]: r["mean_match"] for r in sel.get("candidates", [])},
-            "not_predicted": list((model.fit.get("heldout") or {}).get("not_predicted", [])),
+            "not_predicted": [] if ho is None else list(ho.not_predicted),
             "inv_tau_s": float(model.params["inv_tau_s"]), "pinned": sorted(model.pinned)}
 
 

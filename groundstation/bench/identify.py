@@ -157,9 +157,9 @@ def run(args: argparse.Namespace) -> int:
     model = identify(train, seed=0)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     con.print(f"default identification (CABC + refinement + held-out selection of the configuration): {wall:.2f} s wall "
-              f"({cpu:.2f} s CPU), {model.fit['evaluations']} evaluations, cost {model.fit['cost']:.4f}")
+              f"({cpu:.2f} s CPU), {model.fit.evaluations} evaluations, cost {model.fit.cost:.4f}")
     wall, cpu, wall0, cpu0 = _selection_cost(train, identify, IdentifyConfig, wall, cpu)
-    sel = model.fit.get("selection") or {}
+    sel = model.fit.selection
     scores = ", ".join(f"{r['name']} {r['mean_match']:.1f} %" for r in sel.get("candidates", []))
     con.print(f"held-out selection over {sel.get('k')} folds chose: {sel.get('chosen')} ({scores}); medians of two "
               f"runs each, alternating: {wall:.2f} s wall ({cpu:.2f} s CPU) with it, {wall0:.2f} s wall ({cpu0:.2f} s CPU) "
@@ -229,10 +229,10 @@ def _compare(args, train, con, identify, IdentifyConfig, plot_convergence) -> di
             t0 = time.perf_counter()
             m = identify(train, algorithm=a, seed=s, refine=False, maxiter=10**6, config=cfg)
             res[a]["wall"].append(time.perf_counter() - t0)
-            res[a]["cost"].append(m.fit["cost"])
-            res[a]["match"].append(m.fit["match_degree"])
-            res[a]["nfev"].append(m.fit["evaluations"])
-            h, hn = m.fit["history"], m.fit["history_nfev"]
+            res[a]["cost"].append(m.fit.cost)
+            res[a]["match"].append(m.fit.match_degree)
+            res[a]["nfev"].append(m.fit.evaluations)
+            h, hn = m.fit.history, m.fit.history_nfev
             grid = np.linspace(min(100, args.budget), args.budget, 100)
             tot = np.zeros_like(grid)
             for sub in h:

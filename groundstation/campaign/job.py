@@ -132,13 +132,13 @@ def model_row(model: Any, report: dict | None, prepared: Any) -> dict[str, Any]:
     from groundstation.sysid.model import PARAM_NAMES
 
     fit = model.fit
-    row: dict[str, Any] = {**_conditions(prepared), "cost": fit.get("cost"), "windows": fit.get("windows"),
-                           "fixed": json.dumps(fit.get("fixed", [])), "pinned": json.dumps(list(model.pinned))}
+    row: dict[str, Any] = {**_conditions(prepared), "cost": fit.cost, "windows": fit.windows,
+                           "fixed": json.dumps(list(fit.fixed)), "pinned": json.dumps(list(model.pinned))}
     for n in PARAM_NAMES:
         row[f"p_{n}"] = float(model.params[n])
         se = model.parameter_std.get(n)
         row[f"se_{n}"] = None if se is None or not np.isfinite(se) else float(se)
-    row["train_match_pct"] = _mean(fit.get("match_degree", {}))
+    row["train_match_pct"] = _mean(fit.match_degree)
     row.update({"verdict": None, "heldout_match_pct": None, "effects": "[]", "effect_values": "{}",
                 "gap_significant": None, "conditions": None})
     if report is not None:
@@ -160,7 +160,7 @@ def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[st
     res = analyse_prepared(prepared, cfg, job.settings.aircraft, log_paths=[job.log],
                            steps=("identify", "diagnose") if job.settings.diagnose else ("identify",))
     model = res.model
-    model.fit.pop("seconds", None)   # the row has its own; a stored row is the same whichever backend ran it
+    model.fit = model.fit.without("seconds")   # the row has its own; a stored row is the same whichever backend ran it
     diag = res.gap.diagnosis if res.gap is not None else None
     report = res.gap.report if res.gap is not None else None
     row = {"flight_index": flight, **model_row(model, report, prepared), "cross_log": None, "cross_match_pct": None}

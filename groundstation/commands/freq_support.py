@@ -139,16 +139,16 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
         t0 = time.perf_counter()
         with con.status("time-domain identification"):
             tm = identify_prepared(prepared, cfg)
-        tm.fit["seconds"] = round(time.perf_counter() - t0, 3)
+        tm.fit = tm.fit.set(seconds=round(time.perf_counter() - t0, 3))
         models["time"] = tm
         start = tm.theta
     t0 = time.perf_counter()
     with con.status("frequency-domain identification" if start is None else "frequency-domain refinement of the time fit"):
         fm = identify_frequency(rs, prepared, algorithm=ic.algorithm, seed=ic.seed, bounds=bounds or None,
                                 config=fcfg, start=start)
-    fm.fit["seconds"] = round(time.perf_counter() - t0, 3)
+    fm.fit = fm.fit.set(seconds=round(time.perf_counter() - t0, 3))
     if start is not None:
-        fm.fit["algorithm"] = "frequency refinement of the time-domain fit"
+        fm.fit = fm.fit.set(algorithm="frequency refinement of the time-domain fit")
     models["frequency"] = fm
     return _score_and_write(args, models, rs, prepared, cfg.identify)
 
@@ -169,8 +169,8 @@ def _score_and_write(args: argparse.Namespace, models: dict[str, Any], rs: Any, 
         t = validate(m, prepared)
         scores[name] = {"J_avg": v.J_avg, "J_avg_good": v.good, "mean_match": t.mean_match,
                         "J": {f"{p.input}->{p.output}": p.J for p in v.pairs}}
-        m.fit["scores"] = {"frequency": {k: scores[name][k] for k in ("J_avg", "J_avg_good", "J")},
-                           "time": {"mean_match": t.mean_match}}
+        m.fit = m.fit.set(scores={"frequency": {k: scores[name][k] for k in ("J_avg", "J_avg_good", "J")},
+                                  "time": {"mean_match": t.mean_match}})
         mark_unsupported(m, prepared, icfg.runaway_factor, icfg.heldout_window_s)
         m.source["logs"] = [str(p) for p in args.logs]
     outs = {"frequency": args.out} if args.domain == "frequency" else {
@@ -197,10 +197,10 @@ def _score_and_write(args: argparse.Namespace, models: dict[str, Any], rs: Any, 
         for p in rs.without_response:
             out.print(f"no response {p.input}->{p.output}: {p.reason}")
         for name, m in models.items():
-            for u in m.fit["unstable_modes"]:
+            for u in m.fit.unstable_modes:
                 out.print(f"[yellow]unstable[/] ({name}-domain fit): {u}")
-            for sub in m.fit["unusable_subsystems"]:
-                own = [c for c in m.fit["runaway_channels"] if c in SUBSYSTEM_CHANNELS[sub]]
+            for sub in m.fit.unusable_subsystems:
+                own = [c for c in m.fit.runaway_channels if c in SUBSYSTEM_CHANNELS[sub]]
                 out.print(f"[red]unusable[/] ({name}-domain fit): the {sub} subsystem's prediction of this flight "
                           f"runs away ({', '.join(own)}): not a model of the aircraft")
     return 0
@@ -215,10 +215,9 @@ def mark_unsupported(model: Any, prepared: Any, runaway_factor: float = 3.0, win
     from groundstation.sysid.heldout import SUBSYSTEM_CHANNELS, predict, runaway_channels, unstable_modes
 
     ran = runaway_channels(predict(model, prepared, window_s=window_s), runaway_factor)
-    model.fit["unstable_modes"] = [u.describe() for u in unstable_modes(model.theta)]
-    model.fit["runaway_channels"] = ran
-    model.fit["unusable_subsystems"] = [s for s, cs in SUBSYSTEM_CHANNELS.items() if any(c in ran for c in cs)]
-    model.fit["usable"] = not model.fit["unusable_subsystems"]
+    unusable = [s for s, cs in SUBSYSTEM_CHANNELS.items() if any(c in ran for c in cs)]
+    model.fit = model.fit.set(unstable_modes=[u.describe() for u in unstable_modes(model.theta)],
+                              runaway_channels=ran, unusable_subsystems=unusable, usable=not unusable)
 
 
 def _print_freq_fit(model: Any, con: Any) -> None:
@@ -227,20 +226,20 @@ def _print_freq_fit(model: Any, con: Any) -> None:
     from groundstation.sysid.model import PARAM_NAMES
 
     fit = model.fit
-    cost = "J" if fit.get("weighting", "coherence") == "coherence" else "the random-error-weighted cost"
-    con.print(f"{fit['algorithm']} on {cost}: J by subsystem "
-              + ", ".join(f"{k} {v:.1f}" for k, v in fit["J_by_subsystem"].items())
-              + f"; {fit['evaluations']} evaluations, {fit['seconds']} s; "
-              f"{fit['frequency_hz'][0]:.2f}-{fit['frequency_hz'][1]:.2f} Hz, windows {fit['windows_s']} s")
+    cost = "J" if (fit.weighting or "coherence") == "coherence" else "the random-error-weighted cost"
+    con.print(f"{fit.algorithm} on {cost}: J by subsystem "
+              + ", ".join(f"{k} {v:.1f}" for k, v in fit.J_by_subsystem.items())
+              + f"; {fit.evaluations} evaluations, {fit.seconds} s; "
+              f"{fit.frequency_hz[0]:.2f}-{fit.frequency_hz[1]:.2f} Hz, windows {list(fit.windows_s)} s")
     p = Table(title="parameters (frequency-domain fit)")
     for c in ("name", "value", "std error", "note"):
         p.add_column(c, justify="right")
     for n in PARAM_NAMES:
         s = model.parameter_std.get(n)
-        note = "fixed" if n in fit.get("fixed", []) else ("PINNED at bound" if n in model.pinned else "")
+        note = "fixed" if n in fit.fixed else ("PINNED at bound" if n in model.pinned else "")
         p.add_row(n, f"{model.params[n]:.4g}", "-" if s is None else f"{s:.3g}", note)
     con.print(p)
     for a in model.augmentations:
         con.print(f"input delay {a['input']}: {a['delay_s'] * 1000:.0f} ms")
-    for r in fit.get("fixed_reasons", []):
+    for r in fit.fixed_reasons:
         con.print(f"note: {r}")

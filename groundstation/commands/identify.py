@@ -143,16 +143,17 @@ def _run(args: argparse.Namespace, pmap) -> int:
         assert res.validation is not None and res.validation_series is not None   # the validate step ran
         series, channels = res.validation_series, res.validation.to_json()["channels"]
         if not args.no_plot:
-            from groundstation.sysid.plots import plot_convergence, plot_fit
+            from groundstation.sysid.plots import draw
 
-            plot_fit(series, channels, args.out.with_suffix(".png"),
-                     title=f"{algorithm.upper()} model on its training data ({', '.join(p.name for p in args.logs)})")
-            curves = {f"{algorithm} {sub}": [(np.asarray(model.fit["history_nfev"][sub], dtype=float),
+            title = f"{algorithm.upper()} model on its training data ({', '.join(p.name for p in args.logs)})"
+            figures = [("plot_fit", (series, channels, args.out.with_suffix(".png")), {"title": title})]
+            curves = {f"{algorithm} {sub}": [(np.asarray(model.fit.history_nfev[sub], dtype=float),
                                                    np.asarray(h, dtype=float))]
-                      for sub, h in model.fit["history"].items() if len(h) > 1}
+                      for sub, h in model.fit.history.items() if len(h) > 1}
             if curves:
-                plot_convergence(curves, args.out.with_name(args.out.stem + "_convergence.png"),
-                                 title="search convergence per subsystem: fitness 1/(1+F) vs evaluations")
+                figures.append(("plot_convergence", (curves, args.out.with_name(args.out.stem + "_convergence.png")),
+                                {"title": "search convergence per subsystem: fitness 1/(1+F) vs evaluations"}))
+            pmap(draw, figures)   # on the workers (whose fork server imported matplotlib early): side by side
         if args.rrd is not None:
             from groundstation.commands.validate import write_rrd
 

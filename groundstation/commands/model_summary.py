@@ -21,12 +21,12 @@ def print_model(model, con=None) -> None:
 
     con = con or Console()
     fit = model.fit
-    con.print(f"[bold]{fit['algorithm'].upper()}[/]: cost F={fit['cost']:.4f} (search {fit['search_cost']:.4f}), "
-              f"fitness {fit['fitness']:.4f}, {fit['evaluations']} evaluations, {fit['seconds']} s")
+    con.print(f"[bold]{str(fit.algorithm).upper()}[/]: cost F={fit.cost:.4f} (search {fit.search_cost:.4f}), "
+              f"fitness {fit.fitness:.4f}, {fit.evaluations} evaluations, {fit.seconds} s")
     t = Table(title="match degree (eq. 19) on the training windows, %")
-    for ch in fit["match_degree"]:
+    for ch in fit.match_degree:
         t.add_column(ch, justify="right")
-    t.add_row(*[f"{v:.1f}" for v in fit["match_degree"].values()])
+    t.add_row(*[f"{v:.1f}" for v in fit.match_degree.values()])
     con.print(t)
     p = Table(title="parameters")
     p.add_column("name")
@@ -35,12 +35,12 @@ def print_model(model, con=None) -> None:
     p.add_column("note")
     for n in PARAM_NAMES:
         s = model.parameter_std.get(n)
-        note = "fixed (not identifiable)" if n in fit.get("fixed", []) else ("PINNED at bound" if n in model.pinned else "")
+        note = "fixed (not identifiable)" if n in fit.fixed else ("PINNED at bound" if n in model.pinned else "")
         p.add_row(n, f"{model.params[n]:.4g}", "-" if s is None else f"{s:.3g}", note)
     con.print(p)
     from rich.markup import escape
 
-    for r in fit.get("fixed_reasons", []) + fit.get("notes", []):
+    for r in fit.fixed_reasons + fit.notes:
         con.print(f"note: {escape(r)}")
     print_verdicts(model, con)
 
@@ -48,32 +48,32 @@ def print_model(model, con=None) -> None:
 def print_verdicts(model, con) -> None:
     """Held-out match, channels predicted or not, unusable subsystems, bounds, instability, prior."""
     fit = model.fit
-    for name, why in fit.get("pinned_reasons", {}).items():
+    for name, why in fit.pinned_reasons.items():
         con.print(f"[yellow]bound[/]: {name} {why}")
-    for u in fit.get("unstable_modes", []):
+    for u in fit.unstable_modes:
         con.print(f"[yellow]unstable[/]: {u}")
-    pr = fit.get("prior") or {}
+    pr = fit.prior
     if pr.get("prior_dominated"):
         con.print(f"prior ({pr.get('source')}): not determined by this flight, kept near the prior with its "
                   f"uncertainty: {', '.join(pr['prior_dominated'])}")
-    for line in selection_lines(fit.get("selection") or {}):
+    for line in selection_lines(dict(fit.selection)):
         con.print(line)
-    ho = fit.get("heldout") or {}
-    if "channel_mean" in ho:
-        chans = ", ".join(f"{c} {v:.1f}" for c, v in ho["channel_mean"].items())
-        con.print(f"held-out match over {ho['k']} contiguous folds ({ho['window_s']:g}-s windows from the measured "
-                  f"states): mean {ho['mean_match']:.1f} % ({chans})")
-        con.print(f"the model predicts: {', '.join(ho['predicted']) or 'no channel'}; "
-                  f"it does not predict: {', '.join(ho['not_predicted']) or 'none'}")
-        for sub in ho.get("unusable_subsystems", []):
+    ho = fit.heldout
+    if ho is not None and ho.has("channel_mean"):
+        chans = ", ".join(f"{c} {v:.1f}" for c, v in ho.channel_mean.items())
+        con.print(f"held-out match over {ho.k} contiguous folds ({ho.window_s:g}-s windows from the measured "
+                  f"states): mean {ho.mean_match:.1f} % ({chans})")
+        con.print(f"the model predicts: {', '.join(ho.predicted) or 'no channel'}; "
+                  f"it does not predict: {', '.join(ho.not_predicted) or 'none'}")
+        for sub in ho.unusable_subsystems:
             con.print(f"[red]unusable[/]: the {sub} subsystem's held-out prediction runs away "
-                      f"({'; '.join(f'{f}: {chs}' for f, chs in ho['runaway'].items())}): not a model of the aircraft")
-    for c in fit.get("closed_loop", []):
+                      f"({'; '.join(f'{f}: {chs}' for f, chs in ho.runaway.items())}): not a model of the aircraft")
+    for c in fit.closed_loop:
         con.print(f"closed loop: {c}")
-    if fit.get("structure_choice"):
-        ch = fit["structure_choice"]
+    if fit.structure_choice:
+        ch = fit.structure_choice
         con.print(f"structure: {ch['chosen']} ({ch['reason']})", markup=False)
-    for c in fit.get("command_response", []):
+    for c in fit.command_response:
         con.print(f"stabilised aircraft: {c}", markup=False)
 
 

@@ -40,6 +40,7 @@ from groundstation.freq.cost import coherence_weight, error_residuals, pair_resi
 from groundstation.freq.model_response import has_path, model_response
 from groundstation.freq.settings import FreqIdentifyConfig
 from groundstation.freq.spectra import ResponseSet
+from groundstation.sysid.fit_section import ModelFit
 from groundstation.sysid.model import (
     HOR_PARAMS,
     INPUTS,
@@ -363,4 +364,4 @@ def _model(theta: np.ndarray, std: np.ndarray, delays: np.ndarray, cfg: FreqIden
                       sample_rate_hz=float(1.0 / rs.dt_s),
                       parameter_std={n: (None if n in fixed or not np.isfinite(s) else float(s))
                                      for n, s in zip(PARAM_NAMES, std, strict=True)},
-                      augmentations=augment, fit=fit, pinned=pinned, **kw)
+                      augmentations=augment, fit=ModelFit.make(**fit), pinned=pinned, **kw)

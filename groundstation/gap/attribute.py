@@ -30,6 +30,8 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from groundstation.gap.config import DiagnoseConfig
+
 
 @dataclass
 class Candidate:
@@ -52,7 +54,7 @@ class Score:
     per_channel_shrink: dict[int, float]
 
 
-def paired_bootstrap(base: np.ndarray, alt: np.ndarray, rng: np.random.Generator, n_boot: int = 2000,
+def paired_bootstrap(base: np.ndarray, alt: np.ndarray, rng: np.random.Generator, n_boot: int = DiagnoseConfig.n_boot,
                      groups: np.ndarray | None = None) -> float:
     """One-sided p-value that ``alt`` (W,) does not reduce the total of ``base`` (W,).
 
@@ -69,21 +71,6 @@ def paired_bootstrap(base: np.ndarray, alt: np.ndarray, rng: np.random.Generator
         idx = rng.integers(0, W, (n_boot, W))
         m = d[idx].sum(axis=1)
     return float((np.sum(m <= 0) + 1) / (n_boot + 1))
-
-
-def active_windows(change: np.ndarray | None, base: np.ndarray, share: float = 0.01) -> np.ndarray:
-    """Windows where a variant changes the prediction by more than ``share`` of the base cost.
-
-    ``change`` (W,) energy of the prediction change, ``base`` (W,) base held-out cost. An effect
-    acting in a few windows (a slew limit on the sharpest inputs, ground effect near the ground)
-    leaves the others untouched; resampling those only dilutes the test. All windows when fewer
-    than two are active or ``change`` is None.
-    """
-    W = base.shape[0]
-    if change is None:
-        return np.ones(W, bool)
-    act = change > share * np.maximum(base, 1e-300)
-    return act if act.sum() >= 2 else np.ones(W, bool)
 
 
 def nrmse(sse: np.ndarray, energy: np.ndarray, channels: tuple[int, ...] | list[int]) -> float:
@@ -121,7 +108,8 @@ def _boot_shrink(base: np.ndarray, alt: np.ndarray, energy: np.ndarray, chans: t
 
 
 def score(base: np.ndarray, alt: np.ndarray, energy: np.ndarray, channels: tuple[int, ...],
-          rng: np.random.Generator, n_boot: int = 1000, test_n_boot: int = 2000) -> Score:
+          rng: np.random.Generator, n_boot: int = DiagnoseConfig.score_n_boot,
+          test_n_boot: int = DiagnoseConfig.n_boot) -> Score:
     """Score a hypothesis: base/alt held-out costs (W, 8), target energy (W, 8), effect channels.
 
     ``n_boot`` resamples for the shrink interval, ``test_n_boot`` for the paired test's p-value

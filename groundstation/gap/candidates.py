@@ -69,7 +69,7 @@ def refit_input_effect(c: attribute.Candidate, ctx: hypotheses.Context, segs: li
     segs_a = hypotheses.apply_input_effect(h, segs, ev.dt_s)
     ev_a = Evaluator(segs_a, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s,
                      folds=ev.folds, ridge=ev.ridge)
-    ev_a.refine(cfg.refit_iterations)
+    ev_a.refine(cfg.refit_iterations, cfg.refine_ridge)
     h.extra["theta_refit"] = ev_a.theta0
     ev_r = Evaluator(segs, ev.dt_s, ev_a.theta0, ev.available, window_s=ev.L * ev.dt_s,
                      folds=ev.folds, ridge=ev.ridge)
@@ -117,7 +117,7 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
             segs_a = hypotheses.apply_input_effect(a.hyp, segs, ev.dt_s)
             ev_a = Evaluator(segs_a, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s,
                              folds=ev.folds, ridge=ev.ridge)
-            ev_a.refine(cfg.refit_iterations)
+            ev_a.refine(cfg.refit_iterations, cfg.refine_ridge)
             hg = hypotheses.scan_wind_gust(hypotheses.Context(ev_a, segs_a, cfg=cfg))
             assert hg.sse is not None and gust.hyp.sse is not None
             m0, mg = gust.hyp.extra["base_sse"], gust.hyp.sse

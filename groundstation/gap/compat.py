@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from groundstation.gap.config import DiagnoseConfig
 from groundstation.gap.evaluate import SegmentArrays
 
 U, V, W, P, Q, R, THETA, PHI = range(8)
@@ -214,9 +215,10 @@ def _horizontal(horizontal: Sequence[Any], segs: list[SegmentArrays], sigma_raw:
 
 
 def check(segs: list[SegmentArrays], available: np.ndarray, dt_s: float, sigma_raw: np.ndarray,
-          trims: np.ndarray | None = None, *, window_s: float = 4.0, alpha: float = 0.01,
-          min_windows: int = 6, min_effect_to_noise: float = 1.0, horizontal: Sequence[Any] = (),
-          z_agree: float = 3.0) -> Compatibility:
+          trims: np.ndarray | None = None, *, window_s: float = DiagnoseConfig.compat_window_s,
+          alpha: float = DiagnoseConfig.alpha, min_windows: int = DiagnoseConfig.min_windows,
+          min_effect_to_noise: float = DiagnoseConfig.compat_min_effect_to_noise, horizontal: Sequence[Any] = (),
+          z_agree: float = DiagnoseConfig.compat_z_agree) -> Compatibility:
     """Kinematic consistency of the gyros and the vertical velocity (see the module docstring).
 
     ``segs``: in-air segments (raw outputs, trim removed, plus ``trims`` (8,) to make them absolute);

@@ -26,6 +26,10 @@ class DiagnoseConfig:
     min_windows: int = 6
     #: damping of the per-fold linear re-fit
     ridge: float = 1e-2
+    #: starting Levenberg damping (relative to the mean diagonal of the normal matrix) of every
+    #: refinement of the base model on all windows (the polish, the re-identifications with an effect
+    #: in place, the air-mass scan's)
+    refine_ridge: float = 1e-3
     #: independent identification searches when no model is given (CABC, then DE; the lowest
     #: refined cost wins): on one simulated R-50 flight 2 of 14 CABC searches landed in a wrong
     #: basin (roll flapping sign flipped, p match 49 % instead of 95 %), and the diagnosis then
@@ -130,6 +134,9 @@ class DiagnoseConfig:
     explained_share_min_pct: float = 50.0
     #: bootstrap resamples (over held-out windows) of every share interval
     share_n_boot: int = 1000
+    #: a channel's own share is given only where its held-out gap-to-noise ratio (RMS) is at least
+    #: this (below it the channel's excess over the noise is a small difference of two large numbers)
+    share_min_gap_ratio: float = 1.2
     #: a named effect "changes through the flight" only when the other half's value gives up more
     #: than this fraction of the effect's own gain in a half (besides being rejected at the level)
     consistency_min_loss: float = 0.25
@@ -141,8 +148,23 @@ class DiagnoseConfig:
     #: a significant sensor scale error is a finding only when the error it makes on its channel
     #: (scale x rms of the channel) exceeds this many times the channel's measured white noise
     compat_min_effect_to_noise: float = 1.0
+    #: the horizontal velocity checks' u and v scale errors are pooled into one finding only when
+    #: they agree within this many combined standard errors
+    compat_z_agree: float = 3.0
     #: input lags (s) over which the residual-input cross-correlation is reported
     xcorr_max_lag_s: float = 1.0
+
+    # ------------------------------------------------------------------ a stabilising controller
+    #: prediction windows (s) of the command-response and hover models over the held-out folds (from
+    #: the measured states), and of the closed-loop evidence the finding carries
+    controller_window_s: float = 5.0
+    #: the finding's closed-loop evidence: an input "follows the output error" when its change up to
+    #: this lag (s) later correlates with the error ...
+    controller_feedback_max_lag_s: float = 1.0
+    #: ... beyond this many times 1 / sqrt(effective samples) (the chance level)
+    controller_feedback_z: float = 3.0
+    #: a fold's prediction error counts at most this many times the signal (a runaway block)
+    controller_runaway_cap: float = 3.0
 
     # ------------------------------------------------------------------ numerical constants
     #: seed of the Monte-Carlo calibration of noise floors for interpolated streams: a property of

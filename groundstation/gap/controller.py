@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.gap.config import DiagnoseConfig
 from groundstation.parallel import Map, serial_map
 from groundstation.sysid.model import OUTPUTS
 
@@ -67,11 +68,16 @@ def _sigma(prepared: Any) -> np.ndarray:
     return np.asarray(noise_floor(raw, sm)["sigma_smoothed"], float)
 
 
-def stabilising_controller(prepared: Any, model: Any, *, sigma: np.ndarray | None = None, k: int = 5,
-                           kind: str = "rate_command", pmap: Map = serial_map, n_boot: int = 1000,
-                           seed: int = 0, config: Any = None, prior: Any = None) -> dict[str, Any] | None:
+def stabilising_controller(prepared: Any, model: Any, *, sigma: np.ndarray | None = None, k: int = DiagnoseConfig.folds,
+                           kind: str = "rate_command", pmap: Map = serial_map,
+                           n_boot: int = DiagnoseConfig.share_n_boot,
+                           seed: int = 0, config: DiagnoseConfig | None = None,
+                           prior: Any = None) -> dict[str, Any] | None:
     """The finding (see the module docstring), or None when the command-response structure removes none
-    of the gap. ``config`` and ``prior`` are accepted for compatibility and not used (no hover refit)."""
+    of the gap. ``config``: the diagnosis's settings of the prediction windows, the runaway cap and the
+    closed-loop evidence (``controller_*``; None: the defaults). ``prior`` is accepted for compatibility
+    and not used (no hover refit)."""
+    cfg = config or DiagnoseConfig()
     from groundstation.dsp.split import contiguous_kfold
     from groundstation.sysid.heldout import feedback_evidence, predict
     from groundstation.sysid.structure import identify_command, predict_command
@@ -84,8 +90,8 @@ def stabilising_controller(prepared: Any, model: Any, *, sigma: np.ndarray | Non
         if cm is None:
             continue
         try:
-            ph = predict(model, va)
-            pc = predict_command(cm, va)
+            ph = predict(model, va, window_s=cfg.controller_window_s)
+            pc = predict_command(cm, va, window_s=cfg.controller_window_s)
         except ValueError:  # a block shorter than one window
             continue
         ms, n = _mean_square(va)
@@ -94,7 +100,8 @@ def stabilising_controller(prepared: Any, model: Any, *, sigma: np.ndarray | Non
             if ch not in ph.ratio or ch not in pc.ratio or not np.isfinite(ms[c]) or not sig[c] > 0:
                 continue
             snr2 = ms[c] / sig[c] ** 2  # signal over noise variance: error ratio^2 x snr2 = error in noise units
-            rh, rc = min(ph.ratio[ch], 3.0), min(pc.ratio[ch], 3.0)  # a runaway block counts as 3x its signal
+            # a runaway block counts as [diagnose] controller_runaway_cap times its signal
+            rh, rc = min(ph.ratio[ch], cfg.controller_runaway_cap), min(pc.ratio[ch], cfg.controller_runaway_cap)
             ex[c] = (rh ** 2 * snr2 - 1.0) * n[c]
             rm[c] = (rh ** 2 - rc ** 2) * snr2 * n[c]
         rows.append((ex, rm, ph, pc))
@@ -111,11 +118,13 @@ def stabilising_controller(prepared: Any, model: Any, *, sigma: np.ndarray | Non
     idx = rng.integers(0, len(rows), (n_boot, len(rows)))
     boot = 100.0 * num[idx].sum(axis=1) / np.maximum(den[idx].sum(axis=1), 1e-300)
     lo, hi = (float(v) for v in np.percentile(boot, [5, 95]))
-    before = float(np.mean([np.mean([1.0 - max(1.0 - min(v, 3.0), -1.0) for v in r[2].ratio.values()]) for r in rows]))
-    after = float(np.mean([np.mean([1.0 - max(1.0 - min(v, 3.0), -1.0) for v in r[3].ratio.values()]) for r in rows]))
+    cap = cfg.controller_runaway_cap
+    before = float(np.mean([np.mean([1.0 - max(1.0 - min(v, cap), -1.0) for v in r[2].ratio.values()]) for r in rows]))
+    after = float(np.mean([np.mean([1.0 - max(1.0 - min(v, cap), -1.0) for v in r[3].ratio.values()]) for r in rows]))
     if not share > 0:
         return None
-    loop = feedback_evidence(model, prepared)
+    loop = feedback_evidence(model, prepared, window_s=cfg.controller_window_s,
+                             max_lag_s=cfg.controller_feedback_max_lag_s, z=cfg.controller_feedback_z)
     from groundstation.sysid.structure import CommandModel
 
     own = getattr(model, "command", None)
@@ -145,5 +154,6 @@ def may_be_commands(model: Any) -> bool:
     inputs, where the hover model is the right structure: the finding is not looked for."""
     if model is None:
         return False
-    fit = getattr(model, "fit", None) or {}
-    return getattr(model, "command", None) is not None or "structure_choice" in fit or "command_response" in fit
+    fit = getattr(model, "fit", None)
+    return getattr(model, "command", None) is not None or (
+        fit is not None and (fit.has("structure_choice") or fit.has("command_response")))

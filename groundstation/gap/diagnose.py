@@ -73,7 +73,7 @@ class Diagnosis:
     arrays: dict[str, Any] = field(default_factory=dict)
 
 
-def segments_from_prepared(prepared: Any, share_min: float = 0.7) -> tuple[list[SegmentArrays], np.ndarray]:
+def segments_from_prepared(prepared: Any, share_min: float = DiagnoseConfig.channel_share_min) -> tuple[list[SegmentArrays], np.ndarray]:
     """SegmentArrays of a ``dsp.prepare.PreparedData`` and the channels available in all of them
     (measured in at least ``share_min`` of the in-air time)."""
     segs, avails = [], []
@@ -259,7 +259,7 @@ def _controller_finding(report: dict[str, Any], prepared: Any, model: HoverModel
         else "rate_command"
     try:
         f = controller.stabilising_controller(prepared, model, sigma=loc.nf["sigma_smoothed"], k=cfg.folds, kind=kind,
-                                              pmap=pmap, n_boot=cfg.share_n_boot, seed=seed)
+                                              pmap=pmap, n_boot=cfg.share_n_boot, seed=seed, config=cfg)
     except (ValueError, ArithmeticError) as exc:
         report["notes"] = list(report.get("notes", [])) + [f"a stabilising controller in the loop not checked: {exc}"]
         return
@@ -310,7 +310,7 @@ def compat_stage(prepared: Any, cfg: DiagnoseConfig) -> tuple[compat.Compatibili
         if segs else np.full(8, np.nan)
     comp = compat.check(segs, avail, float(prepared.dt_s), sigma, _trims(prepared), window_s=cfg.compat_window_s,
                         alpha=cfg.alpha, min_windows=cfg.min_windows,
-                        min_effect_to_noise=cfg.compat_min_effect_to_noise,
+                        min_effect_to_noise=cfg.compat_min_effect_to_noise, z_agree=cfg.compat_z_agree,
                         horizontal=_horizontal_checks(prepared, cfg))
     fac = comp.scale_corrections()
     if not fac:
@@ -390,7 +390,7 @@ def base_stage(model: HoverModel | None, prepared: Any, cfg: DiagnoseConfig, see
     if not identified_here:
         yg = ev.simulate(theta_given)[0]
         given_metrics = locate.channel_metrics(ev.Y, yg, ev.score_mask, avail)
-    ev.refine(cfg.refine_iterations)
+    ev.refine(cfg.refine_iterations, cfg.refine_ridge)
     return Base(ev=ev, segs=segs, avail=avail, dt_s=dt, notes=notes, given_metrics=given_metrics)
 
 
@@ -586,7 +586,7 @@ def _structure_context(t: structure.StructureTest, base: Base, att: Attributed, 
         segs_s = structure.apply_structure(dataclasses.replace(t, coefficient=coef), base.segs, ev)
         ev_s = Evaluator(segs_s, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds,
                          ridge=ev.ridge)
-        ev_s.refine(cfg.refit_iterations)
+        ev_s.refine(cfg.refit_iterations, cfg.refine_ridge)
         ctx_s = hypotheses.Context(ev_s, segs_s, cfg=cfg)
         ctx_s.pwm_per_unit = att.ctx.pwm_per_unit
         if it == cfg.outer_iterations:
@@ -819,9 +819,9 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
     if unconfirmed:
         ranked = [c for c in ranked if c not in unconfirmed]
     sh_all = shares.compute_shares([(_effect_label(c), rem[id(c)]) for c in ranked], base_sse, noise_sse, avail,
-                                   rng, cfg.share_n_boot)
+                                   rng, cfg.share_n_boot, cfg.share_min_gap_ratio)
     sh = shares.compute_shares([(_effect_label(c), rem[id(c)]) for c in kept], base_sse, noise_sse, avail,
-                               rng, cfg.share_n_boot)
+                               rng, cfg.share_n_boot, cfg.share_min_gap_ratio)
     if any(c.hyp.effect == "wind_gust" for c in kept):
         # the air-mass protocol scores the horizontal velocities and the attitude angles only (the
         # rates carry the air velocity's rough part, which no smooth air velocity predicts, and w no
@@ -830,7 +830,7 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
         gust_ch = np.zeros(8, bool)
         gust_ch[list(hypotheses.GUST_CHANNELS)] = True
         sh_rule = shares.compute_shares([(_effect_label(c), rem[id(c)]) for c in kept], base_sse, noise_sse,
-                                        avail & gust_ch, rng, cfg.share_n_boot)
+                                        avail & gust_ch, rng, cfg.share_n_boot, cfg.share_min_gap_ratio)
         notes.append("an air mass is named: the share rule is decided on the channels the air-mass protocol "
                      f"scores (u, v, theta, phi): {sh_rule.explained_pct or 0.0:.0f} % of their gap above noise")
     else:
@@ -959,7 +959,7 @@ def _confirm_beside_first(kept: list[attribute.Candidate], rem: dict[int, np.nda
                 out.append(c)
             continue
         sh = shares.compute_shares([(_effect_label(c), rem[id(c)])], base_sse, noise_sse, avail, rng,
-                                   cfg.share_n_boot)
+                                   cfg.share_n_boot, cfg.share_min_gap_ratio)
         pe = sh.per_effect[0] if sh.per_effect else None
         num = shares.window_removal(rem[id(c)], base_sse, noise_sse, avail)
         try:

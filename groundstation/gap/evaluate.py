@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from groundstation.errors import GapError
+from groundstation.gap.config import DiagnoseConfig
 from groundstation.gap.linsim import simulate
 from groundstation.sysid.model import N_PARAMS
 
@@ -85,8 +86,9 @@ class Evaluator:
     """
 
     def __init__(self, segments: list[SegmentArrays], dt_s: float, theta0: np.ndarray,
-                 available: np.ndarray, *, window_s: float = 3.0, folds: int = 3, start_s: float = 0.4,
-                 ridge: float = 1e-2):
+                 available: np.ndarray, *, window_s: float = DiagnoseConfig.window_s,
+                 folds: int = DiagnoseConfig.folds, start_s: float = 0.4,
+                 ridge: float = DiagnoseConfig.ridge):
         self.segments = segments
         self.dt_s = float(dt_s)
         self.theta0 = np.asarray(theta0, float).copy()
@@ -319,7 +321,8 @@ class Evaluator:
             out[te] = rf[te] - np.einsum("wni,i->wn", Jn[te], d)
         return out.reshape(r.shape)
 
-    def fit_all(self, r: np.ndarray, X: np.ndarray | None = None, ridge: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    def fit_all(self, r: np.ndarray, X: np.ndarray | None = None,
+                ridge: float = DiagnoseConfig.refine_ridge) -> tuple[np.ndarray, np.ndarray]:
         """One Gauss-Newton step on all windows: returns (d_theta (31,), linear params (K,))."""
         W = self.W
         rf = r.reshape(W, -1)
@@ -340,8 +343,9 @@ class Evaluator:
         # residual r = y - yhat; r ~ M d  =>  yhat_new = yhat + M d  => theta_new = theta0 - d/col
         return -d[:N_PARAMS] / self.col, d[N_PARAMS:] / xs
 
-    def refine(self, iterations: int = 6, ridge: float = 1e-3) -> float:
-        """Levenberg-Marquardt refinement of theta0 on all windows; returns the final total cost."""
+    def refine(self, iterations: int, ridge: float = DiagnoseConfig.refine_ridge) -> float:
+        """Levenberg-Marquardt refinement of theta0 on all windows (``ridge``: the starting damping,
+        ``[diagnose] refine_ridge``); returns the final total cost."""
         cost = float((self.r0 ** 2).sum())
         lam = ridge
         for _ in range(iterations):

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from groundstation.gap.config import DiagnoseConfig
 from groundstation.sysid.model import OUTPUTS
 
 #: how far (amplitude ratio) the model's response may be wrong before a residual line the sticks also
@@ -266,8 +267,9 @@ def kinematic_rate_offsets(Y: np.ndarray, dt_s: float, available: np.ndarray,
     return out
 
 
-def native_rate_lines(gyro_rad_s: np.ndarray, dt_s: float, *, window_s: float = 2.0, min_hz: float = 10.0,
-                      alpha: float = 1e-3) -> list[Line]:
+def native_rate_lines(gyro_rad_s: np.ndarray, dt_s: float, *, window_s: float = DiagnoseConfig.native_line_window_s,
+                      min_hz: float = DiagnoseConfig.native_line_min_hz,
+                      alpha: float = DiagnoseConfig.native_line_alpha) -> list[Line]:
     """Narrow lines in body rates sampled faster than the identification grid (the autopilot's own log).
 
     A rotor-frequency vibration sits at its true frequency here (below this rate's Nyquist) rather

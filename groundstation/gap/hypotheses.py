@@ -184,7 +184,7 @@ class Context:
         self.blocks[effect] = out_b
         best = int(np.argmin(T.sum(axis=1)))
         # how much the selected variant changes each window's prediction (at theta0): windows it
-        # leaves untouched carry no evidence either way (see attribute.active_windows)
+        # leaves untouched carry no evidence either way
         change = np.zeros(ev.W)
         for f in range(ev.folds):
             v = int(np.argmin(T[:, f]))
@@ -522,7 +522,7 @@ def scan_wind_gust(ctx: Context, chunk_s: float | None = None, refine_iterations
     evg.nuisance_prec = prec
     evg.set_theta(ev.theta0)
     if refine_iterations > 0:
-        evg.refine(refine_iterations)
+        evg.refine(refine_iterations, ctx.cfg.refine_ridge)
     chunk = max(int(round(chunk_s / ev.dt_s)), 2)
     even = ((np.arange(L) // chunk) % 2 == 0) & ev.mask
     odd = ((np.arange(L) // chunk) % 2 == 1) & ev.mask

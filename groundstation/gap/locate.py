@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from groundstation.gap.config import DiagnoseConfig
 from groundstation.gap.fingerprints import averaged_periodogram
 from groundstation.sysid.model import OUTPUTS
 
@@ -112,7 +113,8 @@ def input_coherence(resid: np.ndarray, inputs: np.ndarray, dt_s: float, band: tu
     return best
 
 
-def conditions(energy: np.ndarray, features: dict[str, np.ndarray], alpha: float = 0.01) -> dict[str, Any]:
+def conditions(energy: np.ndarray, features: dict[str, np.ndarray],
+               alpha: float = DiagnoseConfig.conditions_alpha) -> dict[str, Any]:
     """Rank correlation of window residual energy with each flight-condition feature (W,)."""
     res: dict[str, Any] = {}
     best_name, best_rho, best_p = "none", 0.0, 1.0

@@ -24,6 +24,7 @@ from functools import lru_cache
 import numpy as np
 
 from groundstation.dsp.smoothing import smooth5
+from groundstation.gap.config import DiagnoseConfig
 
 _MAD_TO_STD = 1.4826
 _MAX_PASSES = 8
@@ -63,7 +64,7 @@ def _d2_scale(parts: list[np.ndarray], step: int, offsets: list[int] | None = No
 
 
 @lru_cache(maxsize=64)
-def _calibration(stride_key: float, seed: int = 12345) -> tuple[float, np.ndarray]:
+def _calibration(stride_key: float, seed: int = DiagnoseConfig.noise_calibration_seed) -> tuple[float, np.ndarray]:
     """For unit white noise sent every ``stride`` grid steps and linearly interpolated onto the grid
     (grid noise ``g``): ``(d2 estimate / std(g), [(var(S_p g), var(S_p g - g)) / var(g) per pass])``."""
     rng = np.random.default_rng(seed)
@@ -92,7 +93,8 @@ def _key(stride: float) -> float:
 
 
 def raw_noise_std(raw: list[np.ndarray], strides: np.ndarray | None = None,
-                  calibration_seed: int = 12345, offsets: list[int] | None = None) -> np.ndarray:
+                  calibration_seed: int = DiagnoseConfig.noise_calibration_seed,
+                  offsets: list[int] | None = None) -> np.ndarray:
     """Noise standard deviation on the grid per channel, from second differences of raw segments (n, C).
 
     ``strides`` (C,) source interval / grid step per channel (None: all sent at the grid rate);
@@ -124,7 +126,8 @@ def grid_offsets(t_starts_s: list[float], flights: list[int], dt_s: float) -> li
 
 
 def smoothing_gain(raw: list[np.ndarray], smoothed: list[np.ndarray], sigma: np.ndarray,
-                   strides: np.ndarray | None = None, calibration_seed: int = 12345) -> np.ndarray:
+                   strides: np.ndarray | None = None,
+                   calibration_seed: int = DiagnoseConfig.noise_calibration_seed) -> np.ndarray:
     """Per channel: fraction of the raw (grid) noise variance left in the smoothed outputs."""
     diff = np.concatenate([s - r for s, r in zip(smoothed, raw, strict=True)])
     seen = np.isfinite(diff).sum(axis=0)
@@ -144,7 +147,8 @@ def smoothing_gain(raw: list[np.ndarray], smoothed: list[np.ndarray], sigma: np.
 
 
 def noise_floor(raw: list[np.ndarray], smoothed: list[np.ndarray],
-                strides: np.ndarray | None = None, calibration_seed: int = 12345,
+                strides: np.ndarray | None = None,
+                calibration_seed: int = DiagnoseConfig.noise_calibration_seed,
                 offsets: list[int] | None = None) -> dict[str, np.ndarray]:
     """Noise figures per channel: ``sigma_raw``, ``sigma_smoothed``, ``nrmse_floor`` (sigma / signal std).
 

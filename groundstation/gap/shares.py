@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from groundstation.gap import attribute, fingerprints, hypotheses
+from groundstation.gap.config import DiagnoseConfig
 from groundstation.gap.evaluate import Evaluator, SegmentArrays
 from groundstation.sysid.model import INPUTS, OUTPUTS
 
@@ -118,8 +119,8 @@ def _ratio_interval(num: np.ndarray, den: np.ndarray, idx: np.ndarray) -> tuple[
 
 
 def compute_shares(named: list[tuple[str, np.ndarray]], base_sse: np.ndarray, noise_sse: np.ndarray,
-                   available: np.ndarray, rng: np.random.Generator, n_boot: int = 1000,
-                   min_gap_ratio: float = 1.2) -> Shares:
+                   available: np.ndarray, rng: np.random.Generator, n_boot: int = DiagnoseConfig.share_n_boot,
+                   min_gap_ratio: float = DiagnoseConfig.share_min_gap_ratio) -> Shares:
     """Shares of the gap above the noise removed by ``named`` ((label, removal (W, 8)) in order).
 
     Channels enter the total where their held-out cost is above their noise cost; a channel's own

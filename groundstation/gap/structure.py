@@ -210,7 +210,7 @@ def _n_eff(x: np.ndarray, max_lag: int) -> float:
 
 
 def input_cross_correlation(e: np.ndarray, U: np.ndarray, dt_s: float, out_excited: np.ndarray,
-                            in_excited: np.ndarray, max_lag_s: float = 1.0) -> list[dict]:
+                            in_excited: np.ndarray, max_lag_s: float = DiagnoseConfig.xcorr_max_lag_s) -> list[dict]:
     """Largest residual-input cross-correlation (input leading by 0..max_lag_s) per output/input pair,
     with its z-score against the white-noise null using the residual's effective sample size."""
     res: list[dict[str, Any]] = []
@@ -235,7 +235,7 @@ def input_cross_correlation(e: np.ndarray, U: np.ndarray, dt_s: float, out_excit
 
 
 def ljung_box(e_raw: np.ndarray, stride: np.ndarray | None, channels: np.ndarray, dt_s: float,
-              max_lag_s: float = 1.0, alpha: float = 0.01) -> list[dict]:
+              max_lag_s: float = DiagnoseConfig.xcorr_max_lag_s, alpha: float = DiagnoseConfig.alpha) -> list[dict]:
     """Ljung-Box (portmanteau) whiteness of the held-out raw residual ``e_raw`` (W, L, 8) per channel in
     ``channels``: ``Q = sum_h n_h rho_h^2`` with ``n_h`` the lag-``h`` products pooled over windows.
 

@@ -214,9 +214,9 @@ def parameters_figure(model: Any) -> Figure | None:
     if model is None:
         return None
     fit = model.fit
-    prior = fit.get("prior") or {}
+    prior = fit.prior
     share = prior.get("prior_share", {})
-    fixed = set(fit.get("fixed", [])) | set(prior.get("fixed_at_prior", []))
+    fixed = set(fit.fixed) | set(prior.get("fixed_at_prior", []))
     fig, axes = _new(10, 3.4, 1, 1)
     ax = axes[0, 0]
     rel, colors = [], []
@@ -308,9 +308,10 @@ def fit_figure(validation: Validation | None, output_trim: dict[str, float] | No
 
 
 def heldout_figure(heldout: Any) -> Figure | None:
-    if not heldout or "folds" not in heldout or not heldout["folds"]:
+    """``heldout``: a :class:`groundstation.sysid.fit_section.HeldOut` (None: no figure)."""
+    if heldout is None or not heldout.folds:
         return None
-    folds = heldout["folds"]
+    folds = heldout.folds
     chans = [c for c in OUTPUTS if any(c in f for f in folds)]
     fig, axes = _new(10, 3.2, 1, 1)
     ax = axes[0, 0]
@@ -320,7 +321,7 @@ def heldout_figure(heldout: Any) -> Figure | None:
         vals = [f.get(c, np.nan) for c in chans]
         ax.bar(x + k * w - 0.4 + w / 2, np.clip(np.nan_to_num(vals, nan=0.0), -100, 100), width=w,
                color=f"C{k}", label=f"fold {k + 1}")
-    means = heldout.get("channel_mean", {})
+    means = heldout.channel_mean
     ax.plot(x, [means.get(c, np.nan) for c in chans], "k_", ms=18, mew=2, label="mean")
     ax.axhline(0, color="k", lw=0.6)
     ax.set_xticks(x, chans)
@@ -331,7 +332,7 @@ def heldout_figure(heldout: Any) -> Figure | None:
     ax.grid(True, axis="y", alpha=0.3)
     return finish(fig, "heldout", "Held-out match per channel and fold",
                   f"Refit on {len(folds) - 1} of {len(folds)} contiguous blocks of the in-air time, prediction of the "
-                  f"left-out block in {heldout.get('window_s') or 0:g}-s windows from the measured states "
+                  f"left-out block in {heldout.window_s or 0:g}-s windows from the measured states "
                   "(clipped at -100 %).")
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from groundstation.report import figures as F
 from groundstation.report.data import SECTIONS, FlightReportData
+from groundstation.sysid.fit_section import HeldOut
 from groundstation.sysid.model import OUTPUT_UNITS, OUTPUTS, PARAM_NAMES
 
 #: what to do next, per verdict (the gap section's last paragraph)
@@ -95,9 +96,9 @@ def model_view(d: FlightReportData) -> dict[str, Any]:
     if m is None:
         return {"error": d.errors.get("model") or "no model"}
     fit = m.fit
-    prior = fit.get("prior") or {}
+    prior = fit.prior
     share = prior.get("prior_share", {})
-    fixed = set(fit.get("fixed", [])) | set(prior.get("fixed_at_prior", []))
+    fixed = set(fit.fixed) | set(prior.get("fixed_at_prior", []))
     params = []
     for n in PARAM_NAMES:
         s = m.parameter_std.get(n)
@@ -116,17 +117,17 @@ def model_view(d: FlightReportData) -> dict[str, Any]:
                                  if prior.get("nominal") else "–"),
                        "share": _f(100 * share[n], ".0f") + " %" if n in share else "–", "status": status,
                        "flag": status not in ("determined by the flight", "estimated")})
-    ho = fit.get("heldout") or {}
+    ho = fit.heldout or HeldOut()
     lines: list[str] = []
-    if "channel_mean" in ho and not ho["channel_mean"]:
-        lines.append(f"Held-out check over {ho.get('k')} folds: no fold held a window the model could be scored on.")
-    elif "channel_mean" in ho:
-        lines.append(f"Held-out match over {ho['k']} contiguous folds: mean {ho['mean_match']:.1f} % ("
-                     + ", ".join(f"{c} {v:.1f}" for c, v in ho["channel_mean"].items()) + ").")
-        lines.append(f"The model predicts: {', '.join(ho['predicted']) or 'no channel'}; it does not predict: "
-                     f"{', '.join(ho['not_predicted']) or 'none'}.")
-    elif "skipped" in ho:
-        lines.append(f"Held-out check not made: {ho['skipped']}")
+    if ho.has("channel_mean") and not ho.channel_mean:
+        lines.append(f"Held-out check over {ho.k} folds: no fold held a window the model could be scored on.")
+    elif ho.has("channel_mean"):
+        lines.append(f"Held-out match over {ho.k} contiguous folds: mean {ho.mean_match:.1f} % ("
+                     + ", ".join(f"{c} {v:.1f}" for c, v in ho.channel_mean.items()) + ").")
+        lines.append(f"The model predicts: {', '.join(ho.predicted) or 'no channel'}; it does not predict: "
+                     f"{', '.join(ho.not_predicted) or 'none'}.")
+    elif ho.has("skipped"):
+        lines.append(f"Held-out check not made: {ho.skipped}")
     elif d.errors.get("heldout"):
         lines.append(f"Held-out check not made: {d.errors['heldout']}")
     else:
@@ -137,21 +138,21 @@ def model_view(d: FlightReportData) -> dict[str, Any]:
         lines.append(f"This model was identified on {', '.join(src)}: its held-out figures are of those logs; "
                      f"on {', '.join(here)} see the measured-vs-model figure and the gap section.")
     warnings: list[str] = []
-    for sub in ho.get("unusable_subsystems", []):
-        runs = "; ".join(f"{f}: " + ", ".join(c) for f, c in ho.get("runaway", {}).items())
+    for sub in ho.unusable_subsystems:
+        runs = "; ".join(f"{f}: " + ", ".join(c) for f, c in ho.runaway.items())
         warnings.append(f"The {sub} subsystem's held-out prediction runs away ({runs}): not a model of the aircraft.")
-    for u in fit.get("unstable_modes", []):
+    for u in fit.unstable_modes:
         warnings.append(u[0].upper() + u[1:] + ".")
     if prior.get("prior_dominated"):
         warnings.append(f"Not determined by this flight, kept near the prior ({prior.get('source')}): "
                         f"{', '.join(prior['prior_dominated'])}.")
-    for name, why in fit.get("pinned_reasons", {}).items():
+    for name, why in fit.pinned_reasons.items():
         warnings.append(f"{name} {why}.")
-    notes = list(fit.get("fixed_reasons", [])) + list(fit.get("notes", [])) + list(fit.get("closed_loop", []))
+    notes = list(fit.fixed_reasons) + list(fit.notes) + list(fit.closed_loop)
     figs = [F.parameters_figure(m), F.modes_figure(m), F.fit_figure(d.validation), F.heldout_figure(ho)]
     train = d.validation.channels if d.validation is not None else {}
-    head = (f"{str(fit.get('algorithm', '?')).upper()} fit, cost F = {_f(fit.get('cost'), '.4f')}, "
-            f"{fit.get('evaluations', '?')} evaluations; {len(m.augmentations)} augmentation(s)")
+    head = (f"{str(fit.algorithm or '?').upper()} fit, cost F = {_f(fit.cost, '.4f')}, "
+            f"{'?' if fit.evaluations is None else fit.evaluations} evaluations; {len(m.augmentations)} augmentation(s)")
     return {"error": None, "head": head, "lines": lines, "warnings": warnings, "notes": notes, "params": params,
             "train": [{"channel": c, "match": _f(v.match, ".1f"), "unit": OUTPUT_UNITS[c]}
                       for c, v in train.items()],
@@ -285,7 +286,7 @@ def gap_view(d: FlightReportData) -> dict[str, Any]:
 
 
 def across_view(d: FlightReportData) -> dict[str, Any]:
-    cross = (d.model.fit.get("cross_flight") if d.model is not None else None) or {}
+    cross = d.model.fit.cross_flight if d.model is not None else {}
     lines = []
     if cross.get("new_model_on_previous_flight"):
         lines.append(f"This model on flight {cross['previous_flight']}: held-out mean match "
@@ -330,21 +331,21 @@ def unsupported(d: FlightReportData) -> list[str]:
     m = d.model
     if m is not None:
         fit = m.fit
-        ho = fit.get("heldout") or {}
-        for sub in ho.get("unusable_subsystems", []):
+        ho = fit.heldout or HeldOut()
+        for sub in ho.unusable_subsystems:
             out.append(f"The {sub} subsystem is not a model of the aircraft: its held-out prediction runs away.")
-        if ho.get("not_predicted"):
-            out.append(f"The model does not predict {', '.join(ho['not_predicted'])} on held-out data.")
-        if "mean_match" in ho and math.isfinite(ho["mean_match"] or math.nan) and ho["mean_match"] < 50:
-            out.append(f"The model predicts only {ho['mean_match']:.0f} % of held-out data (mean match).")
-        if fit.get("fixed"):
-            out.append(f"{len(fit['fixed'])} parameters cannot be identified from this flight and stay fixed: "
-                       f"{', '.join(fit['fixed'])}.")
+        if ho.not_predicted:
+            out.append(f"The model does not predict {', '.join(ho.not_predicted)} on held-out data.")
+        if ho.mean_match is not None and math.isfinite(ho.mean_match) and ho.mean_match < 50:
+            out.append(f"The model predicts only {ho.mean_match:.0f} % of held-out data (mean match).")
+        if fit.fixed:
+            out.append(f"{len(fit.fixed)} parameters cannot be identified from this flight and stay fixed: "
+                       f"{', '.join(fit.fixed)}.")
         if m.pinned:
             out.append(f"On a search bound, not estimates: {', '.join(m.pinned)}.")
-        for c in fit.get("closed_loop", [])[:1]:
+        for c in fit.closed_loop[:1]:
             out.append(f"Closed loop: {c}")
-        pr = fit.get("prior") or {}
+        pr = fit.prior
         if pr.get("prior_dominated"):
             out.append(f"Kept near the prior, not determined by this flight: {', '.join(pr['prior_dominated'])}.")
     v = d.freq
@@ -388,11 +389,11 @@ def one_line_summary(d: FlightReportData) -> str:
     elif d.errors.get("logs") or d.errors.get("prepare"):
         return f"not analysed: {d.errors.get('logs') or d.errors.get('prepare')}"
     if d.model is not None:
-        ho = d.model.fit.get("heldout") or {}
-        if "mean_match" in ho and math.isfinite(ho["mean_match"] or math.nan):
-            parts.append(f"held-out match {ho['mean_match']:.1f} %")
-        if ho.get("unusable_subsystems"):
-            parts.append(f"unusable: {', '.join(ho['unusable_subsystems'])}")
+        ho = d.model.fit.heldout or HeldOut()
+        if ho.mean_match is not None and math.isfinite(ho.mean_match):
+            parts.append(f"held-out match {ho.mean_match:.1f} %")
+        if ho.unusable_subsystems:
+            parts.append(f"unusable: {', '.join(ho.unusable_subsystems)}")
     if d.freq is not None and d.freq.J_avg is not None:
         parts.append(f"J_avg {d.freq.J_avg:.0f}")
     if d.gap is not None:

@@ -7,8 +7,11 @@ and, as plain JSON values in ``extra``, the sections only some fits have (the co
 selection, the prior, the search history, the frequency scores, ...). ``to_json()`` gives the
 section back key for key and in the same order, so a file read and written again is unchanged.
 Every field is optional (None or empty): a model from the frequency-domain fit, the reference fit
-or an older file has fewer of them. Pure; the producers (:mod:`groundstation.sysid.identify`,
-:mod:`groundstation.analysis`) still build the section as a dict on the model.
+or an older file has fewer of them. A field is in the document when it was read from one or set by
+:meth:`JsonSection.make` / :meth:`JsonSection.set` (so ``"seconds": null`` stays in the file), in the
+order it was set. ``HoverModel.fit`` is a ModelFit: producers build it with ``ModelFit.make(...)`` and
+update it with ``fit.set(...)`` (a :func:`dataclasses.replace` that also records a new key's place);
+an unknown name raises TypeError, so a misspelt key never reaches a file. Pure.
 """
 
 from __future__ import annotations
@@ -38,9 +41,7 @@ class JsonSection:
 
     @classmethod
     def _fields(cls) -> dict[str, Any]:
-        hints = typing.get_type_hints(cls)
-        return {f.name: hints[f.name] for f in dataclasses.fields(cls)
-                if f.name not in ("extra", "keys") and f.metadata.get("json", True)}
+        return _field_types(cls)
 
     @classmethod
     def from_json(cls: type[T], doc: Mapping[str, Any]) -> T:
@@ -53,6 +54,45 @@ class JsonSection:
                 kw[k] = _read(known[k], v)
         extra = {k: copy.deepcopy(v) for k, v in doc.items() if k not in known}
         return cls(**kw, extra=extra, keys=tuple(doc))
+
+    @classmethod
+    def make(cls: type[T], **fields: Any) -> T:
+        """A section with these fields, in this order (JSON lists and objects read as :meth:`from_json`
+        reads them); an unknown name raises TypeError."""
+        return cls()._with(fields)
+
+    def set(self: T, **fields: Any) -> T:
+        """A copy with these fields changed; a field not yet in the document goes after the others, as a
+        new key of a dict would. An unknown name raises TypeError."""
+        return self._with(fields)
+
+    def without(self: T, *names: str) -> T:
+        """A copy without these keys (fields back to their defaults, extra keys dropped)."""
+        known = self._fields()
+        defaults = {f.name: _default(f) for f in dataclasses.fields(self) if f.name in known}
+        gone = set(names)
+        return dataclasses.replace(self, **{n: defaults[n] for n in gone if n in known},
+                                   extra={k: v for k, v in self.extra.items() if k not in gone},
+                                   keys=tuple(k for k in self.keys if k not in gone))
+
+    def has(self, name: str) -> bool:
+        """Whether the document has key ``name`` (a field can be in it with its default value)."""
+        return name in self.keys or name in self.extra or (
+            name in self._fields() and getattr(self, name) != _default(
+                next(f for f in dataclasses.fields(self) if f.name == name)))
+
+    def _with(self: T, fields: Mapping[str, Any]) -> T:
+        known = self._fields()
+        unknown = sorted(set(fields) - set(known))
+        if unknown:
+            raise TypeError(f"{type(self).__name__} has no field {', '.join(unknown)}")
+        kw = {k: _read(known[k], v) for k, v in fields.items()}
+        keys = self.keys if self.keys or not self._set_fields() else tuple(self.to_json())
+        return dataclasses.replace(self, **kw, keys=keys + tuple(k for k in fields if k not in keys))
+
+    def _set_fields(self) -> bool:
+        """Whether any field differs from its default (a section built by the plain constructor)."""
+        return any(getattr(self, f.name) != _default(f) for f in dataclasses.fields(self) if f.name != "keys")
 
     def to_json(self) -> dict[str, Any]:
         known = self._fields()
@@ -70,6 +110,18 @@ class JsonSection:
             elif k in self.extra:
                 out[k] = copy.deepcopy(self.extra[k])
         return out
+
+
+_FIELD_TYPES: dict[type, dict[str, Any]] = {}
+
+
+def _field_types(cls: type) -> dict[str, Any]:
+    """The JSON fields of a section type with their types (resolved once per type)."""
+    if cls not in _FIELD_TYPES:
+        hints = typing.get_type_hints(cls)
+        _FIELD_TYPES[cls] = {f.name: hints[f.name] for f in dataclasses.fields(cls)
+                             if f.name not in ("extra", "keys") and f.metadata.get("json", True)}
+    return _FIELD_TYPES[cls]
 
 
 def _default(f: dataclasses.Field) -> Any:
@@ -138,6 +190,13 @@ class ModelFit(JsonSection):
     fitness: float | None = None
     #: the refined windowed output-error cost (eq. 11)
     cost: float | None = None
+    #: the search's cost before refinement (the frequency-domain fit: per subsystem)
+    search_cost: float | Mapping[str, float] | None = None
+    search_window_s: float | None = None
+    search_cost_by_subsystem: Mapping[str, float] = field(default_factory=dict)
+    search_restarts: int | None = None
+    search_algorithm_by_subsystem: Mapping[str, str] = field(default_factory=dict)
+    refined: bool | None = None
     #: match degree (%) per output channel on the training windows
     match_degree: Mapping[str, float] = field(default_factory=dict)
     evaluations: int | None = None
@@ -152,10 +211,51 @@ class ModelFit(JsonSection):
     channels: tuple[str, ...] = ()
     #: parameters held fixed (the flight does not move them)
     fixed: tuple[str, ...] = ()
+    #: why each group of parameters is fixed (one sentence each)
+    fixed_reasons: tuple[str, ...] = ()
+    #: output noise standard deviation per channel
+    noise_sigma: Mapping[str, float] = field(default_factory=dict)
+    #: search cost per iteration, per subsystem
+    history: Mapping[str, Any] = field(default_factory=dict)
+    #: cost evaluations at each history entry, per subsystem
+    history_nfev: Mapping[str, Any] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
+    trim_estimated: bool | None = None
+    kinematic_forcing: tuple[Any, ...] = ()
+    input_trim_correction_pwm: Mapping[str, float] = field(default_factory=dict)
+    #: parameter on a search bound -> why
+    pinned_reasons: Mapping[str, Any] = field(default_factory=dict)
+    #: unstable modes with their time constants (one sentence each)
+    unstable_modes: tuple[str, ...] = ()
+    #: the prior model's part in the fit (which parameters it decided, its nominal and std)
+    prior: Mapping[str, Any] = field(default_factory=dict)
+    #: the held-out choice of the fitting configuration
+    selection: Mapping[str, Any] = field(default_factory=dict)
     heldout: HeldOut | None = None
     #: False when a subsystem's held-out prediction runs away; None when not checked
     usable: bool | None = None
     unusable_subsystems: tuple[str, ...] = ()
     #: what the closed loop means for this model (one sentence each)
     closed_loop: tuple[str, ...] = ()
+    #: channels whose prediction runs away (``identify --domain``)
+    runaway_channels: tuple[str, ...] = ()
+    #: the stabilised aircraft's structure comparison: which structure predicts, and why
+    structure_choice: Mapping[str, Any] = field(default_factory=dict)
+    #: the command-response fit, one line per axis
+    command_response: tuple[str, ...] = ()
+    #: the hover structure's held-out check when the command-response structure was chosen
+    heldout_hover: HeldOut | None = None
+    #: the previous flights' model predicting this one (the service)
+    cross_flight: Mapping[str, Any] = field(default_factory=dict)
+    #: frequency-domain scores (``identify --domain``)
+    scores: Mapping[str, Any] = field(default_factory=dict)
+    #: "frequency" for the frequency-domain fit
+    domain: str | None = None
+    J_by_subsystem: Mapping[str, float] = field(default_factory=dict)
+    cost_by_subsystem: Mapping[str, float] = field(default_factory=dict)
+    weighting: str | None = None
+    windows_s: tuple[Any, ...] = ()
+    frequency_hz: tuple[float, ...] = ()
+    sample_interval_s: float | None = None
+    #: starts of the least-squares reference fit
+    starts: int | None = None

@@ -34,6 +34,7 @@ from groundstation.parallel import Map, serial_map
 from groundstation.sysid.cost import make_windows
 from groundstation.sysid.model import INPUTS, OUTPUTS, HoverModel, build_matrices
 from groundstation.sysid.prediction import Prediction
+from groundstation.sysid.settings import IdentifyConfig
 from groundstation.sysid.simulate import WindowSimulator
 
 #: channels of each subsystem (which outputs a subsystem's instability spoils)
@@ -75,7 +76,8 @@ def input_offset(model: HoverModel, prepared: Any) -> np.ndarray:
                      for k in INPUTS])
 
 
-def predict(model: HoverModel, prepared: Any, *, window_s: float = 5.0, use_model_trim: bool = True) -> Prediction:
+def predict(model: HoverModel, prepared: Any, *, window_s: float = IdentifyConfig.heldout_window_s,
+            use_model_trim: bool = True) -> Prediction:
     """Score ``model`` on held-out ``prepared`` data (see the module docstring). A model whose
     ``structure`` is the command-response one predicts with it (:mod:`groundstation.sysid.structure`)."""
     if getattr(model, "structure", "hover") == "command_response" and model.command is not None:
@@ -133,8 +135,9 @@ def _fit_or_none(fit_fold: Any, train: Any) -> Any:
         return None
 
 
-def crossvalidate(prepared: Any, fit_fold: Any, *, k: int = 5, window_s: float = 5.0,
-                  runaway_factor: float = 3.0, pmap: Map = serial_map) -> CrossValidation:
+def crossvalidate(prepared: Any, fit_fold: Any, *, k: int = IdentifyConfig.select_folds,
+                  window_s: float = IdentifyConfig.heldout_window_s,
+                  runaway_factor: float = IdentifyConfig.runaway_factor, pmap: Map = serial_map) -> CrossValidation:
     """Fit on k-1 contiguous blocks of the in-air time with ``fit_fold(train) -> HoverModel``, predict
     the left-out block (:func:`predict`), for each of the k blocks. ``pmap`` fits the folds (in worker
     processes with :func:`groundstation.parallel.worker_map`; ``fit_fold`` must then be picklable)."""
@@ -165,13 +168,14 @@ def crossvalidate(prepared: Any, fit_fold: Any, *, k: int = 5, window_s: float =
                            predicted, tuple(c for c in chans if c not in predicted), runaway, unusable)
 
 
-def runaway_channels(pred: Prediction, runaway_factor: float = 3.0) -> list[str]:
+def runaway_channels(pred: Prediction, runaway_factor: float = IdentifyConfig.runaway_factor) -> list[str]:
     """Channels whose held-out error is more than ``runaway_factor`` times the signal itself."""
     return [c for c, r in pred.ratio.items() if r > runaway_factor]
 
 
-def feedback_evidence(model: HoverModel, prepared: Any, *, window_s: float = 5.0, max_lag_s: float = 1.0,
-                      z: float = 3.0) -> list[str]:
+def feedback_evidence(model: HoverModel, prepared: Any, *, window_s: float = IdentifyConfig.feedback_window_s,
+                      max_lag_s: float = IdentifyConfig.feedback_max_lag_s,
+                      z: float = IdentifyConfig.feedback_z) -> list[str]:
     """Signs that someone closes the loop: inputs that follow the model's output error.
 
     In open loop the inputs do not depend on what the model fails to explain; a pilot or a flight

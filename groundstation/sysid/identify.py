@@ -50,6 +50,7 @@ from threadpoolctl import threadpool_limits
 from groundstation.errors import SysidError
 from groundstation.parallel import Map, serial_map
 from groundstation.sysid.cost import WindowedCost, make_windows, subset_windows
+from groundstation.sysid.fit_section import ModelFit
 from groundstation.sysid.model import (
     HOR_PARAMS,
     N_PARAMS,
@@ -106,7 +107,7 @@ def free_mask(prepared: Any) -> tuple[np.ndarray, list[str]]:
     return free, reasons
 
 
-def _starts(opt: Any, k: int, span: np.ndarray, min_dist: float = 0.2) -> list[np.ndarray]:
+def _starts(opt: Any, k: int, span: np.ndarray, min_dist: float = IdentifyConfig.refine_start_min_dist) -> list[np.ndarray]:
     """Up to k good and mutually distinct points of everything the search evaluated, best first.
 
     Distinct: normalised distance ``||(x - y) / span|| / sqrt(D)`` of at least ``min_dist``.
@@ -285,12 +286,13 @@ def _search_once(alg: str, it: int, label: str, costs: tuple, plan: _Plan, cfg: 
         th = cost_v.complete(np.asarray(xv, dtype=float)[None])[0]
         return np.clip(th[sub_free], bfree[:, 0], bfree[:, 1])
 
-    opt = ALGORITHMS[alg](cost_v, plan.bounds[cost_v.free], rng=rng, maxiter=it, maxfev=cfg.maxfev, callback=cb)
+    opt = ALGORITHMS[alg](cost_v, plan.bounds[cost_v.free], rng=rng, maxiter=it, maxfev=cfg.maxfev, callback=cb,
+                          **cfg.search_options(alg))
     if not refine:
         xr = to_free(opt.x)
         return float(cost(xr[None])[0]), xr, opt
     vb = plan.bounds[cost_v.free]
-    starts = [to_free(xv) for xv in _starts(opt, cfg.refine_starts, vb[:, 1] - vb[:, 0])]
+    starts = [to_free(xv) for xv in _starts(opt, cfg.refine_starts, vb[:, 1] - vb[:, 0], cfg.refine_start_min_dist)]
     if prior is not None:
         span = bfree[:, 1] - bfree[:, 0]
         starts.append(np.clip(prior[0], bfree[:, 0] + 1e-6 * span, bfree[:, 1] - 1e-6 * span))
@@ -559,14 +561,14 @@ def fit_candidate(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
             run.nfev += cost.nfev
         match, used = _in_sample_match(plan, cfg, run.theta, cfg.estimate_trim)
     f0 = model0.fit
-    run.F_search = float(f0.get("search_cost", np.nan))
-    run.nit = int(f0.get("iterations", 0))
-    run.nfev += int(f0.get("evaluations", 0))
-    run.histories, run.histories_nfev = dict(f0.get("history", {})), dict(f0.get("history_nfev", {}))
-    run.search_by_sub = dict(f0.get("search_cost_by_subsystem", {}))
-    run.search_alg = dict(f0.get("search_algorithm_by_subsystem", {}))
-    return _model(prepared, plan, cfg, run, match, used, algorithm=str(f0.get("algorithm", "cabc")),
-                  seed=int(f0.get("seed", 0)), refine=True, prior=prior)
+    run.F_search = float(np.nan if f0.search_cost is None else f0.search_cost)  # type: ignore[arg-type]
+    run.nit = int(f0.iterations or 0)
+    run.nfev += int(f0.evaluations or 0)
+    run.histories, run.histories_nfev = dict(f0.history), dict(f0.history_nfev)
+    run.search_by_sub = dict(f0.search_cost_by_subsystem)
+    run.search_alg = dict(f0.search_algorithm_by_subsystem)
+    return _model(prepared, plan, cfg, run, match, used, algorithm=str(f0.algorithm or "cabc"),
+                  seed=int(f0.seed or 0), refine=True, prior=prior)
 
 
 def _fixed_values(plan: _Plan) -> np.ndarray:
@@ -589,26 +591,27 @@ def _model(prepared: Any, plan: _Plan, cfg: IdentifyConfig, run: _Run, match: di
     if plan.prior is not None:  # fixed at the prior: published with the prior's uncertainty
         std.update({PARAM_NAMES[i]: float(plan.prior[1][i]) for i in np.flatnonzero(~plan.free)})
     segs = prepared.segments
-    fit: dict[str, Any] = {
-        "algorithm": algorithm, "seed": int(seed), "fitness": float(1.0 / (1.0 + run.F_total)), "cost": float(run.F_total),
-        "search_cost": float(run.F_search), "search_window_s": float(cfg.search_window_s),
-        "search_cost_by_subsystem": run.search_by_sub, "search_restarts": int(cfg.search_restarts if refine else 1),
-        "search_algorithm_by_subsystem": run.search_alg, "refined": bool(refine), "match_degree": match,
-        "evaluations": int(run.nfev), "iterations": int(run.nit), "seconds": None,
-        "window_s": float(cfg.window_s), "window_step_s": float(cfg.window_step_s), "windows": int(plan.win.count), "estimate_all_initial": cfg.estimate_all_initial,
-        "channels": [OUTPUTS[j] for j in range(8) if used[j]],
-        "fixed": [PARAM_NAMES[i] for i in range(N_PARAMS) if not plan.free[i]],
-        "fixed_reasons": [r.replace(" fixed at 0", " fixed at the prior's value") if plan.prior is not None else r
-                          for r in plan.reasons],
-        "noise_sigma": {OUTPUTS[j]: float(run.sigma[j]) for j in range(8) if np.isfinite(run.sigma[j])},
-        "history": run.histories, "history_nfev": run.histories_nfev, "notes": list(prepared.notes),
-        "trim_estimated": bool(cfg.estimate_trim and refine), "kinematic_forcing": plan.kf,
-        "input_trim_correction_pwm": {k: float(run.delta[j]) * float(prepared.pwm_per_unit)
-                                      for j, k in enumerate(prepared.input_trim_pwm)},
-        "pinned_reasons": pinned,
-        "unstable_modes": [m.describe() for m in unstable_modes(theta)],
-        "prior": _prior_report(plan, run, prior, pinned),
-    }
+    fit = ModelFit.make(
+        algorithm=algorithm, seed=int(seed), fitness=float(1.0 / (1.0 + run.F_total)), cost=float(run.F_total),
+        search_cost=float(run.F_search), search_window_s=float(cfg.search_window_s),
+        search_cost_by_subsystem=run.search_by_sub, search_restarts=int(cfg.search_restarts if refine else 1),
+        search_algorithm_by_subsystem=run.search_alg, refined=bool(refine), match_degree=match,
+        evaluations=int(run.nfev), iterations=int(run.nit), seconds=None,
+        window_s=float(cfg.window_s), window_step_s=float(cfg.window_step_s), windows=int(plan.win.count),
+        estimate_all_initial=cfg.estimate_all_initial,
+        channels=[OUTPUTS[j] for j in range(8) if used[j]],
+        fixed=[PARAM_NAMES[i] for i in range(N_PARAMS) if not plan.free[i]],
+        fixed_reasons=[r.replace(" fixed at 0", " fixed at the prior's value") if plan.prior is not None else r
+                       for r in plan.reasons],
+        noise_sigma={OUTPUTS[j]: float(run.sigma[j]) for j in range(8) if np.isfinite(run.sigma[j])},
+        history=run.histories, history_nfev=run.histories_nfev, notes=list(prepared.notes),
+        trim_estimated=bool(cfg.estimate_trim and refine), kinematic_forcing=plan.kf,
+        input_trim_correction_pwm={k: float(run.delta[j]) * float(prepared.pwm_per_unit)
+                                   for j, k in enumerate(prepared.input_trim_pwm)},
+        pinned_reasons=pinned,
+        unstable_modes=[m.describe() for m in unstable_modes(theta)],
+        prior=_prior_report(plan, run, prior, pinned),
+    )
     return HoverModel(
         params={n: float(v) for n, v in zip(PARAM_NAMES, theta, strict=True)},
         sample_rate_hz=float(1.0 / prepared.dt_s),
@@ -652,4 +655,4 @@ def refit(prepared: Any, model: HoverModel, *, config: IdentifyConfig | None = N
                       input_trim_pwm={k: float(v) + float(run.delta[j]) * float(prepared.pwm_per_unit)
                                       for j, (k, v) in enumerate(prepared.input_trim_pwm.items())},
                       pwm_per_unit=float(prepared.pwm_per_unit), output_trim=dict(prepared.output_trim),
-                      fit={"window_s": cfg.window_s, "estimate_all_initial": cfg.estimate_all_initial})
+                      fit=ModelFit.make(window_s=cfg.window_s, estimate_all_initial=cfg.estimate_all_initial))

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from groundstation.errors import SysidError
+from groundstation.sysid.fit_section import ModelFit
 
 G_M_S2 = 9.81
 
@@ -232,6 +233,13 @@ def expm_batched(M: np.ndarray) -> np.ndarray:
     return R.reshape(lead + (k, k))
 
 
+def _fit(doc: Any) -> ModelFit:
+    try:
+        return ModelFit.from_json(doc)
+    except ValueError as exc:
+        raise SysidError(f"model document: 'fit': {exc}") from exc
+
+
 def discretize(A: np.ndarray, B: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Exact zero-order-hold discretisation, batched over leading dimensions.
 
@@ -259,7 +267,8 @@ class HoverModel:
     output_trim: dict[str, float] = field(default_factory=lambda: {k: 0.0 for k in OUTPUTS})
     parameter_std: dict[str, float | None] = field(default_factory=dict)
     augmentations: list[dict[str, Any]] = field(default_factory=list)
-    fit: dict[str, Any] = field(default_factory=dict)
+    #: how the model was found and the held-out verdict (the file's ``fit`` section), typed
+    fit: ModelFit = field(default_factory=ModelFit)
     source: dict[str, Any] = field(default_factory=dict)
     pinned: list[str] = field(default_factory=list)  # parameters at a search bound
     #: the stabilised aircraft's command-response structure (``heli-command-response/1`` section,
@@ -293,7 +302,7 @@ class HoverModel:
             "output_trim": {k: float(v) for k, v in self.output_trim.items()},
             "sample_rate_hz": float(self.sample_rate_hz),
             "augmentations": list(self.augmentations),
-            "fit": dict(self.fit),
+            "fit": self.fit.to_json(),
             "source": dict(self.source),
             **({} if self.command is None else {"structure": self.structure, "command_response": dict(self.command)}),
         }
@@ -316,7 +325,7 @@ class HoverModel:
             output_trim=_numbers(doc, "output_trim") or {k: 0.0 for k in OUTPUTS},
             parameter_std=dict(doc.get("parameter_std", {})),
             augmentations=list(doc.get("augmentations", [])),
-            fit=dict(doc.get("fit", {})),
+            fit=_fit(doc.get("fit", {})),
             source=dict(doc.get("source", {})),
             pinned=list(doc.get("pinned_at_bound", [])),
             command=dict(doc["command_response"]) if isinstance(doc.get("command_response"), dict) else None,

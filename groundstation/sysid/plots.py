@@ -14,6 +14,13 @@ import numpy as np
 from groundstation.sysid.model import OUTPUT_UNITS, OUTPUTS
 
 
+def draw(job: tuple[str, tuple, dict]) -> Path:
+    """One figure of a list, ``(function name, args, kwargs)``: a map over worker processes
+    (:func:`groundstation.parallel.worker_map`) draws a command's figures side by side."""
+    name, args, kwargs = job
+    return globals()[name](*args, **kwargs)
+
+
 def _figure(figsize: tuple[float, float]) -> Any:
     """A matplotlib Figure drawn by Agg, outside pyplot (no figure registry, nothing to close)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg

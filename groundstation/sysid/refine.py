@@ -23,6 +23,7 @@ import numpy as np
 from scipy.optimize import OptimizeResult
 
 from groundstation.sysid.cost import WindowedCost
+from groundstation.sysid.settings import IdentifyConfig
 
 #: residual bytes simulated per batch of perturbed candidates in the finite-difference Jacobians.
 #: Small on purpose: the simulation's temporaries are a few times this, and temporaries of tens of
@@ -41,7 +42,8 @@ def _fd_step(x: np.ndarray, span: np.ndarray) -> np.ndarray:
     return 1e-6 * np.maximum(np.abs(x), 1e-2 * span)
 
 
-def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: int = 2, max_nfev: int = 60,
+def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: int = IdentifyConfig.refine_passes,
+           max_nfev: int = IdentifyConfig.refine_max_nfev,
            with_std: bool = True, prior: tuple[np.ndarray, np.ndarray] | None = None,
            weighting: str = "noise", prior_colour: bool = False) -> OptimizeResult:
     """Levenberg-Marquardt-like trust-region refinement from ``x0`` (free parameters, (D,)).
@@ -98,7 +100,8 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
 
 
 def levenberg_marquardt(cost: WindowedCost, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, sig: np.ndarray, *,
-                        max_nfev: int = 60, prior: tuple[np.ndarray, np.ndarray] | None = None,
+                        max_nfev: int = IdentifyConfig.refine_max_nfev,
+                        prior: tuple[np.ndarray, np.ndarray] | None = None,
                         ftol: float = 1e-10, xtol: float = 1e-10, gtol: float = 1e-10) -> OptimizeResult:
     """Bounded Levenberg-Marquardt on the normal equations (as SIDPAC's ``oe.m``): minimises
     ``0.5 ||r(x)||^2`` with ``r`` the residuals ``(yhat - y) / sig_ch`` (plus the prior rows

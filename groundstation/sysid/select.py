@@ -245,7 +245,7 @@ def select_config(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
     try:
         cur = ("as configured", cfg, model0, _crossvalidate(prepared, model0, cfg, prior, pmap, refit))
     except ValueError as exc:   # too little data for k folds: keep the configuration as given
-        model0.fit["selection"] = {"skipped": str(exc)}
+        model0.fit = model0.fit.set(selection={"skipped": str(exc)})
         return model0
     report: list[dict[str, Any]] = []
     for k, cands in enumerate(rounds):
@@ -261,10 +261,9 @@ def select_config(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
         cur = (name if k == 0 else f"{cur[0]}, {name}", c_cfg, model, cv)
     name, c_cfg, model, cv = cur
     over = {f.name: getattr(c_cfg, f.name) for f in dataclasses.fields(cfg) if getattr(c_cfg, f.name) != getattr(cfg, f.name)}
-    model.fit["selection"] = {"k": int(cfg.select_folds), "chosen": name, "candidates": report, "overrides": over,
-                              "rule": f"a prediction that runs away on some fold never wins over one that does "
-                                      f"not; otherwise a candidate replaces the configuration when its mean held-out "
-                                      f"gain over the folds exceeds {GAIN_Z:g} standard error(s) of that gain or it "
-                                      f"gains on every fold"}
-    model.fit["heldout"] = cv.to_json()
+    rule = (f"a prediction that runs away on some fold never wins over one that does not; otherwise a candidate "
+            f"replaces the configuration when its mean held-out gain over the folds exceeds {GAIN_Z:g} standard "
+            f"error(s) of that gain or it gains on every fold")
+    model.fit = model.fit.set(selection={"k": int(cfg.select_folds), "chosen": name, "candidates": report,
+                                         "overrides": over, "rule": rule}, heldout=cv.to_json())
     return model

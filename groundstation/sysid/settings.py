@@ -4,6 +4,7 @@ identification and the held-out selection of settings (:mod:`groundstation.sysid
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -30,6 +31,31 @@ class IdentifyConfig:
     #: restarts of one seed stream agreed on the wrong basin, DE (3 seeds) found the right one, and
     #: on the trex600 DE reached the same refined cost in 60 % of CABC's time.
     restart_algorithm: str = "de"
+    #: bee colonies (cabc, abc; :mod:`groundstation.sysid.optimizers`): food sources (employed bees)
+    colony_size: int = 20
+    #: bee colonies: trials without improvement before a food source is abandoned (the scout)
+    colony_limit: int = 5
+    #: cabc's chaotic search around the best source (the paper's step 7): points per iteration
+    chaos_points: int = 10
+    #: cabc: the chaotic search's first radius, a fraction of each parameter's range (it shrinks
+    #: geometrically to ``chaos_radius_end`` over the iterations)
+    chaos_radius0: float = 0.05
+    #: cabc: the chaotic search's last radius (a fraction of the range)
+    chaos_radius_end: float = 1e-4
+    #: ga: population size
+    ga_population: int = 20
+    #: ga: probability of the blend crossover of two parents
+    ga_crossover: float = 0.8
+    #: ga: probability that a child mutates (one random gene)
+    ga_mutation: float = 0.2
+    #: ga: best individuals kept unchanged each generation
+    ga_elite: int = 2
+    #: ga: tournament size of the parent selection
+    ga_tournament: int = 2
+    #: ga: standard deviation of a mutation, a fraction of the gene's range
+    ga_mutation_scale: float = 0.1
+    #: de: population per free parameter (scipy's ``popsize``)
+    de_popsize: int = 1
     screen_max_nfev: int = 5
     maxiter: int | None = None
     maxfev: int | None = None
@@ -80,8 +106,31 @@ class IdentifyConfig:
     #: a channel's held-out prediction "runs away" when its error is more than this many times the
     #: signal itself (the subsystem is then not usable)
     runaway_factor: float = 3.0
+    #: the closed-loop notes (``fit.closed_loop``): the model's output error is simulated in windows of
+    #: this length (s) from the measured states ...
+    feedback_window_s: float = 5.0
+    #: ... and an input "follows" it when the input's change up to this lag (s) later correlates with it ...
+    feedback_max_lag_s: float = 1.0
+    #: ... beyond this many times 1 / sqrt(effective samples) (the chance level)
+    feedback_z: float = 3.0
+    #: two refinement starts taken from the search's best points are at least this far apart (the RMS
+    #: over the parameters of their difference as a fraction of each parameter's search range)
+    refine_start_min_dist: float = 0.2
     #: what the inputs are (the aircraft file's ``[inputs] kind``): "blade" (the eq.-8 hover model only),
     #: "rate_command" / "attitude_command" (also the stabilised aircraft's command-response structure,
     #: which then predicts), "unknown" (both, held-out prediction chooses):
     #: :mod:`groundstation.sysid.structure`
     input_kind: str = "blade"
+
+    def search_options(self, algorithm: str) -> dict[str, Any]:
+        """The keyword arguments of ``algorithm``'s optimiser (:data:`groundstation.sysid.optimizers.ALGORITHMS`)
+        from these settings."""
+        bees: dict[str, Any] = {"colony_size": self.colony_size, "limit": self.colony_limit}
+        options: dict[str, dict[str, Any]] = {
+            "cabc": {**bees, "chaos_points": self.chaos_points, "radius0": self.chaos_radius0,
+                     "radius_end": self.chaos_radius_end},
+            "abc": bees,
+            "ga": {"population": self.ga_population, "crossover": self.ga_crossover, "mutation": self.ga_mutation,
+                   "elite": self.ga_elite, "tournament": self.ga_tournament, "mutation_scale": self.ga_mutation_scale},
+            "de": {"popsize": self.de_popsize}}
+        return options.get(algorithm, {})

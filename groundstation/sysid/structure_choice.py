@@ -48,19 +48,18 @@ def attach_command_structure(prepared: Any, model: Any, cfg: Any, *, prior: Any 
     kind = cfg.input_kind if cfg.input_kind in COMMAND_KINDS else "rate_command"
     cm = identify_command(prepared, kind)
     out = _as_hover_model(model, cm)
-    out.fit = dict(model.fit)
-    out.fit["command_response"] = cm.describe()
+    out.fit = model.fit.set(command_response=cm.describe())
     if cfg.input_kind in COMMAND_KINDS or int(cfg.select_folds) < 2:
-        out.fit["structure_choice"] = {"chosen": "command_response", "reason": f"inputs.kind = {cfg.input_kind}"}
-        if "heldout" in out.fit:   # the hover model's, from the selection: not this structure's
-            out.fit["heldout_hover"] = out.fit.pop("heldout")
+        out.fit = out.fit.set(structure_choice={"chosen": "command_response", "reason": f"inputs.kind = {cfg.input_kind}"})
+        if out.fit.heldout is not None:   # the hover model's, from the selection: not this structure's
+            out.fit = out.fit.without("heldout").set(heldout_hover=out.fit.heldout)
         return out
     try:
         cv_c = crossvalidate(prepared, partial(fit_command_fold, model=model, kind=kind), k=int(cfg.select_folds),
                              window_s=float(cfg.heldout_window_s), runaway_factor=float(cfg.runaway_factor), pmap=pmap)
         cv_h = _crossvalidate(prepared, model, cfg, prior, pmap, refit)
     except ValueError as exc:
-        model.fit["structure_choice"] = {"chosen": "hover", "reason": f"not compared: {exc}"}
+        model.fit = model.fit.set(structure_choice={"chosen": "hover", "reason": f"not compared: {exc}"})
         return model
     rows = [{"name": "hover (blade inputs)", "fold_score": fold_scores(cv_h).tolist(), "mean_match": cv_h.mean_match,
              "runaway": {k: list(v) for k, v in cv_h.runaway.items()}},
@@ -75,9 +74,7 @@ def attach_command_structure(prepared: Any, model: Any, cfg: Any, *, prior: Any 
                          "the hover model is kept: the command-response structure does not predict better by the "
                          "selection's rule: ") + why}
     if win:
-        out.fit["structure_choice"] = choice
-        out.fit["heldout"] = cv_c.to_json()
+        out.fit = out.fit.set(structure_choice=choice, heldout=cv_c.to_json())
         return out
-    model.fit["structure_choice"] = choice
-    model.fit["command_response"] = cm.describe()
+    model.fit = model.fit.set(structure_choice=choice, command_response=cm.describe())
     return model

@@ -118,8 +118,8 @@ def validate(model: HoverModel, prepared: Any, *, window_s: float | None = None,
     channel, their means, the cost, the windows (and ``series`` with the t_s, y and yhat arrays of
     shape (W, L) / (W, L, 8) when ``return_series``).
     """
-    ws = float(window_s if window_s is not None else model.fit.get("window_s", 3.0) or 3.0)
-    est_all = bool(model.fit.get("estimate_all_initial", True))
+    ws = float(window_s if window_s is not None else model.fit.window_s or 3.0)
+    est_all = model.fit.estimate_all_initial is not False
     with threadpool_limits(1):
         win = make_windows(prepared.segments, prepared.dt_s, ws, key="window_s")
         sim = WindowSimulator(win.inputs, win.outputs, win.dt_s, win.available, estimate_all_initial=est_all,

@@ -29,7 +29,7 @@ def test_fit_reaches_the_truths_J_and_key_parameters(flight150, responses150):
         err = {k: abs(m.params[k] - EXAMPLE_TRUTH[k]) / abs(EXAMPLE_TRUTH[k]) for k in KEY}
         assert max(err.values()) <= bound, err
         assert verify(m.theta, rs).J_avg <= verify(truth, rs).J_avg
-    assert m.fit["domain"] == "frequency" and m.fit["algorithm"] == "cabc"
+    assert m.fit.domain == "frequency" and m.fit.algorithm == "cabc"
     for k in KEY:
         s = m.parameter_std[k]
         assert s is not None and 0 < s < abs(m.params[k])
@@ -41,7 +41,7 @@ def test_refinement_from_a_given_start_finds_the_nearest_J_minimum(flight150, tr
     truth's, at the responses' own minimum near it."""
     rs = responses150
     near = identify_frequency(rs, flight150, start=truth_theta, config=FreqIdentifyConfig(weighting="coherence"))
-    assert near.fit["algorithm"] == "refinement from a given start" and not any(near.fit["history"].values())
+    assert near.fit.algorithm == "refinement from a given start" and not any(near.fit.history.values())
     assert verify(near.theta, rs).J_avg <= verify(truth_theta, rs).J_avg
     err = {k: abs(near.params[k] - EXAMPLE_TRUTH[k]) / abs(EXAMPLE_TRUTH[k]) for k in KEY}
     assert max(err.values()) <= 0.25, err  # the responses' own minimum, not the truth: see docs/frequency.md
@@ -56,10 +56,10 @@ def test_random_error_weighting_from_the_truth(flight150, truth_theta, responses
     near = identify_frequency(rs, flight150, start=truth_theta, config=cfg)
     err = {k: abs(near.params[k] - EXAMPLE_TRUTH[k]) / abs(EXAMPLE_TRUTH[k]) for k in KEY}
     assert max(err.values()) <= 0.10, err
-    assert near.fit["weighting"] == "random_error"
+    assert near.fit.weighting == "random_error"
     hor = [p.J for p in verify(near.theta, rs).pairs if p.input in ("lat", "lon")]
-    assert near.fit["J_by_subsystem"]["horizontal"] == pytest.approx(np.mean(hor), rel=1e-6)
-    assert near.fit["cost"] != pytest.approx(sum(near.fit["J_by_subsystem"].values()))
+    assert near.fit.J_by_subsystem["horizontal"] == pytest.approx(np.mean(hor), rel=1e-6)
+    assert near.fit.cost != pytest.approx(sum(near.fit.J_by_subsystem.values()))
     with pytest.raises(ValueError, match="weighting"):
         FreqIdentifyConfig(weighting="ols")
 
@@ -98,14 +98,14 @@ def test_output_error_fit_gets_the_key_parameters_and_predicts_another_flight(fl
 
     rs = responses150
     m = identify_frequency(rs, flight150, algorithm="cabc", seed=0)
-    assert m.fit["weighting"] == "output_error" and m.fit["J_by_subsystem"]["horizontal"] > 0
+    assert m.fit.weighting == "output_error" and m.fit.J_by_subsystem["horizontal"] > 0
     err = {k: abs(m.params[k] - EXAMPLE_TRUTH[k]) / abs(EXAMPLE_TRUTH[k]) for k in KEY}
     assert max(err.values()) <= 0.10, err
     other = flight(150.0, seed=7)
     truth = HoverModel(params=dict(EXAMPLE_TRUTH))
     assert validate(m, other).mean_match >= 0.99 * validate(truth, other).mean_match
     # responses only (no flight records): Tischler's J, and the model says so
-    assert identify_frequency(rs, None, start=truth_theta).fit["weighting"] == "coherence"
+    assert identify_frequency(rs, None, start=truth_theta).fit.weighting == "coherence"
 
 
 def test_fitted_delay_and_other_optimiser(lon_delayed150):
@@ -173,9 +173,9 @@ def test_a_frequency_model_the_flight_does_not_support_is_marked(flight150):
 
     good = HoverModel(params=dict(EXAMPLE_TRUTH))
     mark_unsupported(good, flight150)
-    assert good.fit["usable"] and not good.fit["unstable_modes"] and not good.fit["runaway_channels"]
+    assert good.fit.usable and not good.fit.unstable_modes and not good.fit.runaway_channels
     bad = HoverModel(params={**EXAMPLE_TRUTH, "N_r": 3.0})
     mark_unsupported(bad, flight150)
-    assert any(u.startswith("vertical subsystem unstable") and "time constant" in u for u in bad.fit["unstable_modes"])
-    assert "r" in bad.fit["runaway_channels"] and bad.fit["unusable_subsystems"] == ["vertical"]
-    assert not bad.fit["usable"]
+    assert any(u.startswith("vertical subsystem unstable") and "time constant" in u for u in bad.fit.unstable_modes)
+    assert "r" in bad.fit.runaway_channels and bad.fit.unusable_subsystems == ("vertical",)
+    assert not bad.fit.usable

@@ -71,4 +71,4 @@ def test_identified_model_J_per_pair(tlog_responses):
     assert ("lon", "q") in scored and all(np.isfinite(p["J"]) and p["coherent_points"] >= 3 for p in doc["pairs"])
     assert len(doc["pairs"]) + len(doc["no_response"]) + len(doc["unmodelled"]) == 32
     assert {"input": "lat", "output": "p", "reason": "input lat never moves (std below 0.0001)"} in doc["no_response"]
-    assert "input lat never moves: X_lat, M_lat, L_lat, A_lat fixed at 0" in m.fit["fixed_reasons"]
+    assert "input lat never moves: X_lat, M_lat, L_lat, A_lat fixed at 0" in m.fit.fixed_reasons

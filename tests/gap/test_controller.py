@@ -16,6 +16,7 @@ from groundstation.gap import controller
 from groundstation.gap.config import DiagnoseConfig
 from groundstation.gap.diagnose import VERDICTS, _controller_finding
 from groundstation.parallel import serial_map
+from groundstation.sysid.fit_section import ModelFit
 from groundstation.sysid.model import PARAM_NAMES, HoverModel
 
 DT = 0.02
@@ -52,7 +53,7 @@ def test_a_stabilising_controller_is_a_finding_with_its_share():
     prep = _closed_loop_flight()
     blade = HoverModel(params={p: 0.0 for p in PARAM_NAMES})
     assert not controller.may_be_commands(blade)   # servo outputs: never looked for
-    model = HoverModel(params={p: 0.0 for p in PARAM_NAMES}, fit={"structure_choice": {"chosen": "hover"}})
+    model = HoverModel(params={p: 0.0 for p in PARAM_NAMES}, fit=ModelFit.make(structure_choice={"chosen": "hover"}))
     assert controller.may_be_commands(model)
     cfg = DiagnoseConfig(folds=3)
     sigma = np.array([0, 0, 0, 0, 0.005, 0, 0.002, 0], float)

@@ -91,7 +91,7 @@ def test_real_trex550_log_identifies_what_it_supports():
     assert any(not s.available[0] for s in prep.segments)
     m = identify(prep, seed=0, maxiter=6, config=IdentifyConfig(refine_max_nfev=8, refine_passes=1))
     for name in ("X_lat", "M_lat", "L_lat", "A_lat"):
-        assert name in m.fit["fixed"] and m.params[name] == 0.0 and m.parameter_std[name] is None
+        assert name in m.fit.fixed and m.params[name] == 0.0 and m.parameter_std[name] is None
     v = validate(m, prep)
     assert {"p", "q", "r", "theta", "phi"} <= set(v.channels)
     assert all(np.isfinite(c.match) for c in v.channels.values())

@@ -75,25 +75,34 @@ def test_fit_section_and_validation_are_typed_and_round_trip_unchanged(flights, 
     from groundstation.sysid.validate import ChannelScore, Validation
 
     _, train, other = flights
+    assert isinstance(model.fit, ModelFit)   # the model's own section is the typed one
     m = HoverModel.from_json(model.to_json())
-    m.fit["heldout"] = {"skipped": "not checked here"}
-    m.fit["usable"], m.fit["closed_loop"] = True, ["a note"]
+    m.fit = m.fit.set(heldout=HeldOut.make(skipped="not checked here"), usable=True, closed_loop=["a note"])
     doc = json.loads(json.dumps(m.to_json()))["fit"]
+    assert list(doc)[-3:] == ["heldout", "usable", "closed_loop"]   # new keys after the others, as set
     fit = ModelFit.from_json(doc)
-    assert fit.algorithm == "cabc" and fit.evaluations == doc["evaluations"] > 0 and fit.usable is True
-    assert fit.channels == tuple(doc["channels"]) and fit.closed_loop == ("a note",)
-    assert fit.heldout == HeldOut(skipped="not checked here") and "history" in fit.extra
+    assert fit == m.fit and fit.algorithm == "cabc" and fit.evaluations == doc["evaluations"] > 0
+    assert fit.channels == tuple(doc["channels"]) and fit.closed_loop == ("a note",) and fit.usable is True
+    assert fit.heldout == HeldOut(skipped="not checked here") and fit.history == doc["history"]
     assert json.dumps(fit.to_json()) == json.dumps(doc)
+    assert fit.seconds is None and doc["seconds"] is None   # a null the identification writes stays in the file
     with pytest.raises(dataclasses.FrozenInstanceError):
         fit.usable = False  # type: ignore[misc]
+    with pytest.raises(TypeError, match="no field sekonds"):
+        fit.set(sekonds=1.0)   # a misspelt key never reaches a file
+    # an unknown key from a newer file is kept, in its place; without() drops a key
+    newer = ModelFit.from_json({"algorithm": "cabc", "future": {"x": 1}, "seconds": 2.0})
+    assert newer.extra == {"future": {"x": 1}} and list(newer.to_json()) == ["algorithm", "future", "seconds"]
+    assert newer.without("seconds", "future").to_json() == {"algorithm": "cabc"}
     # a held-out check that ran (two folds of the short flight, few iterations)
     m2 = HoverModel.from_json(model.to_json())
     cfg = ServiceConfig().replace("identify", refine_passes=1, refine_max_nfev=10, heldout_window_s=4.0)
-    held_out(m2, train, cfg, None, 2)
-    ho = ModelFit.from_json(m2.fit).heldout
-    assert ho is not None and ho.k == 2 and len(ho.folds) == 2 and ho.mean_match is not None
+    ho = held_out(m2, train, cfg, None, 2)
+    assert ho == m2.fit.heldout and ho.k == 2 and len(ho.folds) == 2 and ho.mean_match is not None
     assert ho.window_s == 4.0   # [identify] heldout_window_s
-    assert json.dumps(ho.to_json()) == json.dumps(m2.fit["heldout"])
+    assert m2.fit.usable is (not ho.unusable_subsystems)
+    again = HoverModel.from_json(json.loads(json.dumps(m2.to_json())))
+    assert again.fit == m2.fit and json.dumps(again.to_json()) == json.dumps(m2.to_json())
 
     v = validate(model, other, return_series=True)
     assert isinstance(v.channels["q"], ChannelScore) and v.series is not None and v.series["y"].ndim == 3
@@ -105,15 +114,32 @@ def test_fit_section_and_validation_are_typed_and_round_trip_unchanged(flights, 
     assert again == v and json.dumps(again.to_json()) == json.dumps(vd)
 
 
+def test_a_model_file_of_the_version_before_the_typed_fit_reads_and_writes_back_unchanged():
+    """A model file written before ``HoverModel.fit`` was typed (``identify`` of a simulated flight with
+    a lon input delay) reads into the typed section and writes back byte for byte."""
+    import json
+    from pathlib import Path
+
+    from groundstation.jsonio import dumps
+    from groundstation.sysid.fit_section import HeldOut, ModelFit
+
+    text = (Path(__file__).parents[1] / "data" / "models" / "sim-seed5-identify.json").read_text()
+    doc = json.loads(text)
+    m = HoverModel.from_json(doc)
+    assert isinstance(m.fit, ModelFit) and isinstance(m.fit.heldout, HeldOut) and not m.fit.extra
+    assert m.fit.selection["chosen"] and m.fit.heldout.k == 5 and m.fit.usable is doc["fit"]["usable"]
+    assert dumps(m.to_json(), indent=1) == text   # as identify writes it
+
+
 def test_pinned_parameters_are_flagged(flights):
     _, train, _ = flights
     from groundstation.aircraft import wide_prior
 
     m = identify(train, seed=1, maxiter=30, bounds={"M_a": (10.0, 40.0)}, prior=wide_prior())
     assert "M_a" in m.pinned
-    assert "search bound" in m.fit["pinned_reasons"]["M_a"]
+    assert "search bound" in m.fit.pinned_reasons["M_a"]
     # not an estimate: neither "determined" nor "held near the prior", but on a bound
-    pr = m.fit["prior"]
+    pr = m.fit.prior
     assert "M_a" in pr["on_bound"] and "M_a" not in pr["determined"] + pr["prior_dominated"]
 
 
@@ -152,8 +178,8 @@ def test_missing_velocities_fix_their_parameters():
     p = prepared_from_arrays(u, ym, 0.02)
     m = identify(p, seed=0, maxiter=20, refine=False)
     for name in ("X_u", "Y_v", "Z_w", "A_lat", "L_lat"):
-        assert name in m.fit["fixed"] and m.params[name] == 0.0
-    assert set(m.fit["match_degree"]) == {"p", "q", "r", "theta", "phi"}
+        assert name in m.fit.fixed and m.params[name] == 0.0
+    assert set(m.fit.match_degree) == {"p", "q", "r", "theta", "phi"}
 
 
 def test_metrics_on_known_values():
@@ -179,9 +205,9 @@ def test_search_restarts_keep_the_lowest_refined_cost(flights):
     quick = dict(refine_max_nfev=10, refine_passes=1)
     one = identify(train, seed=2, maxiter=3, config=IdentifyConfig(search_restarts=1, **quick))
     three = identify(train, seed=2, maxiter=3, config=IdentifyConfig(search_restarts=3, **quick))
-    assert three.fit["cost"] <= one.fit["cost"] * (1 + 1e-8)   # (the same search refined again: rounding)
-    assert three.fit["iterations"] > one.fit["iterations"]   # the extra searches did run
-    assert set(three.fit["search_algorithm_by_subsystem"].values()) <= {"cabc", "de"}
-    assert one.fit["search_algorithm_by_subsystem"] == {"horizontal": "cabc", "vertical": "cabc"}
+    assert three.fit.cost <= one.fit.cost * (1 + 1e-8)   # (the same search refined again: rounding)
+    assert three.fit.iterations > one.fit.iterations   # the extra searches did run
+    assert set(three.fit.search_algorithm_by_subsystem.values()) <= {"cabc", "de"}
+    assert one.fit.search_algorithm_by_subsystem == {"horizontal": "cabc", "vertical": "cabc"}
     with pytest.raises(ValueError, match="restart_algorithm"):
         identify(train, seed=2, maxiter=3, config=IdentifyConfig(search_restarts=2, restart_algorithm="pso"))
