@@ -47,7 +47,10 @@ def _design(prepared: Any, chans: list[int], active: list[int], lags: np.ndarray
     tau = np.arange(W)
     knots = np.linspace(0, W - 1, 11)
     phi = np.maximum(0.0, 1.0 - np.abs(tau[:, None] - knots[None]) / (knots[1] - knots[0]))  # (W, 11)
-    X, Y, M, G = [], [], [], []
+    X: list[np.ndarray] = []
+    Y: list[np.ndarray] = []
+    M: list[np.ndarray] = []
+    G: list[np.ndarray] = []
     for s in prepared.segments:
         mask = s.measured_mask()[:, chans]
         for a in range(0, s.n - W + 1, step):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -146,7 +147,8 @@ def _run(args: argparse.Namespace, pmap) -> int:
             from groundstation.sysid.plots import draw
 
             title = f"{algorithm.upper()} model on its training data ({', '.join(p.name for p in args.logs)})"
-            figures = [("plot_fit", (series, channels, args.out.with_suffix(".png")), {"title": title})]
+            figures: list[tuple[str, tuple[Any, ...], dict[str, Any]]] = [
+                ("plot_fit", (series, channels, args.out.with_suffix(".png")), {"title": title})]
             curves = {f"{algorithm} {sub}": [(np.asarray(model.fit.history_nfev[sub], dtype=float),
                                                    np.asarray(h, dtype=float))]
                       for sub, h in model.fit.history.items() if len(h) > 1}

@@ -20,6 +20,9 @@ class DiagnoseConfig:
     window_s: float = 3.0
     #: rotating hold-out folds over windows
     folds: int = 3
+    #: the start of each window (s) not scored: the initial transient of the states estimated from the
+    #: window (at most a quarter of the window)
+    window_start_s: float = 0.4
     #: Levenberg-Marquardt polish of the base model on the windows
     refine_iterations: int = 8
     #: fewest windows a diagnosis needs (fewer: "too little in-air data")

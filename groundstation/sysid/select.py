@@ -11,7 +11,7 @@ fitted to:
 1. each candidate configuration is refined on the whole flight from the configuration's model (one
    pass: a screening fit, cheap);
 2. each (the configuration's model too) is cross-validated over ``select_folds`` contiguous blocks
-   (refit on k-1 blocks from the whole-flight fit, at most ``SELECT_REFIT_NFEV`` Jacobians, then
+   (refit on k-1 blocks from the whole-flight fit, at most ``select_refit_nfev`` Jacobians, then
    predict the left-out one from the measured states:
    :func:`groundstation.sysid.heldout.crossvalidate`); a fold's score is the mean over channels of
    the eq.-19 match, each channel's floored at -100 % (a prediction that runs away counts as one
@@ -55,6 +55,7 @@ import numpy as np
 from groundstation.errors import SysidError
 from groundstation.parallel import Map, serial_map
 from groundstation.sysid.model import HoverModel
+from groundstation.sysid.settings import IdentifyConfig
 
 #: named candidate configurations (overrides of IdentifyConfig fields)
 PRESETS: dict[str, dict[str, Any]] = {
@@ -68,23 +69,11 @@ PRESETS: dict[str, dict[str, Any]] = {
     "all_initial": {"window_s": 3.0, "window_step_s": 0.0, "estimate_all_initial": True, "channel_weighting": "noise",
                     "kinematic_forcing": "w", "estimate_trim": True, "extra_starts": ""},
 }
-#: a candidate must beat the configuration by this many standard errors of the paired fold gain (the
-#: "one-standard-error rule" of cross-validated model choice: Hastie, Tibshirani & Friedman, ESL 7.10)
-GAIN_Z = 1.0
-#: channel match floor in a fold's score, %
-MATCH_FLOOR_PCT = -100.0
-#: Jacobians per subsystem of each fold's refit in the selection (a local polish from a whole-flight
-#: fit: on a simulated flight 4, 8, 20 and 60 gave the same held-out scores to 0.3 %; on the real
-#: TREX 550 log fewer make a candidate whose screening fit is far from its optimum look worse, which
-#: keeps the configuration: the cautious side). 6 keeps the selection within half the identification's time.
-SELECT_REFIT_NFEV = 6
 
 
 def parse_candidates(spec: str) -> list[tuple[str, dict[str, Any]]]:
     """``"predictive; prior_scale=10"`` -> [(name, overrides)]; SysidError naming the bad entry."""
-    from groundstation.sysid.settings import IdentifyConfig
-
-    fields = {f.name for f in dataclasses.fields(IdentifyConfig)} - {"select_candidates", "select_folds"}
+    fields = {f.name for f in dataclasses.fields(IdentifyConfig) if not f.name.startswith("select_")}
     out = []
     for item in (s.strip() for s in spec.replace("|", ";").split(";")):
         if not item:
@@ -136,7 +125,7 @@ def best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_fre
     best: tuple[float, np.ndarray, Any] | None = None
     sig_ref = None
     kw = dict(passes=1 if quick else cfg.refine_passes, prior=prior,
-              max_nfev=min(int(cfg.refine_max_nfev), SELECT_REFIT_NFEV) if quick else cfg.refine_max_nfev,
+              max_nfev=min(int(cfg.refine_max_nfev), int(cfg.select_refit_nfev)) if quick else cfg.refine_max_nfev,
               weighting=cfg.channel_weighting, prior_colour=cfg.prior_weighting == "effective", with_std=False)
     x0s = [np.clip(x0, bfree[:, 0] + 1e-6 * span, bfree[:, 1] - 1e-6 * span) for x0 in starts]
     nfev0 = cost.nfev
@@ -159,9 +148,10 @@ def best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_fre
     return best[1], best[2]
 
 
-def fold_scores(cv: Any) -> np.ndarray:
-    """(folds,) mean over channels of each fold's held-out match, each channel floored at -100 %."""
-    return np.array([float(np.mean([max(v, MATCH_FLOOR_PCT) for v in p.match.values()])) for p in cv.folds])
+def fold_scores(cv: Any, floor_pct: float = IdentifyConfig.select_match_floor_pct) -> np.ndarray:
+    """(folds,) mean over channels of each fold's held-out match, each channel floored at ``floor_pct``
+    (``[identify] select_match_floor_pct``, -100 %)."""
+    return np.array([float(np.mean([max(v, floor_pct) for v in p.match.values()])) for p in cv.folds])
 
 
 def _gain(s: np.ndarray, s0: np.ndarray) -> tuple[float, float]:
@@ -175,7 +165,7 @@ def _gain(s: np.ndarray, s0: np.ndarray) -> tuple[float, float]:
 def _crossvalidate(prepared: Any, model: HoverModel, cfg: Any, prior: Any, pmap: Map, refit: Any) -> Any:
     from groundstation.sysid.heldout import crossvalidate
 
-    c = dataclasses.replace(cfg, refine_max_nfev=min(int(cfg.refine_max_nfev), SELECT_REFIT_NFEV))
+    c = dataclasses.replace(cfg, refine_max_nfev=min(int(cfg.refine_max_nfev), int(cfg.select_refit_nfev)))
     return crossvalidate(prepared, partial(refit, model=model, config=c, prior=prior), k=int(cfg.select_folds),
                          window_s=float(cfg.heldout_window_s), runaway_factor=float(cfg.runaway_factor), pmap=pmap)
 
@@ -183,7 +173,8 @@ def _crossvalidate(prepared: Any, model: HoverModel, cfg: Any, prior: Any, pmap:
 def _row(name: str, c_cfg: Any, cfg: Any, cv: Any) -> dict[str, Any]:
     return {"name": name, "overrides": {f.name: getattr(c_cfg, f.name) for f in dataclasses.fields(cfg)
                                         if getattr(c_cfg, f.name) != getattr(cfg, f.name)},
-            "fold_score": fold_scores(cv).tolist(), "mean_match": cv.mean_match, "channel_mean": cv.channel_mean,
+            "fold_score": fold_scores(cv, cfg.select_match_floor_pct).tolist(), "mean_match": cv.mean_match,
+            "channel_mean": cv.channel_mean,
             "runaway": {k: list(v) for k, v in cv.runaway.items()}}
 
 
@@ -200,11 +191,12 @@ def _round(prepared: Any, base: tuple[str, Any, HoverModel, Any], cands: list[tu
             m = fit(prepared, model0, c_cfg, prior=prior, bounds=bounds, quick=True)
             entries.append((name, c_cfg, m, _crossvalidate(prepared, m, c_cfg, prior, pmap, refit)))
     rows = [_row(n, c, cfg0, cv) for n, c, _, cv in entries]
-    return choose(rows), entries, rows
+    return choose(rows, cfg0.select_gain_z), entries, rows
 
 
-def choose(rows: list[dict[str, Any]]) -> int:
-    """Index of the winning row (0 = the base, ``rows[0]``) by the rule of the module docstring; fills
+def choose(rows: list[dict[str, Any]], gain_z: float = IdentifyConfig.select_gain_z) -> int:
+    """Index of the winning row (0 = the base, ``rows[0]``) by the rule of the module docstring (a gain
+    beyond ``gain_z`` standard errors, ``[identify] select_gain_z``); fills
     each candidate row's ``gain``, ``gain_se``, ``gain_folds`` (folds it gains on) and ``significant``."""
     s0 = np.asarray(rows[0]["fold_score"])
     ran0 = bool(rows[0].get("runaway"))
@@ -220,7 +212,7 @@ def choose(rows: list[dict[str, Any]]) -> int:
             r["reason"] = ("the configuration's prediction runs away on " if ran0 else "runs away on ") + \
                 ", ".join(f"{k} ({', '.join(v)})" for k, v in (rows[0] if ran0 else r)["runaway"].items())
         else:
-            r["significant"] = bool(np.isfinite(g) and g > 0 and (g > GAIN_Z * se or (s.size >= 3 and wins == s.size)))
+            r["significant"] = bool(np.isfinite(g) and g > 0 and (g > gain_z * se or (s.size >= 3 and wins == s.size)))
         if not r["significant"]:
             continue
         if best == 0:
@@ -262,7 +254,7 @@ def select_config(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
     name, c_cfg, model, cv = cur
     over = {f.name: getattr(c_cfg, f.name) for f in dataclasses.fields(cfg) if getattr(c_cfg, f.name) != getattr(cfg, f.name)}
     rule = (f"a prediction that runs away on some fold never wins over one that does not; otherwise a candidate "
-            f"replaces the configuration when its mean held-out gain over the folds exceeds {GAIN_Z:g} standard "
+            f"replaces the configuration when its mean held-out gain over the folds exceeds {cfg.select_gain_z:g} standard "
             f"error(s) of that gain or it gains on every fold")
     model.fit = model.fit.set(selection={"k": int(cfg.select_folds), "chosen": name, "candidates": report,
                                          "overrides": over, "rule": rule}, heldout=cv.to_json())

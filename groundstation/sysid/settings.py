@@ -100,6 +100,19 @@ class IdentifyConfig:
     select_candidates: str = "predictive | window_step_s=2.5"
     #: contiguous folds of the selection (< 2 = no selection)
     select_folds: int = 5
+    #: a candidate replaces the configuration when its mean held-out gain over the folds exceeds this many
+    #: standard errors of that gain (the "one-standard-error rule" of cross-validated model choice:
+    #: Hastie, Tibshirani & Friedman, ESL 7.10), or it gains on every fold (3 or more)
+    select_gain_z: float = 1.0
+    #: a fold's score is the mean over channels of the held-out match (%), each channel floored at this
+    #: (a prediction that runs away counts as twice as bad as predicting no motion, so one fold cannot
+    #: swamp the others)
+    select_match_floor_pct: float = -100.0
+    #: Jacobians per subsystem of each fold's refit in the selection (a local polish from a whole-flight
+    #: fit: on a simulated flight 4, 8, 20 and 60 gave the same held-out scores to 0.3 %; on the real
+    #: TREX 550 log fewer make a candidate whose screening fit is far from its optimum look worse, which
+    #: keeps the configuration: the cautious side). 6 keeps the selection within half the identification's time.
+    select_refit_nfev: int = 6
     #: held-out prediction (the selection's folds and the held-out check): each left-out block is
     #: predicted in windows of this length (s), each from its measured initial state
     heldout_window_s: float = 5.0

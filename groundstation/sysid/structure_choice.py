@@ -61,11 +61,12 @@ def attach_command_structure(prepared: Any, model: Any, cfg: Any, *, prior: Any 
     except ValueError as exc:
         model.fit = model.fit.set(structure_choice={"chosen": "hover", "reason": f"not compared: {exc}"})
         return model
-    rows = [{"name": "hover (blade inputs)", "fold_score": fold_scores(cv_h).tolist(), "mean_match": cv_h.mean_match,
+    floor = cfg.select_match_floor_pct
+    rows = [{"name": "hover (blade inputs)", "fold_score": fold_scores(cv_h, floor).tolist(), "mean_match": cv_h.mean_match,
              "runaway": {k: list(v) for k, v in cv_h.runaway.items()}},
-            {"name": f"command response ({kind})", "fold_score": fold_scores(cv_c).tolist(), "mean_match": cv_c.mean_match,
+            {"name": f"command response ({kind})", "fold_score": fold_scores(cv_c, floor).tolist(), "mean_match": cv_c.mean_match,
              "runaway": {k: list(v) for k, v in cv_c.runaway.items()}}]
-    win = choose(rows)
+    win = choose(rows, cfg.select_gain_z)
     r = rows[1]
     why = r.get("reason") or (f"held-out gain {r['gain']:+.1f} +- {r['gain_se']:.1f} points per fold, better on "
                               f"{r['gain_folds']} of {len(r['fold_score'])} folds")
