@@ -37,8 +37,10 @@ def _shift_segment(seg: Any, shift_s: float) -> Any | None:
         return None
     u = np.column_stack([np.interp(tt[keep], t, seg.inputs[:, j]) for j in range(seg.inputs.shape[1])])
     m = seg.measured
+    br = getattr(seg, "inputs_bridged", None)   # where the inputs were bridged moves with them
+    br = None if br is None else np.interp(tt[keep], t, br.astype(float)) > 0.0
     return replace(seg, t_s=t[keep], inputs=u, outputs=seg.outputs[keep], outputs_raw=seg.outputs_raw[keep],
-                   alt_m=seg.alt_m[keep], measured=None if m is None else m[keep])
+                   alt_m=seg.alt_m[keep], measured=None if m is None else m[keep], inputs_bridged=br)
 
 
 def shift_inputs(prepared: Any, shift_s: float) -> Any:

@@ -68,11 +68,11 @@ def refit_input_effect(c: attribute.Candidate, ctx: hypotheses.Context, segs: li
     h = c.hyp
     segs_a = hypotheses.apply_input_effect(h, segs, ev.dt_s)
     ev_a = Evaluator(segs_a, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s,
-                     folds=ev.folds, ridge=ev.ridge)
+                     folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s)
     ev_a.refine(cfg.refit_iterations, cfg.refine_ridge)
     h.extra["theta_refit"] = ev_a.theta0
     ev_r = Evaluator(segs, ev.dt_s, ev_a.theta0, ev.available, window_s=ev.L * ev.dt_s,
-                     folds=ev.folds, ridge=ev.ridge)
+                     folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s)
     ctx_r = hypotheses.Context(ev_r, segs, cfg=cfg)
     h2 = hypotheses.rescan_input_effect(ctx_r, h)
     assert h2.sse is not None
@@ -116,7 +116,7 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
                 and physical(gust.hyp, cfg)):
             segs_a = hypotheses.apply_input_effect(a.hyp, segs, ev.dt_s)
             ev_a = Evaluator(segs_a, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s,
-                             folds=ev.folds, ridge=ev.ridge)
+                             folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s)
             ev_a.refine(cfg.refit_iterations, cfg.refine_ridge)
             hg = hypotheses.scan_wind_gust(hypotheses.Context(ev_a, segs_a, cfg=cfg))
             assert hg.sse is not None and gust.hyp.sse is not None
@@ -259,7 +259,7 @@ def conditioned_context(a: attribute.Candidate, ctx: hypotheses.Context, segs: l
 
     def on(segs_x: list[SegmentArrays], theta: np.ndarray) -> hypotheses.Context:
         ev_x = Evaluator(segs_x, ev.dt_s, theta, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds,
-                         ridge=ev.ridge)
+                         ridge=ev.ridge, start_s=ev.start_s)
         return hypotheses.Context(ev_x, segs_x, cfg=ctx.cfg)
 
     if h.effect in hypotheses.INPUT_EFFECTS:
@@ -454,7 +454,7 @@ def _with_effect_removed(b: attribute.Candidate, ctx: hypotheses.Context, segs: 
             return None
         ev = ctx.ev
         ev_b = Evaluator(segs, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds,
-                         ridge=ev.ridge)
+                         ridge=ev.ridge, start_s=ev.start_s)
         w = np.where(ev.w8 > 0, ev.w8, 1.0)
         ev_b.Y = ev.Y - np.einsum("wlck,k->wlc", X, c) / w
         ev_b.set_theta(ev.theta0)

@@ -311,6 +311,7 @@ def compat_stage(prepared: Any, cfg: DiagnoseConfig) -> tuple[compat.Compatibili
     comp = compat.check(segs, avail, float(prepared.dt_s), sigma, _trims(prepared), window_s=cfg.compat_window_s,
                         alpha=cfg.alpha, min_windows=cfg.min_windows,
                         min_effect_to_noise=cfg.compat_min_effect_to_noise, z_agree=cfg.compat_z_agree,
+                        max_slope=cfg.compat_max_slope,
                         horizontal=_horizontal_checks(prepared, cfg))
     fac = comp.scale_corrections()
     if not fac:
@@ -382,7 +383,8 @@ def base_stage(model: HoverModel | None, prepared: Any, cfg: DiagnoseConfig, see
                                                                     select_candidates=""), pmap=pmap)
         notes.append("base model identified on the same data; hold-out by k-fold re-fit over windows")
     theta_given = model.theta
-    ev = Evaluator(segs, dt, theta_given, avail, window_s=cfg.window_s, folds=cfg.folds, ridge=cfg.ridge)
+    ev = Evaluator(segs, dt, theta_given, avail, window_s=cfg.window_s, folds=cfg.folds, ridge=cfg.ridge,
+                   start_s=cfg.window_start_s)
     if ev.W < cfg.min_windows:
         raise GapError(f"diagnose.window_s = {cfg.window_s:g}: too little in-air data, {ev.W} windows "
                        f"(diagnose.min_windows = {cfg.min_windows})")
@@ -585,7 +587,7 @@ def _structure_context(t: structure.StructureTest, base: Base, att: Attributed, 
     for it in range(cfg.outer_iterations + 1):
         segs_s = structure.apply_structure(dataclasses.replace(t, coefficient=coef), base.segs, ev)
         ev_s = Evaluator(segs_s, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds,
-                         ridge=ev.ridge)
+                         ridge=ev.ridge, start_s=ev.start_s)
         ev_s.refine(cfg.refit_iterations, cfg.refine_ridge)
         ctx_s = hypotheses.Context(ev_s, segs_s, cfg=cfg)
         ctx_s.pwm_per_unit = att.ctx.pwm_per_unit

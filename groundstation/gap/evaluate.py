@@ -87,12 +87,13 @@ class Evaluator:
 
     def __init__(self, segments: list[SegmentArrays], dt_s: float, theta0: np.ndarray,
                  available: np.ndarray, *, window_s: float = DiagnoseConfig.window_s,
-                 folds: int = DiagnoseConfig.folds, start_s: float = 0.4,
+                 folds: int = DiagnoseConfig.folds, start_s: float = DiagnoseConfig.window_start_s,
                  ridge: float = DiagnoseConfig.ridge):
         self.segments = segments
         self.dt_s = float(dt_s)
         self.theta0 = np.asarray(theta0, float).copy()
         self.ridge = float(ridge)
+        self.start_s = float(start_s)   # as given (the evaluators built from this one copy it)
         # optional per-window nuisance columns (W, L, 8, K) fitted with the initial states, with a
         # prior precision (K,): used to re-identify the base model under a disturbance hypothesis
         self.nuisance: np.ndarray | None = None

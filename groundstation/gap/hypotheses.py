@@ -517,7 +517,7 @@ def scan_wind_gust(ctx: Context, chunk_s: float | None = None, refine_iterations
     n_knots = max(int(round(L * ev.dt_s / knot_s)) + 1, 2)
     prec = np.full(2 * n_knots, sig2 / s_air ** 2)
     evg = Evaluator(ctx.segments, ev.dt_s, ev.theta0, ev.available, window_s=L * ev.dt_s,
-                    folds=ev.folds, ridge=ev.ridge)
+                    folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s)
     evg.nuisance = _air_columns(evg, ev.theta0, n_knots)
     evg.nuisance_prec = prec
     evg.set_theta(ev.theta0)

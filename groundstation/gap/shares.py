@@ -372,7 +372,7 @@ def _where_both_flew(c: attribute.Candidate, evs: tuple[Evaluator, Evaluator], e
 def _evaluator(segs: list[SegmentArrays], ev: Evaluator, theta: np.ndarray, min_windows: int) -> Evaluator | None:
     """An evaluator like ``ev`` on ``segs``; None when they hold fewer than ``min_windows`` windows."""
     try:
-        eh = Evaluator(segs, ev.dt_s, theta, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds, ridge=ev.ridge)
+        eh = Evaluator(segs, ev.dt_s, theta, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s)
     except Exception:  # too few windows for the folds
         return None
     return eh if eh.W >= min_windows else None

@@ -161,3 +161,27 @@ def test_bridge_error_floor_matches_what_straight_lines_cost(lossy):
     assert (floor_rms > 0).all()
     ratio = np.sqrt(np.sum(floor_rms ** 2) / np.sum(true_rms ** 2))
     assert 0.6 < ratio < 1.6, (ratio, true_rms, floor_rms)
+
+
+def test_outputs_after_a_bridged_hole_are_not_counted_while_the_rotor_settles(lossy):
+    from groundstation.dsp.prepare import _settling
+
+    br = np.zeros(30, bool)
+    br[5:8] = True
+    cfg = PrepConfig(rotor_inv_tau_s=25.0, settle_after_bridge_tau=3.0)   # 3 x 0.04 s = 6 samples at 50 Hz
+    assert np.flatnonzero(_settling(br, cfg)).tolist() == list(range(8, 14))
+    assert not _settling(br, PrepConfig(settle_after_bridge_tau=0.0)).any()
+    p = prepare([lossy[0]])
+    p0 = prepare([lossy[0]], PrepConfig(settle_after_bridge_tau=0.0))
+    assert p.link_quality["unmeasured_pct"] > p0.link_quality["unmeasured_pct"]
+    seg = max(p.segments, key=lambda s: s.n)
+    assert seg.inputs_bridged is not None
+    after = _settling(seg.inputs_bridged, PrepConfig())
+    assert after.any() and not seg.measured_mask()[after].any()
+
+
+def test_inputs_shifted_for_a_time_skew_keep_where_they_were_bridged(lossy):
+    p = prepare([lossy[0]], PrepConfig(input_shift_s=0.06))
+    for s in p.segments:
+        assert s.inputs_bridged is None or s.inputs_bridged.shape == s.t_s.shape
+    assert any(s.inputs_bridged is not None and s.inputs_bridged.any() for s in p.segments)
