@@ -46,9 +46,6 @@ from groundstation.gap.config import DiagnoseConfig
 from groundstation.gap.evaluate import SegmentArrays
 
 U, V, W, P, Q, R, THETA, PHI = range(8)
-#: a kinematic regression slope beyond this is not a calibration error but two signals that do not
-#: measure the same motion (a held or filtered height, a rate that is not this attitude's derivative)
-MAX_SLOPE = 0.5
 
 
 @dataclass(frozen=True)
@@ -218,7 +215,8 @@ def check(segs: list[SegmentArrays], available: np.ndarray, dt_s: float, sigma_r
           trims: np.ndarray | None = None, *, window_s: float = DiagnoseConfig.compat_window_s,
           alpha: float = DiagnoseConfig.alpha, min_windows: int = DiagnoseConfig.min_windows,
           min_effect_to_noise: float = DiagnoseConfig.compat_min_effect_to_noise, horizontal: Sequence[Any] = (),
-          z_agree: float = DiagnoseConfig.compat_z_agree) -> Compatibility:
+          z_agree: float = DiagnoseConfig.compat_z_agree,
+          max_slope: float = DiagnoseConfig.compat_max_slope) -> Compatibility:
     """Kinematic consistency of the gyros and the vertical velocity (see the module docstring).
 
     ``segs``: in-air segments (raw outputs, trim removed, plus ``trims`` (8,) to make them absolute);
@@ -251,7 +249,7 @@ def check(segs: list[SegmentArrays], available: np.ndarray, dt_s: float, sigma_r
         est3 = _estimates(sensor, ("bias", "scale", "shift_s"), beta, cov, G)
         # the regression measures e' in true = measured (1 - e'); the scale error is e = e' / (1 - e')
         s = est3[1]
-        if not abs(s.value) < MAX_SLOPE or not np.isfinite(s.se) or s.se <= 0:
+        if not abs(s.value) < max_slope or not np.isfinite(s.se) or s.se <= 0:
             pair = "height and vertical velocity" if sensor == "w" else f"{sensor} gyro and attitude angles"
             untestable[sensor] = (f"{pair} do not agree kinematically (slope {s.value:+.2f}): one is not the "
                                   "integral of the other here (e.g. a height that is held, filtered or missing)")

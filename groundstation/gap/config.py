@@ -154,6 +154,9 @@ class DiagnoseConfig:
     #: the horizontal velocity checks' u and v scale errors are pooled into one finding only when
     #: they agree within this many combined standard errors
     compat_z_agree: float = 3.0
+    #: a kinematic regression slope beyond this is not a calibration error but two signals that do not
+    #: measure the same motion (a held or filtered height, a rate that is not this attitude's derivative)
+    compat_max_slope: float = 0.5
     #: input lags (s) over which the residual-input cross-correlation is reported
     xcorr_max_lag_s: float = 1.0
 

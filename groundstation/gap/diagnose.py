@@ -311,6 +311,7 @@ def compat_stage(prepared: Any, cfg: DiagnoseConfig) -> tuple[compat.Compatibili
     comp = compat.check(segs, avail, float(prepared.dt_s), sigma, _trims(prepared), window_s=cfg.compat_window_s,
                         alpha=cfg.alpha, min_windows=cfg.min_windows,
                         min_effect_to_noise=cfg.compat_min_effect_to_noise, z_agree=cfg.compat_z_agree,
+                        max_slope=cfg.compat_max_slope,
                         horizontal=_horizontal_checks(prepared, cfg))
     fac = comp.scale_corrections()
     if not fac:
