@@ -60,10 +60,18 @@ TOP_PAD_BYTES = 16 << 20
 
 
 def default_jobs() -> int:
-    """Every core: the commands that open a worker map (``identify``, ``diagnose``, ``report``, the
-    benchmarks) are offline work. The live service does not use this: it analyses each flight in
-    one worker process of its own and keeps the other cores for the link."""
+    """Every core: ``identify`` (and the benchmarks) are offline work. The live service does not use
+    this: it analyses each flight in one worker process of its own and keeps the other cores for
+    the link."""
     return max(1, os.cpu_count() or 1)
+
+
+def spare_core_jobs() -> int:
+    """All cores but one, at least one: the default of ``diagnose`` and ``report``. Their workers
+    need the whole diagnosis imported (a 1.5-s fork server), which a 150-s flight's catalogue
+    scans do not win back: 3.9-4.4 s of CPU and 9-10 s wall with one process, 5.7-6.3 s and
+    12-16 s with two (load average 8 on 2 cores)."""
+    return max(1, (os.cpu_count() or 2) - 1)
 
 
 def serial_map(fn: Callable[[Any], Any], items: Iterable[Any]) -> list[Any]:

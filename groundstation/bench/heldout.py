@@ -51,8 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              ":mod:`benchkit.linear`)")
     parser.add_argument("--input-shift-s", default="0", metavar="S|S1,S2,..|auto",
                         help="advance the logged inputs by S s in every split (both models), or by one value per split "
-                             "in the order printed; auto: per split, the shift that minimises the plain reference fit's "
-                             "in-sample cost on the training part")
+                             "in the order printed; auto: per split, the shift under which the plain reference fit "
+                             "predicts held-out blocks of the training part best (on a closed-loop flight a profile "
+                             "to look at, not a value to trust)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override an IdentifyConfig field of the project's identification (repeatable)")
 

@@ -36,14 +36,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no terminal table")
     parser.add_argument("--jobs", type=int, default=None,
                         help="worker processes for reading the logs, the base model's identification and the "
-                             "catalogue scans (default: every core; the report is the same for any number)")
+                             "catalogue scans (default: all cores but one; the report is the same for any number)")
 
 
 def run(args: argparse.Namespace) -> int:
-    from groundstation.parallel import worker_map
+    from groundstation.parallel import spare_core_jobs, worker_map
     from groundstation.pipeline import about_logs
 
-    with about_logs(args.logs), worker_map(args.jobs) as pmap:
+    with about_logs(args.logs), worker_map(spare_core_jobs() if args.jobs is None else args.jobs) as pmap:
         return _run(args, pmap)
 
 

@@ -33,17 +33,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="'flights' (every in-air interval, default) or 'sysid' (only the SYSID chirps)")
     parser.add_argument("--title", default=None, help="page title (default: the log names)")
     parser.add_argument("--jobs", type=int, default=None,
-                        help="worker processes (default: every core; the page is the same for any number)")
+                        help="worker processes (default: all cores but one; the page is the same for any number)")
     parser.add_argument("--json-out", type=Path, default=None,
                         help="also write the model and gap report used: DIR/model.json, DIR/gap.json")
     parser.add_argument("--quiet", action="store_true")
 
 
 def run(args: argparse.Namespace) -> int:
-    from groundstation.parallel import worker_map
+    from groundstation.parallel import spare_core_jobs, worker_map
     from groundstation.pipeline import about_logs
 
-    with about_logs(args.logs), worker_map(args.jobs) as pmap:
+    with about_logs(args.logs), worker_map(spare_core_jobs() if args.jobs is None else args.jobs) as pmap:
         return _run(args, pmap)
 
 

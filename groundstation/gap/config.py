@@ -118,6 +118,9 @@ class DiagnoseConfig:
     native_line_min_hz: float = 10.0
     #: significance of a line in the log's own high-rate gyro (Bonferroni over bins and axes)
     native_line_alpha: float = 1e-3
+    #: how far (amplitude ratio) the model's response may be wrong before a residual line the sticks also
+    #: carry is said not to come from them
+    line_stick_reach_factor: float = 10.0
 
     # ------------------------------------------------------------------ unexplained
     #: with nothing named and the gap significant, the first decision calls it "unexplained" when at

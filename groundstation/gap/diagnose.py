@@ -486,7 +486,8 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
     # position estimate resampled to the grid, whose interpolation images are not vibration
     line_ch = avail & (np.arange(8) >= 3)
     lines, spectra = fingerprints.spectral_lines(resid_raw, ev.U[:, ev.start:], dt, line_ch, alpha=cfg.alpha,
-                                                 response=_response(ev.theta0, dt))
+                                                 response=_response(ev.theta0, dt),
+                                                 reach_factor=cfg.line_stick_reach_factor)
     # a line above the Nyquist frequency of the stream a channel was sent at is an interpolation image
     lines = fingerprints.resolvable_lines(lines, loc.out_stride, dt)
     kin = fingerprints.kinematic_rate_offsets(ev.Y, dt, avail, trims=_trims(prepared))
@@ -804,7 +805,8 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
                 yfit = ev.simulate(ev.theta0)[0]
                 arrays = {"resid_raw": (ev.Yraw - yfit)[:, ev.start:], "U": ev.U[:, ev.start:],
                           "response": _response(ev.theta0, ev.dt_s),
-                          "line_channels": base.avail & (np.arange(8) >= 3), "stride": loc.out_stride}
+                          "line_channels": base.avail & (np.arange(8) >= 3), "stride": loc.out_stride,
+                          "reach_factor": cfg.line_stick_reach_factor}
             for c in ranked:
                 cons[id(c)] = shares.consistency(
                     c, segs_h, ev, np.asarray(c.hyp.extra.get("theta_refit", ev.theta0)), level,
@@ -1004,7 +1006,8 @@ def _line_given_first(c: attribute.Candidate, first: attribute.Candidate, *, bas
     resid = (ev.Yraw - ev.simulate(ev.theta0)[0])[:, ev.start:]
     line_ch = base.avail & (np.arange(8) >= 3)
     lines, sp = fingerprints.spectral_lines(resid, ev.U[:, ev.start:], base.dt_s, line_ch, alpha=cfg.alpha,
-                                            response=_response(ev.theta0, base.dt_s))
+                                            response=_response(ev.theta0, base.dt_s),
+                                            reach_factor=cfg.line_stick_reach_factor)
     lines = fingerprints.resolvable_lines(lines, loc.out_stride, base.dt_s)
     f0 = float(c.hyp.estimate.get("frequency_hz", np.nan))
     f = sp.get("f_hz")

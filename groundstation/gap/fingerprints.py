@@ -24,10 +24,6 @@ from scipy import stats
 from groundstation.gap.config import DiagnoseConfig
 from groundstation.sysid.model import OUTPUTS
 
-#: how far (amplitude ratio) the model's response may be wrong before a residual line the sticks also
-#: carry is said not to come from them (:func:`spectral_lines`)
-STICK_REACH_FACTOR = 10.0
-
 
 @dataclass
 class Line:
@@ -105,8 +101,8 @@ def _line_stats(P: np.ndarray, n_avg: int, half: int = 6, guard: int = 2,
 
 
 def spectral_lines(resid: np.ndarray, inputs: np.ndarray, dt_s: float, available: np.ndarray,
-                   *, alpha: float = 1e-3, min_hz: float | None = None,
-                   response: Any = None) -> tuple[list[Line], dict]:
+                   *, alpha: float = 1e-3, min_hz: float | None = None, response: Any = None,
+                   reach_factor: float = DiagnoseConfig.line_stick_reach_factor) -> tuple[list[Line], dict]:
     """Significant narrow spectral lines in output residuals that the inputs do not explain.
 
     A line the inputs also carry is left out where the inputs could have put it in the residual: the
@@ -114,7 +110,7 @@ def spectral_lines(resid: np.ndarray, inputs: np.ndarray, dt_s: float, available
     channel, ``max_j |G_j(f)|^2 max_j Pu_j(f)`` (any input: one held still in the log, or not logged,
     may be the one that moved the aircraft), or where a stick's line there is not an echo (its power
     at or above that stick's mean spectral level: a card's or a pilot's oscillation),
-    times :data:`STICK_REACH_FACTOR` squared, is at least the residual's line power (above its local
+    times ``reach_factor`` squared (``[diagnose] line_stick_reach_factor``), is at least the residual's line power (above its local
     median). A residual line the sticks could only have made were the model's response wrong by more
     than that factor in amplitude was not made by the sticks: a stabilising loop passes a vibration the
     gyros see into the servo outputs, where it is the consequence, not the cause (at a rotor line the
@@ -166,7 +162,7 @@ def spectral_lines(resid: np.ndarray, inputs: np.ndarray, dt_s: float, available
         # pilot's oscillation is a large part of the stick's motion and is never an echo)
         mean_psd = 2.0 * dt_s * inputs.reshape(-1, inputs.shape[-1]).var(axis=0)
         echo = ~(u_line & (Pu >= mean_psd[None, :])).any(axis=1)
-        sig &= ~(u_line.any(axis=1)[:, None] & ((STICK_REACH_FACTOR ** 2 * reach >= r_exc) | ~echo[:, None]))
+        sig &= ~(u_line.any(axis=1)[:, None] & ((reach_factor ** 2 * reach >= r_exc) | ~echo[:, None]))
     lines: list[Line] = []
     used = np.zeros(len(f), bool)
     order = np.argsort(np.where(sig, logp, 0).min(axis=1))

@@ -480,7 +480,8 @@ def _line_consistency(c: attribute.Candidate, ev: Evaluator, arrays: dict[str, A
         if sel.sum() < 3:
             out["why"] = "a half of the flight is too short"
             return out
-        lines, sp = fingerprints.spectral_lines(resid[sel], U[sel], dt, ch, alpha=level, response=arrays.get("response"))
+        lines, sp = fingerprints.spectral_lines(resid[sel], U[sel], dt, ch, alpha=level, response=arrays.get("response"),
+                                                reach_factor=arrays.get("reach_factor", DiagnoseConfig.line_stick_reach_factor))
         lines = fingerprints.resolvable_lines(lines, arrays.get("stride"), dt)
         f = sp["f_hz"] if isinstance(sp, dict) and "f_hz" in sp else None
         tol = max(0.3, 2.0 * float(f[1] - f[0])) if f is not None and len(f) > 1 else 0.3
