@@ -394,7 +394,7 @@ def held_out(model: Any, prepared: Any, cfg: ServiceConfig, aircraft: Any, k: in
             if getattr(model, "structure", "hover") == "command_response":   # the stabilised aircraft's structure
                 from groundstation.sysid.structure_choice import fold_fitter
 
-                fit_fold = fold_fitter(model)
+                fit_fold = fold_fitter(model, icfg)
             cv = crossvalidate(prepared, fit_fold, k=k, window_s=icfg.heldout_window_s,
                                runaway_factor=icfg.runaway_factor, pmap=serial_map if pmap is None else pmap)
         except ValueError as exc:

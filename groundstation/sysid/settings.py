@@ -134,6 +134,13 @@ class IdentifyConfig:
     #: which then predicts), "unknown" (both, held-out prediction chooses):
     #: :mod:`groundstation.sysid.structure`
     input_kind: str = "blade"
+    #: the command-response structure's fit: windows of this length (s), each from its measured
+    #: initial state
+    command_window_s: float = 5.0
+    #: the command-response structure's fit: a window starts every this many seconds
+    command_step_s: float = 2.5
+    #: least-squares iterations per axis of the command-response fit (each delay of the grid)
+    command_maxiter: int = 60
 
     def search_options(self, algorithm: str) -> dict[str, Any]:
         """The keyword arguments of ``algorithm``'s optimiser (:data:`groundstation.sysid.optimizers.ALGORITHMS`)

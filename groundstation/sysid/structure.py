@@ -49,6 +49,7 @@ from scipy.linalg import expm
 
 from groundstation.errors import SysidError
 from groundstation.sysid.model import G_M_S2, INPUTS, OUTPUTS
+from groundstation.sysid.settings import IdentifyConfig
 
 #: what the aircraft file's ``[inputs] kind`` may say
 KINDS: tuple[str, ...] = ("blade", "rate_command", "attitude_command", "unknown")
@@ -454,7 +455,7 @@ def _vector(f: AxisFit) -> np.ndarray:
     return np.array([f.params[n] for n in _axis_of(f).param_names])
 
 
-def fit_axis(axis: _Axis, win: CommandWindows, *, x0: np.ndarray | None = None, maxiter: int = 30,
+def fit_axis(axis: _Axis, win: CommandWindows, *, x0: np.ndarray | None = None, maxiter: int = IdentifyConfig.command_maxiter,
              rng: Any = 0) -> tuple[np.ndarray, np.ndarray, float]:
     """(x, std, cost) of one axis: the nonlinear parameters over a grid of delays, then every one of
     them free (:func:`groundstation.sysid.optimizers.minimize_grid_lsq`), the linear ones solved inside;
@@ -504,8 +505,8 @@ def simulate_axis(axis: _Axis, x: np.ndarray, win: CommandWindows) -> np.ndarray
     return _AxisCost(axis, win).predict(x)
 
 
-def identify_command(prepared: Any, kind: str = "rate_command", *, window_s: float = 5.0, step_s: float = 2.5,
-                     maxiter: int = 60, rng: Any = 0) -> CommandModel:
+def identify_command(prepared: Any, kind: str = "rate_command", *, window_s: float = IdentifyConfig.command_window_s,
+                     step_s: float = IdentifyConfig.command_step_s, maxiter: int = IdentifyConfig.command_maxiter, rng: Any = 0) -> CommandModel:
     """The LOES of ``prepared`` (see the module docstring); SysidError when no axis can be fitted."""
     if kind not in COMMAND_KINDS:
         raise SysidError(f"inputs.kind = {kind!r}: a command structure is one of {', '.join(COMMAND_KINDS)}")

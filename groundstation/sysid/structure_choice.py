@@ -23,14 +23,23 @@ def _as_hover_model(model: Any, cm: CommandModel) -> Any:
     return dataclasses.replace(model, command=cm.to_json(), structure="command_response")
 
 
-def fit_command_fold(train: Any, *, model: Any, kind: str) -> Any:
-    """A fold's command-response model (module level: picklable for worker processes)."""
-    return _as_hover_model(model, identify_command(train, kind))
+def command_settings(cfg: Any) -> dict[str, Any]:
+    """The keyword arguments of :func:`identify_command` from the ``[identify]`` settings ``cfg``."""
+    return {"window_s": float(cfg.command_window_s), "step_s": float(cfg.command_step_s),
+            "maxiter": int(cfg.command_maxiter)}
 
 
-def fold_fitter(model: Any) -> Any:
-    """``fit_fold(train) -> model`` of a held-out check of ``model``'s command-response structure (same kind)."""
-    return partial(fit_command_fold, model=model, kind=str((model.command or {}).get("kind", "rate_command")))
+def fit_command_fold(train: Any, *, model: Any, kind: str, settings: dict[str, Any] | None = None) -> Any:
+    """A fold's command-response model (module level: picklable for worker processes); ``settings``:
+    :func:`command_settings`."""
+    return _as_hover_model(model, identify_command(train, kind, **(settings or {})))
+
+
+def fold_fitter(model: Any, cfg: Any = None) -> Any:
+    """``fit_fold(train) -> model`` of a held-out check of ``model``'s command-response structure (same kind),
+    fitted with the ``[identify]`` settings ``cfg`` (None: the defaults)."""
+    return partial(fit_command_fold, model=model, kind=str((model.command or {}).get("kind", "rate_command")),
+                   settings=command_settings(cfg) if cfg is not None else None)
 
 
 def attach_command_structure(prepared: Any, model: Any, cfg: Any, *, prior: Any = None, pmap: Any = None,
@@ -46,7 +55,7 @@ def attach_command_structure(prepared: Any, model: Any, cfg: Any, *, prior: Any 
     given by the identification)."""
     pmap = pmap or serial_map
     kind = cfg.input_kind if cfg.input_kind in COMMAND_KINDS else "rate_command"
-    cm = identify_command(prepared, kind)
+    cm = identify_command(prepared, kind, **command_settings(cfg))
     out = _as_hover_model(model, cm)
     out.fit = model.fit.set(command_response=cm.describe())
     if cfg.input_kind in COMMAND_KINDS or int(cfg.select_folds) < 2:
@@ -55,7 +64,8 @@ def attach_command_structure(prepared: Any, model: Any, cfg: Any, *, prior: Any 
             out.fit = out.fit.without("heldout").set(heldout_hover=out.fit.heldout)
         return out
     try:
-        cv_c = crossvalidate(prepared, partial(fit_command_fold, model=model, kind=kind), k=int(cfg.select_folds),
+        cv_c = crossvalidate(prepared, partial(fit_command_fold, model=model, kind=kind, settings=command_settings(cfg)),
+                             k=int(cfg.select_folds),
                              window_s=float(cfg.heldout_window_s), runaway_factor=float(cfg.runaway_factor), pmap=pmap)
         cv_h = _crossvalidate(prepared, model, cfg, prior, pmap, refit)
     except ValueError as exc:

@@ -53,11 +53,6 @@ NOT_SETTINGS = {
     "optimizers.logistic_step.mu": "the logistic map's chaotic parameter (the paper's method: 4)",
     "optimizers.logistic_step.eps": "keeps the logistic map off its fixed points",
     "optimizers._avoid_bad.eps": "keeps the logistic map off its fixed points",
-    # not yet settings: the command-response structure of a stabilised aircraft
-    "structure.fit_axis.maxiter": "not yet a setting ([identify] has no command-response section)",
-    "structure.identify_command.window_s": "not yet a setting ([identify] has no command-response section)",
-    "structure.identify_command.step_s": "not yet a setting ([identify] has no command-response section)",
-    "structure.identify_command.maxiter": "not yet a setting ([identify] has no command-response section)",
     "structure.predict_command.window_s": "its callers pass the window ([identify] heldout_window_s, "
                                           "[diagnose] controller_window_s)",
 }
