@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import os
+import tempfile
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any, Protocol
@@ -80,11 +81,14 @@ class _Pool:
         from concurrent.futures import ProcessPoolExecutor
 
         self.workers = workers
+        self.pids: list[int] = []
         self.ex = ProcessPoolExecutor(max_workers=workers, mp_context=start_fork_server(), initializer=init_worker)
 
     def warm(self) -> None:
-        """Every worker started (each submit starts one while none is idle)."""
-        list(self.ex.map(warm_task, range(self.workers)))
+        """Every worker started, their process ids in ``self.pids`` (one task per worker, each holding
+        its worker until all have checked in: :func:`warm_task`)."""
+        with tempfile.TemporaryDirectory(prefix="gs-warm-") as directory:
+            self.pids = list(self.ex.map(warm_task, [(directory, self.workers)] * self.workers))
 
     def results(self, jobs: Sequence[FlightJob]) -> Iterator[tuple[int, list[dict[str, Any]]]]:
         from concurrent.futures import as_completed
@@ -94,11 +98,20 @@ class _Pool:
             yield futs[f], f.result()
 
 
-def warm_task(_: Any) -> int:
+def warm_task(rendezvous: tuple[str, int], timeout_s: float = 60.0) -> int:
+    """This worker's process id, once ``n`` workers have checked in to ``directory`` (``rendezvous``):
+    a worker holds its task until then, so the pool hands each of the ``n`` tasks to another worker.
+    A pool that cannot start ``n`` goes on after ``timeout_s``."""
     import time
 
-    time.sleep(0.05)  # held long enough that the next task finds this worker busy and starts another
-    return os.getpid()
+    directory, n = rendezvous
+    pid = os.getpid()
+    with open(os.path.join(directory, str(pid)), "w"):
+        pass
+    deadline = time.monotonic() + timeout_s
+    while len(os.listdir(directory)) < n and time.monotonic() < deadline:
+        time.sleep(0.005)
+    return pid
 
 
 class _Dask:

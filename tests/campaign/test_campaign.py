@@ -113,7 +113,7 @@ def test_pool_and_local_cluster_processes_share_one_fork_server_and_give_the_sam
     serial = runner.run(jobs, workers=1)
     with runner.open_executor(2) as ex:
         ex.warm()
-        pids = set(ex.ex.map(runner.warm_task, range(2)))  # type: ignore[attr-defined]
+        pids = set(ex.pids)  # type: ignore[attr-defined]
         parent = ex.ex.submit(os.getppid).result()  # type: ignore[attr-defined]
         pool = runner.run(jobs, executor=ex)
     assert len(pids) == 2 and os.getpid() not in pids
