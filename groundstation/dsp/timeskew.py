@@ -12,8 +12,12 @@ before any model is fitted, so that every structure sees the same, consistent da
 shift delays them. Each segment loses the ``|shift_s|`` at the end (advance) or start (delay)
 where the shifted input is not in the log. Outputs, trims and everything else are untouched.
 
-How large the shift is, is measured elsewhere (from a fit's cost over a grid of shifts, or from the
-command-response structure's negative delays); this module only applies it. Pure numpy.
+``response_lead(prepared)`` reads how late the inputs are at least, where the pilot does not react to
+the motion: on each stick's sharp, isolated steps the event-averaged on-axis rate is half way up before
+the logged stick by ``lead_s`` (a causal response's own lag makes this a lower bound on the skew).
+A fit's cost over a grid of shifts does not measure the skew on a flight flown in closed loop (the
+stick follows the motion); the command-response structure's negative delays are another reading.
+``skew_notes`` words the lead for ``identify``. Pure numpy.
 """
 
 from __future__ import annotations
