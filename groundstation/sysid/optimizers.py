@@ -31,7 +31,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from scipy.optimize import OptimizeResult, differential_evolution
+from scipy.optimize import OptimizeResult, differential_evolution, least_squares
 
 Fun = Callable[[np.ndarray], np.ndarray]
 
@@ -310,8 +310,6 @@ def minimize_lsq(fun: Fun, bounds, *, rng=None, maxiter: int = 100, maxfev: int 
     evaluations of each start. ``fun`` scores the final point of each start (batch (C, D) -> (C,));
     the lowest wins. ``history`` is the winner's score after each start.
     """
-    from scipy.optimize import least_squares
-
     rng = _rng(rng)
     b = np.asarray(bounds, dtype=float)
     lo, hi = b[:, 0], b[:, 1]
@@ -344,8 +342,6 @@ def minimize_grid_lsq(fun: Fun, bounds, *, rng=None, maxiter: int = 100, maxfev:
     those with it free (at most ``maxiter``). ``fun`` scores each fit's end point (batch (C, D) -> (C,)),
     the lowest wins. The result also holds ``jac`` (n, D), the final fit's Jacobian (for standard errors).
     """
-    from scipy.optimize import least_squares
-
     b = np.asarray(bounds, dtype=float)
     lo, hi = b[:, 0], b[:, 1]
     span = hi - lo

@@ -49,6 +49,8 @@ from scipy.linalg import expm
 
 from groundstation.errors import SysidError
 from groundstation.sysid.model import G_M_S2, INPUTS, OUTPUTS
+from groundstation.sysid.optimizers import minimize_grid_lsq
+from groundstation.sysid.prediction import Prediction
 from groundstation.sysid.settings import IdentifyConfig
 
 #: what the aircraft file's ``[inputs] kind`` may say
@@ -460,8 +462,6 @@ def fit_axis(axis: _Axis, win: CommandWindows, *, x0: np.ndarray | None = None, 
     """(x, std, cost) of one axis: the nonlinear parameters over a grid of delays, then every one of
     them free (:func:`groundstation.sysid.optimizers.minimize_grid_lsq`), the linear ones solved inside;
     standard errors from the Jacobian of every parameter at the end."""
-    from groundstation.sysid.optimizers import minimize_grid_lsq
-
     cost = _AxisCost(axis, win)
     b = axis.bounds()
     nl = ~cost.lin
@@ -550,8 +550,6 @@ def identify_command(prepared: Any, kind: str = "rate_command", *, window_s: flo
 def predict_command(model: CommandModel, prepared: Any, *, window_s: float = 5.0) -> Any:
     """Held-out prediction as :func:`groundstation.sysid.heldout.predict` (eq. 19 per channel over
     ``window_s`` windows started from the measured states; inputs against the model's trim)."""
-    from groundstation.sysid.prediction import Prediction
-
     ppu = float(prepared.pwm_per_unit)
     off = np.array([(float(prepared.input_trim_pwm.get(k, 0.0)) - float(model.input_trim_pwm.get(k, prepared.input_trim_pwm.get(k, 0.0)))) / ppu
                     for k in INPUTS])
