@@ -423,7 +423,8 @@ class Service:
             return
         ft = self.live.flights
         if len(out.t_fc_s):
-            mon.rows(out.t_fc_s, out.inputs, out.outputs_raw, armed=ft.armed, in_air=ft.in_air, work=False)
+            mon.rows(out.t_fc_s, out.inputs, out.outputs_raw, armed=ft.armed, in_air=ft.in_air, work=False,
+                     measured=out.outputs_measured)
         rows, hop = self.live.rows, self.live.windows.hop
         if out.windows:
             self._excite_window_row = rows

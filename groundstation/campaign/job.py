@@ -124,9 +124,14 @@ def _conditions(prepared: Any) -> dict[str, float | None]:
 
 
 def effect_values(report: dict) -> dict[str, float]:
-    """``{"deadband[lon].half_width": 0.03, ...}``: every estimate of every scored effect, significant or not."""
+    """``{"deadband[lon].half_width": 0.03, ...}``: every estimate of every scored effect, significant or not.
+
+    The named effects first, then the partial findings (named by their own tests but not as the
+    verdict: below the share needed, or changing through the flight; each still carries its
+    whole-flight estimate), then the other candidates; an effect's first entry wins."""
     vals: dict[str, float] = {}
-    for e in list(report.get("effects", [])) + list(report.get("candidates", [])):
+    for e in (list(report.get("effects", [])) + list(report.get("partial_findings") or [])
+              + list(report.get("candidates", []))):
         ch = e.get("input") or e.get("output") or ""
         for k, v in (e.get("estimate") or {}).items():
             key = f"{e['effect']}[{ch}].{k}" if ch else f"{e['effect']}.{k}"

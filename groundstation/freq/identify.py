@@ -33,7 +33,6 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from groundstation.freq import FreqError
 from groundstation.freq.cost import coherence_weight, error_residuals, pair_residuals
@@ -210,6 +209,8 @@ def _distinct_best(opt: Any, k: int, span: np.ndarray, min_dist: float = 0.2) ->
 
 
 def _refine(cost: Any, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_nfev: int) -> Any:
+    from scipy.optimize import least_squares  # here: the time-domain identify loads no scipy
+
     span = hi - lo
     x0 = np.clip(x0, lo + 1e-9 * span, hi - 1e-9 * span)
 

@@ -45,7 +45,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.linalg import expm
 
 from groundstation.errors import SysidError
 from groundstation.sysid.model import G_M_S2, INPUTS, OUTPUTS
@@ -130,6 +129,8 @@ def delay_grid() -> np.ndarray:
 
 
 def _discretize(A: np.ndarray, B: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    from scipy.linalg import expm  # here: identify of a blade-input aircraft loads no scipy
+
     n, m = B.shape
     M = np.zeros((n + m, n + m))
     M[:n, :n], M[:n, n:] = A, B

@@ -186,6 +186,9 @@ LAZY_THIRD_PARTY = {
     "distributed": "campaigns on a Dask cluster only (about 0.5 s)",
     "psutil": "optional (the bench extra): machine-wide CPU accounting of bench campaign",
     "scipy.signal": "about 0.9 s: only tapers other than Hann and the report's spectrum figure",
+    "scipy.optimize": "about 0.25 s: the time-domain identification uses none of scipy; the least-squares fits "
+                      "(frequency domain, reference, command-response structure) load it",
+    "scipy.linalg": "the command-response structure's matrix exponential only (identify uses none of scipy)",
     "pyulog": "PX4 .ulg logs only (0.1 s at every start otherwise)",
     "resource": "Unix only (the import fails elsewhere)",
 }
