@@ -21,6 +21,19 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
+
+from groundstation.analysis import analyse_prepared
+from groundstation.config import ServiceConfig
+from groundstation.freq.spectra import estimate_responses
+from groundstation.freq.verify import verify
+from groundstation.gap.pictures import gap_pictures
+from groundstation.parallel import keep_freed_memory
+from groundstation.pipeline import load_logs, prepare_logs, prepare_native, with_aircraft
+from groundstation.report import render_report, write_html
+from groundstation.report.collect import assemble
+from groundstation.sysid.heldout import predict
+from groundstation.sysid.model import INPUTS, PARAM_NAMES
 
 #: bumped when the rows' meaning changes: a new version re-analyses everything
 ROW_SCHEMA = "heli-campaign-row/1"
@@ -41,8 +54,6 @@ class Settings:
     aircraft: Any = None
 
     def service_config(self) -> Any:
-        from groundstation.config import ServiceConfig
-
         return self.config if self.config is not None else ServiceConfig()
 
     def key(self) -> str:
@@ -102,8 +113,6 @@ def find_logs(paths: list[Path]) -> list[Path]:
 
 def _conditions(prepared: Any) -> dict[str, float | None]:
     """Flight conditions of the in-air data: duration, mean horizontal speed, input activity."""
-    from groundstation.sysid.model import INPUTS
-
     out = np.concatenate([s.outputs for s in prepared.segments])
     inp = np.concatenate([s.inputs for s in prepared.segments])
     speed = np.hypot(out[:, 0] + prepared.output_trim.get("u", 0.0), out[:, 1] + prepared.output_trim.get("v", 0.0))
@@ -134,8 +143,6 @@ def effect_values(report: dict) -> dict[str, float]:
 def model_row(model: Any, report: dict | None, prepared: Any) -> dict[str, Any]:
     """The table columns of one identified (and diagnosed) flight: conditions, parameters with
     standard errors, fits, gap verdict and effect estimates (``report`` None: not diagnosed)."""
-    from groundstation.sysid.model import PARAM_NAMES
-
     fit = model.fit
     row: dict[str, Any] = {**_conditions(prepared), "cost": fit.cost, "windows": fit.windows,
                            "fixed": json.dumps(list(fit.fixed)), "pinned": json.dumps(list(model.pinned))}
@@ -157,9 +164,6 @@ def model_row(model: Any, report: dict | None, prepared: Any) -> dict[str, Any]:
 
 
 def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[str, Any]:
-    from groundstation.analysis import analyse_prepared
-    from groundstation.sysid.heldout import predict
-
     t0 = time.perf_counter()
     cfg = job.settings.service_config()
     res = analyse_prepared(prepared, cfg, job.settings.aircraft, log_paths=[job.log],
@@ -190,13 +194,6 @@ def flight_page(job: FlightJob, prepared: Any, flight: int, model: Any, diag: An
     """(path, None) of the flight's HTML page (:mod:`groundstation.report`) drawn from this job's model and
     diagnosis plus the frequency check, or (None, one-line error): the row stands without it."""
     try:
-        from groundstation.freq.spectra import estimate_responses
-        from groundstation.freq.verify import verify
-        from groundstation.gap.pictures import gap_pictures
-        from groundstation.pipeline import load_logs, prepare_native, with_aircraft
-        from groundstation.report import render_report, write_html
-        from groundstation.report.collect import assemble
-
         cfg = with_aircraft(job.settings.service_config(), job.settings.aircraft)
         errors: dict[str, str | None] = {} if diag is not None else {"gap": "not diagnosed (--no-diagnose)"}
         freq = None
@@ -226,9 +223,6 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
     faults; None off Unix), shared by its flights, and ``worker_pid``, ``task_start_s``,
     ``task_end_s`` (``time.monotonic``, one clock for every process of a machine): what the work
     cost and how it was spread over the workers (the store keeps none of these)."""
-    from threadpoolctl import threadpool_limits
-
-    from groundstation.parallel import keep_freed_memory
 
     start_s = time.monotonic()
     keep_freed_memory()
@@ -237,8 +231,6 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
             "settings_key": job.settings.key(), "date_utc": date, "date_source": date_src, "error": None}
     t0, c0, f0 = time.perf_counter(), time.process_time(), _minor_faults()
     try:
-        from groundstation.pipeline import prepare_logs
-
         cfg = job.settings.service_config()
         with threadpool_limits(1):  # one core per job: the pool or the cluster provides the parallelism
             prepared = prepare_logs([job.log], cfg, aircraft=job.settings.aircraft)

@@ -22,7 +22,9 @@ from __future__ import annotations
 import logging
 import os
 import tempfile
+import time
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
 from typing import Any, Protocol
 
@@ -78,8 +80,6 @@ class _Serial:
 
 class _Pool:
     def __init__(self, workers: int) -> None:
-        from concurrent.futures import ProcessPoolExecutor
-
         self.workers = workers
         self.pids: list[int] = []
         self.ex = ProcessPoolExecutor(max_workers=workers, mp_context=start_fork_server(), initializer=init_worker)
@@ -91,8 +91,6 @@ class _Pool:
             self.pids = list(self.ex.map(warm_task, [(directory, self.workers)] * self.workers))
 
     def results(self, jobs: Sequence[FlightJob]) -> Iterator[tuple[int, list[dict[str, Any]]]]:
-        from concurrent.futures import as_completed
-
         futs = {self.ex.submit(analyse, j): i for i, j in enumerate(jobs)}
         for f in as_completed(futs):
             yield futs[f], f.result()
@@ -102,8 +100,6 @@ def warm_task(rendezvous: tuple[str, int], timeout_s: float = 60.0) -> int:
     """This worker's process id, once ``n`` workers have checked in to ``directory`` (``rendezvous``):
     a worker holds its task until then, so the pool hands each of the ``n`` tasks to another worker.
     A pool that cannot start ``n`` goes on after ``timeout_s``."""
-    import time
-
     directory, n = rendezvous
     pid = os.getpid()
     with open(os.path.join(directory, str(pid)), "w"):

@@ -53,6 +53,7 @@ from groundstation.errors import SysidError
 from groundstation.parallel import Map, serial_map
 from groundstation.sysid.cost import WindowedCost, make_windows, subset_windows
 from groundstation.sysid.fit_section import ModelFit
+from groundstation.sysid.heldout import unstable_modes
 from groundstation.sysid.model import (
     HOR_PARAMS,
     N_PARAMS,
@@ -66,8 +67,10 @@ from groundstation.sysid.model import (
 from groundstation.sysid.optimizers import ALGORITHMS
 from groundstation.sysid.refine import map_objective, with_standard_errors
 from groundstation.sysid.refine import refine as refine_ls
+from groundstation.sysid.select import best_refinement, select_config
 from groundstation.sysid.settings import IdentifyConfig
 from groundstation.sysid.simulate import kinematic_forcing
+from groundstation.sysid.structure_choice import attach_command_structure
 
 #: Parameters that need each input to move.
 INPUT_PARAMS: dict[str, tuple[str, ...]] = {
@@ -567,12 +570,8 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
         match, used = _in_sample_match(plan, cfg, run.theta, trim)
     model = _model(prepared, plan, cfg, run, match, used, algorithm=algorithm, seed=seed, refine=refine, prior=prior)
     if refine and cfg.select_candidates.strip() and cfg.select_folds >= 2:
-        from groundstation.sysid.select import select_config
-
         model = select_config(prepared, model, cfg, prior=prior, bounds=bounds, pmap=pmap, fit=fit_candidate, refit=refit)
     if refine and cfg.input_kind != "blade":
-        from groundstation.sysid.structure_choice import attach_command_structure
-
         model = attach_command_structure(prepared, model, cfg, pmap=pmap, refit=refit)
     return model
 
@@ -601,8 +600,6 @@ def fit_candidate(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
     """``cfg``'s model of ``prepared``: refinements from ``model0``'s parameters and ``cfg.extra_starts``,
     the lowest refined (MAP) objective per subsystem; standard errors and report as :func:`identify`'s.
     ``quick``: one refinement pass from ``model0``'s parameters only (the selection's screening fit)."""
-    from groundstation.sysid.select import best_refinement
-
     with threadpool_limits(1):
         plan = _plan(prepared, cfg, True, bounds, prior, search=False)
         run = _Run(theta=np.clip(model0.theta, plan.bounds[:, 0], plan.bounds[:, 1]))
@@ -638,8 +635,6 @@ def _fixed_values(plan: _Plan) -> np.ndarray:
 
 def _model(prepared: Any, plan: _Plan, cfg: IdentifyConfig, run: _Run, match: dict[str, float], used: np.ndarray, *,
            algorithm: str, seed: int, refine: bool, prior: Any) -> HoverModel:
-    from groundstation.sysid.heldout import unstable_modes
-
     theta = run.theta
     pinned = _pinned(theta, plan.free, plan.bounds, run.partner)
     std: dict[str, float | None] = {n: (float(run.std[i]) if np.isfinite(run.std[i]) else None)
