@@ -42,6 +42,7 @@ while identifying: the batched products are small and threads only contend on a 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
@@ -477,8 +478,6 @@ def _identify_subsystems(plan: _Plan, cfg: IdentifyConfig, run: _Run, *, refine:
     this process (they share the random number generator); each subsystem's screening and
     refinements, which draw no random numbers, run on the workers while this process searches the
     next subsystem (with the serial map, after it): the same model either way."""
-    from concurrent.futures import ThreadPoolExecutor
-
     subs = ((0, "horizontal", HOR_PARAMS), (1, "vertical", VER_PARAMS))
     parallel = plan.pmap is not serial_map and refine
     with ThreadPoolExecutor(max_workers=1) as bg:   # drives the workers; idle with the serial map
