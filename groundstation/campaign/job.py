@@ -25,6 +25,19 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
+
+from groundstation.analysis import analyse_prepared
+from groundstation.config import ServiceConfig
+from groundstation.freq.spectra import estimate_responses
+from groundstation.freq.verify import verify
+from groundstation.gap.pictures import gap_pictures
+from groundstation.parallel import keep_freed_memory
+from groundstation.pipeline import load_logs, prepare_logs, prepare_native, with_aircraft
+from groundstation.report import render_report, write_html
+from groundstation.report.collect import assemble
+from groundstation.sysid.heldout import predict
+from groundstation.sysid.model import INPUTS, PARAM_NAMES
 
 #: bumped when the rows' meaning changes: a new version re-analyses everything
 ROW_SCHEMA = "heli-campaign-row/1"
@@ -45,8 +58,6 @@ class Settings:
     aircraft: Any = None
 
     def service_config(self) -> Any:
-        from groundstation.config import ServiceConfig
-
         return self.config if self.config is not None else ServiceConfig()
 
     def key(self) -> str:
@@ -120,8 +131,6 @@ def find_logs(paths: list[Path]) -> list[Path]:
 
 def _conditions(prepared: Any) -> dict[str, float | None]:
     """Flight conditions of the in-air data: duration, mean horizontal speed, input activity."""
-    from groundstation.sysid.model import INPUTS
-
     out = np.concatenate([s.outputs for s in prepared.segments])
     inp = np.concatenate([s.inputs for s in prepared.segments])
     speed = np.hypot(out[:, 0] + prepared.output_trim.get("u", 0.0), out[:, 1] + prepared.output_trim.get("v", 0.0))
@@ -133,9 +142,14 @@ def _conditions(prepared: Any) -> dict[str, float | None]:
 
 
 def effect_values(report: dict) -> dict[str, float]:
-    """``{"deadband[lon].half_width": 0.03, ...}``: every estimate of every scored effect, significant or not."""
+    """``{"deadband[lon].half_width": 0.03, ...}``: every estimate of every scored effect, significant or not.
+
+    The named effects first, then the partial findings (named by their own tests but not as the
+    verdict: below the share needed, or changing through the flight; each still carries its
+    whole-flight estimate), then the other candidates; an effect's first entry wins."""
     vals: dict[str, float] = {}
-    for e in list(report.get("effects", [])) + list(report.get("candidates", [])):
+    for e in (list(report.get("effects", [])) + list(report.get("partial_findings") or [])
+              + list(report.get("candidates", []))):
         ch = e.get("input") or e.get("output") or ""
         for k, v in (e.get("estimate") or {}).items():
             key = f"{e['effect']}[{ch}].{k}" if ch else f"{e['effect']}.{k}"
@@ -147,8 +161,6 @@ def effect_values(report: dict) -> dict[str, float]:
 def model_row(model: Any, report: dict | None, prepared: Any) -> dict[str, Any]:
     """The table columns of one identified (and diagnosed) flight: conditions, parameters with
     standard errors, fits, gap verdict and effect estimates (``report`` None: not diagnosed)."""
-    from groundstation.sysid.model import PARAM_NAMES
-
     fit = model.fit
     row: dict[str, Any] = {**_conditions(prepared), "cost": fit.cost, "windows": fit.windows,
                            "fixed": json.dumps(list(fit.fixed)), "pinned": json.dumps(list(model.pinned))}
@@ -170,8 +182,6 @@ def model_row(model: Any, report: dict | None, prepared: Any) -> dict[str, Any]:
 
 
 def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> tuple[dict[str, Any], Any]:
-    from groundstation.analysis import analyse_prepared
-
     t0 = time.perf_counter()
     cfg = job.settings.service_config()
     res = analyse_prepared(prepared, cfg, job.settings.aircraft, log_paths=[job.log],
@@ -192,8 +202,6 @@ def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> tuple[d
 def cross_fit(model: Any, ref: Any, reference_log: str) -> dict[str, Any]:
     """The row's cross-flight columns: the model's mean match predicting the reference (prepared),
     or, when the reference holds no usable window, the reason beside its name (reported, not fatal)."""
-    from groundstation.sysid.heldout import predict
-
     name = Path(reference_log).name
     try:
         return {"cross_match_pct": float(predict(model, ref).mean_match), "cross_log": name}
@@ -210,13 +218,6 @@ def flight_page(job: FlightJob, prepared: Any, flight: int, model: Any, diag: An
     """(path, None) of the flight's HTML page (:mod:`groundstation.report`) drawn from this job's model and
     diagnosis plus the frequency check, or (None, one-line error): the row stands without it."""
     try:
-        from groundstation.freq.spectra import estimate_responses
-        from groundstation.freq.verify import verify
-        from groundstation.gap.pictures import gap_pictures
-        from groundstation.pipeline import load_logs, prepare_native, with_aircraft
-        from groundstation.report import render_report, write_html
-        from groundstation.report.collect import assemble
-
         cfg = with_aircraft(job.settings.service_config(), job.settings.aircraft)
         errors: dict[str, str | None] = {} if diag is not None else {"gap": "not diagnosed (--no-diagnose)"}
         freq = None
@@ -251,9 +252,6 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
 
 def analyse_handing_over(job: FlightJob) -> tuple[list[dict[str, Any]], Handover]:
     """:func:`analyse`, and what the job hands back to its caller (:class:`Handover`)."""
-    from threadpoolctl import threadpool_limits
-
-    from groundstation.parallel import keep_freed_memory
 
     start_s = time.monotonic()
     keep_freed_memory()
@@ -263,8 +261,6 @@ def analyse_handing_over(job: FlightJob) -> tuple[list[dict[str, Any]], Handover
     hand = Handover()
     t0, c0, f0 = time.perf_counter(), time.process_time(), _minor_faults()
     try:
-        from groundstation.pipeline import prepare_logs
-
         cfg = job.settings.service_config()
         with threadpool_limits(1):  # one core per job: the pool or the cluster provides the parallelism
             prepared = prepare_logs([job.log], cfg, aircraft=job.settings.aircraft)

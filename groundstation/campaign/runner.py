@@ -23,11 +23,15 @@ import dataclasses
 import logging
 import os
 import tempfile
+import time
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
 from typing import Any, Protocol
 
-from groundstation.campaign.job import FlightJob, Handover, analyse_handing_over, cross_fit
+from threadpoolctl import threadpool_limits
+
+from groundstation.campaign.job import FlightJob, Handover, _one_line, analyse_handing_over, cross_fit
 from groundstation.parallel import PRELOAD as PRELOAD  # noqa: F401 - re-exported
 from groundstation.parallel import fork_context, init_worker
 from groundstation.parallel import warm as warm
@@ -81,8 +85,6 @@ class _Serial:
 
 class _Pool:
     def __init__(self, workers: int) -> None:
-        from concurrent.futures import ProcessPoolExecutor
-
         self.workers = workers
         self.pids: list[int] = []
         self.ex = ProcessPoolExecutor(max_workers=workers, mp_context=start_fork_server(), initializer=init_worker)
@@ -94,8 +96,6 @@ class _Pool:
             self.pids = list(self.ex.map(warm_task, [(directory, self.workers)] * self.workers))
 
     def results(self, jobs: Sequence[FlightJob]) -> Iterator[tuple[int, Done]]:
-        from concurrent.futures import as_completed
-
         futs = {self.ex.submit(analyse_handing_over, j): i for i, j in enumerate(jobs)}
         for f in as_completed(futs):
             yield futs[f], f.result()
@@ -105,8 +105,6 @@ def warm_task(rendezvous: tuple[str, int], timeout_s: float = 60.0) -> int:
     """This worker's process id, once ``n`` workers have checked in to ``directory`` (``rendezvous``):
     a worker holds its task until then, so the pool hands each of the ``n`` tasks to another worker.
     A pool that cannot start ``n`` goes on after ``timeout_s``."""
-    import time
-
     directory, n = rendezvous
     pid = os.getpid()
     with open(os.path.join(directory, str(pid)), "w"):
@@ -252,10 +250,6 @@ def hand_over_plan(jobs: Sequence[FlightJob]) -> list[FlightJob]:
 def _cross_in_caller(job: FlightJob, rows: list[dict[str, Any]], hand: Handover, ref: Any) -> None:
     """The cross-flight columns of ``rows`` (in place) from the models the job handed over and the
     reference prepared by its own job (None: it could not be, no cross-flight fit, as in the job)."""
-    from threadpoolctl import threadpool_limits
-
-    from groundstation.campaign.job import _one_line
-
     if ref is None:
         return
     for n, r in enumerate(rows):

@@ -6,19 +6,19 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from groundstation.jsonio import write_atomic
+from groundstation.sysid.model import PARAM_NAMES
+
 
 def write_json(path: Path, doc: dict) -> None:
-    from groundstation.jsonio import write_atomic
-
     write_atomic(path, doc)
 
 
 def print_model(model, con=None) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
-    from groundstation.sysid.model import PARAM_NAMES
-
     con = con or Console()
     fit = model.fit
     con.print(f"[bold]{str(fit.algorithm).upper()}[/]: cost F={fit.cost:.4f} (search {fit.search_cost:.4f}), "
@@ -38,7 +38,6 @@ def print_model(model, con=None) -> None:
         note = "fixed (not identifiable)" if n in fit.fixed else ("PINNED at bound" if n in model.pinned else "")
         p.add_row(n, f"{model.params[n]:.4g}", "-" if s is None else f"{s:.3g}", note)
     con.print(p)
-    from rich.markup import escape
 
     for r in fit.fixed_reasons + fit.notes:
         con.print(f"note: {escape(r)}")

@@ -334,7 +334,8 @@ class _Flight:
     last_t_fc_s: float = -math.inf
     in_segment: bool = False
     next_report_fc_s: float = -math.inf
-    pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)   # rows not yet added
+    # rows not yet added: t, inputs, outputs, outputs measured (None: all measured)
+    pending: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]] = field(default_factory=list)
     pending_rows: int = 0
     armed: bool = False
     freq_spectra: IncrementalResponses | None = None     # the same rows with [freq]'s settings (after-flight check)
@@ -411,24 +412,32 @@ class ExcitationMonitor:
                         if len(self._imu_t) > 512:
                             del self._imu_t[:256], self._imu_a[:256]
 
-    def _accel_z(self, t: np.ndarray) -> np.ndarray:
+    def _accel_z(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Vertical (body z) acceleration on the grid times ``t``: interpolated, NaN where no IMU sample
         is within two grid steps or the IMU stream is slower than the grid (no IMU stream at the grid's
-        rate: the column stays NaN and ``az`` counts as unmeasured)."""
+        rate: the column stays NaN and ``az`` counts as unmeasured); and where it was measured (the
+        samples it comes from no further apart than ordinary sampling, as the live grid counts it)."""
+        nan = np.full(t.shape, np.nan)
         if len(self._imu_t) < 2:
-            return np.full(t.shape, np.nan)
+            return nan, np.zeros(t.shape, dtype=bool)
         ti, ai = np.asarray(self._imu_t[-128:]), np.asarray(self._imu_a[-128:])
-        if float(np.median(np.diff(ti))) > 1.5 * self.dt_s:
-            return np.full(t.shape, np.nan)     # slower than the grid (a 10 Hz stream): aliased, not used
-        az = np.interp(t, ti, ai)
-        return np.where((t >= ti[0] - 2 * self.dt_s) & (t <= ti[-1] + 2 * self.dt_s), az, np.nan)
+        step = float(np.median(np.diff(ti)))
+        if step > 1.5 * self.dt_s:
+            return nan, np.zeros(t.shape, dtype=bool)     # slower than the grid (a 10 Hz stream): aliased, not used
+        az = np.where((t >= ti[0] - 2 * self.dt_s) & (t <= ti[-1] + 2 * self.dt_s), np.interp(t, ti, ai), np.nan)
+        j = np.clip(np.searchsorted(ti, t), 1, ti.size - 1)
+        span = np.where(np.isin(t, ti), 0.0, ti[j] - ti[j - 1])
+        return az, np.isfinite(az) & (span <= max(0.1, 2.5 * step))
 
     def rows(self, t_fc_s: np.ndarray, inputs: np.ndarray, outputs: np.ndarray, *, armed: bool,
-             in_air: bool, work: bool = True) -> ExcitationReport | None:
+             in_air: bool, work: bool = True, measured: np.ndarray | None = None) -> ExcitationReport | None:
         """Grid rows ``t_fc_s (n,)``, ``inputs (n, 4)``, ``outputs (n, 8)`` (raw, as dsp.live gives them)
-        and the flight state after them. In-air rows of the current flight accumulate; with ``work`` the
-        rows gathered are transformed and a verdict is returned when one is due (else :meth:`step` does
-        that when the caller has time: the service, between two live windows)."""
+        and the flight state after them; ``measured (n, 8)`` bool (``LiveOutput.outputs_measured``) is
+        False where a row only bridges a hole of the link: the spectra count such rows in the random
+        error by their share, as the after-flight estimate does. In-air rows of the current flight
+        accumulate; with ``work`` the rows gathered are transformed and a verdict is returned when one
+        is due (else :meth:`step` does that when the caller has time: the service, between two live
+        windows)."""
         fl = self.flight
         if fl is None or len(t_fc_s) == 0:
             return None
@@ -436,7 +445,8 @@ class ExcitationMonitor:
         if in_air and armed:
             if fl.in_segment and t[0] - fl.last_t_fc_s > 1.5 * self.dt_s:
                 self._flush(end_segment=True)       # a gap in the grid: no window spans it
-            fl.pending.append((t, np.asarray(inputs, dtype=float), np.asarray(outputs, dtype=float)))
+            m = None if measured is None else np.asarray(measured, dtype=bool)
+            fl.pending.append((t, np.asarray(inputs, dtype=float), np.asarray(outputs, dtype=float), m))
             fl.pending_rows += len(t)
             self._chirps.rows(t, np.asarray(inputs, dtype=float))
             fl.in_segment = True
@@ -468,12 +478,17 @@ class ExcitationMonitor:
         if fl.pending:
             t = np.concatenate([p[0] for p in fl.pending])
             u = np.concatenate([p[1] for p in fl.pending])
-            y = np.column_stack([np.concatenate([p[2] for p in fl.pending]), self._accel_z(t)])
+            az, az_measured = self._accel_z(t)
+            y = np.column_stack([np.concatenate([p[2] for p in fl.pending]), az])
+            m = np.column_stack([np.concatenate([p[3] if p[3] is not None else np.ones(p[2].shape, bool)
+                                                 for p in fl.pending]), az_measured])
+            if (m | ~np.isfinite(y)).all():
+                m = None            # no hole of the link in these rows: the spectra take their plain path
             fl.pending.clear()
             fl.pending_rows = 0
-            fl.spectra.add(u, y)
+            fl.spectra.add(u, y, m)
             if fl.freq_spectra is not None:
-                fl.freq_spectra.add(u, y[:, :len(OUTPUTS)])
+                fl.freq_spectra.add(u, y[:, :len(OUTPUTS)], None if m is None else m[:, :len(OUTPUTS)])
         if end_segment:
             fl.spectra.end_segment()
             if fl.freq_spectra is not None:

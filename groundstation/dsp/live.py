@@ -189,10 +189,15 @@ class GridAligner:
         warm-up of ``stale_s`` of FC time, so that every stream the FC sends has been seen.
     max_gap_s : if the grid would have to jump more than this (link outage), it restarts at the newest
         time instead of emitting rows across the gap; :attr:`gaps` counts restarts.
+    measured_gap_s, measured_gap_factor : a row's value of a stream counts as *measured* where the samples
+        it comes from are no further apart than ``max(measured_gap_s, measured_gap_factor * the stream's
+        median interval)`` (ordinary sampling, as :mod:`groundstation.dsp.prepare` counts it); across a
+        longer hole (packets lost on the link) it is a straight line, not a measurement.
+        :attr:`measured` holds the last :meth:`pop`'s ``(k, n_cols)`` bool mask.
     """
 
     def __init__(self, rate_hz: float, streams: dict[str, tuple[int, bool]], *, stale_s: float = 0.5,
-                 max_gap_s: float = 1.0) -> None:
+                 max_gap_s: float = 1.0, measured_gap_s: float = 0.1, measured_gap_factor: float = 2.5) -> None:
         self.dt_s = 1.0 / rate_hz
         self.rate_hz = rate_hz
         self.names = tuple(streams)
@@ -209,6 +214,9 @@ class GridAligner:
         self._newest = -math.inf
         self._first = math.nan
         self.gaps = 0
+        self.measured_gap_s = measured_gap_s
+        self.measured_gap_factor = measured_gap_factor
+        self.measured = np.zeros((0, self.n_cols), dtype=bool)
 
     def columns(self, name: str) -> slice:
         return self._offsets[name]
@@ -254,6 +262,7 @@ class GridAligner:
             # warm-up: wait stale_s of FC time so every stream that exists has been seen once
             return np.empty(0), np.empty((0, self.n_cols)), np.empty(0), False
         wm = self._watermark()
+        self.measured = np.zeros((0, self.n_cols), dtype=bool)
         restarted = False
         if wm - self._next_k * self.dt_s > self.max_gap_s:
             self._next_k = math.ceil(wm * self.rate_hz - 1e-6)
@@ -262,42 +271,56 @@ class GridAligner:
         ts: list[float] = []
         rows: list[np.ndarray] = []
         hosts: list[float] = []
+        meas: list[np.ndarray] = []
+        gaps = {name: self._measured_gap(s) for name, s in self._streams.items()}
         while self._next_k * self.dt_s <= wm + 1e-9:
             t = self._next_k * self.dt_s
             row = np.full(self.n_cols, np.nan)
+            m = np.zeros(self.n_cols, dtype=bool)
             host = -math.inf
             for name, s in self._streams.items():
                 if not self._active(s):
                     continue
-                val, th = self._at(s, t)
+                val, th, span = self._at(s, t)
                 if val is not None:
                     row[self._offsets[name]] = val
+                    m[self._offsets[name]] = span <= gaps[name]
                     if s.hold:
                         host = max(host, th)
             ts.append(t)
             rows.append(row)
+            meas.append(m)
             hosts.append(host if host > -math.inf else math.nan)
             self._next_k += 1
         if not ts:
             return np.empty(0), np.empty((0, self.n_cols)), np.empty(0), restarted
+        self.measured = np.array(meas)
         return np.array(ts), np.array(rows), np.array(hosts), restarted
 
-    def _at(self, s: _Stream, t: float) -> tuple[np.ndarray | None, float]:
-        """Value at ``t`` and the host time of the sample that made it known."""
+    def _measured_gap(self, s: _Stream) -> float:
+        """Longest interval between a stream's samples that is ordinary sampling (s)."""
+        if len(s.t) < 3:
+            return self.measured_gap_s
+        d = np.diff(np.asarray(s.t))
+        return max(self.measured_gap_s, self.measured_gap_factor * float(np.median(d)))
+
+    def _at(self, s: _Stream, t: float) -> tuple[np.ndarray | None, float, float]:
+        """Value at ``t``, the host time of the sample that made it known and the interval (s) between
+        the samples it comes from (0 on a sample; the age of a held value)."""
         times = s.t
         if times[0] > t + 1e-9:
-            return None, math.nan
+            return None, math.nan, math.inf
         # newest sample at or before t
         i = len(times) - 1
         while i > 0 and times[i] > t + 1e-9:
             i -= 1
         if abs(times[i] - t) <= 1e-9 or i == len(times) - 1:
-            return s.v[i], s.t_host[i]
+            return s.v[i], s.t_host[i], max(0.0, t - times[i])
         t0, t1 = times[i], times[i + 1]
         if t1 - t0 > self.stale_s:
-            return None, math.nan
+            return None, math.nan, math.inf
         a = (t - t0) / (t1 - t0)
-        return (1.0 - a) * s.v[i] + a * s.v[i + 1], s.t_host[i + 1]
+        return (1.0 - a) * s.v[i] + a * s.v[i + 1], s.t_host[i + 1], t1 - t0
 
 
 # --------------------------------------------------------------------------------------------
@@ -510,6 +533,9 @@ class LiveOutput:
     t_host_s: np.ndarray = field(default_factory=lambda: np.empty(0))
     inputs: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))
     outputs_raw: np.ndarray = field(default_factory=lambda: np.empty((0, 8)))
+    # (n, 8) bool: False where an output row only bridges a hole of the link (a straight line between
+    # samples further apart than ordinary sampling) or its stream is silent
+    outputs_measured: np.ndarray = field(default_factory=lambda: np.empty((0, 8), dtype=bool))
     # smoothed rows that became final, with their own times (they lag t_fc_s by the filter latency)
     t_smoothed_s: np.ndarray = field(default_factory=lambda: np.empty(0))
     t_host_smoothed_s: np.ndarray = field(default_factory=lambda: np.empty(0))
@@ -619,6 +645,7 @@ class LivePipeline:
         outputs = np.column_stack([uvw, att[:, 3], att[:, 4], att[:, 5], att[:, 1], att[:, 0]])
         inputs = (servo - self._trim) / self.config.pwm_per_unit
         alt = np.where(np.isnan(lpn[:, 0]), gpi[:, 0], -lpn[:, 0])
+        measured = self._outputs_measured(al.measured, lpn)
         for k in range(len(t)):
             self.windows.append(t[k], inputs[k], outputs[k], alt[k])
             self._smooth_pending.append((t[k], host[k]))
@@ -636,3 +663,14 @@ class LivePipeline:
         out.t_host_s = np.concatenate([out.t_host_s, host])
         out.inputs = np.vstack([out.inputs, inputs])
         out.outputs_raw = np.vstack([out.outputs_raw, outputs])
+        out.outputs_measured = np.vstack([out.outputs_measured, measured])
+
+    def _outputs_measured(self, m: np.ndarray, lpn: np.ndarray) -> np.ndarray:
+        """(k, 8) bool of the rows' outputs from the aligner's per-column mask ``m (k, n_cols)``: the
+        velocities from LOCAL_POSITION_NED where it has them, else GLOBAL_POSITION_INT (rotated by the
+        attitude, so the attitude must be measured too), the rates and angles from ATTITUDE."""
+        al = self.aligner
+        att = m[:, al.columns("att")].all(axis=1)
+        vel = np.where(np.isnan(lpn[:, 1:4]), m[:, al.columns("gpi")][:, 1:4], m[:, al.columns("lpn")][:, 1:4])
+        uvw = vel.all(axis=1) & att              # each body velocity mixes all three NED ones
+        return np.column_stack([np.repeat(uvw[:, None], 3, axis=1), np.repeat(att[:, None], 5, axis=1)])

@@ -33,10 +33,10 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from groundstation.freq import FreqError
 from groundstation.freq.cost import coherence_weight, error_residuals, pair_residuals
+from groundstation.freq.fdoe import FdoeCost
 from groundstation.freq.model_response import has_path, model_response
 from groundstation.freq.settings import FreqIdentifyConfig
 from groundstation.freq.spectra import ResponseSet
@@ -51,6 +51,8 @@ from groundstation.sysid.model import (
     VER_PARAMS,
     HoverModel,
     bounds_array,
+    build_matrices,
+    discretize,
 )
 from groundstation.sysid.optimizers import ALGORITHMS
 
@@ -137,8 +139,6 @@ class _VarProCost:
         return self.a_pos + list(range(len(self.base.free_idx), self.n_x))
 
     def complete(self, Xs: np.ndarray) -> np.ndarray:
-        from groundstation.sysid.model import build_matrices, discretize
-
         Xs = np.atleast_2d(Xs)
         X = np.zeros((Xs.shape[0], self.n_x))
         X[:, self.search_dims()] = Xs
@@ -209,6 +209,8 @@ def _distinct_best(opt: Any, k: int, span: np.ndarray, min_dist: float = 0.2) ->
 
 
 def _refine(cost: Any, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_nfev: int) -> Any:
+    from scipy.optimize import least_squares  # here: the time-domain identify loads no scipy
+
     span = hi - lo
     x0 = np.clip(x0, lo + 1e-9 * span, hi - 1e-9 * span)
 
@@ -301,8 +303,6 @@ def identify_frequency(responses: ResponseSet, prepared: Any = None, *, algorith
         jcost = _SubCost(rs, pairs, free_idx, d_in, theta, "coherence" if cfg.weighting == "output_error" else cfg.weighting)
         cost: Any = jcost
         if cfg.weighting == "output_error":
-            from groundstation.freq.fdoe import FdoeCost
-
             sub = 0 if name == "horizontal" else 1
             cost = FdoeCost(prepared.segments, prepared.dt_s, sub, jcost.unpack, f_min_hz=cfg.oe_band_hz[0],
                             f_max_hz=cfg.oe_band_hz[1], n_freq=cfg.oe_n_freq, window_s=cfg.oe_window_s)

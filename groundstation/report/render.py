@@ -13,6 +13,7 @@ import math
 from typing import Any
 
 import numpy as np
+from jinja2 import Environment, PackageLoader, StrictUndefined, select_autoescape
 
 from groundstation.report import figures as F
 from groundstation.report.data import SECTIONS, FlightReportData
@@ -50,8 +51,6 @@ def _f(x: Any, fmt: str = ".3g", none: str = "–") -> str:
 
 
 def _env() -> Any:
-    from jinja2 import Environment, PackageLoader, StrictUndefined, select_autoescape
-
     env = Environment(loader=PackageLoader("groundstation.report", "templates"),
                       autoescape=select_autoescape(["html", "j2"]), undefined=StrictUndefined,
                       trim_blocks=True, lstrip_blocks=True)

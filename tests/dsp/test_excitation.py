@@ -1,6 +1,7 @@
 """The live excitation monitor (groundstation.dsp.excitation) driven through the live path from
 simulated flights: each swept axis says enough within 10 s of the end of its sweep; a flight flown
-with a few per cent of the card's excitation never does; a SYSID chirp is judged over its own band."""
+with a few per cent of the card's excitation never does; a SYSID chirp is judged over its own band;
+rows that only bridge holes of a lossy link count in the random error by their share."""
 
 from __future__ import annotations
 
@@ -27,10 +28,11 @@ from hil_replay.sim.session import DEFAULT_TLOG_RATES_HZ
 RATES = {**DEFAULT_TLOG_RATES_HZ, "RAW_IMU": 50.0}
 
 
-def drive(path, config: ExcitationConfig | None = None, batch: int = 24, freq=None, spectra: list | None = None):
+def drive(path, config: ExcitationConfig | None = None, batch: int = 24, freq=None, spectra: list | None = None,
+          masks: list | None = None):
     """Replay a .tlog through the session, the live pipeline and the monitor as the service does
     (batches of packets); every verdict the monitor gives, in order (with ``freq``: each flight's
-    ``[freq]`` spectra appended to ``spectra``)."""
+    ``[freq]`` spectra appended to ``spectra``; with ``masks``: the in-air rows' measured masks)."""
     session = MavlinkSession(SessionConfig(request_streams=False, send_heartbeat=False, emit_raw_packets=False,
                                            link_timeout_s=math.inf))
     live = LivePipeline()
@@ -45,7 +47,10 @@ def drive(path, config: ExcitationConfig | None = None, batch: int = 24, freq=No
                 mon.flight_started(fe.flight, fe.t_fc_s)
         mon.events(events)
         ft = live.flights
-        rep = mon.rows(out.t_fc_s, out.inputs, out.outputs_raw, armed=ft.armed, in_air=ft.in_air)
+        if masks is not None and ft.in_air and ft.armed:
+            masks.append(out.outputs_measured)
+        rep = mon.rows(out.t_fc_s, out.inputs, out.outputs_raw, armed=ft.armed, in_air=ft.in_air,
+                       measured=out.outputs_measured)
         if rep is not None:
             reports.append(rep)
         for fe in out.flight_events:
@@ -231,3 +236,29 @@ def test_the_flights_freq_spectra_accumulated_live_serve_the_after_flight_check(
         m = a.coherent & b.coherent
         assert np.median(np.abs(np.abs(a.response[m]) / np.abs(b.response[m]) - 1)) < 0.01
         assert np.median(np.abs(a.coherence[m] - b.coherence[m])) < 0.01
+
+
+def test_live_spectra_count_only_what_a_lossy_link_delivered(tmp_path):
+    """A replay of a flight whose link lost 20 % of its packets in bursts: the rows bridging the holes
+    are marked by the live grid and the live spectra count each window by its measured share (as the
+    after-flight estimate does), so the averages behind the random error shrink by the share lost;
+    the same flight without loss keeps every average."""
+    from groundstation.freq.spectra import FreqConfig
+
+    rates = {**RATES, "ATTITUDE": 25.0, "SERVO_OUTPUT_RAW": 25.0, "LOCAL_POSITION_NED": 25.0}
+    kept = {}
+    for loss in (0.0, 0.2):
+        path = tmp_path / f"l{loss:g}.tlog"
+        write_tlog(path, seed=3, flights=1, flight_duration_s=40.0, rates_hz=rates, packet_loss=loss, loss_burst=8.0)
+        spectra: list = []
+        masks: list = []
+        drive(path, freq=FreqConfig(), spectra=spectra, masks=masks)
+        ws = max(spectra[0].windows, key=lambda w: w.win_s)
+        per_seg = [sum(c.values()) for c in ws.counts]
+        keys = tuple(k for c in ws.counts for k in c)
+        share = ws.measured_averages(keys, per_seg) / ws.averages(per_seg)
+        kept[loss] = (share[4 + 4], 1.0 - np.vstack(masks)[:, 4].mean())    # q: its share, the rows not measured
+    assert kept[0.0] == (pytest.approx(1.0), 0.0)
+    share_q, lost_q = kept[0.2]
+    assert 0.05 < lost_q < 0.3
+    assert share_q == pytest.approx(1.0 - lost_q, abs=0.03)

@@ -192,3 +192,17 @@ def test_pipeline_fed_one_event_at_a_time_matches_batch_feed():
     outs = [lp.feed([e]) for e in evs]
     np.testing.assert_allclose(np.vstack([o.outputs_raw for o in outs]), a.outputs_raw)
     np.testing.assert_allclose(np.vstack([o.outputs_smoothed for o in outs]), a.outputs_smoothed)
+
+
+def test_grid_marks_rows_that_only_bridge_a_hole_of_the_link():
+    """A row between two samples further apart than ordinary sampling (max(0.1 s, 2.5 intervals)) is a
+    straight line, not a measurement; one lost packet of a 25 Hz stream is still ordinary sampling."""
+    al = GridAligner(50.0, {"a": (1, True)}, stale_s=0.1)
+    times = [k * 0.04 for k in range(40) if k not in (10, *range(20, 27))]   # one packet lost, then seven
+    for t in times:
+        al.add("a", t, (t,))
+    t, v, _, _ = al.pop()
+    m = al.measured[:, 0]
+    assert m.shape == t.shape and np.isfinite(v[:, 0]).all()
+    hole = (t > 19 * 0.04 + 1e-9) & (t < 27 * 0.04 - 1e-9)
+    assert not m[hole].any() and m[~hole].all()
