@@ -371,15 +371,22 @@ class _SubSearch:
     name: str
     free: np.ndarray
     costs: tuple
-    #: per search: (F, screening starts (or its best point without refinement), OptimizeResult, algorithm, label)
-    found: list[tuple[float, list[np.ndarray], Any, str, str]]
+    #: per search: (F, its best point without refinement, OptimizeResult, algorithm, the screening's winner:
+    #: a call that returns it, with refinement)
+    found: list[tuple[float, np.ndarray, Any, str, Callable[[], np.ndarray] | None]]
+
+
+#: ``later(fn)``: a call that returns ``fn()``, which runs on a background thread (with worker processes)
+#: or when first called (with the serial map)
+Later = Callable[[Callable[[], Any]], Callable[[], Any]]
 
 
 def _search_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], plan: _Plan, cfg: IdentifyConfig,
                       run: _Run, *, algorithm: str, iters: int, maxiter: int | None, refine: bool,
-                      rng: np.random.Generator, callback: Callable[[dict], Any] | None) -> _SubSearch | None:
-    """The searches of one subsystem (the only part that draws random numbers); None without a measured output.
-    Its costs are built at ``run.theta`` as it stands: the subsystem's simulation reads only its own parameters."""
+                      rng: np.random.Generator, callback: Callable[[dict], Any] | None, later: Later) -> _SubSearch | None:
+    """The searches of one subsystem (the only part that draws random numbers), each search's screening
+    handed to ``later`` as soon as it ends; None without a measured output. The costs are built at
+    ``run.theta`` as it stands: the subsystem's simulation reads only its own parameters."""
     idx = np.array([PARAM_INDEX[p] for p in sub_params])
     sub_free = np.zeros(N_PARAMS, dtype=bool)
     sub_free[idx] = plan.free[idx]
@@ -404,69 +411,72 @@ def _search_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], plan
             it = DEFAULT_MAXITER[alg] if sub == 0 else int(DEFAULT_MAXITER[alg] * cfg.vertical_iter_factor)
         F, starts, opt = _search_once(alg, it, costs, plan, cfg, sub_free, refine, rng, cb)
         run.nit += int(opt.nit)
-        found.append((F, starts, opt, alg, f" (search {restart + 1})" if restart else ""))
+        label = f" (search {restart + 1})" if restart else ""
+        screened = later(partial(_screen, starts, opt, label, costs, plan, cfg, sub_free, callback, sub_name)) \
+            if refine else None
+        found.append((F, starts[0], opt, alg, screened))
     return _SubSearch(sub, sub_name, sub_free, costs, found)
 
 
-def _refine_subsystem(s: _SubSearch, plan: _Plan, cfg: IdentifyConfig, callback: Callable | None) -> list[Any]:
-    """The screening of every search's starts, then the full refinements of the winners and of the extra
-    starts (independent, drawing no random numbers: side by side in the worker processes); the
-    refinements in the order of the searches, then the extra starts'."""
+def _refine_subsystem(s: _SubSearch, plan: _Plan, cfg: IdentifyConfig,
+                      callback: Callable | None) -> tuple[float, np.ndarray, Any, Any, str]:
+    """The full refinements of every search's screened winner and of the extra starts (independent,
+    drawing no random numbers: side by side in the worker processes), and the lowest refined (MAP)
+    cost of them with its standard errors: (F, x, the search's result, the refinement, algorithm)."""
     cost = s.costs[0]
     pr = None if plan.prior is None else (plan.prior[0][s.free], plan.prior[1][s.free])
-    x0s = [_screen(starts, opt, label, s.costs, plan, cfg, s.free, callback, s.name) for _, starts, opt, _, label in s.found]
-    x0s += [x0 for _, x0 in _extra_start_points(plan, cfg, s.free)]
+    extra = _extra_start_points(plan, cfg, s.free)
+    x0s = [screened() for *_, screened in s.found if screened is not None] + [x0 for _, x0 in extra]
     _progress(callback, f"refine {s.name} ({len(x0s)} start{'s' if len(x0s) > 1 else ''})",
               float(s.found[0][2].fun), sum(c.nfev for c in s.costs))
     nfev0 = cost.nfev
     refs = plan.pmap(partial(_full_refine, cost, plan.bounds[s.free], cfg, pr), x0s)
     if cost.nfev == nfev0:    # refined in worker processes, on copies of the cost
         cost.nfev += sum(int(r.nfev) for r in refs)
-    return refs
+    best: tuple[float, np.ndarray, Any, Any, str] | None = None
+    sig_ref = None   # with a prior, restarts are compared by the MAP objective at the first one's scales
+    for (_, _, opt, alg, _), r in zip(s.found, refs[:len(s.found)], strict=True):
+        F = float(r.fun)
+        if pr is not None:
+            sig_ref = r.sig_eff if sig_ref is None else sig_ref
+            F = map_objective(cost, r.x, sig_ref, pr)
+        if best is None or F < best[0]:
+            best = (F, r.x, opt, r, alg)
+    assert best is not None
+    for (n, _), r in zip(extra, refs[len(s.found):], strict=True):
+        F = float(r.fun) if pr is None or sig_ref is None else map_objective(cost, r.x, sig_ref, pr)
+        if F < best[0]:
+            best = (F, r.x, best[2], r, f"{best[4]}+{n} start")
+    # the standard errors of the winner only (each restart's refinement skips them)
+    return best[:3] + (with_standard_errors(cost, best[3], plan.bounds[s.free], pr), best[4])
 
 
-def _record_subsystem(s: _SubSearch, refs: list[Any] | None, plan: _Plan, cfg: IdentifyConfig, run: _Run) -> None:
-    """The lowest refined (MAP) cost of one subsystem's refinements (``refs``; None without refinement: the
-    lowest search cost) into ``run``, with the winner's standard errors."""
+def _record_subsystem(s: _SubSearch, best: tuple[float, np.ndarray, Any, Any, str] | None, plan: _Plan,
+                      cfg: IdentifyConfig, run: _Run) -> None:
+    """One subsystem's winner into ``run``: ``best`` from :func:`_refine_subsystem`; None without
+    refinement: the search of the lowest search cost."""
     sub, sub_name, sub_free, costs = s.sub, s.name, s.free, s.costs
     cost = costs[0]
-    pr = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
-    best: tuple[float, np.ndarray, Any, Any, str] | None = None   # (F, x, opt, refinement, algorithm)
-    if refs is not None:
-        sig_ref = None   # with a prior, restarts are compared by the MAP objective at the first one's scales
-        for (_, _, opt, alg, _), r in zip(s.found, refs[:len(s.found)], strict=True):
-            F = float(r.fun)
-            if pr is not None:
-                sig_ref = r.sig_eff if sig_ref is None else sig_ref
-                F = map_objective(cost, r.x, sig_ref, pr)
+    if best is None:
+        for F, xr, opt, alg, _ in s.found:
             if best is None or F < best[0]:
-                best = (F, r.x, opt, r, alg)
-        assert best is not None
-        for (n, _), r in zip(_extra_start_points(plan, cfg, sub_free), refs[len(s.found):], strict=True):
-            F = float(r.fun) if pr is None or sig_ref is None else map_objective(cost, r.x, sig_ref, pr)
-            if F < best[0]:
-                best = (F, r.x, best[2], r, f"{best[4]}+{n} start")
-    else:
-        for F, starts, opt, alg, _ in s.found:
-            if best is None or F < best[0]:
-                best = (F, starts[0], opt, None, alg)
+                best = (F, xr, opt, None, alg)
     assert best is not None
-    F, x, opt, ref, won = best
-    if ref is not None:   # the standard errors of the winner only (each restart's refinement skips them)
-        ref = with_standard_errors(cost, ref, plan.bounds[sub_free], pr)
+    _, x, opt, ref, won = best
     run.search_alg[sub_name] = won
     run.F_search += float(opt.fun)
     run.search_by_sub[sub_name] = float(opt.fun)
     run.histories[sub_name] = [float(h) for h in opt.history]
     run.histories_nfev[sub_name] = [int(h) for h in opt.history_nfev]
     if ref is not None:
-        record_tradeoffs(run, sub_free, ref, None if pr is None else pr[1])
+        pr_std = None if plan.prior is None else plan.prior[1][sub_free]
+        record_tradeoffs(run, sub_free, ref, pr_std)
         run.std[np.flatnonzero(sub_free)] = ref.std
         run.share[np.flatnonzero(sub_free)] = ref.prior_share if plan.prior is not None else 0.0
         run.sigma[cost.used] = ref.sigma[cost.used]
     run.theta = run.theta.copy()
     run.theta[sub_free] = x   # the cost's own full(x) would also reset what earlier subsystems left
-    if cfg.estimate_trim and refs is not None:
+    if cfg.estimate_trim and ref is not None:
         run.delta[list(_SUBS_INPUTS[sub])] = cost.sim.solve_trim(run.theta[None])[sub][0]
     run.F_total += float(cost(x[None])[0])
     run.nfev += sum(c.nfev for c in costs)
@@ -475,20 +485,25 @@ def _record_subsystem(s: _SubSearch, refs: list[Any] | None, plan: _Plan, cfg: I
 def _identify_subsystems(plan: _Plan, cfg: IdentifyConfig, run: _Run, *, refine: bool,
                          callback: Callable[[dict], Any] | None, **search: Any) -> None:
     """Search, screen and refine both subsystems into ``run``. The searches run one after the other in
-    this process (they share the random number generator); each subsystem's screening and
-    refinements, which draw no random numbers, run on the workers while this process searches the
-    next subsystem (with the serial map, after it): the same model either way."""
+    this process (they share the random number generator). The screening of each search's starts and
+    each subsystem's full refinements draw no random numbers: with worker processes a background
+    thread hands them to the workers as soon as their search ends, while this process runs the next
+    search; with the serial map they run after the searches. The same model either way."""
     subs = ((0, "horizontal", HOR_PARAMS), (1, "vertical", VER_PARAMS))
     parallel = plan.pmap is not serial_map and refine
-    with ThreadPoolExecutor(max_workers=1) as bg:   # drives the workers; idle with the serial map
-        pending: list[tuple[_SubSearch, Callable[[], list[Any]] | None]] = []
+    with ThreadPoolExecutor(max_workers=1) as bg:   # one thread: the jobs run in the order handed over
+
+        def later(fn: Callable[[], Any]) -> Callable[[], Any]:
+            return bg.submit(fn).result if parallel else fn
+
+        pending = []
         for sub, sub_name, sub_params in subs:
-            s = _search_subsystem(sub, sub_name, sub_params, plan, cfg, run, refine=refine, callback=callback, **search)
+            s = _search_subsystem(sub, sub_name, sub_params, plan, cfg, run, refine=refine, callback=callback,
+                                  later=later, **search)
             if s is not None:
-                job = partial(_refine_subsystem, s, plan, cfg, callback) if refine else None
-                pending.append((s, bg.submit(job).result if parallel and job is not None else job))
-        for s, refs in pending:   # recorded in order: the totals add up as before
-            _record_subsystem(s, None if refs is None else refs(), plan, cfg, run)
+                pending.append((s, later(partial(_refine_subsystem, s, plan, cfg, callback)) if refine else None))
+        for s, best in pending:   # recorded in order: the totals add up as before
+            _record_subsystem(s, None if best is None else best(), plan, cfg, run)
 
 
 def _in_sample_match(plan: _Plan, cfg: IdentifyConfig, theta: np.ndarray, trim: bool) -> tuple[dict[str, float], np.ndarray]:
