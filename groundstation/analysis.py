@@ -35,6 +35,7 @@ import numpy as np
 from firmware_interface.readers import restrict_to_chirps
 from groundstation.config import ServiceConfig, load_config
 from groundstation.dsp.prepare import prepare
+from groundstation.dsp.timeskew import skew_notes
 from groundstation.errors import GroundstationError
 from groundstation.freq.model_response import delays_from_augmentations
 from groundstation.freq.spectra import estimate_responses
@@ -412,7 +413,8 @@ def held_out(model: Any, prepared: Any, cfg: ServiceConfig, aircraft: Any, k: in
 
 
 def closed_loop_notes(model: Any, prepared: Any, cfg: ServiceConfig) -> list[str]:
-    """What the closed loop means for this model: inputs that follow the output error, stick inputs."""
+    """What the closed loop means for this model: inputs that follow the output error, inputs logged late
+    (the response leads them on sharp steps), stick inputs."""
     ic = cfg.identify
     notes = feedback_evidence(model, prepared, window_s=ic.feedback_window_s, max_lag_s=ic.feedback_max_lag_s,
                               z=ic.feedback_z)
@@ -421,6 +423,7 @@ def closed_loop_notes(model: Any, prepared: Any, cfg: ServiceConfig) -> list[str
                      "output error stays consistent only where the feedback acts on measured outputs; expect damping "
                      "and input gains biased towards what the controller makes of them, and judge the model by "
                      "the held-out match, not by its standard errors")
+    notes += skew_notes(prepared, cfg.prepare.input_shift_s)
     if cfg.prepare.input_source == "RC_CHANNELS":
         notes.append("the inputs are the pilot's sticks (RC), commands to a stabilised aircraft: the model is that "
                      "of the aircraft with its stabiliser, not of the bare rotor (rotor terms such as M_a, L_b and "
