@@ -26,11 +26,22 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import tempfile
 import time
 import traceback
 from pathlib import Path
 from typing import Any
+
+from rich.console import Console
+from rich.table import Table
+
+from firmware_interface.readers import load_log
+from groundstation.analysis import analyse
+from groundstation.config import load_config
+from groundstation.dsp.prepare import prepare
+from groundstation.sysid.validate import validate
+from hil_replay.sim import parse_effect, write_tlog
 
 HELP = "identification and diagnosis on simulated flights with bursty / uniform telemetry loss"
 
@@ -60,9 +71,6 @@ def _floats(text: str) -> list[float]:
 
 
 def _case(path: Path, truth: dict, val: Any, cfg: Any, diagnose: bool) -> dict[str, Any]:
-    from groundstation.analysis import analyse
-    from groundstation.sysid.validate import validate
-
     out: dict[str, Any] = {}
     t0, c0 = time.perf_counter(), time.process_time()
     try:   # the product's analysis: read, prepare, identify (and diagnose with that model)
@@ -116,13 +124,6 @@ def _within_spread(r: dict[str, Any], base: dict[str, Any]) -> bool | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-
-    from firmware_interface.readers import load_log
-    from groundstation.config import load_config
-    from groundstation.dsp.prepare import prepare
-    from hil_replay.sim import parse_effect, write_tlog
-
     con = Console(width=max(Console().width, 150))  # the table is wide; a pipe would cut it at 80 columns
     cfg = load_config(args.config)
     losses = _floats(args.losses)
@@ -203,8 +204,6 @@ def _line(r: dict[str, Any]) -> str:
 
 
 def _table(rows: list[dict[str, Any]], diagnose: bool) -> Any:
-    from rich.table import Table
-
     t = Table(title="link loss: identification and diagnosis against the loss-free flight")
     for c in ("seed", "flight", "kind", "loss %", "holes", "longest s", "bridge s", "split", "key 8", "held-out %",
               "vs 0 %"):
@@ -230,9 +229,6 @@ def _table(rows: list[dict[str, Any]], diagnose: bool) -> Any:
 
 def _rates(rows: list[dict[str, Any]], diagnose: bool) -> Any:
     """Over the seeds, per flight, link kind and loss: how often each target is met."""
-    import statistics
-
-    from rich.table import Table
 
     t = Table(title="link loss over the seeds: cases meeting each target")
     spread = any("within_lossfree_spread" in r for r in rows)

@@ -51,10 +51,14 @@ from functools import partial
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from groundstation.errors import SysidError
 from groundstation.parallel import Map, serial_map
+from groundstation.sysid.heldout import crossvalidate
 from groundstation.sysid.model import HoverModel
+from groundstation.sysid.refine import map_objective, with_standard_errors
+from groundstation.sysid.refine import refine as refine_ls
 from groundstation.sysid.settings import IdentifyConfig
 
 #: named candidate configurations (overrides of IdentifyConfig fields)
@@ -99,9 +103,6 @@ def parse_candidates(spec: str) -> list[tuple[str, dict[str, Any]]]:
 
 def _refine_start(cost: Any, bfree: np.ndarray, kw: dict[str, Any], x0: np.ndarray) -> Any:
     """One refinement of :func:`best_refinement` (module-level: worker processes run the starts)."""
-    from threadpoolctl import threadpool_limits
-
-    from groundstation.sysid.refine import refine as refine_ls
 
     with threadpool_limits(1):
         return refine_ls(cost, x0, bfree, **kw)
@@ -111,8 +112,6 @@ def best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_fre
                     quick: bool, pmap: Map = serial_map) -> tuple[np.ndarray, Any]:
     """The refinement of the lowest (MAP) objective from the model's point and ``cfg.extra_starts``
     (the starts' refinements are independent: ``pmap`` may run them side by side)."""
-    from groundstation.sysid.refine import map_objective
-
     bfree = plan.bounds[sub_free]
     span = bfree[:, 1] - bfree[:, 0]
     prior = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
@@ -142,7 +141,6 @@ def best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_fre
             best = (F, ref.x, ref)
     assert best is not None
     if not quick:   # standard errors of the winner only; the screening fit's model is only cross-validated
-        from groundstation.sysid.refine import with_standard_errors
 
         with_standard_errors(cost, best[2], bfree, prior)
     return best[1], best[2]
@@ -163,8 +161,6 @@ def _gain(s: np.ndarray, s0: np.ndarray) -> tuple[float, float]:
 
 
 def _crossvalidate(prepared: Any, model: HoverModel, cfg: Any, prior: Any, pmap: Map, refit: Any) -> Any:
-    from groundstation.sysid.heldout import crossvalidate
-
     c = dataclasses.replace(cfg, refine_max_nfev=min(int(cfg.refine_max_nfev), int(cfg.select_refit_nfev)))
     return crossvalidate(prepared, partial(refit, model=model, config=c, prior=prior), k=int(cfg.select_folds),
                          window_s=float(cfg.heldout_window_s), runaway_factor=float(cfg.runaway_factor), pmap=pmap)

@@ -2,6 +2,7 @@
 
 import numpy as np
 
+from groundstation.campaign.job import effect_values
 from groundstation.gap.diagnose import diagnose
 from groundstation.gap.shares import compute_shares
 from groundstation.sysid.model import HoverModel, theta_to_dict
@@ -43,6 +44,9 @@ def test_a_gyro_bias_drifting_through_the_flight_is_not_named_as_a_constant_one(
     assert ch[0]["first"] < ch[0]["second"]  # the bias grows
     assert any(e["effect"] == "gyro_bias" and e["consistency"]["status"] == "changes" for e in r["partial_findings"])
     assert "changes through the flight" in r["shares"]["headline"]
+    # the finding listed as partial still carries its whole-flight estimate: the campaign's trend reads it
+    pf = next(e for e in r["partial_findings"] if e["effect"] == "gyro_bias")
+    assert effect_values(r)["gyro_bias[q].bias_rad_s"] == pf["estimate"]["bias_rad_s"]
 
 
 def test_a_flight_too_short_to_split_says_so_and_checks_nothing(flight_factory, paper_theta):
