@@ -145,7 +145,7 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
     t0 = time.perf_counter()
     with con.status("frequency-domain identification" if start is None else "frequency-domain refinement of the time fit"):
         fm = identify_frequency(rs, prepared, algorithm=ic.algorithm, seed=ic.seed, bounds=bounds or None,
-                                config=fcfg, start=start)
+                                config=fcfg, start=start, search_options=cfg.identify.search_options(ic.algorithm))
     fm.fit = fm.fit.set(seconds=round(time.perf_counter() - t0, 3))
     if start is not None:
         fm.fit = fm.fit.set(algorithm="frequency refinement of the time-domain fit")
