@@ -5,6 +5,10 @@ the log, prepares it, and for each flight (armed interval) in it identifies the 
 diagnoses the gap (held-out, k-fold) with :func:`groundstation.analysis.analyse_prepared`, predicts a reference flight with the model (the campaign's
 previous log: the cross-flight fit, :func:`groundstation.sysid.heldout.predict`) and returns plain JSON-able rows. A failure becomes a row with
 ``error`` set (one line) and never stops the campaign. Memory is one log's at a time per worker.
+
+When the reference is another job of the same run, that job hands its prepared log back to the
+caller and the caller does the cross-flight fit (:func:`analyse_handing_over`, ``cross_by_caller`` and
+``hand_over``, :func:`groundstation.campaign.runner.run`): no log is read and prepared twice.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ import os
 import struct
 import time
 import traceback
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -74,6 +78,20 @@ class FlightJob:
     #: where the flight's HTML page goes (``<log name>.html``, or ``<log name>-flightN.html`` for the
     #: second and later flights of a log), None for no page
     report_dir: str | None = None
+    #: the caller scores the models on the reference (another job of the same run hands it the
+    #: reference prepared, :func:`analyse_handing_over`): this job does not read the reference log
+    cross_by_caller: bool = False
+    #: hand the log prepared back to the caller (it is another job's reference)
+    hand_over: bool = False
+
+
+@dataclass
+class Handover:
+    """What a job hands back to its caller beside the rows: the log prepared (only with
+    ``FlightJob.hand_over``; None when it could not be prepared) and the model of each flight."""
+
+    prepared: Any = None
+    models: dict[int, Any] = field(default_factory=dict)
 
 
 def file_sha256(path: str | Path) -> str:
@@ -163,7 +181,7 @@ def model_row(model: Any, report: dict | None, prepared: Any) -> dict[str, Any]:
     return row
 
 
-def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[str, Any]:
+def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> tuple[dict[str, Any], Any]:
     t0 = time.perf_counter()
     cfg = job.settings.service_config()
     res = analyse_prepared(prepared, cfg, job.settings.aircraft, log_paths=[job.log],
@@ -174,15 +192,21 @@ def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[st
     report = res.gap.report if res.gap is not None else None
     row = {"flight_index": flight, **model_row(model, report, prepared), "cross_log": None, "cross_match_pct": None}
     if ref is not None:
-        try:
-            row["cross_match_pct"] = float(predict(model, ref).mean_match)
-            row["cross_log"] = Path(job.reference_log or "").name
-        except ValueError as exc:  # the reference holds no usable window: reported, not fatal
-            row["cross_log"] = f"{Path(job.reference_log or '').name}: {exc}"
+        row.update(cross_fit(model, ref, job.reference_log or ""))
     if job.report_dir:
         row["report_page"], row["report_error"] = flight_page(job, prepared, flight, model, diag)
     row["seconds"] = round(time.perf_counter() - t0, 3)
-    return row
+    return row, model
+
+
+def cross_fit(model: Any, ref: Any, reference_log: str) -> dict[str, Any]:
+    """The row's cross-flight columns: the model's mean match predicting the reference (prepared),
+    or, when the reference holds no usable window, the reason beside its name (reported, not fatal)."""
+    name = Path(reference_log).name
+    try:
+        return {"cross_match_pct": float(predict(model, ref).mean_match), "cross_log": name}
+    except ValueError as exc:
+        return {"cross_match_pct": None, "cross_log": f"{name}: {exc}"}
 
 
 def page_name(log_name: str, flight: int) -> str:
@@ -223,21 +247,28 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
     faults; None off Unix), shared by its flights, and ``worker_pid``, ``task_start_s``,
     ``task_end_s`` (``time.monotonic``, one clock for every process of a machine): what the work
     cost and how it was spread over the workers (the store keeps none of these)."""
+    return analyse_handing_over(job)[0]
+
+
+def analyse_handing_over(job: FlightJob) -> tuple[list[dict[str, Any]], Handover]:
+    """:func:`analyse`, and what the job hands back to its caller (:class:`Handover`)."""
 
     start_s = time.monotonic()
     keep_freed_memory()
     date, date_src = log_date_utc(job.log)
     base = {"aircraft": job.aircraft, "log": job.log, "log_name": Path(job.log).name, "sha256": job.sha256,
             "settings_key": job.settings.key(), "date_utc": date, "date_source": date_src, "error": None}
+    hand = Handover()
     t0, c0, f0 = time.perf_counter(), time.process_time(), _minor_faults()
     try:
         cfg = job.settings.service_config()
         with threadpool_limits(1):  # one core per job: the pool or the cluster provides the parallelism
             prepared = prepare_logs([job.log], cfg, aircraft=job.settings.aircraft)
+            hand.prepared = prepared if job.hand_over else None
             if not prepared.segments:
                 raise ValueError(f"nothing to identify ({'; '.join(prepared.notes) or 'no in-air data'})")
             ref = None
-            if job.reference_log:
+            if job.reference_log and not job.cross_by_caller:
                 try:
                     ref = prepare_logs([job.reference_log], cfg, aircraft=job.settings.aircraft)
                 except Exception:  # noqa: BLE001 - a bad reference only loses the cross-flight fit
@@ -246,7 +277,8 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
             for flight in sorted({s.flight for s in prepared.segments}):
                 sub = prepared.subset([i for i, s in enumerate(prepared.segments) if s.flight == flight])
                 try:
-                    rows.append({**base, **_flight_row(job, sub, flight, ref)})
+                    row, hand.models[flight] = _flight_row(job, sub, flight, ref)
+                    rows.append({**base, **row})
                 except Exception as exc:  # noqa: BLE001 - one flight's failure is its row
                     rows.append({**base, "flight_index": flight, "error": _one_line(job, exc)})
             timing = {"worker_pid": os.getpid(), "task_start_s": start_s, "task_end_s": time.monotonic()}
@@ -254,9 +286,10 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
             for r in rows:  # the job's CPU (this process's, all threads) and faults, shared by its flights
                 r.update(cpu_s=round((time.process_time() - c0) / len(rows), 3), **timing,
                          page_faults=None if f0 is None or f1 is None else (f1 - f0) // len(rows))
-            return rows
+            return rows, hand
     except Exception as exc:  # noqa: BLE001 - reported as a row, the campaign goes on
-        return [{**base, "flight_index": 0, "error": _one_line(job, exc), "seconds": round(time.perf_counter() - t0, 3)}]
+        return [{**base, "flight_index": 0, "error": _one_line(job, exc),
+                 "seconds": round(time.perf_counter() - t0, 3)}], hand
 
 
 def _minor_faults() -> int | None:

@@ -119,8 +119,10 @@ class IdentifyConfig:
     #: a channel's held-out prediction "runs away" when its error is more than this many times the
     #: signal itself (the subsystem is then not usable)
     runaway_factor: float = 3.0
-    #: the closed-loop notes (``fit.closed_loop``): the model's output error is simulated in windows of
-    #: this length (s) from the measured states ...
+    #: the closed-loop notes of the model file (``fit.closed_loop``, written by identify; the diagnosis's
+    #: stabilising-controller finding runs the same test with [diagnose] controller_window_s and
+    #: controller_feedback_*): the model's output error is simulated in windows of this length (s) from
+    #: the measured states ...
     feedback_window_s: float = 5.0
     #: ... and an input "follows" it when the input's change up to this lag (s) later correlates with it ...
     feedback_max_lag_s: float = 1.0

@@ -141,3 +141,40 @@ def test_slew_grid_reaches_a_limit_that_acts_only_on_step_edges():
     grid = slew_grid(du)
     assert np.all(np.diff(grid) > 0)
     assert np.min(np.abs(np.log(grid / limit))) < np.log(1.5)
+
+
+def test_input_variants_are_the_simulated_variants(flight_factory, paper_theta):
+    """The residual of a variant of one input from the linear response (one product) is the one of
+    simulating the variant's inputs, on every channel and for a change of any shape."""
+    from groundstation.gap.diagnose import segments_from_prepared
+    from groundstation.gap.evaluate import Evaluator
+    from groundstation.gap.hypotheses import Context, backlash, shift
+    from groundstation.gap.linsim import simulate
+
+    prep = flight_factory(T_s=18.0, seed=3)
+    segs, avail = segments_from_prepared(prep)
+    ev = Evaluator(segs, prep.dt_s, paper_theta * 1.05, avail, window_s=3.0, folds=3)
+    ctx = Context(ev, segs)
+    groups = [(c, np.stack([ev.cut([fn(s.inputs[:, c]) for s in segs]) for fn in
+                            (lambda x: shift(x, 3.5), lambda x: backlash(x, 0.02), lambda x: 0.0 * x)]))
+              for c in range(4)]
+    got = ctx.input_variants(groups)
+    assert got.shape == (12, ev.W, ev.L, 8)
+    for v, (c, u) in enumerate((c, u) for c, us in groups for u in us):
+        U = ev.U.copy()
+        U[:, :, c] = u
+        want = ev.residual(simulate(ev.theta0, U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available,
+                                    start=ev.start)[0])
+        np.testing.assert_allclose(got[v], want, rtol=0, atol=1e-10 * np.abs(want).max())
+        assert np.abs(got[v] - ev.r0).max() > 1e-3 * np.abs(ev.r0).max()  # the change is seen
+    # forcing columns (drag, ground effect): the simulation with the forcing less the one without
+    from groundstation.gap.hypotheses import _forcing_columns
+
+    F = np.zeros((ev.W, ev.L, 11))
+    F[:, :, 0] = np.sin(ev.T)
+    F[:, :, 8] = 0.3 * np.cos(2 * ev.T)
+    yh = simulate(ev.theta0, np.concatenate([ev.U, ev.U]), ev.Y, ev.dt_s, forcing=np.concatenate([0 * F, F]),
+                  weights=ev.w8, available=ev.available, start=ev.start)[0]
+    want = (yh[ev.W:] - yh[:ev.W]) * ev.w8 * ev.wmask
+    got = _forcing_columns(ctx, [F])[..., 0]
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())

@@ -37,20 +37,20 @@ def test_real_log_without_aircraft_file_switches_to_the_predictive_setting():
     prep = prepare_logs([Path(real_log("trex550/flight1.tlog"))], ServiceConfig())
     m = identify(prep, seed=0, maxiter=6, config=IdentifyConfig(**QUICK))
     sel = m.fit.selection
-    rows = {r["name"]: r for r in sel["candidates"]}
-    assert sel["chosen"].startswith("predictive"), rows
+    rows = {r.name: r for r in sel.candidates}
+    assert sel.chosen.startswith("predictive"), rows
     pred, given = rows["predictive"], rows["as configured"]
-    assert pred["significant"] and pred["gain"] > 2 * pred["gain_se"] > 0 and pred["round"] == 1
+    assert pred.significant and pred.gain > 2 * pred.gain_se > 0 and pred.round == 1
     # the second round (overlapping windows) ran because the first switched, and was judged the same way
     over = rows["window_step_s=2.5"]
-    assert over["round"] == 2 and over["significant"] == (over["gain"] > over["gain_se"] and over["gain"] > 0)
-    assert (sel["chosen"] == "predictive, window_step_s=2.5") == over["significant"]
+    assert over.round == 2 and over.significant == (over.gain > over.gain_se and over.gain > 0)
+    assert (sel.chosen == "predictive, window_step_s=2.5") == over.significant
     # the configuration as given does not predict yaw; the chosen model does, and runs away nowhere
     ho = m.fit.heldout
-    assert given["channel_mean"]["r"] < 0 < ho.channel_mean["r"]
+    assert given.channel_mean["r"] < 0 < ho.channel_mean["r"]
     assert m.fit.window_s == 5.0 and m.fit.estimate_all_initial is False
     assert ho.k == 5 and not ho.unusable_subsystems and "r" in ho.predicted
-    assert ho.mean_match > given["mean_match"] + 10
+    assert ho.mean_match > given.mean_match + 10
 
 
 def test_simulated_flight_keeps_the_configuration_as_given(tmp_path):
@@ -62,8 +62,8 @@ def test_simulated_flight_keeps_the_configuration_as_given(tmp_path):
     write_tlog(p, seed=3, flights=1, effects=(), aircraft=None, flight_duration_s=90.0)
     m = identify(prepare([load_log(p)]), seed=0, maxiter=10, config=IdentifyConfig(**QUICK))
     sel = m.fit.selection
-    assert sel["chosen"] == "as configured", sel["candidates"]
-    assert [r["name"] for r in sel["candidates"]] == ["as configured", "predictive"]   # no second round
+    assert sel.chosen == "as configured", sel.candidates
+    assert [r.name for r in sel.candidates] == ["as configured", "predictive"]   # no second round
     assert m.fit.window_s == 3.0 and m.fit.estimate_all_initial is True
     assert m.fit.heldout.k == 5 and len(m.fit.heldout.folds) == 5
 
