@@ -103,7 +103,6 @@ def _speed(prepared, repeats: int = 7) -> dict[str, float]:
     the cost as the bench's accuracy run scores it: 3-s windows, all 31 parameters, every initial
     state estimated. Also the identification search cost (1-s windows, B by variable projection)."""
 
-
     win = make_windows(prepared.segments, prepared.dt_s, 3.0)
     b = bounds_array()
     rng = np.random.default_rng(0)

@@ -30,6 +30,7 @@ import statistics
 import tempfile
 import time
 import traceback
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +41,8 @@ from firmware_interface.readers import load_log
 from groundstation.analysis import analyse
 from groundstation.config import load_config
 from groundstation.dsp.prepare import prepare
+from groundstation.dsp.split import _slice
+from groundstation.pipeline import identify_prepared
 from groundstation.sysid.validate import validate
 from hil_replay.sim import parse_effect, write_tlog
 
@@ -98,13 +101,6 @@ def _case(path: Path, truth: dict, val: Any, cfg: Any, diagnose: bool) -> dict[s
 def _layout_errors(path: Path, truth: dict, cfg: Any, layouts: int) -> list[dict[str, float]]:
     """Key-parameter errors (%) of the loss-free flight identified with its windows laid
     ``j * window_s / layouts`` s later, j = 1 .. layouts - 1 (see the module docstring)."""
-    from dataclasses import replace
-
-    from firmware_interface.readers import load_log
-    from groundstation.dsp.prepare import prepare
-    from groundstation.dsp.split import _slice
-    from groundstation.pipeline import identify_prepared
-
     prepared = prepare([load_log(path)], cfg.prepare)
     out = []
     for j in range(1, layouts):

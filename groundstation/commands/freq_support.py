@@ -88,7 +88,6 @@ def write_rerun(v: Any, mode: list[str], app: str) -> Path | None:
     """``--rerun save PATH.rrd``: the Bode data to one explicit RecordingStream saved to PATH."""
     import rerun as rr
 
-
     if not mode or mode[0] == "off":
         return None
     if mode[0] != "save" or len(mode) != 2:
@@ -117,7 +116,6 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
     warm start, no search) and that model goes to ``<out>_freq.json``; each model is scored both ways
     (time: mean match degree on the training windows; frequency: J_avg) and a table prints the four figures.
     """
-
 
     con = Console(stderr=True, quiet=args.quiet)
     prepared = prepare(logs, cfg.prepare)
