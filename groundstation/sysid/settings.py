@@ -143,6 +143,22 @@ class IdentifyConfig:
     command_step_s: float = 2.5
     #: least-squares iterations per axis of the command-response fit (each delay of the grid)
     command_maxiter: int = 60
+    #: one constant offset per input in each refinement window (and each held-out window), estimated
+    #: with the window's unmeasured initial states: a stabiliser's integrator trim, or a stick held away
+    #: from its logged value, that changes from window to window. Replaces ``estimate_trim``'s single
+    #: offset per flight. The model file records it (``window_input_offsets``), and every prediction of
+    #: the model then estimates them too
+    window_input_offsets: bool = False
+
+    @property
+    def input_offsets(self) -> bool:
+        """Input offsets are estimated at all (one per flight or one per window)."""
+        return self.estimate_trim or self.window_input_offsets
+
+    @property
+    def flight_trim(self) -> bool:
+        """One input offset per flight (the trim): ``estimate_trim`` without per-window offsets."""
+        return self.estimate_trim and not self.window_input_offsets
 
     def search_options(self, algorithm: str) -> dict[str, Any]:
         """The keyword arguments of ``algorithm``'s optimiser (:data:`groundstation.sysid.optimizers.ALGORITHMS`)

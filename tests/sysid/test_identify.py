@@ -7,6 +7,7 @@ import pytest
 
 from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
 from groundstation.dsp.prepare import prepared_from_arrays
+from groundstation.sysid.heldout import predict
 from groundstation.sysid.identify import identify
 from groundstation.sysid.model import PARAM_NAMES, HoverModel, theta_from_dict
 from groundstation.sysid.validate import match_degree, nrmse, pearson, theil_u, validate
@@ -103,6 +104,12 @@ def test_fit_section_and_validation_are_typed_and_round_trip_unchanged(flights, 
     assert m2.fit.usable is (not ho.unusable_subsystems)
     again = HoverModel.from_json(json.loads(json.dumps(m2.to_json())))
     assert again.fit == m2.fit and json.dumps(again.to_json()) == json.dumps(m2.to_json())
+    # a model whose predictions estimate per-window input offsets says so in its file, and predicts
+    # the held-out data at least as well as without them (more per-window unknowns, same model)
+    assert "window_input_offsets" not in m2.to_json()
+    per_window = HoverModel.from_json(m2.to_json() | {"window_input_offsets": True})
+    assert per_window.window_input_offsets and per_window.to_json()["window_input_offsets"] is True
+    assert predict(per_window, other).mean_match > predict(m2, other).mean_match - 1.0
 
     v = validate(model, other, return_series=True)
     assert isinstance(v.channels["q"], ChannelScore) and v.series is not None and v.series["y"].ndim == 3
