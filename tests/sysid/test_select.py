@@ -140,3 +140,31 @@ def test_a_candidate_better_on_every_fold_wins_even_with_a_wide_spread():
     assert rows and choose(rows) == 1 and rows[1]["gain_folds"] == 5
     rows = _rows([20.0, 20.0, 20.0, 20.0, 20.0], [21.0, 19.0, 20.5, 20.0, 20.2])  # inside the noise
     assert choose(rows) == 0
+
+
+def test_with_workers_the_selection_is_the_serial_one():
+    """With any map but the serial one the configuration's folds run on a background thread while the
+    candidates are fitted, and the candidates' folds queue behind them: the same report and model as
+    one after the other (a 12-s flight: folds too short to refit give no score, NaN in both)."""
+    import json
+
+    from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
+    from groundstation.dsp.prepare import prepared_from_arrays
+    from groundstation.parallel import serial_map
+    from groundstation.sysid.identify import fit_candidate, refit
+    from groundstation.sysid.model import HoverModel, theta_from_dict
+    from groundstation.sysid.select import select_config
+
+    u, _, ym = simulate_flight(theta_from_dict(EXAMPLE_TRUTH), 12.0, seed=5)
+    prep = prepared_from_arrays(u, ym, 0.02)
+    model0 = identify(prep, seed=0, maxiter=2, config=IdentifyConfig(search_restarts=1, refine_max_nfev=3,
+                                                                    refine_passes=1, select_folds=0))
+    cfg = IdentifyConfig(**{**QUICK, "refine_max_nfev": 3})
+
+    def in_process(fn, xs):   # not the serial map: the selection takes its path for worker processes
+        return [fn(x) for x in xs]
+
+    out = [select_config(prep, HoverModel.from_json(model0.to_json()), cfg, pmap=pmap, fit=fit_candidate,
+                         refit=refit).to_json() for pmap in (serial_map, in_process)]
+    assert [r["name"] for r in out[0]["fit"]["selection"]["candidates"]] == ["as configured", "predictive"]
+    assert json.dumps(out[0], sort_keys=True) == json.dumps(out[1], sort_keys=True)
