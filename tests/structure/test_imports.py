@@ -9,6 +9,7 @@ tested) without the command line or the live service.
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -29,6 +30,7 @@ def _modules() -> dict[str, Path]:
     return mods
 
 
+@functools.cache
 def import_graph() -> dict[str, set[str]]:
     """module -> the project modules it imports (anywhere in its source); a package's ``__init__`` is
     not counted as a dependency of its sub-modules' importers (importing ``a.b`` runs ``a``, but
