@@ -394,7 +394,7 @@ def held_out(model: Any, prepared: Any, cfg: ServiceConfig, aircraft: Any, k: in
     done = model.fit.heldout or HeldOut()
     if done.k != k:   # not already checked by the configuration's held-out selection
         try:
-            chosen = model.fit.selection.get("overrides", {})
+            chosen = dict(model.fit.selection.overrides) if model.fit.selection is not None else {}
             icfg = dataclasses.replace(cfg.identify, **chosen)
             fit_fold = functools.partial(refit, model=model, config=icfg, prior=prior)
             if getattr(model, "structure", "hover") == "command_response":   # the stabilised aircraft's structure

@@ -67,10 +67,8 @@ from groundstation.dsp.live import FlightEnded, FlightStarted, LivePipeline, Rat
 from groundstation.onboard import OnboardLogs, analyse_onboard, link_kind
 from groundstation.pipeline import with_aircraft_file
 from groundstation.sinks.background import BackgroundCalls
-from groundstation.sinks.rerun_sink import RerunSink, RerunSinkError
 from groundstation.sinks.zenoh_sink import ZenohSink, ZenohSinkError
 from groundstation.worker import IdentifyJob, JobResult, run_job
-from hil_replay.fc import FcConfig, SimulatedFCThread
 
 
 class _Stop(Exception):
@@ -227,6 +225,10 @@ class Service:
                 self._warn(f"{exc}; running without zenoh (recording goes on)")
         rc = self.config.rerun
         if rc.mode != "off":
+            # here, not at the top: the sink imports rerun (about 0.6 s of CPU), which a service without
+            # a Rerun viewer or file never needs
+            from groundstation.sinks.rerun_sink import RerunSink, RerunSinkError
+
             try:
                 self.rerun = RerunSink(self.vehicle, rc.mode, rc.target, raw=rc.raw)
                 self._rerun_calls = BackgroundCalls("rerun-logger", maxsize=256)
@@ -236,6 +238,9 @@ class Service:
                 self._warn(f"{exc}; running without Rerun (recording goes on)")
 
     def _start_builtin_sim(self) -> str:
+        # here, not at the top: the simulator (with scipy.linalg, about 0.5 s) runs only without a link
+        from hil_replay.fc import FcConfig, SimulatedFCThread
+
         sc = self.config.sim
         fc_config = self.fc_config
         if fc_config is None and self.config.onboard_logs.download:

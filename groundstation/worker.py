@@ -27,7 +27,6 @@ from typing import Any
 import numpy as np
 
 from groundstation.analysis import AnalysisError, analyse
-from groundstation.campaign.live import record_flight
 from groundstation.config import ServiceConfig
 from groundstation.freq.verify import freq_pairs
 from groundstation.gap.pictures import gap_pictures
@@ -260,6 +259,10 @@ def _trends(job: IdentifyJob, model: Any, gap: Any, prepared: Any, seconds: floa
     if not cfg.service.campaign_db or len(job.tlogs) != 1 or job.data != "telemetry":   # one row per flight
         return None, None
     try:
+        # here, not at the top: the campaign table's trend tests bring scipy.stats (about 0.9 s), and the
+        # service imports this module in its own process, which never runs them
+        from groundstation.campaign.live import record_flight
+
         return record_flight(Path(job.out_dir) / cfg.service.campaign_db, job.vehicle, job.tlogs[0], job.flight,
                              model, gap, prepared, cfg, seconds), None
     except Exception as exc:  # the model and the gap report stand on their own

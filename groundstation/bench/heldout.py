@@ -39,6 +39,7 @@ from groundstation.config import ServiceConfig
 from groundstation.dsp.split import contiguous_kfold, train_first
 from groundstation.dsp.timeskew import shift_inputs
 from groundstation.pipeline import load_aircraft, prepare_logs
+from groundstation.sysid.fit_section import Selection
 from groundstation.sysid.heldout import predict, runaway_channels, unstable_modes
 from groundstation.sysid.identify import IdentifyConfig, identify
 
@@ -113,8 +114,8 @@ def _score(model: Any, val: Any, window_s: float) -> dict[str, Any]:
 
 def _selection(model: Any) -> dict[str, Any]:
     """The configuration the identification chose by held-out prediction on its training part."""
-    sel, ho = model.fit.selection, model.fit.heldout
-    return {"chosen": sel.get("chosen"), "scores": {r["name"]: r["mean_match"] for r in sel.get("candidates", [])},
+    sel, ho = model.fit.selection or Selection(), model.fit.heldout
+    return {"chosen": sel.chosen, "scores": {r.name: r.mean_match for r in sel.candidates},
             "not_predicted": [] if ho is None else list(ho.not_predicted),
             "inv_tau_s": float(model.params["inv_tau_s"]), "pinned": sorted(model.pinned)}
 

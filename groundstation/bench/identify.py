@@ -38,6 +38,7 @@ from firmware_interface.readers import load_log
 from groundstation.cli import build_parser
 from groundstation.dsp.prepare import PrepConfig, prepare, prepared_from_arrays
 from groundstation.sysid.cost import WindowedCost, make_windows, subset_windows
+from groundstation.sysid.fit_section import Selection
 from groundstation.sysid.identify import IdentifyConfig, identify
 from groundstation.sysid.model import (
     HOR_PARAMS,
@@ -102,7 +103,6 @@ def _speed(prepared, repeats: int = 7) -> dict[str, float]:
     the cost as the bench's accuracy run scores it: 3-s windows, all 31 parameters, every initial
     state estimated. Also the identification search cost (1-s windows, B by variable projection)."""
 
-
     win = make_windows(prepared.segments, prepared.dt_s, 3.0)
     b = bounds_array()
     rng = np.random.default_rng(0)
@@ -159,9 +159,9 @@ def run(args: argparse.Namespace) -> int:
     con.print(f"default identification (CABC + refinement + held-out selection of the configuration): {wall:.2f} s wall "
               f"({cpu:.2f} s CPU), {model.fit.evaluations} evaluations, cost {model.fit.cost:.4f}")
     wall, cpu, wall0, cpu0 = _selection_cost(train, identify, IdentifyConfig, wall, cpu)
-    sel = model.fit.selection
-    scores = ", ".join(f"{r['name']} {r['mean_match']:.1f} %" for r in sel.get("candidates", []))
-    con.print(f"held-out selection over {sel.get('k')} folds chose: {sel.get('chosen')} ({scores}); medians of two "
+    sel = model.fit.selection or Selection()
+    scores = ", ".join(f"{r.name} {r.mean_match:.1f} %" for r in sel.candidates)
+    con.print(f"held-out selection over {sel.k} folds chose: {sel.chosen} ({scores}); medians of two "
               f"runs each, alternating: {wall:.2f} s wall ({cpu:.2f} s CPU) with it, {wall0:.2f} s wall ({cpu0:.2f} s CPU) "
               f"without: {wall / wall0:.2f}x wall, {cpu / cpu0:.2f}x CPU (target <= 1.5x)")
     t = Table(title="identified vs truth")
@@ -195,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
     con.print(tv)
     con.print(f"identified / true mean match on the other flight: {ratio:.2f}% (target >= 99%)")
     summary: dict[str, Any] = {"flights": desc, "speed_updates_per_s": sp, "default_wall_s": wall, "default_cpu_s": cpu,
-                               "no_selection_wall_s": wall0, "no_selection_cpu_s": cpu0, "selection": sel.get("chosen"),
+                               "no_selection_wall_s": wall0, "no_selection_cpu_s": cpu0, "selection": sel.chosen,
                                "key_err_pct": key_err, "z": dict(zip(PARAM_NAMES, [float(z) for z in z_all], strict=True)),
                                "match_ratio_pct": ratio, "match_identified": v_id["channels"], "match_true": v_true["channels"]}
     if not args.skip_compare:

@@ -114,7 +114,6 @@ class _WindowLatency:
     def __init__(self, port: int, vehicle: str) -> None:
         import zenoh
 
-
         self.session = zenoh.open(zenoh.Config.from_json5(loopback_peer_config(connect_ports=(port,))))
         self.samples: list[tuple[float, float]] = []      # (receive time, latency s)
         self._lock = threading.Lock()

@@ -35,7 +35,6 @@ class DemoSubscriber:
     def __init__(self, endpoint: str, vehicle: str, loop: asyncio.AbstractEventLoop, out=print) -> None:
         import zenoh
 
-
         port = int(endpoint.rsplit(":", 1)[1])
         self.zenoh = zenoh
         self.session = zenoh.open(zenoh.Config.from_json5(loopback_peer_config(connect_ports=(port,))))

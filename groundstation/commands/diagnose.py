@@ -145,7 +145,6 @@ def write_rrd(arrays: dict, report: dict, path: Path) -> None:
     """Residuals per channel on the fc_time timeline, saved as a Rerun recording."""
     import rerun as rr
 
-
     rec = rr.RecordingStream("groundstation-diagnose")
     rec.save(str(path))
     T, Y, yh, mask = arrays["t_s"], arrays["Y"], arrays["yhat"], arrays["mask"]

@@ -88,7 +88,6 @@ def write_rerun(v: Any, mode: list[str], app: str) -> Path | None:
     """``--rerun save PATH.rrd``: the Bode data to one explicit RecordingStream saved to PATH."""
     import rerun as rr
 
-
     if not mode or mode[0] == "off":
         return None
     if mode[0] != "save" or len(mode) != 2:
@@ -118,7 +117,6 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
     (time: mean match degree on the training windows; frequency: J_avg) and a table prints the four figures.
     """
 
-
     con = Console(stderr=True, quiet=args.quiet)
     prepared = prepare(logs, cfg.prepare)
     fast = prepare_native(logs, cfg.prepare, grid_only=args.grid_rate)
@@ -145,7 +143,7 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
     t0 = time.perf_counter()
     with con.status("frequency-domain identification" if start is None else "frequency-domain refinement of the time fit"):
         fm = identify_frequency(rs, prepared, algorithm=ic.algorithm, seed=ic.seed, bounds=bounds or None,
-                                config=fcfg, start=start)
+                                config=fcfg, start=start, search_options=cfg.identify.search_options(ic.algorithm))
     fm.fit = fm.fit.set(seconds=round(time.perf_counter() - t0, 3))
     if start is not None:
         fm.fit = fm.fit.set(algorithm="frequency refinement of the time-domain fit")

@@ -142,7 +142,6 @@ def write_rrd(series: dict, channels: dict, path: Path, app: str) -> None:
     """Measured and model outputs per channel on the ``fc_time`` timeline, saved as a Rerun recording."""
     import rerun as rr
 
-
     path.parent.mkdir(parents=True, exist_ok=True)
     rec = rr.RecordingStream(app)
     rec.save(str(path))

@@ -21,6 +21,7 @@ import numpy as np
 
 from groundstation.freq.verify import J_AVG_GOOD, J_PAIR_ACCEPTABLE
 from groundstation.sinks.bode import _series
+from groundstation.sysid.fit_section import PriorReport
 from groundstation.sysid.model import INPUTS, OUTPUT_UNITS, OUTPUTS, PARAM_NAMES, build_matrices
 from groundstation.sysid.validate import Validation
 
@@ -216,9 +217,9 @@ def parameters_figure(model: Any) -> Figure | None:
     if model is None:
         return None
     fit = model.fit
-    prior = fit.prior
-    share = prior.get("prior_share", {})
-    fixed = set(fit.fixed) | set(prior.get("fixed_at_prior", []))
+    prior = fit.prior or PriorReport()
+    share = prior.prior_share
+    fixed = set(fit.fixed) | set(prior.fixed_at_prior)
     fig, axes = _new(10, 3.4, 1, 1)
     ax = axes[0, 0]
     rel, colors = [], []

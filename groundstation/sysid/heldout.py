@@ -89,7 +89,7 @@ def predict(model: HoverModel, prepared: Any, *, window_s: float = IdentifyConfi
     u = win.inputs + (input_offset(model, prepared)[None, None, :] if use_model_trim else 0.0)
     with threadpool_limits(1):
         sim = WindowSimulator(u, win.outputs, win.dt_s, win.available, estimate_all_initial=False,
-                              measured=win.measured)
+                              measured=win.measured, window_offsets=model.window_input_offsets)
         yhat = sim.simulate(model.theta[None])[0]
     match: dict[str, float] = {}
     ratio: dict[str, float] = {}
@@ -188,7 +188,7 @@ def feedback_evidence(model: HoverModel, prepared: Any, *, window_s: float = Ide
     u = win.inputs + input_offset(model, prepared)[None, None, :]
     with threadpool_limits(1):
         sim = WindowSimulator(u, win.outputs, win.dt_s, win.available, estimate_all_initial=False,
-                              measured=win.measured)
+                              measured=win.measured, window_offsets=model.window_input_offsets)
         e = sim.errors(model.theta[None])[0]  # (W, L, 8), zero in holes of the link
     du = np.diff(win.inputs, axis=1)
     out = []

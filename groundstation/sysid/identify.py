@@ -255,7 +255,7 @@ def _costs(plan: _Plan, cfg: IdentifyConfig, sub: int, sub_free: np.ndarray, the
     """(refinement cost, screening cost, search cost with B by variable projection) of one subsystem."""
     kw = dict(estimate_all_initial=cfg.estimate_all_initial, subsystems=(sub,))
     cost = _refine_cost(plan, cfg, sub, sub_free, theta, trim)
-    cost_s = WindowedCost(plan.win_s, sub_free, theta, estimate_trim=trim, forcing=plan.forcing_s, **kw)  # type: ignore[arg-type]
+    cost_s = WindowedCost(plan.win_s, sub_free, theta, forcing=plan.forcing_s, **_offsets(cfg, trim), **kw)  # type: ignore[arg-type]
     cost_v = WindowedCost(plan.win_s, sub_free, theta, varpro=cfg.varpro, **kw)  # type: ignore[arg-type]
     return cost, cost_s, cost_v
 
@@ -263,8 +263,16 @@ def _costs(plan: _Plan, cfg: IdentifyConfig, sub: int, sub_free: np.ndarray, the
 def _refine_cost(plan: _Plan, cfg: IdentifyConfig, sub: int, sub_free: np.ndarray, theta: np.ndarray,
                  trim: bool) -> WindowedCost:
     """The refinement cost of one subsystem alone (a refit needs no search or screening cost)."""
-    return WindowedCost(plan.win, sub_free, theta, estimate_trim=trim, forcing=plan.forcing,
+    return WindowedCost(plan.win, sub_free, theta, forcing=plan.forcing, **_offsets(cfg, trim),
                         estimate_all_initial=cfg.estimate_all_initial, subsystems=(sub,))
+
+
+def _offsets(cfg: IdentifyConfig, on: bool) -> dict[str, Any]:
+    """WindowedCost keywords of the input offsets: one per flight (``estimate_trim``, the trim), one per
+    window (``window_input_offsets``), or none (``on`` False)."""
+    if not on:
+        return {}
+    return {"window_offsets": True} if cfg.window_input_offsets else {"estimate_trim": True}
 
 
 def _progress(callback: Callable[[dict], Any] | None, stage: str, fun: float, nfev: int) -> None:
@@ -390,7 +398,7 @@ def _search_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], plan
     idx = np.array([PARAM_INDEX[p] for p in sub_params])
     sub_free = np.zeros(N_PARAMS, dtype=bool)
     sub_free[idx] = plan.free[idx]
-    costs = _costs(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim and refine)
+    costs = _costs(plan, cfg, sub, sub_free, run.theta, cfg.input_offsets and refine)
     if not costs[0].used.any():
         plan.reasons.append(f"{sub_name} subsystem: no measured output, not identified")
         return None
@@ -476,7 +484,7 @@ def _record_subsystem(s: _SubSearch, best: tuple[float, np.ndarray, Any, Any, st
         run.sigma[cost.used] = ref.sigma[cost.used]
     run.theta = run.theta.copy()
     run.theta[sub_free] = x   # the cost's own full(x) would also reset what earlier subsystems left
-    if cfg.estimate_trim and ref is not None:
+    if cfg.flight_trim and ref is not None:
         run.delta[list(_SUBS_INPUTS[sub])] = cost.sim.solve_trim(run.theta[None])[sub][0]
     run.F_total += float(cost(x[None])[0])
     run.nfev += sum(c.nfev for c in costs)
@@ -509,7 +517,7 @@ def _identify_subsystems(plan: _Plan, cfg: IdentifyConfig, run: _Run, *, refine:
 def _in_sample_match(plan: _Plan, cfg: IdentifyConfig, theta: np.ndarray, trim: bool) -> tuple[dict[str, float], np.ndarray]:
     """Eq. 19 match per used channel on the training windows, and the used-channel mask (8,)."""
     full_cost = WindowedCost(plan.win, np.zeros(N_PARAMS, dtype=bool), theta, estimate_all_initial=cfg.estimate_all_initial,
-                             estimate_trim=trim, forcing=plan.forcing)
+                             forcing=plan.forcing, **_offsets(cfg, trim))
     errs = full_cost.sim.errors(theta[None])[0]
     y = full_cost.sim.outputs
     match = {}
@@ -575,7 +583,7 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
     _check(cfg, algorithm, prepared)
     iters = maxiter or cfg.maxiter or DEFAULT_MAXITER[algorithm]
     rng = np.random.default_rng(seed)
-    trim = cfg.estimate_trim and refine
+    trim = cfg.input_offsets and refine
     with threadpool_limits(1):
         plan = _plan(prepared, cfg, refine, bounds, prior, pmap)
         run = _Run(theta=np.clip(_fixed_values(plan), plan.bounds[:, 0], plan.bounds[:, 1]))
@@ -597,7 +605,7 @@ def _subsystem_costs(plan: Any, cfg: Any, run: Any) -> Iterator[tuple[int, np.nd
         idx = np.array([PARAM_INDEX[p] for p in sub_params])
         sub_free = np.zeros(N_PARAMS, dtype=bool)
         sub_free[idx] = plan.free[idx]
-        cost = _refine_cost(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim)
+        cost = _refine_cost(plan, cfg, sub, sub_free, run.theta, cfg.input_offsets)
         if cost.used.any():
             yield sub, sub_free, cost
 
@@ -605,7 +613,7 @@ def _subsystem_costs(plan: Any, cfg: Any, run: Any) -> Iterator[tuple[int, np.nd
 def _take(run: Any, cost: Any, x: np.ndarray, sub: int, cfg: Any) -> None:
     """``run`` moved to the subsystem's refined parameters ``x`` (and its trims, where estimated)."""
     run.theta = cost.full(x)[0]
-    if cfg.estimate_trim:
+    if cfg.flight_trim:
         run.delta[list(_SUBS_INPUTS[sub])] = cost.sim.solve_trim(run.theta[None])[sub][0]
 
 
@@ -626,7 +634,7 @@ def fit_candidate(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
             _take(run, cost, x, sub, cfg)
             run.F_total += float(cost(x[None])[0])
             run.nfev += cost.nfev
-        match, used = _in_sample_match(plan, cfg, run.theta, cfg.estimate_trim)
+        match, used = _in_sample_match(plan, cfg, run.theta, cfg.input_offsets)
     f0 = model0.fit
     run.F_search = float(np.nan if f0.search_cost is None else f0.search_cost)  # type: ignore[arg-type]
     run.nit = int(f0.iterations or 0)
@@ -670,7 +678,7 @@ def _model(prepared: Any, plan: _Plan, cfg: IdentifyConfig, run: _Run, match: di
                        for r in plan.reasons],
         noise_sigma={OUTPUTS[j]: float(run.sigma[j]) for j in range(8) if np.isfinite(run.sigma[j])},
         history=run.histories, history_nfev=run.histories_nfev, notes=list(prepared.notes),
-        trim_estimated=bool(cfg.estimate_trim and refine), kinematic_forcing=plan.kf,
+        trim_estimated=bool(cfg.flight_trim and refine), kinematic_forcing=plan.kf,
         input_trim_correction_pwm={k: float(run.delta[j]) * float(prepared.pwm_per_unit)
                                    for j, k in enumerate(prepared.input_trim_pwm)},
         pinned_reasons=pinned,
@@ -687,7 +695,7 @@ def _model(prepared: Any, plan: _Plan, cfg: IdentifyConfig, run: _Run, match: di
                 "window_s": [float(min(s.t_s[0] for s in segs)), float(max(s.t_s[-1] for s in segs))],
                 "segments": [[s.source, int(s.flight), float(s.t_s[0]), float(s.t_s[-1])] for s in segs],
                 "link_quality": _link_report(prepared, plan.win)},
-        pinned=list(pinned),
+        pinned=list(pinned), window_input_offsets=cfg.window_input_offsets,
     )
 
 
@@ -720,4 +728,5 @@ def refit(prepared: Any, model: HoverModel, *, config: IdentifyConfig | None = N
                       input_trim_pwm={k: float(v) + float(run.delta[j]) * float(prepared.pwm_per_unit)
                                       for j, (k, v) in enumerate(prepared.input_trim_pwm.items())},
                       pwm_per_unit=float(prepared.pwm_per_unit), output_trim=dict(prepared.output_trim),
-                      fit=ModelFit.make(window_s=cfg.window_s, estimate_all_initial=cfg.estimate_all_initial))
+                      fit=ModelFit.make(window_s=cfg.window_s, estimate_all_initial=cfg.estimate_all_initial),
+                      window_input_offsets=cfg.window_input_offsets)

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from typing import Any
 
@@ -174,18 +175,35 @@ def _row(name: str, c_cfg: Any, cfg: Any, cv: Any) -> dict[str, Any]:
             "runaway": {k: list(v) for k, v in cv.runaway.items()}}
 
 
-def _round(prepared: Any, base: tuple[str, Any, HoverModel, Any], cands: list[tuple[str, dict[str, Any]]],
-           cfg0: Any, prior: Any, bounds: dict | None, pmap: Map, fit: Any, refit: Any
-           ) -> tuple[int, list[tuple], list[dict[str, Any]]]:
-    """One comparison: the base (name, config, model, its cross-validation) and the candidates applied
-    to its config. Returns the winner's index (0 = the base), the entries and their report rows."""
-    name0, cfg, model0, cv0 = base
-    entries = [base]
+def _now(fn: Any) -> Any:
+    """``fn()`` computed now, handed back as a call (the serial counterpart of a background job's result)."""
+    out = fn()
+    return lambda: out
+
+
+def _candidates(prepared: Any, cfg: Any, model0: HoverModel, cands: list[tuple[str, dict[str, Any]]], prior: Any,
+                bounds: dict | None, pmap: Map, fit: Any, refit: Any, later: Any = _now) -> list[tuple]:
+    """The candidates applied to ``cfg`` (each configuration once, none equal to ``cfg``): each fitted from
+    ``model0`` (a screening fit), its cross-validation handed to ``later``: (name, config, model, call
+    returning the cross-validation)."""
+    out: list[tuple] = []
     for name, kw in cands:
         c_cfg = dataclasses.replace(cfg, **kw)
-        if all(c_cfg != e[1] for e in entries):
+        if c_cfg != cfg and all(c_cfg != e[1] for e in out):
             m = fit(prepared, model0, c_cfg, prior=prior, bounds=bounds, quick=True)
-            entries.append((name, c_cfg, m, _crossvalidate(prepared, m, c_cfg, prior, pmap, refit)))
+            out.append((name, c_cfg, m, later(partial(_crossvalidate, prepared, m, c_cfg, prior, pmap, refit))))
+    return out
+
+
+def _round(prepared: Any, base: tuple[str, Any, HoverModel, Any], cands: list[tuple[str, dict[str, Any]]],
+           cfg0: Any, prior: Any, bounds: dict | None, pmap: Map, fit: Any, refit: Any,
+           pending: list[tuple] | None = None) -> tuple[int, list[tuple], list[dict[str, Any]]]:
+    """One comparison: the base (name, config, model, its cross-validation) and the candidates applied
+    to its config (``pending``: already started by :func:`_candidates`). Returns the winner's index
+    (0 = the base), the entries and their report rows."""
+    if pending is None:
+        pending = _candidates(prepared, base[1], base[2], cands, prior, bounds, pmap, fit, refit)
+    entries = [base] + [(n, c, m, cv()) for n, c, m, cv in pending]
     rows = [_row(n, c, cfg0, cv) for n, c, _, cv in entries]
     return choose(rows, cfg0.select_gain_z), entries, rows
 
@@ -230,14 +248,45 @@ def select_config(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
     (:func:`groundstation.sysid.identify.fit_candidate` and :func:`~groundstation.sysid.identify.refit`:
     given by the identification, so this module does not import it back)."""
     rounds = [parse_candidates(r) for r in cfg.select_candidates.split("|")]
-    try:
-        cur = ("as configured", cfg, model0, _crossvalidate(prepared, model0, cfg, prior, pmap, refit))
-    except ValueError as exc:   # too little data for k folds: keep the configuration as given
-        model0.fit = model0.fit.set(selection={"skipped": str(exc)})
-        return model0
+    with ThreadPoolExecutor(max_workers=2) as bg:
+        return _select(prepared, model0, cfg, rounds, prior, bounds, pmap, fit, refit, bg)
+
+
+def _skipped(model0: HoverModel, exc: BaseException | None) -> HoverModel:
+    """``model0`` as configured: too little data for the selection's folds."""
+    model0.fit = model0.fit.set(selection={"skipped": str(exc)})
+    return model0
+
+
+def _select(prepared: Any, model0: HoverModel, cfg: Any, rounds: list, prior: Any, bounds: dict | None, pmap: Map,
+            fit: Any, refit: Any, bg: ThreadPoolExecutor) -> HoverModel:
+    """:func:`select_config`. With worker processes the configuration's cross-validation runs (from a
+    background thread ``bg``) while this process fits the first round's candidates, whose folds then
+    queue behind it on the same workers; with the serial map one after the other. The same choice
+    either way (nothing here draws random numbers)."""
+    job = partial(_crossvalidate, prepared, model0, cfg, prior, pmap, refit)
+    first = None
+    if pmap is serial_map:
+        try:
+            cv = job()
+        except ValueError as exc:   # too little data for k folds: keep the configuration as given
+            return _skipped(model0, exc)
+    else:
+        fut = bg.submit(job)
+        try:
+            first = _candidates(prepared, cfg, model0, rounds[0], prior, bounds, pmap, fit, refit,
+                                lambda fn: bg.submit(fn).result)
+        except ValueError:
+            if isinstance(fut.exception(), ValueError):   # the configuration's own folds fail first
+                return _skipped(model0, fut.exception())
+            raise
+        if isinstance(fut.exception(), ValueError):
+            return _skipped(model0, fut.exception())
+        cv = fut.result()
+    cur = ("as configured", cfg, model0, cv)
     report: list[dict[str, Any]] = []
     for k, cands in enumerate(rounds):
-        best, entries, rows = _round(prepared, cur, cands, cfg, prior, bounds, pmap, fit, refit)
+        best, entries, rows = _round(prepared, cur, cands, cfg, prior, bounds, pmap, fit, refit, first if k == 0 else None)
         for r in rows[int(k > 0):]:
             report.append(r | {"round": k + 1})
         if not best:
