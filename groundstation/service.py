@@ -100,6 +100,7 @@ class RunReport:
     flight_tlogs: list[str] = field(default_factory=list)
     results: list[JobResult] = field(default_factory=list)
     rrd: str | None = None
+    campaign_db: str | None = None      # the per-flight table, once a flight is in it
     zenoh_endpoint: str = ""
     packets: int = 0
     packets_lost: int = 0
@@ -656,7 +657,7 @@ class Service:
         onboard = res.data == "onboard_log"
         self.ident.last_data = res.data
         whence = " from the onboard log, replacing the telemetry's" if onboard else ""
-        self.log(f"flight {flight}: model {res.model_path} ({res.seconds:.1f} s){whence}; match % {table}")
+        self.log(f"flight {flight}: model {res.model_path} ({res.seconds:.1f} s){whence}; match % on this flight {table}")
         line = cross_flight_line(flight, (model.get("fit") or {}).get("cross_flight") or {})
         if line:
             self.log(line)
@@ -681,6 +682,8 @@ class Service:
             if res.report_path is not None:
                 self.zenoh.publish_report(flight, {"vehicle": self.vehicle, "flight": flight, "path": res.report_path,
                                                    "summary": res.report_summary})
+        if res.trends is not None:
+            self.report.campaign_db = str(Path(res.model_path or "").parent / self.config.service.campaign_db)
         if res.freq is not None:
             ja = res.freq.get("J_avg")
             self.log(f"flight {flight}: frequency check {res.freq_path} J_avg "

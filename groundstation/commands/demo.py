@@ -13,6 +13,7 @@ import argparse
 import asyncio
 import json
 import shutil
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -73,9 +74,11 @@ class DemoSubscriber:
             if not self._late_done:
                 self._late_done = True
                 self.late_task = self.loop.create_task(asyncio.to_thread(self._late_query))
-            md = doc.get("fit", {}).get("match_degree", {})
+            fit = doc.get("fit", {})
+            fitness = fit.get("fitness")
+            shown = f"{fitness:.4f}" if isinstance(fitness, int | float) else str(fitness)
             self.out(f"[zenoh] {key}: model received ({len(doc.get('parameters', {}))} parameters, "
-                     f"fitness {doc.get('fit', {}).get('fitness')}, {len(md)} match degrees)")
+                     f"fitness {shown}, {len(fit.get('match_degree', {}))} match degrees)")
         elif kind.endswith("/gap"):
             self.out(f"[zenoh] {key}: gap report received, verdict {doc.get('verdict')}")
 
@@ -97,8 +100,7 @@ class DemoSubscriber:
         self.session.close()
 
 
-async def _main(cfg: Any, out_dir: Path, options: dict[str, Any] | None
-                ) -> tuple[Any, dict[str, int], dict[str, Any]]:
+async def _main(cfg: Any, options: dict[str, Any] | None) -> tuple[Any, dict[str, int]]:
     service = Service(cfg, sim_options=options)
     task = asyncio.create_task(service.run())
     ready = asyncio.create_task(service.ready.wait())
@@ -108,13 +110,12 @@ async def _main(cfg: Any, out_dir: Path, options: dict[str, Any] | None
         sub = DemoSubscriber(service.zenoh.endpoint, service.vehicle, asyncio.get_running_loop())
     try:
         report = await task
-        late: dict[str, Any] = {}
         counts: dict[str, int] = {}
         if sub is not None:
             if sub.late_task is not None:
                 await sub.late_task
             counts = dict(sub.counts)
-        return report, counts, late
+        return report, counts
     finally:
         ready.cancel()
         if sub is not None:
@@ -132,9 +133,30 @@ def run(args: argparse.Namespace) -> int:
     base = base.replace("rerun", mode="save", target=str(out_dir / "demo.rrd"))
     cfg = config_from_args(args, base)
     print(f"demo: {cfg.sim.flights} simulated flight(s) at {cfg.sim.speed:g}x; output in {out_dir}/")
-    report, counts, _ = asyncio.run(_main(cfg, out_dir, sim_options(args)))
+    report, counts = asyncio.run(_main(cfg, sim_options(args)))
     print_report(report)
     if counts:
         print("zenoh demo subscriber received: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))
+    for line in _where_to_look(report):
+        print(line)
     print(f"demo finished in {time.monotonic() - t0:.0f} s")
     return 0
+
+
+def _where_to_look(report: Any) -> list[str]:
+    """How to open what the demo wrote: the last flight's page and the Rerun recording."""
+    lines = []
+    pages = [r.report_path for r in report.results if r.error is None and r.report_path]
+    if pages:
+        lines.append(f"flight page: open {pages[-1]} in a browser")
+    if report.rrd:
+        viewer = Path(sys.executable).parent / "rerun"
+        lines.append(f"Rerun: {_relative(viewer) if viewer.exists() else 'rerun'} {report.rrd}")
+    return lines
+
+
+def _relative(path: Path) -> str:
+    try:
+        return str(path.relative_to(Path.cwd()))
+    except ValueError:
+        return str(path)

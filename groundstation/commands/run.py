@@ -107,23 +107,39 @@ def print_report(report: Any, out=print) -> None:
         out(f"  model    {r.model_path}")
         if r.gap_path:
             out(f"  gap      {r.gap_path} (verdict {(r.gap or {}).get('verdict')})")
+        if r.freq_path:
+            out(f"  freq     {r.freq_path}")
         for png in r.png:
             out(f"  plot     {png}")
+        if r.report_path:
+            out(f"  report   {r.report_path}")
+    if report.campaign_db:
+        out(f"  campaign {report.campaign_db}")
     if report.rrd:
         out(f"rerun: {report.rrd}")
     if report.zenoh_endpoint:
         out(f"zenoh: peer on {report.zenoh_endpoint}")
-    rows = [r for r in report.results if r.error is None and r.match_degree]
-    if rows:
-        chans = list(rows[0].match_degree)
-        out("")
-        out("match degree (%)  " + " ".join(f"{c:>6}" for c in chans))
-        for r in rows:
-            md = r.match_degree
-            out(f"flight {r.flight!s:<10} " + " ".join(
-                f"{md[c]:6.1f}" if isinstance(md.get(c), int | float) else f"{'-':>6}" for c in chans))
+    _print_match_table(report, out)
     for w in report.warnings:
         out(f"warning: {w}")
+
+
+def _print_match_table(report: Any, out=print) -> None:
+    """Each flight's model on its own flight (as ``validate`` prints it) and on held-out data (as ``identify``)."""
+    rows = [r for r in report.results if r.error is None and r.match_degree]
+    if not rows:
+        return
+    chans = list(rows[0].match_degree)
+    out("")
+    out("match degree (%)  " + " ".join(f"{c:>6}" for c in chans) + "  held-out")
+    for r in rows:
+        md = r.match_degree
+        held = (((r.model or {}).get("fit") or {}).get("heldout") or {}).get("mean_match")
+        out(f"flight {r.flight!s:<10} " + " ".join(
+            f"{md[c]:6.1f}" if isinstance(md.get(c), int | float) else f"{'-':>6}" for c in chans)
+            + (f"  {held:8.1f}" if isinstance(held, int | float) else f"  {'-':>8}"))
+    out("(each model on its own flight, as `groundstation validate` scores it; held-out: the mean of "
+        "`identify`'s held-out check, each fold predicted by a model fitted without it)")
 
 
 def sim_options(args: argparse.Namespace) -> dict[str, Any] | None:

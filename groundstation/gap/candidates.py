@@ -239,7 +239,8 @@ def evidence(h: hypotheses.Hypothesis, s: attribute.Score, kin: dict, lines: lis
         kt = f"; Euler-kinematics offset {1000 * k.offset_rad_s:.2f} mrad/s (t={k.t_stat:.1f})" if k else ""
         return f"constant offset on {h.output} of {1000 * h.estimate['bias_rad_s']:.2f} mrad/s{kt}; {base}"
     if e == "quadratic_drag":
-        return f"-|v|v drag terms {h.estimate}; {base}"
+        terms = ", ".join(f"{k.removesuffix('_per_m')} {v:.2g} /m" for k, v in h.estimate.items())
+        return f"-|v|v drag terms {terms}; {base}"
     if e == "ground_effect":
         return f"w force decaying with height ({h.estimate.get('decay_height_m')} m); {base}"
     if e == "wind_gust":

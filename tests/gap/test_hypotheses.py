@@ -178,3 +178,15 @@ def test_input_variants_are_the_simulated_variants(flight_factory, paper_theta):
     want = (yh[ev.W:] - yh[:ev.W]) * ev.w8 * ev.wmask
     got = _forcing_columns(ctx, [F])[..., 0]
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())
+
+
+def test_drag_evidence_reads_as_a_sentence_with_units():
+    from groundstation.gap.attribute import Score
+    from groundstation.gap.candidates import evidence
+
+    h = Hypothesis("quadratic_drag", estimate={"drag_u_per_m": 0.0012615798290600054, "drag_v_per_m": 0.0003196950510928297})
+    s = Score(score_pct=-0.007, p_value=0.62, gap_before=0.0349, gap_after=0.0349, shrink_pct=-0.03,
+              shrink_interval=(0.0, 0.0), per_channel_shrink={})
+    text = evidence(h, s, {}, [])
+    assert text.startswith("-|v|v drag terms drag_u 0.0013 /m, drag_v 0.00032 /m; held-out cost")
+    assert "{" not in text

@@ -31,9 +31,13 @@ def test_demo_records_identifies_publishes_and_prints_the_match_table(tmp_path):
         assert f"heli/heli/flight/{n}/model: model received" in text     # the in-process subscriber
     assert "late subscriber: heli/heli/model/latest answered" in text
     table = text[text.index("match degree (%)"):].splitlines()
-    assert table[0].split()[3:] == ["u", "v", "w", "p", "q", "r", "theta", "phi"]
+    assert table[0].split()[3:] == ["u", "v", "w", "p", "q", "r", "theta", "phi", "held-out"]
     assert table[1].startswith("flight 1") and table[2].startswith("flight 2")
-    assert len(table[1].split()) == 10
+    assert len(table[1].split()) == 11
+    listed = text[text.index("recordings: "):text.index("match degree (%)")]
+    for path in rec.iterdir():          # every file the demo wrote is named in its closing summary
+        assert str(path) in listed, path.name
+    assert "Rerun: " in text and f"{out / 'demo.rrd'}" in text.splitlines()[-2]
     ents = {c.entity_path for c in RrdReader(out / "demo.rrd").stream().to_chunks() if not c.is_static}
     assert {"/heli/inputs/lat", "/heli/outputs/q/smoothed", "/heli/outputs/q/model", "/heli/outputs/q/residual"} <= ents
     _check_demo_recording(out / "demo.rrd", rec)
@@ -71,3 +75,25 @@ def _check_demo_recording(rrd: Path, rec: Path) -> None:
         assert lay.rows.get("/heli/gap/flagged", 0) > 0 or not gap["gap"]["windows_s"]
     check = chunk_check(rrd)
     assert check.factor <= 10.0, check
+
+
+def test_summary_names_every_file_of_a_flight_and_its_held_out_match():
+    from groundstation.commands.run import print_report
+    from groundstation.service import RunReport
+    from groundstation.worker import JobResult
+
+    model = {"fit": {"heldout": {"mean_match": 70.57}}}
+    res = JobResult(flight=1, model=model, model_path="rec/model-flight01.json", gap={"verdict": "none"},
+                    gap_path="rec/gap-flight01.json", freq_path="rec/freq-flight01.json",
+                    report_path="rec/report-flight01.html", png=("rec/model-flight01.png",),
+                    match_degree={"u": 97.0, "w": 87.04})
+    failed = JobResult(flight=2, error="flight 2: nothing to identify")
+    lines: list[str] = []
+    print_report(RunReport(record_dir="rec", results=[res, failed], campaign_db="rec/campaign.sqlite"), lines.append)
+    text = "\n".join(lines)
+    for name in ("model-flight01.json", "gap-flight01.json", "freq-flight01.json", "report-flight01.html",
+                 "model-flight01.png", "campaign.sqlite"):
+        assert f"rec/{name}" in text
+    assert "flight 2: identification failed" in text
+    header, row = lines[lines.index(next(x for x in lines if x.startswith("match degree")))::][:2]
+    assert header.split()[-1] == "held-out" and row.split() == ["flight", "1", "97.0", "87.0", "70.6"]
