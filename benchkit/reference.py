@@ -10,13 +10,17 @@ search, no prior, no trims, no stability check: a baseline, not a product.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from groundstation.dsp.split import contiguous_kfold
+from groundstation.dsp.timeskew import shift_inputs
 from groundstation.sysid.cost import WindowedCost, make_windows
 from groundstation.sysid.fit_section import ModelFit
+from groundstation.sysid.heldout import predict
 from groundstation.sysid.identify import free_mask
 from groundstation.sysid.model import N_PARAMS, HoverModel, bounds_array, theta_to_dict
 from groundstation.sysid.optimizers import minimize_lsq
@@ -54,8 +58,6 @@ def fit_reference(prepared: Any, *, starts: int = 4, seed: int = 0, window_s: fl
 
 def _cut(seg: Any, a_s: float, b_s: float) -> Any:
     """``seg`` restricted to the times a_s..b_s."""
-    from dataclasses import replace
-
     k = (seg.t_s >= a_s - 1e-9) & (seg.t_s <= b_s + 1e-9)
     m = seg.measured
     return replace(seg, t_s=seg.t_s[k], inputs=seg.inputs[k], outputs=seg.outputs[k], outputs_raw=seg.outputs_raw[k],
@@ -72,11 +74,6 @@ def shift_profile(prepared: Any, *, grid_s: tuple[float, ...] = tuple(np.round(n
     it runs past the skew (the stick follows the motion, so inputs moved earlier keep explaining
     more of it in-sample) and predicts worse. A measurement for the bench: one single-start
     refinement per grid point and fold."""
-    from dataclasses import replace
-
-    from groundstation.dsp.split import contiguous_kfold
-    from groundstation.dsp.timeskew import shift_inputs
-    from groundstation.sysid.heldout import predict
 
     lo, hi = max(0.0, -min(grid_s)), max(0.0, max(grid_s))
     span = [(s.t_s[0] + lo, s.t_s[-1] - hi) for s in prepared.segments]

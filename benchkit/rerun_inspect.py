@@ -14,6 +14,7 @@ import re
 import shutil
 import subprocess
 import sys
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -85,8 +86,6 @@ def _blueprint_rows(reader: RrdReader) -> tuple[dict[str, dict[str, Any]], str]:
         if parts[0] == "viewport":
             raw = _first(rb, "ViewportBlueprint:root_container")
             if raw is not None:
-                import uuid
-
                 root = f"container/{uuid.UUID(bytes=bytes(raw))}"
             continue
         if parts[0] not in ("view", "container") or len(parts) < 2:

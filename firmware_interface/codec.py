@@ -22,6 +22,7 @@ import re
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+from pymavlink.generator import mavcrc
 
 __all__ = ["MAGIC_V1", "MAGIC_V2", "Framer", "check_frame", "frame_header", "MESSAGE_CLASSES"]
 
@@ -35,12 +36,7 @@ _CRC_EXTRA_BYTE: dict[int, bytes] = {mid: bytes((cls.crc_extra,)) for mid, cls i
 
 
 def _make_crc():
-    try:
-        from pymavlink.generator import mavcrc
-
-        fast = getattr(mavcrc, "mcrf4xx", None)
-    except ImportError:  # pragma: no cover - pymavlink always ships mavcrc
-        fast = None
+    fast = getattr(mavcrc, "mcrf4xx", None)
     if fast is not None:
         return fast
     table = []

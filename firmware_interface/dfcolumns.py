@@ -18,6 +18,8 @@ import math
 from typing import Any
 
 import numpy as np
+from pymavlink import DFReader
+from pymavlink.DFReader import FORMAT_TO_STRUCT
 
 __all__ = ["columns", "dataflash_series", "open_indexed", "parsed_end"]
 
@@ -32,8 +34,6 @@ _MAPPED = ("ATT", "RATE", "IMU", "RCOU", "RCIN", "HELI", "GYR", "SIDS", "SIDD", 
 def open_indexed(path: str) -> Any:
     """A ``DFReader_binary`` whose time base is worked out only when asked (``ensure_clock()``):
     DFReader finds it by reading messages one by one, the whole file when it has no GPS time."""
-    from pymavlink import DFReader
-
     class _Indexed(DFReader.DFReader_binary):  # type: ignore[misc,name-defined]
         def init_clock(self) -> None:
             self.clock = None
@@ -64,8 +64,6 @@ def parsed_end(log: Any) -> int:
 
 def columns(log: Any, name: str) -> dict[str, np.ndarray] | None:
     """Every record of type ``name`` as float columns (multipliers applied), or None when absent."""
-    from pymavlink.DFReader import FORMAT_TO_STRUCT
-
     mtype = log.name_to_id.get(name)
     if mtype is None:
         return None

@@ -39,6 +39,7 @@ from firmware_interface.logdownload import (
     LogLister,
     LogRequestFailed,
 )
+from firmware_interface.readers import load_log
 from firmware_interface.samples import Heartbeat, LinkLost, LinkRestored, RawPacket
 from firmware_interface.session import MavlinkSession, SessionConfig
 from firmware_interface.transports import Link
@@ -238,8 +239,6 @@ def write_verified(path: Path, data: bytes, size_bytes: int) -> Path:
     Raises LogError (naming the file) when the size differs or the log does not parse whole; the
     bytes are then kept as ``path.part`` so nothing downloaded is lost.
     """
-    from firmware_interface.readers import load_log
-
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".verify")
     tmp.write_bytes(data)

@@ -23,9 +23,13 @@ Leaves to others: resampling, trims and smoothing (``groundstation.dsp``).
 from __future__ import annotations
 
 import contextlib
+import gzip
 import io
+import lzma
 import math
 import os
+import shutil
+import tempfile
 from collections.abc import Iterable
 from dataclasses import replace
 from pathlib import Path
@@ -106,11 +110,6 @@ _GZ_MAGIC = b"\x1f\x8b"
 def _load_compressed(p: Path, head: bytes, all_topics: bool) -> LogData:
     """An xz- or gzip-compressed log (as archives keep them): decompressed to a temporary file, read by
     the reader its content asks for, and named after the compressed file."""
-    import gzip
-    import lzma
-    import shutil
-    import tempfile
-
     opener: Any = lzma.open if head.startswith(_XZ_MAGIC) else gzip.open
     with tempfile.TemporaryDirectory(prefix="gs-log-") as td:
         inner = Path(td) / (p.stem if p.suffix in (".xz", ".gz") else p.name)

@@ -35,6 +35,8 @@ from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 from urllib.parse import urlparse
 
+import serial
+
 from firmware_interface.errors import TransportError
 
 __all__ = ["Link", "LinkDown", "LinkUrl", "PortMissing", "ScriptedLink", "SerialLink", "TcpLink", "UdpLink",
@@ -170,8 +172,6 @@ class SerialLink:
         self.bytes_read = 0
 
     async def _open(self) -> None:
-        import serial
-
         try:
             mode = os.stat(self.path).st_mode
         except FileNotFoundError:

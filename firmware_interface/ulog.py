@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from firmware_interface.errors import LogError
+from firmware_interface.flights import _finish
 from firmware_interface.samples import SERIES_FIELDS, LinkStats, LogData, Series
 
 __all__ = ["ULOG_MAGIC", "ULOG_TOPICS", "load_ulog"]
@@ -88,7 +89,6 @@ def load_ulog(path: str | os.PathLike[str], *, all_topics: bool = False) -> LogD
                        f"{'topics' if all_topics else 'mapped topics present'}: {seen}")
     notes: list[str] = []
     series = {name: s for name, s in _map_topics(topics, p, notes).items() if len(s)}
-    from firmware_interface.flights import _finish
 
     stats = LinkStats(packets=sum(counts.values()))
     log = _finish(str(p), series, counts, stats)

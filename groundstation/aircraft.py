@@ -35,6 +35,7 @@ Pure: no file reading except in :func:`load_aircraft`.
 
 from __future__ import annotations
 
+import dataclasses
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -42,7 +43,9 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.dsp.prepare import INPUTS, PrepConfig
 from groundstation.errors import GroundstationError
+from groundstation.sysid.identify import IdentifyConfig
 from groundstation.sysid.model import OUTPUTS, PARAM_NAMES, bounds_array
 
 INPUT_SOURCES = ("SERVO_OUTPUT_RAW", "RC_CHANNELS", "SWASHPLATE")
@@ -132,8 +135,6 @@ class Aircraft:
 
     def identify_config(self, base: Any = None) -> Any:
         """``base`` (an :class:`groundstation.sysid.identify.IdentifyConfig`) with this file's overrides."""
-        from groundstation.sysid.identify import IdentifyConfig
-
         # the file's input kind where it says one (or its RC source implies "unknown"); else the configuration's
         im = self.inputs
         kind = {"input_kind": im.input_kind} if im.kind or im.source == "RC_CHANNELS" else {}
@@ -141,8 +142,6 @@ class Aircraft:
 
     def prep_config(self, base: Any = None) -> Any:
         """The data-preparation settings (:class:`groundstation.dsp.prepare.PrepConfig`) this file implies."""
-        from groundstation.dsp.prepare import INPUTS, PrepConfig
-
         cfg = base or PrepConfig()
         im = self.inputs
         trim = None
@@ -256,9 +255,6 @@ def parse_aircraft(doc: dict[str, Any], name: str) -> Aircraft:
 
 def _parse_identify(t: dict[str, Any], name: str) -> dict[str, Any]:
     """``[identify]`` overrides, checked by building the IdentifyConfig they make."""
-    import dataclasses
-
-    from groundstation.sysid.identify import IdentifyConfig
 
     allowed = {f.name for f in dataclasses.fields(IdentifyConfig)}
     for k, v in t.items():

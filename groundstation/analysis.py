@@ -32,12 +32,30 @@ from typing import Any
 
 import numpy as np
 
-from groundstation.config import ServiceConfig
+from firmware_interface.readers import restrict_to_chirps
+from groundstation.config import ServiceConfig, load_config
+from groundstation.dsp.prepare import prepare
+from groundstation.dsp.timeskew import skew_notes
 from groundstation.errors import GroundstationError
+from groundstation.freq.model_response import delays_from_augmentations
+from groundstation.freq.spectra import estimate_responses
+from groundstation.freq.verify import verify
+from groundstation.gap.config import DiagnoseConfig
 from groundstation.parallel import Map, serial_map
-from groundstation.pipeline import load_aircraft, load_logs, load_model, prepare_native, with_aircraft
+from groundstation.pipeline import (
+    identify_prepared,
+    load_aircraft,
+    load_logs,
+    load_model,
+    prepare_native,
+    with_aircraft,
+)
 from groundstation.sysid.fit_section import HeldOut, ModelFit
-from groundstation.sysid.validate import Validation
+from groundstation.sysid.heldout import crossvalidate, feedback_evidence
+from groundstation.sysid.identify import refit
+from groundstation.sysid.model import INPUTS, OUTPUTS, theta_from_dict
+from groundstation.sysid.structure_choice import fold_fitter
+from groundstation.sysid.validate import Validation, validate
 
 __all__ = ["STEPS", "AnalysisError", "AnalysisResult", "DataSummary", "GapReport", "Progress", "analyse",
            "analyse_prepared", "diagnose", "identify"]
@@ -243,11 +261,8 @@ def analyse(logs: Any, aircraft: Any = None, config: ServiceConfig | str | os.Pa
     else:
         read = [load_logs([x], segments, pmap)[0] if _is_path(x) else x for x in items]
         if segments == "sysid":
-            from firmware_interface.readers import restrict_to_chirps
-
             read = [restrict_to_chirps(x) for x in read]
     note("load", "done")
-    from groundstation.dsp.prepare import prepare
 
     note("prepare", "start")
     prepared = prepare(read, cfg.prepare)
@@ -298,8 +313,6 @@ def analyse_prepared(prepared: Any, config: ServiceConfig | None = None, aircraf
 
     if "identify" in run:
         def _identify() -> Any:
-            from groundstation.pipeline import identify_prepared
-
             t = time.perf_counter()
             m = identify_prepared(prepared, cfg, aircraft=aircraft, pmap=pmap,
                                   callback=lambda info: note("identify", "running", info) and False)
@@ -318,8 +331,6 @@ def analyse_prepared(prepared: Any, config: ServiceConfig | None = None, aircraf
         note("heldout", "skipped", {"why": f"identification.heldout_folds = {folds}"})
     validation = series = None
     if "validate" in run:
-        from groundstation.sysid.validate import validate
-
         validation = step("validate", lambda: validate(model, prepared, return_series=True))
         series = None if validation is None else validation.series
     cache: dict[str, Any] = {} if responses is None else {"responses": responses}
@@ -353,8 +364,6 @@ def diagnose(logs: Any, model: Any = None, aircraft: Any = None,
 
 def summarize(prepared: Any, log_paths: Sequence[str] = ()) -> DataSummary:
     """The :class:`DataSummary` of prepared data."""
-    from groundstation.sysid.model import INPUTS, OUTPUTS
-
     share: dict[str, float] = {}
     if prepared.segments:
         out = np.concatenate([s.outputs for s in prepared.segments])
@@ -381,18 +390,14 @@ def held_out(model: Any, prepared: Any, cfg: ServiceConfig, aircraft: Any, k: in
     the k-th) and record the verdicts in ``model.fit``: ``heldout`` (per channel and fold), ``usable``
     (False when a subsystem's prediction runs away in some fold) and ``closed_loop`` (what the closed
     loop means for this model). Returns ``model.fit.heldout``."""
-    from groundstation.sysid.heldout import crossvalidate
-    from groundstation.sysid.identify import refit
-
     prior = aircraft.prior if aircraft is not None else None
     done = model.fit.heldout or HeldOut()
     if done.k != k:   # not already checked by the configuration's held-out selection
         try:
-            chosen = model.fit.selection.get("overrides", {})
+            chosen = dict(model.fit.selection.overrides) if model.fit.selection is not None else {}
             icfg = dataclasses.replace(cfg.identify, **chosen)
             fit_fold = functools.partial(refit, model=model, config=icfg, prior=prior)
             if getattr(model, "structure", "hover") == "command_response":   # the stabilised aircraft's structure
-                from groundstation.sysid.structure_choice import fold_fitter
 
                 fit_fold = fold_fitter(model, icfg)
             cv = crossvalidate(prepared, fit_fold, k=k, window_s=icfg.heldout_window_s,
@@ -408,9 +413,8 @@ def held_out(model: Any, prepared: Any, cfg: ServiceConfig, aircraft: Any, k: in
 
 
 def closed_loop_notes(model: Any, prepared: Any, cfg: ServiceConfig) -> list[str]:
-    """What the closed loop means for this model: inputs that follow the output error, stick inputs."""
-    from groundstation.sysid.heldout import feedback_evidence
-
+    """What the closed loop means for this model: inputs that follow the output error, inputs logged late
+    (the response leads them on sharp steps), stick inputs."""
     ic = cfg.identify
     notes = feedback_evidence(model, prepared, window_s=ic.feedback_window_s, max_lag_s=ic.feedback_max_lag_s,
                               z=ic.feedback_z)
@@ -419,6 +423,7 @@ def closed_loop_notes(model: Any, prepared: Any, cfg: ServiceConfig) -> list[str
                      "output error stays consistent only where the feedback acts on measured outputs; expect damping "
                      "and input gains biased towards what the controller makes of them, and judge the model by "
                      "the held-out match, not by its standard errors")
+    notes += skew_notes(prepared, cfg.prepare.input_shift_s)
     if cfg.prepare.input_source == "RC_CHANNELS":
         notes.append("the inputs are the pilot's sticks (RC), commands to a stabilised aircraft: the model is that "
                      "of the aircraft with its stabiliser, not of the bare rotor (rotor terms such as M_a, L_b and "
@@ -429,8 +434,6 @@ def closed_loop_notes(model: Any, prepared: Any, cfg: ServiceConfig) -> list[str
 def _responses(prepared: Any, logs: Sequence[Any], cfg: ServiceConfig, cache: dict[str, Any]) -> Any:
     """The flight's frequency responses at the log's native rate (computed once per analysis)."""
     if "responses" not in cache:
-        from groundstation.freq.spectra import estimate_responses
-
         native = prepare_native(list(logs), cfg.prepare) if logs else prepared
         cache["responses"] = estimate_responses(native, cfg.freq)
     return cache["responses"]
@@ -439,9 +442,6 @@ def _responses(prepared: Any, logs: Sequence[Any], cfg: ServiceConfig, cache: di
 def _freq_check(model: Any, prepared: Any, logs: Sequence[Any], cfg: ServiceConfig, cache: dict[str, Any]) -> Any:
     """The model checked against the flight's frequency responses (None without a model: the
     responses are then estimated for the gap report's frequency section only)."""
-    from groundstation.freq.model_response import delays_from_augmentations
-    from groundstation.freq.verify import verify
-
     try:
         responses = _responses(prepared, logs, cfg, cache)
     except ValueError as exc:
@@ -454,6 +454,7 @@ def _freq_check(model: Any, prepared: Any, logs: Sequence[Any], cfg: ServiceConf
 
 def _diagnose(model: Any, prepared: Any, logs: Sequence[Any], log_paths: Sequence[str], model_source: str | None,
               cfg: ServiceConfig, cache: dict[str, Any], with_freq: bool, pmap: Map) -> GapReport:
+    # here, not at the top: the diagnosis brings scipy.stats (about 0.9 s of CPU), which identify never needs
     from groundstation.gap.diagnose import run_diagnosis
 
     diag = run_diagnosis(model, prepared, seed=cfg.identification.seed, config=cfg.diagnose, pmap=pmap)
@@ -471,10 +472,7 @@ def frequency_section(model: Any, report: dict, prepared: Any, logs: Sequence[An
                       cache: dict[str, Any]) -> dict:
     """The gap report's frequency section: the diagnosis's base model checked against the flight's
     frequency responses (at the log's native rate), or ``{"error": ...}`` when the analysis cannot run."""
-    from groundstation.freq.model_response import delays_from_augmentations
-    from groundstation.freq.verify import verify
-    from groundstation.gap.report import frequency_section as section
-    from groundstation.sysid.model import theta_from_dict
+    from groundstation.gap.report import frequency_section as section  # the diagnosis's, as in _diagnose
 
     if "error" in cache and "responses" not in cache:
         return {"error": cache["error"]}
@@ -491,8 +489,7 @@ def native_vibration(logs: list, grid_rate_hz: float, cfg: Any = None) -> dict |
     """Vibration lines in the logs' own high-rate gyro (dataflash IMU/GYR faster than twice the grid),
     over the armed flights; None when no log has one. Adds the logged rotor speed when there is one.
     ``cfg``: the :class:`groundstation.gap.config.DiagnoseConfig` (``native_line_*``; None: defaults)."""
-    from groundstation.gap.config import DiagnoseConfig
-    from groundstation.gap.fingerprints import native_rate_lines
+    from groundstation.gap.fingerprints import native_rate_lines  # the diagnosis's, as in _diagnose
 
     cfg = cfg if cfg is not None else DiagnoseConfig()
 
@@ -546,7 +543,6 @@ def _config(config: Any) -> ServiceConfig:
         return ServiceConfig()
     if isinstance(config, ServiceConfig):
         return config
-    from groundstation.config import load_config
 
     return load_config(config)
 

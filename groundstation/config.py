@@ -30,6 +30,8 @@ validates; the service and the commands use the values.
 from __future__ import annotations
 
 import dataclasses
+import inspect
+import json
 import os
 import tomllib
 import types
@@ -374,8 +376,6 @@ def load_config(path: str | os.PathLike[str] | None) -> ServiceConfig:
 
 def _field_comments(cls: type) -> dict[str, str]:
     """field name -> its comment in the source (``#:`` lines above it, or a trailing ``# ...``)."""
-    import inspect
-
     try:
         lines = inspect.getsource(cls).splitlines()
     except (OSError, TypeError):
@@ -400,8 +400,6 @@ def _field_comments(cls: type) -> dict[str, str]:
 
 def toml_value(v: Any) -> str | None:
     """``v`` written as TOML (None: TOML has no null, the key is left out)."""
-    import json
-
     if v is None:
         return None
     if isinstance(v, bool):

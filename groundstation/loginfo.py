@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.dsp.prepare import PrepConfig, _land_detector, airborne_evidence, bridge_why, derive_bridge
+
 MAX_GAPS_LISTED = 200
 
 
@@ -75,8 +77,6 @@ def link_summary(log: Any, bridge_limit_s: float | None = None) -> dict[str, Any
     are longer than data preparation's input bridge (``[prepare] max_input_bridge_s``, else derived from the
     log's inputs and the default rotor, :func:`groundstation.dsp.prepare.derive_bridge`; shorter ones are
     bridged and their samples left out of every cost)."""
-    from groundstation.dsp.prepare import PrepConfig, bridge_why, derive_bridge
-
     bridge = derive_bridge([log], PrepConfig(max_input_bridge_s=bridge_limit_s))
     limit = float(bridge["limit_s"])
     st = log.stats
@@ -130,8 +130,6 @@ def _flight(log: Any, f: Any) -> dict[str, Any]:
 def _ground_evidence(log: Any, flight: Any) -> str | None:
     """Where only height says "in the air": why the aircraft did not fly (no rotor vibration, no body
     motion), else None."""
-    from groundstation.dsp.prepare import PrepConfig, _land_detector, airborne_evidence
-
     air = list(getattr(flight, "in_air_intervals_fc_s", ()) or ())
     if not air or _land_detector(log, flight):
         return None

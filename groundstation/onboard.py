@@ -27,6 +27,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
+from firmware_interface.errors import TransportError
 from firmware_interface.logdownload import (
     DownloadComplete,
     DownloadConfig,
@@ -37,7 +38,9 @@ from firmware_interface.logdownload import (
     LogLister,
     LogRequestFailed,
 )
+from firmware_interface.logtransfer import write_verified
 from firmware_interface.samples import Heartbeat, LinkLost, LinkRestored, RawPacket
+from firmware_interface.transports import parse_url
 from groundstation.config import OnboardLogsSection
 
 __all__ = ["OnboardLogs", "OnboardLogsSection", "analyse_onboard", "link_kind"]
@@ -57,8 +60,6 @@ def link_kind(url: str, configured: str = "auto") -> tuple[str, str]:
     radio's serial side runs at the same rates as a wire."""
     if configured in ("usb", "radio"):
         return configured, f"[link] kind = {configured!r}"
-    from firmware_interface.errors import TransportError
-    from firmware_interface.transports import parse_url
 
     try:
         u = parse_url(url)
@@ -190,8 +191,6 @@ class OnboardLogs:
         self.log(f"onboard log {entry.log_id}: downloading {entry.size_bytes / 1024:.0f} kB")
 
     def _write(self, ev: DownloadComplete) -> None:
-        from firmware_interface.logtransfer import write_verified
-
         path = self.out_dir / f"log-{ev.log_id}.bin"
         fut = asyncio.get_running_loop().run_in_executor(None, write_verified, path, ev.data, len(ev.data))
         self._writing.add(fut)

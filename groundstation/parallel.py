@@ -29,7 +29,10 @@ import os
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
+from multiprocessing import forkserver
 from typing import Any
+
+from threadpoolctl import threadpool_limits
 
 from groundstation.errors import GroundstationError
 
@@ -43,8 +46,9 @@ PRELOAD = ("numpy", "scipy.optimize", "threadpoolctl", "pymavlink.dialects.v20.a
            "groundstation.dsp.split", "groundstation.dsp.velocity_check", "groundstation.sysid.select",
            "groundstation.sysid.heldout", "groundstation.gap.diagnose")
 #: what ``identify``'s workers need (no diagnosis; the plots, which its workers draw): its fork
-#: server imports in about 1 s of CPU, while the first search runs, what :data:`PRELOAD` imports in 1.5 s
-IDENTIFY_PRELOAD = ("numpy", "scipy.optimize", "threadpoolctl", "pymavlink.dialects.v20.ardupilotmega",
+#: server imports in about 1 s of CPU, while the first search runs, what :data:`PRELOAD` imports in 1.5 s;
+#: no scipy: the identification does not use it
+IDENTIFY_PRELOAD = ("numpy", "threadpoolctl", "pymavlink.dialects.v20.ardupilotmega",
                     "firmware_interface.readers", "groundstation.pipeline", "groundstation.dsp.split",
                     "groundstation.dsp.velocity_check", "groundstation.sysid.identify", "groundstation.sysid.select",
                     "groundstation.sysid.heldout", "matplotlib.figure", "matplotlib.backends.backend_agg",
@@ -112,8 +116,6 @@ def init_worker(preload: tuple[str, ...] = PRELOAD) -> None:
     """Worker initializer: :func:`warm` (with the fork server's ``preload``: a module the server did
     not import would be imported by every worker), and one BLAS/OpenMP thread per worker (the
     workers are the parallelism)."""
-    from threadpoolctl import threadpool_limits
-
     warm(preload)
     threadpool_limits(1)
 
@@ -126,7 +128,6 @@ def fork_context(extra: tuple[str, ...] = (), *, preload: tuple[str, ...] = PREL
     when it is done."""
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return multiprocessing.get_context("spawn")
-    from multiprocessing import forkserver
 
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload([*extra, *preload])
@@ -149,8 +150,6 @@ def worker_map(jobs: int | None, preload: tuple[str, ...] = PRELOAD) -> Iterator
     enough that a second BLAS thread saves little wall time and costs CPU (measured on ``diagnose``
     of a 150-s flight: 3.5 s CPU with one thread, 6.4 s with two, and more wall time on a loaded
     machine)."""
-    from threadpoolctl import threadpool_limits
-
     n = default_jobs() if jobs is None else int(jobs)
     if n < 1:
         raise GroundstationError(f"--jobs {jobs}: must be at least 1")

@@ -11,15 +11,22 @@ of them runs it. Reading files is here; the numbers are :mod:`groundstation.dsp`
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from firmware_interface.readers import load_log, restrict_to_chirps
+from groundstation.aircraft import load_aircraft as _load
 from groundstation.config import ServiceConfig
+from groundstation.dsp.prepare import prepare
 from groundstation.errors import DspError, FreqError, GapError, SysidError
+from groundstation.freq.spectra import native_rate_hz
 from groundstation.parallel import Map, serial_map
+from groundstation.sysid.identify import identify
+from groundstation.sysid.model import HoverModel
 
 
 @contextmanager
@@ -46,8 +53,6 @@ def load_logs(paths: Sequence[str | os.PathLike[str]], segments: str = "flights"
     """Read the logs (.tlog/.bin/.px4log/.ulg); ``segments="sysid"`` keeps only the system-identification
     chirps of ArduPilot SYSID-mode logs. A missing file raises OSError naming it. ``pmap`` reads them
     (one log per worker process with :func:`groundstation.parallel.worker_map`)."""
-    from firmware_interface.readers import load_log, restrict_to_chirps
-
     for p in paths:
         if not Path(p).exists():
             raise OSError(f"{p}: no such log file")
@@ -61,7 +66,6 @@ def load_aircraft(path: str | os.PathLike[str] | None) -> Any:
     """The aircraft file (:class:`groundstation.aircraft.Aircraft`), or None without one."""
     if path is None or str(path) == "":
         return None
-    from groundstation.aircraft import load_aircraft as _load
 
     return _load(Path(path))
 
@@ -85,9 +89,6 @@ def with_aircraft_file(cfg: ServiceConfig) -> tuple[ServiceConfig, Any]:
 def load_model(path: str | os.PathLike[str]) -> Any:
     """A model file (``heli-hover-model/1``, docs/model-file.md) as a :class:`groundstation.sysid.model.HoverModel`;
     a missing or malformed file raises an error naming it."""
-    import json
-
-    from groundstation.sysid.model import HoverModel
 
     path = Path(path)
     if not path.exists():
@@ -107,9 +108,6 @@ def load_model(path: str | os.PathLike[str]) -> Any:
 def prepare_native(logs: list[Any], prep_cfg: Any, *, grid_only: bool = False) -> Any:
     """Prepared data at the log's native rate where that is faster than the grid (else the grid): what
     the frequency-domain analysis runs on."""
-    from groundstation.dsp.prepare import prepare
-    from groundstation.freq.spectra import native_rate_hz
-
     prepared = prepare(logs, prep_cfg)
     rate = None if grid_only else native_rate_hz(prepared, prep_cfg.rate_hz)
     if rate is None:
@@ -121,8 +119,6 @@ def prepare_logs(paths: Sequence[str | os.PathLike[str]], cfg: ServiceConfig, se
                  aircraft: Any = None, pmap: Map = serial_map) -> Any:
     """Read the logs and prepare them with ``cfg.prepare`` (a :class:`groundstation.dsp.prepare.PreparedData`),
     the aircraft file's channel map and outputs applied when one is given."""
-    from groundstation.dsp.prepare import prepare
-
     return prepare(load_logs(paths, segments, pmap), with_aircraft(cfg, aircraft).prepare)
 
 
@@ -131,8 +127,6 @@ def identify_prepared(prepared: Any, cfg: ServiceConfig, *, callback: Callable[[
     """The hover model of ``prepared`` (a :class:`groundstation.sysid.model.HoverModel`) identified with
     ``cfg.identify``, ``cfg.bounds`` and ``cfg.identification``'s algorithm, seed and refine, and the
     aircraft file's prior model (output error with a priori weighting) when one is given."""
-    from groundstation.sysid.identify import identify
-
     ic = cfg.identification
     return identify(prepared, algorithm=ic.algorithm, seed=ic.seed, refine=ic.refine, callback=callback,
                     bounds=dict(cfg.bounds) or None, config=cfg.identify,

@@ -45,8 +45,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from firmware_interface.errors import LinkError
+from firmware_interface.link import LinkRunner
+from firmware_interface.recorder import Recorder
 from firmware_interface.samples import (
     FcRebooted,
     Heartbeat,
@@ -55,10 +58,16 @@ from firmware_interface.samples import (
     LinkRestored,
     RawPacket,
 )
+from firmware_interface.session import MavlinkSession
+from firmware_interface.signing import SigningConfig, session_hooks
+from firmware_interface.transports import open_link
 from groundstation.config import ServiceConfig
 from groundstation.dsp.excitation import ExcitationMonitor, ExcitationReport
 from groundstation.dsp.live import FlightEnded, FlightStarted, LivePipeline, RateMeter, Window
+from groundstation.onboard import OnboardLogs, analyse_onboard, link_kind
+from groundstation.pipeline import with_aircraft_file
 from groundstation.sinks.background import BackgroundCalls
+from groundstation.sinks.zenoh_sink import ZenohSink, ZenohSinkError
 from groundstation.worker import IdentifyJob, JobResult, run_job
 
 
@@ -126,7 +135,6 @@ class Service:
         self.link_opener = link_opener
         self.runner: Any = None              # firmware_interface.link.LinkRunner
         self.job_fn = job_fn
-        from groundstation.pipeline import with_aircraft_file
 
         config = with_aircraft_file(config)[0]   # one configuration: the live path uses the aircraft's channel map too
         self.config = config
@@ -194,8 +202,6 @@ class Service:
     # ------------------------------------------------------------------ setup
 
     def _open_recorder(self) -> None:
-        from firmware_interface.recorder import Recorder
-
         try:
             self.record_dir.mkdir(parents=True, exist_ok=True)
             probe = self.record_dir / ".write-test"
@@ -209,8 +215,6 @@ class Service:
     def _open_sinks(self, loop: asyncio.AbstractEventLoop) -> None:
         zc = self.config.zenoh
         if zc.enabled:
-            from groundstation.sinks.zenoh_sink import ZenohSink, ZenohSinkError
-
             try:
                 self.zenoh = ZenohSink(self.vehicle, config_path=zc.config_file or None,
                                        listen_port=zc.listen_port, window_queue=zc.window_queue, loop=loop)
@@ -221,6 +225,8 @@ class Service:
                 self._warn(f"{exc}; running without zenoh (recording goes on)")
         rc = self.config.rerun
         if rc.mode != "off":
+            # here, not at the top: the sink imports rerun (about 0.6 s of CPU), which a service without
+            # a Rerun viewer or file never needs
             from groundstation.sinks.rerun_sink import RerunSink, RerunSinkError
 
             try:
@@ -232,13 +238,12 @@ class Service:
                 self._warn(f"{exc}; running without Rerun (recording goes on)")
 
     def _start_builtin_sim(self) -> str:
-        from hil_replay.fc import SimulatedFCThread
+        # here, not at the top: the simulator (with scipy.linalg, about 0.5 s) runs only without a link
+        from hil_replay.fc import FcConfig, SimulatedFCThread
 
         sc = self.config.sim
         fc_config = self.fc_config
         if fc_config is None and self.config.onboard_logs.download:
-            from hil_replay.fc import FcConfig
-
             fc_config = FcConfig(seed=sc.seed, record_dataflash=True)   # an onboard log to download
         self.sim = SimulatedFCThread(speed=sc.speed, seed=sc.seed, flights=sc.flights, effects=sc.effects,
                                      config=fc_config, sim_options=self.sim_options,
@@ -247,9 +252,6 @@ class Service:
         return f"serial://{self.sim.port_path}:{self.config.link.baud}"
 
     def _make_runner(self) -> Any:
-        from firmware_interface.link import LinkRunner
-        from firmware_interface.transports import open_link
-
         opener = self.link_opener or functools.partial(open_link, self.link_url)
         return LinkRunner(opener, self.session, self._on_events, tick_s=0.05, backoff_s=0.1, backoff_max_s=1.0,
                           log=self.log, on_link_up=self._on_link_up, on_link_down=self._on_link_down)
@@ -270,17 +272,12 @@ class Service:
                 self._warn(f"prepare.input_source = {self.config.prepare.input_source}: identification uses it; "
                            "the live inputs are read from SERVO_OUTPUT_RAW")
             try:
-                from firmware_interface.session import MavlinkSession
-                from firmware_interface.signing import SigningConfig, session_hooks
-
                 lk = self.config.link
                 self.signing, signer = session_hooks(
                     SigningConfig(lk.signing_key_file, lk.signing_link_id, lk.signing_accept_unsigned), time.time())
                 self.session = MavlinkSession(verifier=self.signing, signer=signer)
                 ob = self.config.onboard_logs
                 if ob.download or ob.analyse != "off":
-                    from groundstation.onboard import OnboardLogs
-
                     self.onboard = OnboardLogs(ob, Path(ob.dir) if ob.dir else self.record_dir / "onboard",
                                                self.session, self.log, on_log=self._analyse_onboard_log)
                 self._open_sinks(loop)
@@ -715,7 +712,6 @@ class Service:
         ob = self.config.onboard_logs
         if got + lost <= 0 or 100.0 * lost / (got + lost) <= ob.suggest_above_loss_pct:
             return False
-        from groundstation.onboard import analyse_onboard, link_kind
 
         pct = 100.0 * lost / (got + lost)
         kind, why = link_kind(self.link_url, self.config.link.kind)
@@ -887,12 +883,7 @@ def _worker_init() -> None:
         os.nice(19)
     except OSError:
         pass
-    try:
-        from threadpoolctl import threadpool_limits
-
-        threadpool_limits(1)        # process-wide (not a context manager here)
-    except ImportError:
-        pass
+    threadpool_limits(1)            # process-wide (not a context manager here)
 
 
 def cross_flight_line(flight: int | None, cross: dict[str, Any]) -> str:

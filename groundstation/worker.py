@@ -16,6 +16,7 @@ The chain is :mod:`groundstation.analysis`'s; this module only writes its files 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 import traceback
@@ -25,9 +26,16 @@ from typing import Any
 
 import numpy as np
 
-from groundstation.analysis import AnalysisError
+from groundstation.analysis import AnalysisError, analyse
 from groundstation.config import ServiceConfig
+from groundstation.freq.verify import freq_pairs
+from groundstation.gap.pictures import gap_pictures
 from groundstation.jsonio import dumps
+from groundstation.pipeline import prepare_logs, with_aircraft_file
+from groundstation.report import one_line_summary, render_report, write_html
+from groundstation.report.collect import assemble, load_history
+from groundstation.sysid.heldout import predict
+from groundstation.sysid.model import HoverModel
 
 OUTPUTS = ("u", "v", "w", "p", "q", "r", "theta", "phi")
 
@@ -107,9 +115,8 @@ class JobResult:
 
 
 def _warm() -> bool:
-    """Imported-and-ready probe (submitted once at start so the first flight does not pay imports)."""
-    import groundstation.dsp.prepare  # noqa: F401
-    import groundstation.sysid.model  # noqa: F401
+    """Imported-and-ready probe, submitted once at start so the first flight does not pay imports: to
+    run it, the worker process imports this module and with it the whole analysis."""
     return True
 
 
@@ -163,9 +170,6 @@ def _cross_flight(job: IdentifyJob, model: Any, prepared: Any) -> dict[str, Any]
     states); empty without a previous flight, an ``error`` line when it cannot be scored."""
     if job.previous_flight < 0 or not job.previous_tlogs:
         return {}
-    from groundstation.pipeline import prepare_logs
-    from groundstation.sysid.heldout import predict
-    from groundstation.sysid.model import HoverModel
 
     out: dict[str, Any] = {"previous_flight": job.previous_flight}
     try:
@@ -194,11 +198,6 @@ def _live_responses(job: IdentifyJob) -> Any:
 
 
 def _identify_flight(job: IdentifyJob, t0: float) -> JobResult:
-    import dataclasses
-
-    from groundstation.analysis import analyse
-    from groundstation.pipeline import with_aircraft_file
-
     cfg, aircraft = with_aircraft_file(job.config)
     job = dataclasses.replace(job, config=cfg)
     steps = ("identify", "heldout", "validate", "freq") + (("diagnose",) if cfg.identification.diagnose else ())
@@ -260,6 +259,8 @@ def _trends(job: IdentifyJob, model: Any, gap: Any, prepared: Any, seconds: floa
     if not cfg.service.campaign_db or len(job.tlogs) != 1 or job.data != "telemetry":   # one row per flight
         return None, None
     try:
+        # here, not at the top: the campaign table's trend tests bring scipy.stats (about 0.9 s), and the
+        # service imports this module in its own process, which never runs them
         from groundstation.campaign.live import record_flight
 
         return record_flight(Path(job.out_dir) / cfg.service.campaign_db, job.vehicle, job.tlogs[0], job.flight,
@@ -273,9 +274,6 @@ def _report(job: IdentifyJob, prepared: Any, model: Any, validation: Any, verifi
     """(``report-flightNN.html`` path, one-line summary, None) of the flight's page, drawn from what this
     job computed, or (None, None, one-line error): the model stands on its own."""
     try:
-        from groundstation.report import one_line_summary, render_report, write_html
-        from groundstation.report.collect import assemble, load_history
-
         cfg = job.config
         history: tuple[dict[str, Any], ...] = ()
         label = ""
@@ -297,8 +295,6 @@ def _freq_files(job: IdentifyJob, res: Any) -> tuple[Any, Any, Any, Any]:
         why = res.errors.get("freq", "no result")
         return None, None, f"flight {job.flight}: frequency check: {why}", None
     try:
-        from groundstation.sinks.rerun_sink import freq_pairs
-
         doc = {**res.freq.to_json(), "vehicle": job.vehicle, "flight": job.flight, "data": job.data}
         path = job.file("freq", "json")
         path.write_text(dumps(doc, indent=1))
@@ -313,8 +309,6 @@ def _gap_files(job: IdentifyJob, res: Any, model_path: Path) -> tuple[Any, Any, 
     if res.gap is None:
         return None, None, f"flight {job.flight}: diagnosis: {res.errors.get('diagnose', 'no result')}", None
     try:
-        from groundstation.gap.pictures import gap_pictures
-
         report = res.gap.report
         report["source"]["model"] = str(model_path)
         if job.data == "onboard_log":

@@ -27,6 +27,7 @@ writes one file. Leaves to others: reading logs (``firmware_interface``), servin
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import struct
@@ -34,6 +35,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from hil_replay.sim import SimulatedSession
+from hil_replay.sim.aircraft import INPUTS
 
 __all__ = ["ChirpPlan", "DataflashWriter", "chirp_plan", "rotor_rpm", "write_bin"]
 
@@ -74,8 +78,6 @@ class ChirpPlan:
 
 def chirp_plan(session: Any) -> list[ChirpPlan]:
     """The sweeps of a :class:`hil_replay.sim.SimulatedSession`'s cards as chirps."""
-    from hil_replay.sim.aircraft import INPUTS
-
     out = []
     for arm_s, card in zip(session.arm_times_s, session.cards, strict=False):
         for seg in card.segments:
@@ -158,9 +160,6 @@ def write_bin(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1, 
               pause_s: float = 10.0) -> dict[str, Any]:
     """Simulate a session and write its onboard dataflash log to ``path`` (atomically) and the truth
     to ``path.with_suffix('.truth.json')``; returns the truth. Same arguments, same bytes."""
-    import json
-
-    from hil_replay.sim import SimulatedSession
 
     sess = SimulatedSession(seed=seed, flights=flights, effects=tuple(effects), aircraft=aircraft,
                             flight_duration_s=flight_duration_s, pause_s=pause_s)

@@ -42,7 +42,9 @@ from typing import Any, Protocol
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from hil_replay.dataflash import DataflashWriter, chirp_plan, rotor_rpm
 from hil_replay.pty import PortUnplugged, VirtualSerialPort
+from hil_replay.sim import SimulatedSession
 
 __all__ = [
     "DEFAULT_RATE_HZ",
@@ -524,7 +526,6 @@ class SimulatedFlightController:
         """The session's frames; with ``record_dataflash`` the 200 Hz ones and a log writer per flight."""
         if not self.protocol.config.record_dataflash:
             return self.session.frames()
-        from hil_replay.dataflash import DataflashWriter, chirp_plan, rotor_rpm
 
         sess: Any = self.session
         rpm, chirps = rotor_rpm(sess), chirp_plan(sess)
@@ -611,8 +612,6 @@ class SimulatedFlightController:
 
 def _make_session(seed: int, flights: int, effects: Sequence[Any], aircraft: Any,
                   sim_options: Mapping[str, Any] | None = None) -> FrameSource:
-    from hil_replay.sim import SimulatedSession
-
     # SimulatedSession takes Effect objects or "name:key=value" strings itself
     return SimulatedSession(seed=seed, flights=flights, effects=tuple(effects), aircraft=aircraft,
                             **dict(sim_options or {}))

@@ -29,6 +29,11 @@ from typing import Any
 
 import numpy as np
 
+from hil_replay.sim import write_tlog
+from hil_replay.sim.aircraft import Aircraft, resolve_aircraft
+from hil_replay.sim.effects import OUT_OF_CATALOGUE, random_effect
+from hil_replay.sim.pilot import PilotConfig, design_gains
+
 #: the verdicts a single-effect case can have: no effect, or one catalogue effect
 CLASSES: tuple[str, ...] = ("none", "input_delay", "rate_limit", "deadband", "ground_effect", "wind_gust",
                             "quadratic_drag", "gyro_bias", "rotor_vibration", "velocity_latency")
@@ -92,8 +97,6 @@ class ScenarioSet:
 
 def pilot_config(name: str) -> Any:
     """The :class:`hil_replay.sim.pilot.PilotConfig` of a named variant (None for the default)."""
-    from hil_replay.sim.pilot import PilotConfig
-
     v = PILOTS[name]
     if not v:
         return None
@@ -132,9 +135,6 @@ def draw_flight(rng: np.random.Generator, spec: ScenarioSet) -> dict[str, Any]:
 def make_aircraft(name: str | None, scatter: float, seed: int) -> Any:
     """The named aircraft with every eq.-8 parameter scattered (log-normal ``scatter``, signs kept)
     such that the synthetic pilot can still fly it (redrawn up to 20 times, else unscattered)."""
-    from hil_replay.sim.aircraft import Aircraft, resolve_aircraft
-    from hil_replay.sim.pilot import PilotConfig, design_gains
-
     base = resolve_aircraft(name)
     if scatter <= 0:
         return base
@@ -174,8 +174,6 @@ def sim_kwargs(job: Mapping[str, Any]) -> dict[str, Any]:
 def case_effects(job: Mapping[str, Any]) -> list[Any]:
     """The job's effects with their random channel and magnitude (drawn from the job's seed: the
     same draw every time)."""
-    from hil_replay.sim.effects import random_effect
-
     rng = np.random.default_rng(job["seed"])
     return [random_effect(n, rng) for n in job["effects"]]
 
@@ -184,8 +182,6 @@ def write_case(path: Path, job: Mapping[str, Any], *, flight_seed: int | None = 
     """Simulate the job's flight (its effects, its drawn set-up) to the .tlog ``path``; returns the
     simulator's truth. ``flight_seed`` (default the job's seed) gives another flight of the same
     effects and set-up."""
-    from hil_replay.sim import write_tlog
-
     seed = job["seed"] if flight_seed is None else flight_seed
     return write_tlog(path, seed=seed, flights=1, effects=case_effects(job), **sim_kwargs(job))
 
@@ -193,8 +189,6 @@ def write_case(path: Path, job: Mapping[str, Any], *, flight_seed: int | None = 
 def make_jobs(spec: ScenarioSet) -> list[dict[str, Any]]:
     """Single-effect (or none), out-of-catalogue, two-effect and held-back cases, each with its
     flight set-up, every kind (see :func:`select_jobs`)."""
-    from hil_replay.sim.effects import OUT_OF_CATALOGUE
-
     classes = list(spec.classes)
     rng = np.random.default_rng(spec.seed)
     base = {"model_source": spec.model_source, "fresh": spec.fresh}

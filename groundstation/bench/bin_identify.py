@@ -13,11 +13,22 @@ statistic ``diagnose`` reports) against the true rotor frequency. The last line 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import shutil
 import tempfile
 from pathlib import Path
 from typing import Any
+
+from rich.console import Console
+from rich.table import Table
+
+from firmware_interface.readers import load_log
+from groundstation.analysis import native_vibration
+from groundstation.cli import main as cli_main
+from hil_replay.dataflash import write_bin
+from hil_replay.sim import write_tlog
 
 HELP = "identify from the simulated FC's 200 Hz onboard .bin and from its .tlog: 8 key parameters, vibration line"
 
@@ -37,14 +48,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def one_seed(seed: int, effects: tuple[str, ...], keep: Path | None) -> dict[str, Any]:
     """Identify one simulated flight from its .tlog and its .bin; errors in % of truth, vibration line."""
-    import contextlib
-    import io
-
-    from firmware_interface.readers import load_log
-    from groundstation.analysis import native_vibration
-    from groundstation.cli import main as cli_main
-    from hil_replay.dataflash import write_bin
-    from hil_replay.sim import write_tlog
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-bin-identify-"))
     try:
@@ -75,8 +78,6 @@ def one_seed(seed: int, effects: tuple[str, ...], keep: Path | None) -> dict[str
 
 
 def _table(r: dict[str, Any], effects: tuple[str, ...]) -> Any:
-    from rich.table import Table
-
     t = Table(title=f"8 key parameters, seed {r['seed']} ({effects[0] if effects else 'no rotor vibration'})")
     t.add_column("parameter")
     t.add_column("truth", justify="right")
@@ -92,8 +93,6 @@ def _table(r: dict[str, Any], effects: tuple[str, ...]) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-
     con = Console()
     seeds = [args.seed] if args.seed is not None else list(args.seeds)
     results = []

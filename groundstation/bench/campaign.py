@@ -32,6 +32,13 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.campaign import runner
+from groundstation.campaign.job import FlightJob, Settings, file_sha256
+from groundstation.campaign.store import CampaignStore, series
+from groundstation.config import ServiceConfig
+from groundstation.trends.change import MIN_FLIGHTS_FOR_SCATTER, assess_all
+from hil_replay.sim import parse_effect, write_tlog
+
 HELP = "campaign of simulated flights: time per flight vs N, speed-up 1 core / all cores / Dask, trend test"
 
 
@@ -54,8 +61,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _simulate(d: Path, args: argparse.Namespace) -> tuple[list[Path], np.ndarray]:
-    from hil_replay.sim import parse_effect, write_tlog
-
     widths = np.linspace(args.grow_from, args.grow_to, args.flights)
     # flights beyond the campaign's (only for the speed-up runs) keep the last width
     extra = np.full(max(args.speedup_flights - args.flights, 0), args.grow_to)
@@ -70,16 +75,12 @@ def _simulate(d: Path, args: argparse.Namespace) -> tuple[list[Path], np.ndarray
 
 
 def _jobs(paths: list[Path], settings: Any, cross: bool = True) -> list:
-    from groundstation.campaign.job import FlightJob, file_sha256
-
     return [FlightJob(str(p), file_sha256(p), "bench", settings, str(paths[k - 1]) if cross and k else None)
             for k, p in enumerate(paths)]
 
 
 def _scaling(paths: list[Path], settings: Any) -> tuple[list[dict], list[dict]]:
     """One in-process campaign; (rows, per-N figures)."""
-    from groundstation.campaign import runner
-
     runner.warm()  # imports (those a first log triggers too) are not a flight's cost
 
     marks: list[dict] = []
@@ -102,10 +103,6 @@ def _default_campaign(paths: list[Path]) -> dict[str, float]:
     """``groundstation campaign`` of ``paths`` with the default configuration and workers: wall and
     CPU (the whole process tree: this process, the fork server, every worker) per flight, the workers'
     start included (a user's run pays it)."""
-    from groundstation.campaign import runner
-    from groundstation.campaign.job import Settings
-    from groundstation.config import ServiceConfig
-
     workers = runner.default_workers()
     c0, t0, b0 = _tree_cpu_s(), time.perf_counter(), _machine_busy_s()
     res = runner.run(_jobs(paths, Settings(config=ServiceConfig(), diagnose=True)), workers=workers)
@@ -127,8 +124,6 @@ def _speedup(paths: list[Path], settings: Any) -> dict[str, dict[str, float]]:
     workers alike) is started first and its cost measured once (``start`` of the first entry); each
     executor's workers are then started and warmed before its clock (``start`` of its entry). CPU is
     the whole process tree's (this process, the fork server, every worker, reaped or alive)."""
-    from groundstation.campaign import runner
-
     cores = os.cpu_count() or 1
     out: dict[str, dict[str, float]] = {}
     c0, t0 = _tree_cpu_s(), time.perf_counter()
@@ -218,11 +213,6 @@ def _tree_cpu_s() -> float:
 
 
 def run(args: argparse.Namespace) -> int:
-    from groundstation.campaign.job import Settings
-    from groundstation.campaign.store import series
-    from groundstation.config import ServiceConfig
-    from groundstation.trends.change import assess_all
-
     if args.flights < 2 or args.duration_s < 30:
         raise ValueError("--flights must be >= 2 and --duration-s >= 30")
     cfg = ServiceConfig().replace("identify", search_restarts=args.restarts)
@@ -244,7 +234,6 @@ def run(args: argparse.Namespace) -> int:
         rows, marks = _scaling(paths[: args.flights], Settings(config=cfg, diagnose=True))
         _print_scaling(marks)
         if args.keep is not None:  # the same table `groundstation campaign DIR --vehicle bench --restarts N` reads
-            from groundstation.campaign.store import CampaignStore
 
             store = CampaignStore(d / "bench.sqlite")
             store.put(rows)
@@ -304,8 +293,6 @@ def _print_speedup(sp: dict[str, dict[str, float]]) -> None:
 
 
 def _print_trends(trends: dict, widths: np.ndarray, inp: str) -> None:
-    from groundstation.trends.change import MIN_FLIGHTS_FOR_SCATTER
-
     key = f"effect:deadband[{inp}].deadband"   # half-width, normalised units (the gap report's estimate)
     t = trends.get(key)
     same = f"effect:deadband[{inp}]."          # the same estimate in PWM microseconds is the same effect

@@ -41,7 +41,12 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.analysis import analyse
+from groundstation.config import ServiceConfig
+from groundstation.parallel import serial_map, worker_map
+from groundstation.sysid.model import HoverModel
 from hil_replay import scenarios
+from hil_replay.sim.effects import aliased_hz
 
 HELP = "blind test of the gap diagnosis on simulated flights with hidden random effects"
 
@@ -119,8 +124,6 @@ def _main_param(name: str, params: dict[str, float]) -> tuple | None:
     """The truth effect parameter comparable with our estimate: (label, value in our units)."""
     p = {k: float(v) for k, v in params.items() if isinstance(v, (int, float))}
     if name == "rotor_vibration" and "rpm" in p:
-        from hil_replay.sim.effects import aliased_hz
-
         # two-bladed rotor: the 2/rev line usually dominates; report the harmonic nearest the estimate
         return "aliased 1/rev or 2/rev line Hz", aliased_hz(p["rpm"] / 60.0, 50.0), aliased_hz(2 * p["rpm"] / 60.0, 50.0)  # type: ignore[return-value]
     if name == "wind_gust" and "sigma_m_s" in p:
@@ -177,10 +180,6 @@ def _child_pids(pid: str) -> list[str]:
 def run_case(job: dict[str, Any], pmap: Any = None) -> dict[str, Any]:
     """Simulate, read back, prepare, diagnose one case (runs in a worker process; ``pmap``: a map over
     worker processes for the diagnosis's independent pieces, None: serial)."""
-    from groundstation.analysis import analyse
-    from groundstation.config import ServiceConfig
-    from groundstation.parallel import serial_map
-    from groundstation.sysid.model import HoverModel
     out: dict[str, Any] = {"case": job["case"], "kind": job["kind"], "truth_effects": job["effects"],
                            "flight": job["flight"], "expect": job.get("expect")}
     with tempfile.TemporaryDirectory() as td:
@@ -285,8 +284,6 @@ def run(args: argparse.Namespace) -> int:
 def _run_jobs(jobs: list[dict[str, Any]], workers: int, n_jobs: int) -> Any:
     """The case results as they finish: ``workers`` flights at once in a process pool, or (one worker)
     one after the other in this process, each diagnosis on ``n_jobs`` worker processes."""
-    from groundstation.parallel import worker_map
-
     if workers <= 1:
         with worker_map(max(1, n_jobs)) as pmap:
             for job in jobs:

@@ -31,6 +31,22 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rich.console import Console
+from threadpoolctl import threadpool_limits
+
+from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
+from firmware_interface.readers import load_log
+from groundstation.dsp.prepare import PrepConfig, prepared_from_arrays
+from groundstation.freq.identify import FreqIdentifyConfig, identify_frequency
+from groundstation.freq.metrics import Z95_COMPLEX
+from groundstation.freq.model_response import model_response
+from groundstation.freq.spectra import estimate_responses
+from groundstation.freq.verify import verify
+from groundstation.pipeline import prepare_native
+from groundstation.sysid.identify import identify
+from groundstation.sysid.model import INPUTS, OUTPUTS, theta_from_dict
+from groundstation.sysid.validate import validate
+from hil_replay.sim import write_tlog
 
 HELP = "frequency-domain benchmark: responses vs truth, true-model J, delay from phase slope, speed, identification"
 
@@ -51,10 +67,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _linear(seed: int, duration_s: float, delay_s: float = 0.0) -> tuple[Any, dict[str, float]]:
-    from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
-    from groundstation.dsp.prepare import prepared_from_arrays
-    from groundstation.sysid.model import theta_from_dict
-
     dt = 0.02
     d = int(round(delay_s / dt))
     n = int(round(duration_s / dt))
@@ -66,11 +78,6 @@ def _linear(seed: int, duration_s: float, delay_s: float = 0.0) -> tuple[Any, di
 
 
 def _sim(seed: int, duration_s: float, tmp: Path, delay_s: float = 0.0) -> tuple[Any, dict[str, float]]:
-    from firmware_interface.readers import load_log
-    from groundstation.dsp.prepare import PrepConfig
-    from groundstation.pipeline import prepare_native
-    from hil_replay.sim import write_tlog
-
     path = tmp / f"sim{seed}_{int(delay_s * 1000)}.tlog"
     effects = (f"input_delay:input=lon,delay_s={delay_s}",) if delay_s else ()
     truth = write_tlog(path, seed=seed, flights=1, effects=effects, aircraft=None, flight_duration_s=duration_s)
@@ -80,10 +87,6 @@ def _sim(seed: int, duration_s: float, tmp: Path, delay_s: float = 0.0) -> tuple
 
 
 def _agreement(rs: Any, theta: np.ndarray) -> tuple[float, int]:
-    from groundstation.freq.metrics import Z95_COMPLEX
-    from groundstation.freq.model_response import model_response
-    from groundstation.sysid.model import INPUTS, OUTPUTS
-
     G = model_response(theta, rs.f_hz, dt_s=rs.dt_s)
     inside = total = 0
     for p in rs.with_response:
@@ -97,11 +100,6 @@ def _agreement(rs: Any, theta: np.ndarray) -> tuple[float, int]:
 
 
 def _timing(prepared: Any, theta: np.ndarray, repeats: int) -> float:
-    from threadpoolctl import threadpool_limits
-
-    from groundstation.freq.spectra import estimate_responses
-    from groundstation.freq.verify import verify
-
     cpu = []
     with threadpool_limits(1):
         for _ in range(repeats):
@@ -122,17 +120,10 @@ def _identification(con: Any, args: argparse.Namespace, rs: Any, prep: Any, trut
     """Key-parameter counts of the frequency fit, the time fit, the refinement warm-started from the
     time fit and the refinement from the truth, appended to ``counts`` and printed; with ``heldout``
     (another flight of the same aircraft) each model's mean match on it (eq. 19) too."""
-    from groundstation.freq.identify import FreqIdentifyConfig, identify_frequency
-    from groundstation.freq.verify import verify
-    from groundstation.sysid.model import theta_from_dict
-    from groundstation.sysid.validate import validate
-
     fc = FreqIdentifyConfig(**({"weighting": args.weighting} if args.weighting else {}))
     fits: list[tuple[str, Any]] = [("frequency-domain identification",
                                     lambda: identify_frequency(rs, prep, algorithm=args.algorithm, seed=seed, config=fc))]
     if not args.skip_time:
-        from groundstation.sysid.identify import identify
-
         tm: dict[str, Any] = {}
         fits += [("time-domain identification", lambda: tm.setdefault("m", identify(prep, algorithm=args.algorithm,
                                                                                         seed=seed))),
@@ -149,12 +140,6 @@ def _identification(con: Any, args: argparse.Namespace, rs: Any, prep: Any, trut
 
 
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-
-    from groundstation.freq.spectra import estimate_responses
-    from groundstation.freq.verify import verify
-    from groundstation.sysid.model import theta_from_dict
-
     con = Console()
     sources = ("linear", "sim") if args.source == "both" else (args.source,)
     with tempfile.TemporaryDirectory() as td:

@@ -23,12 +23,25 @@ Prints a table per split and the overall figures (mean over folds); ``--json`` w
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from benchkit.linear import linear_heldout
+from benchkit.reference import fit_reference, shift_profile
+from groundstation.config import ServiceConfig
+from groundstation.dsp.split import contiguous_kfold, train_first
+from groundstation.dsp.timeskew import shift_inputs
+from groundstation.pipeline import load_aircraft, prepare_logs
+from groundstation.sysid.fit_section import Selection
+from groundstation.sysid.heldout import predict, runaway_channels, unstable_modes
+from groundstation.sysid.identify import IdentifyConfig, identify
 
 #: the predictors a split may score: the project's identification, the plain reference, the linear ceiling
 KINDS = ("project", "reference", "linear")
@@ -59,10 +72,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _identify_config(pairs: list[str], aircraft: Any) -> Any:
-    import dataclasses
-
-    from groundstation.sysid.identify import IdentifyConfig
-
     kw: dict[str, Any] = {}
     fields = {f.name: f for f in dataclasses.fields(IdentifyConfig)}
     for p in pairs:
@@ -75,8 +84,6 @@ def _identify_config(pairs: list[str], aircraft: Any) -> Any:
 
 
 def _splits(prepared: Any, args: argparse.Namespace) -> list[tuple[str, Any, Any]]:
-    from groundstation.dsp.split import contiguous_kfold, train_first
-
     out = []
     if args.train_first_s > 0:
         tr, va = train_first(prepared, args.train_first_s)
@@ -88,11 +95,7 @@ def _splits(prepared: Any, args: argparse.Namespace) -> list[tuple[str, Any, Any
 
 def _shifted(train: Any, val: Any, args: argparse.Namespace, row: dict[str, Any], i: int) -> tuple[Any, Any]:
     """Split ``i`` with its inputs advanced by ``--input-shift-s`` (measured on ``train`` with ``auto``)."""
-    from groundstation.dsp.timeskew import shift_inputs
-
     if args.input_shift_s == "auto":
-        from benchkit.reference import shift_profile
-
         prof = shift_profile(train, seed=args.seed, window_s=args.window_s)
         row["input_shift_profile"] = prof
         shift = prof["shift_s"]
@@ -104,8 +107,6 @@ def _shifted(train: Any, val: Any, args: argparse.Namespace, row: dict[str, Any]
 
 
 def _score(model: Any, val: Any, window_s: float) -> dict[str, Any]:
-    from groundstation.sysid.heldout import predict, runaway_channels, unstable_modes
-
     p = predict(model, val, window_s=window_s)
     return {"match": p.match, "mean": p.mean_match, "runaway": runaway_channels(p),
             "unstable": [m.describe() for m in unstable_modes(model.theta)]}
@@ -113,20 +114,13 @@ def _score(model: Any, val: Any, window_s: float) -> dict[str, Any]:
 
 def _selection(model: Any) -> dict[str, Any]:
     """The configuration the identification chose by held-out prediction on its training part."""
-    sel, ho = model.fit.selection, model.fit.heldout
-    return {"chosen": sel.get("chosen"), "scores": {r["name"]: r["mean_match"] for r in sel.get("candidates", [])},
+    sel, ho = model.fit.selection or Selection(), model.fit.heldout
+    return {"chosen": sel.chosen, "scores": {r.name: r.mean_match for r in sel.candidates},
             "not_predicted": [] if ho is None else list(ho.not_predicted),
             "inv_tau_s": float(model.params["inv_tau_s"]), "pinned": sorted(model.pinned)}
 
 
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-
-    from benchkit.reference import fit_reference
-    from groundstation.config import ServiceConfig
-    from groundstation.pipeline import load_aircraft, prepare_logs
-    from groundstation.sysid.identify import identify
-
     con = Console()
     aircraft = load_aircraft(args.aircraft)
     id_cfg = _identify_config(args.set, aircraft)
@@ -144,8 +138,6 @@ def run(args: argparse.Namespace) -> int:
             ref = fit_reference(train, starts=args.reference_starts, seed=args.seed, window_s=args.window_s)
             row["reference"] = _score(ref, val, args.window_s) | {"seconds": time.perf_counter() - t0}
         if args.linear:
-            from benchkit.linear import linear_heldout
-
             t0 = time.perf_counter()
             row["linear"] = linear_heldout(train, val, window_s=args.window_s) | {"seconds": time.perf_counter() - t0}
         results.append(row)
@@ -158,8 +150,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _print_split(con: Any, row: dict[str, Any]) -> None:
-    from rich.table import Table
-
     kinds = [k for k in KINDS if k in row]
     chans = list(row["project"]["match"])
     shift = f", inputs advanced {row['input_shift_s'] * 1000:.0f} ms" if row.get("input_shift_s") else ""

@@ -18,14 +18,40 @@ through the ordinary .tlog reader) when available, else from the linear model it
 from __future__ import annotations
 
 import argparse
+import functools
+import importlib
 import json
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rich.console import Console
+from rich.table import Table
+from threadpoolctl import threadpool_limits
+
+from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
+from firmware_interface.readers import load_log
+from groundstation.cli import build_parser
+from groundstation.dsp.prepare import PrepConfig, prepare, prepared_from_arrays
+from groundstation.sysid.cost import WindowedCost, make_windows, subset_windows
+from groundstation.sysid.fit_section import Selection
+from groundstation.sysid.identify import IdentifyConfig, identify
+from groundstation.sysid.model import (
+    HOR_PARAMS,
+    N_PARAMS,
+    PARAM_INDEX,
+    PARAM_NAMES,
+    HoverModel,
+    bounds_array,
+    theta_from_dict,
+)
+from groundstation.sysid.plots import plot_convergence
+from groundstation.sysid.validate import validate
+from hil_replay.sim import write_tlog
 
 HELP = "identification benchmark: speed, accuracy vs truth, and GA/ABC/CABC/DE at equal budgets"
 
@@ -49,31 +75,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _flights(args, tmp: Path) -> tuple[Any, Any, dict[str, float], str]:
     """(train PreparedData, validation PreparedData, truth parameters, description)."""
-    from groundstation.dsp.prepare import PrepConfig, prepare, prepared_from_arrays
-
     cfg = PrepConfig() if args.passes is None else PrepConfig(smooth_passes=args.passes)
     if args.source in ("auto", "sim"):
-        write_tlog: Any = None
-        try:
-            from hil_replay.sim import write_tlog
-        except ImportError:
-            if args.source == "sim":
-                raise
-        if write_tlog is not None:
-            from firmware_interface.readers import load_log
-
-            preps, truth = [], None
-            for k in range(2):
-                path = tmp / f"flight{k}.tlog"
-                truth = write_tlog(path, seed=args.sim_seed + k, flights=1, effects=(), aircraft=None,
-                                   flight_duration_s=args.duration_s)
-                if truth is None:
-                    truth = json.loads(path.with_suffix(".truth.json").read_text())
-                preps.append(prepare([load_log(path)], cfg))
-            assert truth is not None
-            return preps[0], preps[1], dict(truth["parameters"]), f"hil_replay.sim nonlinear flights (seeds {args.sim_seed}, {args.sim_seed + 1})"
-    from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
-    from groundstation.sysid.model import theta_from_dict
+        preps, truth = [], None
+        for k in range(2):
+            path = tmp / f"flight{k}.tlog"
+            truth = write_tlog(path, seed=args.sim_seed + k, flights=1, effects=(), aircraft=None,
+                               flight_duration_s=args.duration_s)
+            if truth is None:
+                truth = json.loads(path.with_suffix(".truth.json").read_text())
+            preps.append(prepare([load_log(path)], cfg))
+        assert truth is not None
+        return preps[0], preps[1], dict(truth["parameters"]), f"hil_replay.sim nonlinear flights (seeds {args.sim_seed}, {args.sim_seed + 1})"
 
     th = theta_from_dict(EXAMPLE_TRUTH)
     preps = []
@@ -89,11 +102,6 @@ def _speed(prepared, repeats: int = 7) -> dict[str, float]:
     BLAS held to one thread. The colony is random over the default bounds (most candidates unstable),
     the cost as the bench's accuracy run scores it: 3-s windows, all 31 parameters, every initial
     state estimated. Also the identification search cost (1-s windows, B by variable projection)."""
-
-    from threadpoolctl import threadpool_limits
-
-    from groundstation.sysid.cost import WindowedCost, make_windows, subset_windows
-    from groundstation.sysid.model import HOR_PARAMS, N_PARAMS, PARAM_INDEX, bounds_array
 
     win = make_windows(prepared.segments, prepared.dt_s, 3.0)
     b = bounds_array()
@@ -129,14 +137,6 @@ def _speed(prepared, repeats: int = 7) -> dict[str, float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-    from rich.table import Table
-
-    from groundstation.sysid.identify import IdentifyConfig, identify
-    from groundstation.sysid.model import PARAM_NAMES, HoverModel
-    from groundstation.sysid.plots import plot_convergence
-    from groundstation.sysid.validate import validate
-
     con = Console()
     args.out_dir.mkdir(parents=True, exist_ok=True)
     if args.profile:
@@ -159,9 +159,9 @@ def run(args: argparse.Namespace) -> int:
     con.print(f"default identification (CABC + refinement + held-out selection of the configuration): {wall:.2f} s wall "
               f"({cpu:.2f} s CPU), {model.fit.evaluations} evaluations, cost {model.fit.cost:.4f}")
     wall, cpu, wall0, cpu0 = _selection_cost(train, identify, IdentifyConfig, wall, cpu)
-    sel = model.fit.selection
-    scores = ", ".join(f"{r['name']} {r['mean_match']:.1f} %" for r in sel.get("candidates", []))
-    con.print(f"held-out selection over {sel.get('k')} folds chose: {sel.get('chosen')} ({scores}); medians of two "
+    sel = model.fit.selection or Selection()
+    scores = ", ".join(f"{r.name} {r.mean_match:.1f} %" for r in sel.candidates)
+    con.print(f"held-out selection over {sel.k} folds chose: {sel.chosen} ({scores}); medians of two "
               f"runs each, alternating: {wall:.2f} s wall ({cpu:.2f} s CPU) with it, {wall0:.2f} s wall ({cpu0:.2f} s CPU) "
               f"without: {wall / wall0:.2f}x wall, {cpu / cpu0:.2f}x CPU (target <= 1.5x)")
     t = Table(title="identified vs truth")
@@ -195,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
     con.print(tv)
     con.print(f"identified / true mean match on the other flight: {ratio:.2f}% (target >= 99%)")
     summary: dict[str, Any] = {"flights": desc, "speed_updates_per_s": sp, "default_wall_s": wall, "default_cpu_s": cpu,
-                               "no_selection_wall_s": wall0, "no_selection_cpu_s": cpu0, "selection": sel.get("chosen"),
+                               "no_selection_wall_s": wall0, "no_selection_cpu_s": cpu0, "selection": sel.chosen,
                                "key_err_pct": key_err, "z": dict(zip(PARAM_NAMES, [float(z) for z in z_all], strict=True)),
                                "match_ratio_pct": ratio, "match_identified": v_id["channels"], "match_true": v_true["channels"]}
     if not args.skip_compare:
@@ -219,8 +219,6 @@ def _selection_cost(train, identify, IdentifyConfig, wall: float, cpu: float) ->
 
 
 def _compare(args, train, con, identify, IdentifyConfig, plot_convergence) -> dict[str, Any]:
-    from rich.table import Table
-
     algs = [a.strip() for a in args.algorithms.split(",") if a.strip()]
     cfg = IdentifyConfig(maxfev=args.budget)
     res: dict[str, dict[str, Any]] = {a: {"cost": [], "match": [], "wall": [], "nfev": [], "curves": []} for a in algs}
@@ -317,8 +315,6 @@ class StageTimer:
         self._t = t
 
     def _wrap(self, stage: str, fn: Any, under: tuple[str, ...] = ()) -> Any:
-        import functools
-
         @functools.wraps(fn)
         def wrapped(*a: Any, **kw: Any) -> Any:
             if under and (not self._stack or self._stack[-1] not in under):
@@ -334,9 +330,6 @@ class StageTimer:
         return wrapped
 
     def __enter__(self) -> StageTimer:
-        import importlib
-        import sys
-
         for stage, mod, name, *under in STAGES:
             try:
                 fn = getattr(importlib.import_module(mod), name)
@@ -373,12 +366,10 @@ class StageTimer:
 def profile_identify(log: Path, out: Path, *, aircraft: Path | None = None, extra: tuple[str, ...] = ()) -> tuple[StageTimer, float, float]:
     """Run ``groundstation identify LOG --out OUT [--aircraft A] --jobs 1`` in this process under a
     :class:`StageTimer`; returns it, the wall and the CPU seconds of the command."""
-    from groundstation.cli import build_parser
-
     argv = ["identify", str(log), "--out", str(out), "--quiet", "--jobs", "1", *extra]
     if aircraft is not None:
         argv += ["--aircraft", str(aircraft)]
-    args = build_parser().parse_args(argv)
+    args = build_parser(["identify"]).parse_args(argv)
     t0, c0 = time.perf_counter(), time.process_time()
     with StageTimer() as st:
         args._module.run(args)
@@ -387,13 +378,9 @@ def profile_identify(log: Path, out: Path, *, aircraft: Path | None = None, extr
 
 def _run_profile(args: argparse.Namespace, con: Any) -> int:
     """``--profile``: the stage table of one identify command."""
-    from rich.table import Table
-
     with tempfile.TemporaryDirectory() as td:
         log = args.log
         if log is None:
-            from hil_replay.sim import write_tlog
-
             log = Path(td) / "flight.tlog"
             write_tlog(log, seed=args.sim_seed, flights=1, effects=(), aircraft=None, flight_duration_s=args.duration_s)
         st, wall, cpu = profile_identify(log, args.out_dir / "profile_model.json", aircraft=args.aircraft)

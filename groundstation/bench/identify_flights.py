@@ -27,6 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from hil_replay.sim import write_tlog
+
 HELP = "identify (and diagnose) on 1, 2, 4 ... flights together: wall, user/sys CPU and peak memory per run"
 
 
@@ -41,8 +43,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _simulate(folder: Path, n: int, duration_s: float) -> list[Path]:
-    from hil_replay.sim import write_tlog
-
     paths = []
     for k in range(n):
         p = folder / f"flight{k + 1:02d}.tlog"

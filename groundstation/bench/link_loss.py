@@ -13,6 +13,12 @@ the held-out match against the loss-free flight's, the diagnosis verdict and nam
 and wall time. A step that refuses gives its one line; a crash is reported as a crash.
 Targets (up to 10 % bursty loss): 8/8 key parameters, >= 97 % of the loss-free held-out match, no
 false alarm on effect-free flights, the loss-free verdict on one-effect flights, no invented effect.
+
+How far the key parameters move without any loss: with ``--layouts K`` the loss-free flight is also
+identified with its windows laid ``j * window_s / K`` s later (j = 1 .. K-1: each in-air segment
+starts that much later, the rest of the analysis unchanged). Each key parameter's largest error
+over these layouts is the loss-free flight's own spread; a lossy case is "within the loss-free
+spread" when every key parameter is within 10 % or within that spread.
 """
 
 from __future__ import annotations
@@ -20,11 +26,25 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import tempfile
 import time
 import traceback
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
+
+from rich.console import Console
+from rich.table import Table
+
+from firmware_interface.readers import load_log
+from groundstation.analysis import analyse
+from groundstation.config import load_config
+from groundstation.dsp.prepare import prepare
+from groundstation.dsp.split import _slice
+from groundstation.pipeline import identify_prepared
+from groundstation.sysid.validate import validate
+from hil_replay.sim import parse_effect, write_tlog
 
 HELP = "identification and diagnosis on simulated flights with bursty / uniform telemetry loss"
 
@@ -45,6 +65,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--diagnose", action="store_true", help="also run the gap diagnosis on every log")
     parser.add_argument("--config", type=Path, default=None, help="configuration TOML for every step")
     parser.add_argument("--json", type=Path, default=None, help="write every case to this JSON file")
+    parser.add_argument("--layouts", type=int, default=1,
+                        help="identify the loss-free flight with this many window layouts (its own spread)")
 
 
 def _floats(text: str) -> list[float]:
@@ -52,9 +74,6 @@ def _floats(text: str) -> list[float]:
 
 
 def _case(path: Path, truth: dict, val: Any, cfg: Any, diagnose: bool) -> dict[str, Any]:
-    from groundstation.analysis import analyse
-    from groundstation.sysid.validate import validate
-
     out: dict[str, Any] = {}
     t0, c0 = time.perf_counter(), time.process_time()
     try:   # the product's analysis: read, prepare, identify (and diagnose with that model)
@@ -79,14 +98,28 @@ def _case(path: Path, truth: dict, val: Any, cfg: Any, diagnose: bool) -> dict[s
     return out
 
 
+def _layout_errors(path: Path, truth: dict, cfg: Any, layouts: int) -> list[dict[str, float]]:
+    """Key-parameter errors (%) of the loss-free flight identified with its windows laid
+    ``j * window_s / layouts`` s later, j = 1 .. layouts - 1 (see the module docstring)."""
+    prepared = prepare([load_log(path)], cfg.prepare)
+    out = []
+    for j in range(1, layouts):
+        n = int(round(j * cfg.identify.window_s / layouts / prepared.dt_s))
+        segs = [_slice(s, n, s.n) for s in prepared.segments if s.n - n >= cfg.identify.window_s / prepared.dt_s]
+        model = identify_prepared(replace(prepared, segments=segs), cfg)
+        out.append({k: 100.0 * abs(model.params[k] - truth[k]) / abs(truth[k]) for k in KEY})
+    return out
+
+
+def _within_spread(r: dict[str, Any], base: dict[str, Any]) -> bool | None:
+    """Every key parameter of case ``r`` within 10 % or within the loss-free flight's spread."""
+    if "key_error_pct" not in r or "key_error_pct" not in base:
+        return None
+    errs = [base["key_error_pct"], *base.get("layout_error_pct", [])]
+    return all(r["key_error_pct"][k] <= max(10.0, *(e[k] for e in errs)) for k in KEY)
+
+
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-
-    from firmware_interface.readers import load_log
-    from groundstation.config import load_config
-    from groundstation.dsp.prepare import prepare
-    from hil_replay.sim import parse_effect, write_tlog
-
     con = Console(width=max(Console().width, 150))  # the table is wide; a pipe would cut it at 80 columns
     cfg = load_config(args.config)
     losses = _floats(args.losses)
@@ -121,8 +154,14 @@ def run(args: argparse.Namespace) -> int:
                              **_case(path, truth["parameters"], val, cfg, args.diagnose)}
                         if loss == 0:
                             base = r
+                            if args.layouts > 1 and "key_error_pct" in r:
+                                r["layout_error_pct"] = _layout_errors(path, truth["parameters"], cfg, args.layouts)
+                                r["layout_key_within_10"] = [sum(v <= 10.0 for v in e.values())
+                                                             for e in r["layout_error_pct"]]
                         if base is not None and "key_within_10" in base:
                             r["key_lossfree"] = base["key_within_10"]
+                            if "layout_error_pct" in base:
+                                r["within_lossfree_spread"] = _within_spread(r, base)
                         if base is not None and "heldout_match" in r and "heldout_match" in base:
                             r["heldout_vs_lossfree_pct"] = 100.0 * r["heldout_match"] / base["heldout_match"]
                         if base is not None and "verdict" in r and "verdict" in base:
@@ -151,14 +190,16 @@ def _line(r: dict[str, Any]) -> str:
     if "refused" in r:
         return f"{head} {link}; refused: {r['refused']} ({r['cpu_s']:.1f} s CPU)"
     verdict = f", verdict {r['verdict']} {r.get('named')}" if "verdict" in r else ""
+    if "layout_key_within_10" in r:
+        verdict += f"; other window layouts {r['layout_key_within_10']}/8"
+    if r.get("within_lossfree_spread") is not None:
+        verdict += f"; {'within' if r['within_lossfree_spread'] else 'outside'} the loss-free spread"
     rel = f" ({r['heldout_vs_lossfree_pct']:.1f} % of loss-free)" if "heldout_vs_lossfree_pct" in r else ""
     return (f"{head} {link}; {r['key_within_10']}/8 key params within 10 %, held-out match "
             f"{r['heldout_match']:.1f} %{rel}{verdict}; {r['cpu_s']:.1f} s CPU, {r['wall_s']:.1f} s wall")
 
 
 def _table(rows: list[dict[str, Any]], diagnose: bool) -> Any:
-    from rich.table import Table
-
     t = Table(title="link loss: identification and diagnosis against the loss-free flight")
     for c in ("seed", "flight", "kind", "loss %", "holes", "longest s", "bridge s", "split", "key 8", "held-out %",
               "vs 0 %"):
@@ -184,13 +225,11 @@ def _table(rows: list[dict[str, Any]], diagnose: bool) -> Any:
 
 def _rates(rows: list[dict[str, Any]], diagnose: bool) -> Any:
     """Over the seeds, per flight, link kind and loss: how often each target is met."""
-    import statistics
-
-    from rich.table import Table
 
     t = Table(title="link loss over the seeds: cases meeting each target")
-    for c in ("flight", "kind", "loss %", "cases", "crash/refused", "8/8 key", "key as loss-free", "held-out >= 97 %",
-              "median held-out %"):
+    spread = any("within_lossfree_spread" in r for r in rows)
+    for c in ("flight", "kind", "loss %", "cases", "crash/refused", "8/8 key", "key as loss-free",
+              *(("within loss-free spread",) if spread else ()), "held-out >= 97 %", "median held-out %"):
         t.add_column(c, justify="right")
     if diagnose:
         for c in ("false alarm", "same verdict", "invented"):
@@ -204,6 +243,7 @@ def _rates(rows: list[dict[str, Any]], diagnose: bool) -> Any:
         cells = [flight, kind, f"{loss:g}", str(len(rs)), str(len(rs) - len(ok)),
                  str(sum(r["key_within_10"] == 8 for r in ok)),
                  str(sum(r["key_within_10"] >= r.get("key_lossfree", 8) for r in ok)),
+                 *((str(sum(bool(r.get("within_lossfree_spread")) for r in ok)),) if spread else ()),
                  str(sum(v >= 97.0 for v in rel)), f"{statistics.median(rel):.1f}" if rel else "-"]
         if diagnose:
             cells += [str(sum(r.get("verdict") not in (None, "none") for r in ok)) if flight == "none" else "-",

@@ -29,8 +29,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rich.console import Console
+from rich.table import Table
 
 from benchkit import onboard_logs
+from firmware_interface.readers import load_log
 
 HELP = "read a 100 MB dataflash and ULog log: MB/s of our reader vs mavlogdump and ulog_info"
 
@@ -54,8 +57,6 @@ def _tool(cmd: list[str], timeout_s: float) -> float | None:
 
 
 def _ours(path: Path, all_topics: bool = False) -> float:
-    from firmware_interface.readers import load_log
-
     t0 = time.perf_counter()
     load_log(path, all_topics=all_topics)
     return time.perf_counter() - t0
@@ -68,9 +69,6 @@ def _median_s(fn: Callable[[], float | None], repeat: int) -> float | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-    from rich.table import Table
-
     con = Console()
     bindir = Path(sys.executable).parent
     tmp = Path(tempfile.mkdtemp(prefix="bench-log-read-"))

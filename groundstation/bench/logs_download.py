@@ -23,7 +23,14 @@ import threading
 import time
 from typing import Any
 
+from rich.console import Console
+from rich.table import Table
+
 from benchkit.onboard_logs import simulated_dataflash
+from firmware_interface.logdownload import DownloadConfig
+from firmware_interface.logtransfer import LogTransfer
+from firmware_interface.transports import open_link
+from hil_replay.fc import FcConfig, SimulatedFCThread
 
 HELP = "download the simulated FC's onboard log through a pty: kB/s, last-5 % time, faults (byte-identical)"
 
@@ -43,11 +50,6 @@ class _Idle:
 
 def download(data: bytes, *, corrupt: float = 0.0, unplug: bool = False, seed: int = 0) -> dict[str, Any]:
     """One download through a pty; progress samples (wall s, bytes) and the outcome."""
-    from firmware_interface.logdownload import DownloadConfig
-    from firmware_interface.logtransfer import LogTransfer
-    from firmware_interface.transports import open_link
-    from hil_replay.fc import FcConfig, SimulatedFCThread
-
     fc = SimulatedFCThread(session=_Idle(), config=FcConfig(packet_loss=0.0, corrupt_rate=corrupt, seed=seed))
     fc.fc.protocol.add_log(data)
     samples: list[tuple[float, int]] = []
@@ -80,9 +82,6 @@ def download(data: bytes, *, corrupt: float = 0.0, unplug: bool = False, seed: i
 
 
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-    from rich.table import Table
-
     con = Console()
     data = simulated_dataflash(int(args.size_mb * 1e6), args.seed)
     runs = [download(data, seed=args.seed + k) for k in range(max(1, args.repeat))]

@@ -33,7 +33,15 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import serial
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
 from benchkit.telemetry import sine_flight_tlog
+from firmware_interface.tlog import TlogWriter
+from hil_replay.fc import FcConfig, SimulatedFCThread
+from hil_replay.player import TlogPlayer, read_tlog_packets
+from hil_replay.pty import VirtualSerialPort
+from hil_replay.sim import write_tlog
 
 HELP = "replay a 50 Hz full-telemetry flight through a pty into the recorder at max speed"
 
@@ -56,19 +64,12 @@ def _make_flight(tmp: Path, args: argparse.Namespace) -> tuple[Path, str]:
     if args.tlog is not None:
         return args.tlog, str(args.tlog)
     path = tmp / "flight.tlog"
-    if args.source in ("auto", "sim") and importlib.util.find_spec("hil_replay.sim") is not None:
-        try:
-            from hil_replay.sim import write_tlog
-
-            rates = {"SERVO_OUTPUT_RAW": 50.0, "ATTITUDE": 50.0, "LOCAL_POSITION_NED": 50.0,
-                     "GLOBAL_POSITION_INT": 50.0, "RAW_IMU": 50.0, "GPS_RAW_INT": 5.0,
-                     "EXTENDED_SYS_STATE": 2.0, "SYS_STATUS": 2.0}
-            write_tlog(path, seed=0, flights=1, effects=(), aircraft=None, rates_hz=rates)
-            return path, "hil_replay.sim.write_tlog(seed=0, flights=1), 50 Hz full telemetry"
-        except (ImportError, AttributeError, TypeError) as exc:
-            if args.source == "sim":
-                raise
-            print(f"# sim unavailable ({exc}); using a synthetic flight", file=sys.stderr)
+    if args.source in ("auto", "sim"):
+        rates = {"SERVO_OUTPUT_RAW": 50.0, "ATTITUDE": 50.0, "LOCAL_POSITION_NED": 50.0,
+                 "GLOBAL_POSITION_INT": 50.0, "RAW_IMU": 50.0, "GPS_RAW_INT": 5.0,
+                 "EXTENDED_SYS_STATE": 2.0, "SYS_STATUS": 2.0}
+        write_tlog(path, seed=0, flights=1, effects=(), aircraft=None, rates_hz=rates)
+        return path, "hil_replay.sim.write_tlog(seed=0, flights=1), 50 Hz full telemetry"
     sine_flight_tlog(path, args.duration)
     return path, f"synthetic {args.duration:.0f} s, 50 Hz full telemetry"
 
@@ -77,11 +78,6 @@ class _DirectRecorder:
     """In-process fallback: pyserial reader -> pymavlink framing -> TlogWriter."""
 
     def __init__(self, port_path: str, out: Path) -> None:
-        import serial
-        from pymavlink.dialects.v20 import ardupilotmega as mavlink
-
-        from firmware_interface.tlog import TlogWriter
-
         self.out = out
         self._ser = serial.Serial(port_path, 921600, timeout=0.05)
         self._parser = mavlink.MAVLink(None)
@@ -134,9 +130,6 @@ class _RecordSubprocess:
 
 
 def _one_run(flight: Path, tmp: Path, recorder: str, speed: float) -> tuple[float, int, int, float]:
-    from hil_replay.player import TlogPlayer, read_tlog_packets
-    from hil_replay.pty import VirtualSerialPort
-
     packets = read_tlog_packets(flight)
     out_dir = Path(tempfile.mkdtemp(dir=tmp, prefix="rec-"))
     with VirtualSerialPort(out_dir / "ttyFC") as port:
@@ -161,9 +154,6 @@ def _one_run(flight: Path, tmp: Path, recorder: str, speed: float) -> tuple[floa
 
 def _fc_run(flight_s: float) -> tuple[float, int, int]:
     """Simulated FC (one flight of ``flight_s``) at max speed into ``groundstation record``."""
-    from hil_replay.fc import FcConfig, SimulatedFCThread
-    from hil_replay.player import read_tlog_packets
-
     with tempfile.TemporaryDirectory(prefix="gs-bench-fc-") as d:
         fc = SimulatedFCThread(speed=0, seed=0, flights=1, config=FcConfig(packet_loss=0.0),
                                sim_options={"flight_duration_s": flight_s, "pause_s": 1.0})

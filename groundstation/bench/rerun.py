@@ -18,6 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from benchkit.rerun_inspect import chunk_check, read_layout
+from groundstation.sinks.rerun_sink import RerunSink
+
 HELP = "rerun: chunk count vs Rerun's lower bound, read-back time, units in view titles, opening view"
 
 
@@ -29,8 +32,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _synthetic(path: Path, minutes: float, hop_s: float) -> float:
     """Write the synthetic session; returns the sink's CPU seconds per minute of flight data."""
-    from groundstation.sinks.rerun_sink import RerunSink
-
     t = np.arange(int(minutes * 60 * 50)) * 0.02
     y = np.column_stack([np.sin(0.3 * t + k) for k in range(8)])
     sink = RerunSink("heli", "save", str(path))
@@ -51,8 +52,6 @@ def _synthetic(path: Path, minutes: float, hop_s: float) -> float:
 
 
 def run(args: argparse.Namespace) -> int:
-    from benchkit.rerun_inspect import chunk_check, read_layout
-
     with tempfile.TemporaryDirectory(prefix="bench-rerun-") as d:
         path = args.rrd
         if path is None:

@@ -35,6 +35,16 @@ from typing import Any
 
 import numpy as np
 
+from firmware_interface.readers import load_log
+from groundstation.config import ServiceConfig
+from groundstation.service import Service
+from groundstation.sinks.zenoh_sink import free_tcp_port, loopback_peer_config
+from groundstation.worker import IdentifyJob
+from hil_replay.fc import SimulatedFCThread
+from hil_replay.player import TlogPlayer
+from hil_replay.pty import VirtualSerialPort
+from hil_replay.sim import write_tlog
+
 HELP = "service: p99 arrival->zenoh window latency and CPU at real time, max-speed RTF, latency under load"
 
 
@@ -57,8 +67,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _fc_child(conn: Any, speed: float, seed: int, sim_options: dict[str, Any]) -> None:
-    from hil_replay.fc import SimulatedFCThread
-
     fc = SimulatedFCThread(speed=speed, seed=seed, flights=1, sim_options=sim_options)
     fc.start()
     conn.send(fc.port_path)
@@ -67,9 +75,6 @@ def _fc_child(conn: Any, speed: float, seed: int, sim_options: dict[str, Any]) -
 
 
 def _player_child(conn: Any, tlog: str) -> None:
-    from hil_replay.player import TlogPlayer
-    from hil_replay.pty import VirtualSerialPort
-
     port = VirtualSerialPort(None)
     player = TlogPlayer(tlog, port, speed=0.0, reader_timeout_s=30.0)
     conn.send(port.path)
@@ -108,8 +113,6 @@ class _WindowLatency:
 
     def __init__(self, port: int, vehicle: str) -> None:
         import zenoh
-
-        from groundstation.sinks.zenoh_sink import loopback_peer_config
 
         self.session = zenoh.open(zenoh.Config.from_json5(loopback_peer_config(connect_ports=(port,))))
         self.samples: list[tuple[float, float]] = []      # (receive time, latency s)
@@ -151,9 +154,6 @@ def _cpu_s() -> float:
 
 
 def _config(tmp: Path, link_url: str, *, identify: bool, hop_s: float = 0.25, rerun: bool = False) -> Any:
-    from groundstation.config import ServiceConfig
-    from groundstation.sinks.zenoh_sink import free_tcp_port
-
     cfg = ServiceConfig()
     cfg = cfg.replace("service", record_dir=str(tmp / "rec"), vehicle="bench")
     cfg = cfg.replace("link", url=link_url)
@@ -169,9 +169,6 @@ def _config(tmp: Path, link_url: str, *, identify: bool, hop_s: float = 0.25, re
 
 async def _realtime_and_load(tmp: Path, seconds: float, seed: int, load: bool, realtime: bool,
                              job_tlog: str | None, rerun: bool = False, idle_after_s: float = 0.0) -> dict[str, Any]:
-    from groundstation.service import Service
-    from groundstation.worker import IdentifyJob
-
     out: dict[str, Any] = {}
     fc = await asyncio.to_thread(_Child, _fc_child, 1.0, seed, {"pause_s": 2.0})
     service = Service(_config(tmp, f"serial://{fc.port_path}:115200", identify=load, rerun=rerun), log=lambda m: None)
@@ -216,9 +213,6 @@ async def _realtime_and_load(tmp: Path, seconds: float, seed: int, load: bool, r
 
 
 async def _maxspeed(tmp: Path, tlog: str, rerun: bool = False) -> dict[str, Any]:
-    from firmware_interface.readers import load_log
-    from groundstation.service import Service
-
     log = load_log(tlog)
     att = log.series["ATTITUDE"].t_fc_s
     fc_span_s = float(att[-1] - att[0])
@@ -256,8 +250,6 @@ async def _maxspeed(tmp: Path, tlog: str, rerun: bool = False) -> dict[str, Any]
 
 
 def run(args: argparse.Namespace) -> int:
-    from hil_replay.sim import write_tlog
-
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(prefix="bench-service-") as d:
         tmp = Path(d)

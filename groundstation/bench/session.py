@@ -19,7 +19,12 @@ import tempfile
 import time
 from pathlib import Path
 
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
 from benchkit.telemetry import jittered_flight_tlog
+from firmware_interface.readers import load_log
+from firmware_interface.session import MavlinkSession, SessionConfig
+from firmware_interface.tlogread import scan_tlog
 
 HELP = "MAVLink session parse+decode throughput (messages/s) vs bare pymavlink parse_buffer"
 
@@ -31,12 +36,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
-
-    from firmware_interface.readers import load_log
-    from firmware_interface.session import MavlinkSession, SessionConfig
-    from firmware_interface.tlogread import scan_tlog
-
     with tempfile.TemporaryDirectory() as tmp:
         path = args.file
         if path is None:

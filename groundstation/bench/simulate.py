@@ -13,6 +13,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from hil_replay.sim import parse_effect, write_tlog
+from hil_replay.sim.telemetry import NATIVE_RATE_HZ
+
 HELP = "time ten minutes of simulated flight written to .tlog (median of 3)"
 
 
@@ -26,9 +29,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hil_replay.sim import parse_effect, write_tlog
-    from hil_replay.sim.telemetry import NATIVE_RATE_HZ
-
     if args.repeat < 1 or not args.minutes > 0.5:
         raise ValueError("--repeat must be >= 1 and --minutes > 0.5")
     effects = tuple(parse_effect(e) for e in args.effect)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import multiprocessing
 import os
 import re
 import statistics
@@ -40,6 +41,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from firmware_interface.tlogread import scan_tlog
+from groundstation.config import ServiceConfig
+from groundstation.service import Service
+from groundstation.sinks.zenoh_sink import free_tcp_port
 
 HELP = "zenoh load: live latency p99 and recording with 20 subscribers on the secured router; router restart"
 
@@ -200,8 +206,6 @@ class ViewerHost:
     sleeping) do not compete with the service for this process's interpreter."""
 
     def __init__(self, viewer_cfg: Path, vehicle: str, kinds: list[str], slow_s: float) -> None:
-        import multiprocessing
-
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(target=_host_main, args=(str(viewer_cfg), vehicle, kinds, slow_s, child),
@@ -228,8 +232,6 @@ class ViewerHost:
 
 
 def _service_config(record_dir: Path, gs_config: Path, hop_s: float):
-    from groundstation.config import ServiceConfig
-
     cfg = ServiceConfig()
     cfg = cfg.replace("service", record_dir=str(record_dir), vehicle="bench", status_rate_hz=1.0)
     cfg = cfg.replace("zenoh", config_file=str(gs_config), window_queue=8)
@@ -240,8 +242,6 @@ def _service_config(record_dir: Path, gs_config: Path, hop_s: float):
 
 
 def _count_records(path: str | None) -> int:
-    from firmware_interface.tlogread import scan_tlog
-
     if not path:
         return 0
     return sum(1 for _ in scan_tlog(Path(path).read_bytes()))
@@ -310,8 +310,6 @@ def _phase_figures(name: str, args: argparse.Namespace, report: Any, records: li
 
 def run_phase(name: str, args: argparse.Namespace, work: Path, field: Path, router: Router,
               n_subs: int, restart: bool) -> dict[str, Any]:
-    from groundstation.service import Service
-
     gs_cfg = _retarget(field / "groundstation.json5", work / f"{name}-gs.json5", router.port)
     viewer_cfg = _retarget(field / "viewer.json5", work / f"{name}-viewer.json5", router.port)
     viewers: list[Viewer] = []
@@ -392,7 +390,6 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--phases: unknown phase(s) {sorted(bad)}")
     if not 0 <= args.slow < args.subscribers:
         raise ValueError("--slow must be in [0, --subscribers)")
-    from groundstation.sinks.zenoh_sink import free_tcp_port
 
     results = []
     with tempfile.TemporaryDirectory(prefix="zenoh-load-") as tmp:

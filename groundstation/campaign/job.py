@@ -5,6 +5,10 @@ the log, prepares it, and for each flight (armed interval) in it identifies the 
 diagnoses the gap (held-out, k-fold) with :func:`groundstation.analysis.analyse_prepared`, predicts a reference flight with the model (the campaign's
 previous log: the cross-flight fit, :func:`groundstation.sysid.heldout.predict`) and returns plain JSON-able rows. A failure becomes a row with
 ``error`` set (one line) and never stops the campaign. Memory is one log's at a time per worker.
+
+When the reference is another job of the same run, that job hands its prepared log back to the
+caller and the caller does the cross-flight fit (:func:`analyse_handing_over`, ``cross_by_caller`` and
+``hand_over``, :func:`groundstation.campaign.runner.run`): no log is read and prepared twice.
 """
 
 from __future__ import annotations
@@ -15,12 +19,25 @@ import os
 import struct
 import time
 import traceback
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
+
+from groundstation.analysis import analyse_prepared
+from groundstation.config import ServiceConfig
+from groundstation.freq.spectra import estimate_responses
+from groundstation.freq.verify import verify
+from groundstation.gap.pictures import gap_pictures
+from groundstation.parallel import keep_freed_memory
+from groundstation.pipeline import load_logs, prepare_logs, prepare_native, with_aircraft
+from groundstation.report import render_report, write_html
+from groundstation.report.collect import assemble
+from groundstation.sysid.heldout import predict
+from groundstation.sysid.model import INPUTS, PARAM_NAMES
 
 #: bumped when the rows' meaning changes: a new version re-analyses everything
 ROW_SCHEMA = "heli-campaign-row/1"
@@ -41,8 +58,6 @@ class Settings:
     aircraft: Any = None
 
     def service_config(self) -> Any:
-        from groundstation.config import ServiceConfig
-
         return self.config if self.config is not None else ServiceConfig()
 
     def key(self) -> str:
@@ -63,6 +78,20 @@ class FlightJob:
     #: where the flight's HTML page goes (``<log name>.html``, or ``<log name>-flightN.html`` for the
     #: second and later flights of a log), None for no page
     report_dir: str | None = None
+    #: the caller scores the models on the reference (another job of the same run hands it the
+    #: reference prepared, :func:`analyse_handing_over`): this job does not read the reference log
+    cross_by_caller: bool = False
+    #: hand the log prepared back to the caller (it is another job's reference)
+    hand_over: bool = False
+
+
+@dataclass
+class Handover:
+    """What a job hands back to its caller beside the rows: the log prepared (only with
+    ``FlightJob.hand_over``; None when it could not be prepared) and the model of each flight."""
+
+    prepared: Any = None
+    models: dict[int, Any] = field(default_factory=dict)
 
 
 def file_sha256(path: str | Path) -> str:
@@ -102,8 +131,6 @@ def find_logs(paths: list[Path]) -> list[Path]:
 
 def _conditions(prepared: Any) -> dict[str, float | None]:
     """Flight conditions of the in-air data: duration, mean horizontal speed, input activity."""
-    from groundstation.sysid.model import INPUTS
-
     out = np.concatenate([s.outputs for s in prepared.segments])
     inp = np.concatenate([s.inputs for s in prepared.segments])
     speed = np.hypot(out[:, 0] + prepared.output_trim.get("u", 0.0), out[:, 1] + prepared.output_trim.get("v", 0.0))
@@ -134,8 +161,6 @@ def effect_values(report: dict) -> dict[str, float]:
 def model_row(model: Any, report: dict | None, prepared: Any) -> dict[str, Any]:
     """The table columns of one identified (and diagnosed) flight: conditions, parameters with
     standard errors, fits, gap verdict and effect estimates (``report`` None: not diagnosed)."""
-    from groundstation.sysid.model import PARAM_NAMES
-
     fit = model.fit
     row: dict[str, Any] = {**_conditions(prepared), "cost": fit.cost, "windows": fit.windows,
                            "fixed": json.dumps(list(fit.fixed)), "pinned": json.dumps(list(model.pinned))}
@@ -156,10 +181,7 @@ def model_row(model: Any, report: dict | None, prepared: Any) -> dict[str, Any]:
     return row
 
 
-def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[str, Any]:
-    from groundstation.analysis import analyse_prepared
-    from groundstation.sysid.heldout import predict
-
+def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> tuple[dict[str, Any], Any]:
     t0 = time.perf_counter()
     cfg = job.settings.service_config()
     res = analyse_prepared(prepared, cfg, job.settings.aircraft, log_paths=[job.log],
@@ -170,15 +192,21 @@ def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> dict[st
     report = res.gap.report if res.gap is not None else None
     row = {"flight_index": flight, **model_row(model, report, prepared), "cross_log": None, "cross_match_pct": None}
     if ref is not None:
-        try:
-            row["cross_match_pct"] = float(predict(model, ref).mean_match)
-            row["cross_log"] = Path(job.reference_log or "").name
-        except ValueError as exc:  # the reference holds no usable window: reported, not fatal
-            row["cross_log"] = f"{Path(job.reference_log or '').name}: {exc}"
+        row.update(cross_fit(model, ref, job.reference_log or ""))
     if job.report_dir:
         row["report_page"], row["report_error"] = flight_page(job, prepared, flight, model, diag)
     row["seconds"] = round(time.perf_counter() - t0, 3)
-    return row
+    return row, model
+
+
+def cross_fit(model: Any, ref: Any, reference_log: str) -> dict[str, Any]:
+    """The row's cross-flight columns: the model's mean match predicting the reference (prepared),
+    or, when the reference holds no usable window, the reason beside its name (reported, not fatal)."""
+    name = Path(reference_log).name
+    try:
+        return {"cross_match_pct": float(predict(model, ref).mean_match), "cross_log": name}
+    except ValueError as exc:
+        return {"cross_match_pct": None, "cross_log": f"{name}: {exc}"}
 
 
 def page_name(log_name: str, flight: int) -> str:
@@ -190,13 +218,6 @@ def flight_page(job: FlightJob, prepared: Any, flight: int, model: Any, diag: An
     """(path, None) of the flight's HTML page (:mod:`groundstation.report`) drawn from this job's model and
     diagnosis plus the frequency check, or (None, one-line error): the row stands without it."""
     try:
-        from groundstation.freq.spectra import estimate_responses
-        from groundstation.freq.verify import verify
-        from groundstation.gap.pictures import gap_pictures
-        from groundstation.pipeline import load_logs, prepare_native, with_aircraft
-        from groundstation.report import render_report, write_html
-        from groundstation.report.collect import assemble
-
         cfg = with_aircraft(job.settings.service_config(), job.settings.aircraft)
         errors: dict[str, str | None] = {} if diag is not None else {"gap": "not diagnosed (--no-diagnose)"}
         freq = None
@@ -226,26 +247,28 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
     faults; None off Unix), shared by its flights, and ``worker_pid``, ``task_start_s``,
     ``task_end_s`` (``time.monotonic``, one clock for every process of a machine): what the work
     cost and how it was spread over the workers (the store keeps none of these)."""
-    from threadpoolctl import threadpool_limits
+    return analyse_handing_over(job)[0]
 
-    from groundstation.parallel import keep_freed_memory
+
+def analyse_handing_over(job: FlightJob) -> tuple[list[dict[str, Any]], Handover]:
+    """:func:`analyse`, and what the job hands back to its caller (:class:`Handover`)."""
 
     start_s = time.monotonic()
     keep_freed_memory()
     date, date_src = log_date_utc(job.log)
     base = {"aircraft": job.aircraft, "log": job.log, "log_name": Path(job.log).name, "sha256": job.sha256,
             "settings_key": job.settings.key(), "date_utc": date, "date_source": date_src, "error": None}
+    hand = Handover()
     t0, c0, f0 = time.perf_counter(), time.process_time(), _minor_faults()
     try:
-        from groundstation.pipeline import prepare_logs
-
         cfg = job.settings.service_config()
         with threadpool_limits(1):  # one core per job: the pool or the cluster provides the parallelism
             prepared = prepare_logs([job.log], cfg, aircraft=job.settings.aircraft)
+            hand.prepared = prepared if job.hand_over else None
             if not prepared.segments:
                 raise ValueError(f"nothing to identify ({'; '.join(prepared.notes) or 'no in-air data'})")
             ref = None
-            if job.reference_log:
+            if job.reference_log and not job.cross_by_caller:
                 try:
                     ref = prepare_logs([job.reference_log], cfg, aircraft=job.settings.aircraft)
                 except Exception:  # noqa: BLE001 - a bad reference only loses the cross-flight fit
@@ -254,7 +277,8 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
             for flight in sorted({s.flight for s in prepared.segments}):
                 sub = prepared.subset([i for i, s in enumerate(prepared.segments) if s.flight == flight])
                 try:
-                    rows.append({**base, **_flight_row(job, sub, flight, ref)})
+                    row, hand.models[flight] = _flight_row(job, sub, flight, ref)
+                    rows.append({**base, **row})
                 except Exception as exc:  # noqa: BLE001 - one flight's failure is its row
                     rows.append({**base, "flight_index": flight, "error": _one_line(job, exc)})
             timing = {"worker_pid": os.getpid(), "task_start_s": start_s, "task_end_s": time.monotonic()}
@@ -262,9 +286,10 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
             for r in rows:  # the job's CPU (this process's, all threads) and faults, shared by its flights
                 r.update(cpu_s=round((time.process_time() - c0) / len(rows), 3), **timing,
                          page_faults=None if f0 is None or f1 is None else (f1 - f0) // len(rows))
-            return rows
+            return rows, hand
     except Exception as exc:  # noqa: BLE001 - reported as a row, the campaign goes on
-        return [{**base, "flight_index": 0, "error": _one_line(job, exc), "seconds": round(time.perf_counter() - t0, 3)}]
+        return [{**base, "flight_index": 0, "error": _one_line(job, exc),
+                 "seconds": round(time.perf_counter() - t0, 3)}], hand
 
 
 def _minor_faults() -> int | None:

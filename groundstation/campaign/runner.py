@@ -19,19 +19,26 @@ while the others have finished.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import tempfile
+import time
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
 from typing import Any, Protocol
 
-from groundstation.campaign.job import FlightJob, analyse
+from threadpoolctl import threadpool_limits
+
+from groundstation.campaign.job import FlightJob, Handover, _one_line, analyse_handing_over, cross_fit
 from groundstation.parallel import PRELOAD as PRELOAD  # noqa: F401 - re-exported
 from groundstation.parallel import fork_context, init_worker
 from groundstation.parallel import warm as warm
 
 OnResult = Callable[[FlightJob, list[dict[str, Any]]], None]
+#: a finished job: its rows and what it hands back (:func:`groundstation.campaign.job.analyse_handing_over`)
+Done = tuple[list[dict[str, Any]], Handover]
 
 #: a local cluster's monitoring paced for tasks of seconds (a flight each), not milliseconds: the
 #: statistical profiler (every 10 ms), the event-loop tick (20 ms) and the memory and system
@@ -62,7 +69,7 @@ class Executor(Protocol):
 
     def warm(self) -> None: ...
 
-    def results(self, jobs: Sequence[FlightJob]) -> Iterator[tuple[int, list[dict[str, Any]]]]: ...
+    def results(self, jobs: Sequence[FlightJob]) -> Iterator[tuple[int, Done]]: ...
 
 
 class _Serial:
@@ -71,15 +78,13 @@ class _Serial:
     def warm(self) -> None:
         warm()
 
-    def results(self, jobs: Sequence[FlightJob]) -> Iterator[tuple[int, list[dict[str, Any]]]]:
+    def results(self, jobs: Sequence[FlightJob]) -> Iterator[tuple[int, Done]]:
         for i, j in enumerate(jobs):
-            yield i, analyse(j)
+            yield i, analyse_handing_over(j)
 
 
 class _Pool:
     def __init__(self, workers: int) -> None:
-        from concurrent.futures import ProcessPoolExecutor
-
         self.workers = workers
         self.pids: list[int] = []
         self.ex = ProcessPoolExecutor(max_workers=workers, mp_context=start_fork_server(), initializer=init_worker)
@@ -90,10 +95,8 @@ class _Pool:
         with tempfile.TemporaryDirectory(prefix="gs-warm-") as directory:
             self.pids = list(self.ex.map(warm_task, [(directory, self.workers)] * self.workers))
 
-    def results(self, jobs: Sequence[FlightJob]) -> Iterator[tuple[int, list[dict[str, Any]]]]:
-        from concurrent.futures import as_completed
-
-        futs = {self.ex.submit(analyse, j): i for i, j in enumerate(jobs)}
+    def results(self, jobs: Sequence[FlightJob]) -> Iterator[tuple[int, Done]]:
+        futs = {self.ex.submit(analyse_handing_over, j): i for i, j in enumerate(jobs)}
         for f in as_completed(futs):
             yield futs[f], f.result()
 
@@ -102,8 +105,6 @@ def warm_task(rendezvous: tuple[str, int], timeout_s: float = 60.0) -> int:
     """This worker's process id, once ``n`` workers have checked in to ``directory`` (``rendezvous``):
     a worker holds its task until then, so the pool hands each of the ``n`` tasks to another worker.
     A pool that cannot start ``n`` goes on after ``timeout_s``."""
-    import time
-
     directory, n = rendezvous
     pid = os.getpid()
     with open(os.path.join(directory, str(pid)), "w"):
@@ -124,10 +125,10 @@ class _Dask:
             self.client.wait_for_workers(self.workers, timeout=120)
         self.client.run(warm)
 
-    def results(self, jobs: Sequence[FlightJob]) -> Iterator[tuple[int, list[dict[str, Any]]]]:
+    def results(self, jobs: Sequence[FlightJob]) -> Iterator[tuple[int, Done]]:
         from distributed import as_completed
 
-        futs = [self.client.submit(analyse, j, pure=False, key=f"campaign-{i}-{j.sha256[:12]}")
+        futs = [self.client.submit(analyse_handing_over, j, pure=False, key=f"campaign-{i}-{j.sha256[:12]}")
                 for i, j in enumerate(jobs)]
         index = {f.key: i for i, f in enumerate(futs)}
         for f in as_completed(futs):
@@ -211,11 +212,54 @@ def run(jobs: Sequence[FlightJob], *, workers: int = 1, scheduler: str | None = 
         with open_executor(min(workers, max(len(jobs), 1)) if not scheduler else workers, scheduler,
                            local_processes) as ex:
             return run(jobs, on_result=on_result, executor=ex)
+    jobs = hand_over_plan(jobs)
     order = list(range(len(jobs))) if executor.workers == 1 else submission_order(jobs)
     results: dict[int, list[dict[str, Any]]] = {}
-    for k, rows in executor.results([jobs[i] for i in order]):
+    waiting: dict[int, Done] = {}  # finished jobs waiting for their reference's prepared log
+    data: dict[str, Any] = {}  # log -> prepared (None when it could not be), from the jobs that hand it over
+    needed = {j.reference_log: sum(k.reference_log == j.reference_log and k.cross_by_caller for k in jobs)
+              for j in jobs if j.cross_by_caller}
+    for k, done in executor.results([jobs[i] for i in order]):
         i = order[k]
-        results[i] = rows
-        if on_result is not None:
-            on_result(jobs[i], rows)
+        if jobs[i].hand_over:
+            data[jobs[i].log] = done[1].prepared
+        waiting[i] = done
+        for w in [w for w in waiting if not jobs[w].cross_by_caller or jobs[w].reference_log in data]:
+            rows, hand = waiting.pop(w)
+            if jobs[w].cross_by_caller:
+                ref_log = str(jobs[w].reference_log)
+                _cross_in_caller(jobs[w], rows, hand, data[ref_log])
+                needed[ref_log] -= 1
+                if not needed[ref_log]:
+                    del data[ref_log]
+            results[w] = rows
+            if on_result is not None:
+                on_result(jobs[w], rows)
     return [results[i] for i in range(len(jobs))]
+
+
+def hand_over_plan(jobs: Sequence[FlightJob]) -> list[FlightJob]:
+    """The jobs with the cross-flight fit moved to the caller wherever the reference is another job
+    of the run (that job hands its prepared log over): every log is read and prepared once."""
+    logs = {j.log for j in jobs}
+    refs = {j.reference_log for j in jobs if j.reference_log in logs and j.reference_log != j.log}
+    return [dataclasses.replace(j, cross_by_caller=j.reference_log in refs and j.reference_log != j.log,
+                                hand_over=j.log in refs) for j in jobs]
+
+
+def _cross_in_caller(job: FlightJob, rows: list[dict[str, Any]], hand: Handover, ref: Any) -> None:
+    """The cross-flight columns of ``rows`` (in place) from the models the job handed over and the
+    reference prepared by its own job (None: it could not be, no cross-flight fit, as in the job)."""
+    if ref is None:
+        return
+    for n, r in enumerate(rows):
+        model = hand.models.get(int(r.get("flight_index", 0)))
+        if r.get("error") or model is None:
+            continue
+        try:
+            with threadpool_limits(1):
+                r.update(cross_fit(model, ref, str(job.reference_log)))
+        except Exception as exc:  # noqa: BLE001 - as in the job: the flight's failure is its row
+            keep = ("aircraft", "log", "log_name", "sha256", "settings_key", "date_utc", "date_source", "flight_index",
+                    "cpu_s", "worker_pid", "task_start_s", "task_end_s", "page_faults")
+            rows[n] = {**{k: r[k] for k in keep if k in r}, "error": _one_line(job, exc)}

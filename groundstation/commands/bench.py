@@ -12,8 +12,6 @@ import pkgutil
 
 import groundstation.bench as bench_pkg
 
-HELP = "run a benchmark: groundstation bench NAME [options] (NAME: a module of groundstation/bench)"
-
 
 def available() -> list[str]:
     return sorted(m.name for m in pkgutil.iter_modules(bench_pkg.__path__))

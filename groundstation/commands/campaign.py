@@ -18,7 +18,18 @@ import time
 from pathlib import Path
 from typing import Any
 
-HELP = "identify and diagnose every flight of a set of logs into one table per aircraft, with trends"
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from groundstation.campaign import runner
+from groundstation.campaign.job import FlightJob, Settings, file_sha256, find_logs, log_date_utc, page_name
+from groundstation.campaign.plots import plot_trends, write_trends_rrd
+from groundstation.campaign.store import CampaignStore, series
+from groundstation.commands.identify import config_from_args
+from groundstation.pipeline import load_aircraft
+from groundstation.report import render_campaign, write_html
+from groundstation.trends.change import TrendConfig, assess_all, campaign_summary
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -53,7 +64,6 @@ def _aircraft(args: argparse.Namespace) -> tuple[str, str, Any]:
     """(name, file text, loaded aircraft file or None)."""
     if args.aircraft is None:
         return args.vehicle or "aircraft", "", None
-    from groundstation.pipeline import load_aircraft
 
     aircraft = load_aircraft(args.aircraft)
     name = args.vehicle or (aircraft.name if aircraft.name != "aircraft" else args.aircraft.stem)
@@ -62,9 +72,6 @@ def _aircraft(args: argparse.Namespace) -> tuple[str, str, Any]:
 
 def build_jobs(args: argparse.Namespace, store: Any) -> tuple[list, list[Path], Any]:
     """(jobs to run, logs skipped as done, settings)."""
-    from groundstation.campaign.job import FlightJob, Settings, file_sha256, find_logs, log_date_utc
-    from groundstation.commands.identify import config_from_args
-
     name, text, aircraft = _aircraft(args)
     s = Settings(config=config_from_args(args), diagnose=not args.no_diagnose, aircraft_text=text, aircraft=aircraft)
     logs = find_logs(args.paths)
@@ -85,12 +92,6 @@ def build_jobs(args: argparse.Namespace, store: Any) -> tuple[list, list[Path], 
 
 
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    from groundstation.campaign import runner
-    from groundstation.campaign.store import CampaignStore
-
     con = Console(stderr=True, quiet=args.quiet)
     workers = args.jobs if args.jobs is not None else runner.default_workers()
     if workers < 1:
@@ -139,10 +140,6 @@ def _fmt(v: Any) -> str:
 def write_trends(store: Any, aircraft: str, settings_key: str, args: argparse.Namespace, trend_cfg: Any = None) -> dict:
     """Trend test over the aircraft's flights (``[trends]`` of the configuration, ``--alpha`` over it);
     trends.json / .png / .rrd; returns the summary."""
-    from groundstation.campaign.plots import plot_trends, write_trends_rrd
-    from groundstation.campaign.store import series
-    from groundstation.trends.change import TrendConfig, assess_all, campaign_summary
-
     rows = store.rows(aircraft, settings_key)
     out_dir = args.trends_dir or args.db.parent
     labels = [f"{r['log_name']}#{int(r['flight_index'])}" for r in rows]
@@ -162,9 +159,6 @@ def write_trends(store: Any, aircraft: str, settings_key: str, args: argparse.Na
 def write_campaign_page(store: Any, aircraft: str, settings_key: str, summary: dict, report_dir: Path) -> Path:
     """``report_dir/campaign.html``: the aircraft's flights (every row, errors included) linked to the flight
     pages that exist in ``report_dir``, the trend test's changes and figure."""
-    from groundstation.campaign.job import page_name
-    from groundstation.report import render_campaign, write_html
-
     rows = store.rows(aircraft, settings_key) + [{**e, "flight_index": 0} for e in store.errors(aircraft)]
     links = {}
     for r in rows:
@@ -175,8 +169,6 @@ def write_campaign_page(store: Any, aircraft: str, settings_key: str, summary: d
 
 
 def _print(rows: list[dict], summary: dict, con: Any) -> None:
-    from rich.table import Table
-
     t = Table(title=f"{summary['aircraft']}: {len(rows)} flight(s)")
     for c in ("flight", "date (UTC)", "in air s", "held-out %", "cross %", "verdict", "s"):
         t.add_column(c)

@@ -19,8 +19,8 @@ from typing import Any
 
 from groundstation.commands.run import add_common, config_from_args, print_report, sim_options
 from groundstation.config import load_config
-
-HELP = "two simulated flights end to end: record, stream, identify, diagnose, zenoh, Rerun (demo_out/)"
+from groundstation.service import Service
+from groundstation.sinks.zenoh_sink import loopback_peer_config
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -34,8 +34,6 @@ class DemoSubscriber:
 
     def __init__(self, endpoint: str, vehicle: str, loop: asyncio.AbstractEventLoop, out=print) -> None:
         import zenoh
-
-        from groundstation.sinks.zenoh_sink import loopback_peer_config
 
         port = int(endpoint.rsplit(":", 1)[1])
         self.zenoh = zenoh
@@ -83,8 +81,6 @@ class DemoSubscriber:
 
     def _late_query(self) -> None:
         """A new session joining late asks the queryable for the latest model (zenoh thread)."""
-        from groundstation.sinks.zenoh_sink import loopback_peer_config
-
         late = self.zenoh.open(self.zenoh.Config.from_json5(loopback_peer_config(connect_ports=(self._port,))))
         try:
             time.sleep(0.2)
@@ -103,8 +99,6 @@ class DemoSubscriber:
 
 async def _main(cfg: Any, out_dir: Path, options: dict[str, Any] | None
                 ) -> tuple[Any, dict[str, int], dict[str, Any]]:
-    from groundstation.service import Service
-
     service = Service(cfg, sim_options=options)
     task = asyncio.create_task(service.run())
     ready = asyncio.create_task(service.ready.wait())

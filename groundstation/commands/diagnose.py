@@ -12,9 +12,18 @@ import argparse
 import json
 from pathlib import Path
 
-from groundstation.analysis import native_vibration, unfold_rotor_line  # noqa: F401 - their home is the analysis
+import numpy as np
+from rich.console import Console
+from rich.table import Table
 
-HELP = "diagnose where and why the hover model departs from flight data (gap report JSON)"
+from groundstation.analysis import analyse, native_vibration, unfold_rotor_line  # noqa: F401 - their home is the analysis
+from groundstation.config import load_config
+from groundstation.gap.plots import write_all
+from groundstation.gap.report import frequency_rows, summary_rows, through_flight_lines
+from groundstation.jsonio import write_atomic
+from groundstation.parallel import spare_core_jobs, worker_map
+from groundstation.pipeline import about_logs
+from groundstation.sysid.model import OUTPUTS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,17 +49,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from groundstation.parallel import spare_core_jobs, worker_map
-    from groundstation.pipeline import about_logs
-
     with about_logs(args.logs), worker_map(spare_core_jobs() if args.jobs is None else args.jobs) as pmap:
         return _run(args, pmap)
 
 
 def _run(args: argparse.Namespace, pmap) -> int:
-    from groundstation.analysis import analyse
-    from groundstation.config import load_config
-
     cfg = load_config(args.config)
     if args.window_s is not None:
         cfg = cfg.replace("diagnose", window_s=args.window_s)
@@ -60,12 +63,9 @@ def _run(args: argparse.Namespace, pmap) -> int:
                   segments=args.segments, pmap=pmap)
     assert res.gap is not None   # the diagnosis step ran (analyse raises where it cannot)
     report = res.gap.report
-    from groundstation.jsonio import write_atomic
 
     write_atomic(args.out, report)
     if args.plots:
-        from groundstation.gap.plots import write_all
-
         write_all(res.gap.arrays, report, args.plots)
     if args.rrd:
         write_rrd(res.gap.arrays, report, args.rrd)
@@ -75,11 +75,6 @@ def _run(args: argparse.Namespace, pmap) -> int:
 
 
 def print_summary(report: dict) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
-    from groundstation.gap.report import summary_rows
-
     rows = summary_rows(report)
     con = Console(width=max(Console().width, 160))
     t = Table(title=f"gap per channel (held-out) — verdict: [bold]{report['verdict']}[/bold]")
@@ -98,7 +93,6 @@ def print_summary(report: dict) -> None:
     for r in rows["effects"]:
         t2.add_row(*r)
     con.print(t2)
-    from groundstation.gap.report import through_flight_lines
 
     for line in through_flight_lines(report):
         con.print(line)
@@ -127,10 +121,6 @@ def print_summary(report: dict) -> None:
 
 
 def print_frequency(fr: dict, con) -> None:
-    from rich.table import Table
-
-    from groundstation.gap.report import frequency_rows
-
     if "error" in fr:
         con.print(f"frequency section: {fr['error']}")
         return
@@ -153,10 +143,7 @@ def print_frequency(fr: dict, con) -> None:
 
 def write_rrd(arrays: dict, report: dict, path: Path) -> None:
     """Residuals per channel on the fc_time timeline, saved as a Rerun recording."""
-    import numpy as np
     import rerun as rr
-
-    from groundstation.sysid.model import OUTPUTS
 
     rec = rr.RecordingStream("groundstation-diagnose")
     rec.save(str(path))

@@ -5,11 +5,27 @@ Bode and Rerun outputs. Not a command itself."""
 from __future__ import annotations
 
 import argparse
+import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from groundstation.pipeline import prepare_native
+from rich.console import Console
+from rich.table import Table
+
+from groundstation.commands.model_summary import print_model, write_json
+from groundstation.config import ServiceConfig, load_config
+from groundstation.dsp.prepare import prepare
+from groundstation.freq.identify import identify_frequency
+from groundstation.freq.model_response import delays_from_augmentations
+from groundstation.freq.spectra import estimate_responses
+from groundstation.freq.verify import verify
+from groundstation.jsonio import dumps
+from groundstation.pipeline import identify_prepared, prepare_native
+from groundstation.sinks.bode import log_bode
+from groundstation.sysid.heldout import SUBSYSTEM_CHANNELS, predict, runaway_channels, unstable_modes
+from groundstation.sysid.model import PARAM_NAMES
+from groundstation.sysid.validate import validate
 
 
 def add_freq_arguments(parser: argparse.ArgumentParser) -> None:
@@ -22,16 +38,12 @@ def add_freq_arguments(parser: argparse.ArgumentParser) -> None:
 
 def load_freq_config(path: Path | None, cfg: Any = None) -> Any:
     """The ``[freq]`` settings: of ``path`` if given, else of the configuration ``cfg`` (``--config``)."""
-    from groundstation.config import ServiceConfig, load_config
-
     if path is not None:
         return load_config(path).freq
     return (cfg if cfg is not None else ServiceConfig()).freq
 
 
 def j_table(v: Any, title: str):
-    from rich.table import Table
-
     t = Table(title=title)
     for c in ("input", "output", "J", "", "coherent pts", "band Hz", "delay ms", "model outside the 95 % bound"):
         t.add_column(c, justify="right")
@@ -47,8 +59,6 @@ def j_table(v: Any, title: str):
 
 
 def print_verification(v: Any, title: str, con: Any = None) -> None:
-    from rich.console import Console
-
     con = con or Console()
     con.print(j_table(v, title))
     for inp, d in v.input_delays.items():
@@ -78,8 +88,6 @@ def write_rerun(v: Any, mode: list[str], app: str) -> Path | None:
     """``--rerun save PATH.rrd``: the Bode data to one explicit RecordingStream saved to PATH."""
     import rerun as rr
 
-    from groundstation.sinks.bode import log_bode
-
     if not mode or mode[0] == "off":
         return None
     if mode[0] != "save" or len(mode) != 2:
@@ -96,7 +104,6 @@ def write_rerun(v: Any, mode: list[str], app: str) -> Path | None:
 def verification_json(v: Any, **extra: Any) -> str:
     doc = v.to_json()
     doc.update(extra)
-    from groundstation.jsonio import dumps
 
     return dumps(doc, indent=1)
 
@@ -109,13 +116,6 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
     warm start, no search) and that model goes to ``<out>_freq.json``; each model is scored both ways
     (time: mean match degree on the training windows; frequency: J_avg) and a table prints the four figures.
     """
-    import time
-
-    from rich.console import Console
-
-    from groundstation.dsp.prepare import prepare
-    from groundstation.freq.identify import identify_frequency
-    from groundstation.freq.spectra import estimate_responses
 
     con = Console(stderr=True, quiet=args.quiet)
     prepared = prepare(logs, cfg.prepare)
@@ -134,8 +134,6 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
     models = {}
     start = None
     if args.domain == "both":
-        from groundstation.pipeline import identify_prepared
-
         t0 = time.perf_counter()
         with con.status("time-domain identification"):
             tm = identify_prepared(prepared, cfg)
@@ -145,7 +143,7 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
     t0 = time.perf_counter()
     with con.status("frequency-domain identification" if start is None else "frequency-domain refinement of the time fit"):
         fm = identify_frequency(rs, prepared, algorithm=ic.algorithm, seed=ic.seed, bounds=bounds or None,
-                                config=fcfg, start=start)
+                                config=fcfg, start=start, search_options=cfg.identify.search_options(ic.algorithm))
     fm.fit = fm.fit.set(seconds=round(time.perf_counter() - t0, 3))
     if start is not None:
         fm.fit = fm.fit.set(algorithm="frequency refinement of the time-domain fit")
@@ -155,13 +153,6 @@ def identify_domain(args: argparse.Namespace, logs: list[Any], cfg: Any) -> int:
 
 def _score_and_write(args: argparse.Namespace, models: dict[str, Any], rs: Any, prepared: Any, icfg: Any) -> int:
     """Score each model both ways, write them and print the table (``identify --domain``)."""
-    from rich.console import Console
-
-    from groundstation.commands.model_summary import print_model, write_json
-    from groundstation.freq.model_response import delays_from_augmentations
-    from groundstation.freq.verify import verify
-    from groundstation.sysid.heldout import SUBSYSTEM_CHANNELS
-    from groundstation.sysid.validate import validate
 
     scores = {}
     for name, m in models.items():
@@ -185,7 +176,6 @@ def _score_and_write(args: argparse.Namespace, models: dict[str, Any], rs: Any, 
                 _print_freq_fit(m, out)
             else:
                 print_model(m, out)
-        from rich.table import Table
 
         tab = Table(title="each fit scored both ways (J_avg: Tischler, <= 100 good; match: eq. 19 mean, %)")
         for c in ("fit", "J_avg", "mean match %", "written to"):
@@ -212,8 +202,6 @@ def mark_unsupported(model: Any, prepared: Any, runaway_factor: float = 3.0, win
     windows from the measured states, error above ``runaway_factor`` times the signal; ``[identify]
     runaway_factor`` and ``heldout_window_s``), ``unusable_subsystems`` and
     ``usable``. A frequency fit never sees the time histories whole, so this is its first check in time."""
-    from groundstation.sysid.heldout import SUBSYSTEM_CHANNELS, predict, runaway_channels, unstable_modes
-
     ran = runaway_channels(predict(model, prepared, window_s=window_s), runaway_factor)
     unusable = [s for s, cs in SUBSYSTEM_CHANNELS.items() if any(c in ran for c in cs)]
     model.fit = model.fit.set(unstable_modes=[u.describe() for u in unstable_modes(model.theta)],
@@ -221,10 +209,6 @@ def mark_unsupported(model: Any, prepared: Any, runaway_factor: float = 3.0, win
 
 
 def _print_freq_fit(model: Any, con: Any) -> None:
-    from rich.table import Table
-
-    from groundstation.sysid.model import PARAM_NAMES
-
     fit = model.fit
     cost = "J" if (fit.weighting or "coherence") == "coherence" else "the random-error-weighted cost"
     con.print(f"{fit.algorithm} on {cost}: J by subsystem "

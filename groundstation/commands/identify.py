@@ -14,15 +14,23 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+from groundstation.analysis import analyse
+from groundstation.analysis import held_out as _held_out
+from groundstation.commands.freq_support import add_freq_arguments, identify_domain
 from groundstation.commands.model_summary import (  # noqa: F401 - importable from here as before
     print_model,
     print_verdicts,
     selection_lines,
     write_json,
 )
-
-HELP = "identify the hover model (paper eq. 8) from flight logs with CABC and write the model JSON"
+from groundstation.commands.validate import write_rrd
+from groundstation.config import load_config
+from groundstation.parallel import IDENTIFY_PRELOAD, worker_map
+from groundstation.pipeline import about_logs, load_aircraft, load_logs, with_aircraft
+from groundstation.sysid.plots import draw
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -59,15 +67,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="frequency-domain cost: output_error = the Fourier transforms of 3-s windows of the "
                              "flight against the model's, from the J fit (default: [freq_identify] weighting); coherence = Tischler's J only; "
                              "random_error = each coherent point weighted by its random error")
-    from groundstation.commands.freq_support import add_freq_arguments
 
     add_freq_arguments(parser)
 
 
 def config_from_args(args: argparse.Namespace):
     """The configuration file (``--config``) with this command's options applied."""
-    from groundstation.config import load_config
-
     cfg = load_config(args.config)
     ident: dict = {}
     if getattr(args, "algorithm", None) is not None:
@@ -98,27 +103,15 @@ SEGMENTS_HELP = ("which data to use: 'flights' (every in-air interval, default) 
 
 
 def run(args: argparse.Namespace) -> int:
-    from groundstation.parallel import IDENTIFY_PRELOAD, worker_map
-    from groundstation.pipeline import about_logs
-
     with about_logs(args.logs), worker_map(args.jobs, IDENTIFY_PRELOAD) as pmap:
         return _run(args, pmap)
 
 
 def _run(args: argparse.Namespace, pmap) -> int:
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-    from groundstation.analysis import analyse
-    from groundstation.pipeline import load_aircraft
-
     cfg = config_from_args(args)
     algorithm = cfg.identification.algorithm
     aircraft = load_aircraft(args.aircraft)
     if args.domain != "time":
-        from groundstation.commands.freq_support import identify_domain
-        from groundstation.pipeline import load_logs, with_aircraft
-
         return identify_domain(args, load_logs(args.logs, args.segments, pmap), with_aircraft(cfg, aircraft))
     con = Console(stderr=True, quiet=args.quiet)
     want_series = not args.no_plot or args.rrd is not None
@@ -144,8 +137,6 @@ def _run(args: argparse.Namespace, pmap) -> int:
         assert res.validation is not None and res.validation_series is not None   # the validate step ran
         series, channels = res.validation_series, res.validation.to_json()["channels"]
         if not args.no_plot:
-            from groundstation.sysid.plots import draw
-
             title = f"{algorithm.upper()} model on its training data ({', '.join(p.name for p in args.logs)})"
             figures: list[tuple[str, tuple[Any, ...], dict[str, Any]]] = [
                 ("plot_fit", (series, channels, args.out.with_suffix(".png")), {"title": title})]
@@ -157,8 +148,6 @@ def _run(args: argparse.Namespace, pmap) -> int:
                                 {"title": "search convergence per subsystem: fitness 1/(1+F) vs evaluations"}))
             pmap(draw, figures)   # on the workers (whose fork server imported matplotlib early): side by side
         if args.rrd is not None:
-            from groundstation.commands.validate import write_rrd
-
             write_rrd(series, channels, args.rrd, "groundstation-identify")
     if not args.quiet:
         print_model(model, con)
@@ -167,6 +156,4 @@ def _run(args: argparse.Namespace, pmap) -> int:
 
 def held_out(model, prepared, cfg, aircraft, k: int, con=None, pmap=None) -> None:
     """The held-out check (:func:`groundstation.analysis.held_out`; ``con`` is not used any more)."""
-    from groundstation.analysis import held_out as _held_out
-
     _held_out(model, prepared, cfg, aircraft, k, pmap)

@@ -28,6 +28,11 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from rich.console import Console
+from rich.table import Table
+
+from firmware_interface.readers import load_log
+from groundstation.jsonio import dumps
 from groundstation.loginfo import (  # noqa: F401 - importable from here as before
     MAX_GAPS_LISTED,
     _flight,
@@ -36,8 +41,6 @@ from groundstation.loginfo import (  # noqa: F401 - importable from here as befo
     summarise,
 )
 
-HELP = "summarise a flight log (.tlog, .bin, .px4log, .ulg): flights, message rates, gaps, corruption"
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("log", help="the log file")
@@ -45,9 +48,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _print_tables(info: dict[str, Any]) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
     con = Console()
     con.print(f"[bold]{info['source']}[/bold]")
     ft = Table(title="flights (FC clock)")
@@ -99,12 +99,8 @@ def _print_tables(info: dict[str, Any]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from firmware_interface.readers import load_log
-
     info = summarise(load_log(args.log, all_topics=True))
     if args.json:
-        from groundstation.jsonio import dumps
-
         print(dumps(info))
     else:
         _print_tables(info)

@@ -17,7 +17,26 @@ import time
 from pathlib import Path
 from typing import Any
 
-HELP = "list or download the flight controller's onboard logs (dataflash .bin) over the link"
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    DownloadColumn,
+    Progress,
+    TextColumn,
+    TimeRemainingColumn,
+    TransferSpeedColumn,
+)
+from rich.table import Table
+
+from firmware_interface.logdownload import DownloadConfig
+from firmware_interface.logtransfer import (
+    DownloadError,
+    LogTransfer,
+    load_partial,
+    save_partial,
+    write_verified,
+)
+from firmware_interface.transports import open_link
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -42,10 +61,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 async def _main(args: argparse.Namespace) -> int:
-    from firmware_interface.logdownload import DownloadConfig
-    from firmware_interface.logtransfer import LogTransfer
-    from firmware_interface.transports import open_link
-
     if not args.give_up_s > 0:
         raise ValueError(f"--give-up-s: {args.give_up_s} must be > 0")
     first = await open_link(args.link)  # a bad URL or port fails here, in one line
@@ -69,8 +84,6 @@ def _print_list(entries: tuple, as_json: bool) -> None:
     if as_json:
         print(json.dumps({"logs": rows}))
         return
-    from rich.console import Console
-    from rich.table import Table
 
     t = Table(title=f"onboard logs ({len(rows)})")
     for c in ("#", "size", "date (UTC)"):
@@ -82,8 +95,6 @@ def _print_list(entries: tuple, as_json: bool) -> None:
 
 
 async def _get(tr, entries: tuple, args: argparse.Namespace) -> int:
-    from firmware_interface.logtransfer import DownloadError, load_partial, save_partial, write_verified
-
     entry = next((e for e in entries if e.log_id == args.number), None)
     if entry is None:
         have = ", ".join(str(e.log_id) for e in entries) or "none"
@@ -125,16 +136,6 @@ class _Progress:
 
     def __enter__(self) -> _Progress:
         if not self.quiet:
-            from rich.console import Console
-            from rich.progress import (
-                BarColumn,
-                DownloadColumn,
-                Progress,
-                TextColumn,
-                TimeRemainingColumn,
-                TransferSpeedColumn,
-            )
-
             self._p = Progress(TextColumn(f"log {self.entry.log_id}"), BarColumn(), DownloadColumn(),
                                TransferSpeedColumn(), TimeRemainingColumn(), console=Console(stderr=True),
                                transient=True)

@@ -6,19 +6,20 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from groundstation.jsonio import write_atomic
+from groundstation.sysid.fit_section import Selection
+from groundstation.sysid.model import PARAM_NAMES
+
 
 def write_json(path: Path, doc: dict) -> None:
-    from groundstation.jsonio import write_atomic
-
     write_atomic(path, doc)
 
 
 def print_model(model, con=None) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
-    from groundstation.sysid.model import PARAM_NAMES
-
     con = con or Console()
     fit = model.fit
     con.print(f"[bold]{str(fit.algorithm).upper()}[/]: cost F={fit.cost:.4f} (search {fit.search_cost:.4f}), "
@@ -38,7 +39,6 @@ def print_model(model, con=None) -> None:
         note = "fixed (not identifiable)" if n in fit.fixed else ("PINNED at bound" if n in model.pinned else "")
         p.add_row(n, f"{model.params[n]:.4g}", "-" if s is None else f"{s:.3g}", note)
     con.print(p)
-    from rich.markup import escape
 
     for r in fit.fixed_reasons + fit.notes:
         con.print(f"note: {escape(r)}")
@@ -53,10 +53,10 @@ def print_verdicts(model, con) -> None:
     for u in fit.unstable_modes:
         con.print(f"[yellow]unstable[/]: {u}")
     pr = fit.prior
-    if pr.get("prior_dominated"):
-        con.print(f"prior ({pr.get('source')}): not determined by this flight, kept near the prior with its "
-                  f"uncertainty: {', '.join(pr['prior_dominated'])}")
-    for line in selection_lines(dict(fit.selection)):
+    if pr is not None and pr.prior_dominated:
+        con.print(f"prior ({pr.source}): not determined by this flight, kept near the prior with its "
+                  f"uncertainty: {', '.join(pr.prior_dominated)}")
+    for line in selection_lines(fit.selection):
         con.print(line)
     ho = fit.heldout
     if ho is not None and ho.has("channel_mean"):
@@ -70,26 +70,28 @@ def print_verdicts(model, con) -> None:
                       f"({'; '.join(f'{f}: {chs}' for f, chs in ho.runaway.items())}): not a model of the aircraft")
     for c in fit.closed_loop:
         con.print(f"closed loop: {c}")
-    if fit.structure_choice:
-        ch = fit.structure_choice
-        con.print(f"structure: {ch['chosen']} ({ch['reason']})", markup=False)
+    ch = fit.structure_choice
+    if ch is not None:
+        con.print(f"structure: {ch.chosen} ({ch.reason})", markup=False)
     for c in fit.command_response:
         con.print(f"stabilised aircraft: {c}", markup=False)
 
 
-def selection_lines(sel: dict) -> list[str]:
+def selection_lines(sel: Selection | None) -> list[str]:
     """What the held-out selection of the configuration compared and chose, one line per candidate."""
-    if "skipped" in sel:
-        return [f"configuration not compared by held-out prediction: {sel['skipped']}"]
-    rows = sel.get("candidates") or []
+    if sel is None:
+        return []
+    if sel.skipped is not None:
+        return [f"configuration not compared by held-out prediction: {sel.skipped}"]
+    rows = sel.candidates
     if len(rows) < 2:
         return []
-    out = [f"configuration chosen by held-out prediction over {sel['k']} folds: {sel['chosen']} ({sel['rule']})"]
+    out = [f"configuration chosen by held-out prediction over {sel.k} folds: {sel.chosen} ({sel.rule})"]
     for r in rows:
-        gain = "" if "gain" not in r else f", gain {r['gain']:+.1f} +- {r['gain_se']:.1f} points per fold"
-        if "gain_folds" in r:
-            gain += f" (better on {r['gain_folds']} of {len(r['fold_score'])} folds)"
-        why = f"; {r['reason']}" if r.get("reason") else ""
-        ran = "" if not r.get("runaway") or r.get("reason") else "; runs away on " + ", ".join(r["runaway"])
-        out.append(f"  {r['name']}: held-out mean {r['mean_match']:.1f} %{gain}{why}{ran}")
+        gain = "" if r.gain is None else f", gain {r.gain:+.1f} +- {r.gain_se:.1f} points per fold"
+        if r.gain_folds is not None:
+            gain += f" (better on {r.gain_folds} of {len(r.fold_score)} folds)"
+        why = f"; {r.reason}" if r.reason else ""
+        ran = "" if not r.runaway or r.reason else "; runs away on " + ", ".join(r.runaway)
+        out.append(f"  {r.name}: held-out mean {r.mean_match:.1f} %{gain}{why}{ran}")
     return out

@@ -28,8 +28,6 @@ from firmware_interface.samples import LinkLost
 from firmware_interface.session import DEFAULT_STREAM_RATES_HZ, MavlinkSession, SessionConfig
 from firmware_interface.transports import open_link
 
-HELP = "record the flight-controller link to .tlog files (session + one per flight) until Ctrl-C"
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--link", required=True, help="serial:///dev/ttyUSB0:921600, udpin://0.0.0.0:14550, tcp://host:5760")

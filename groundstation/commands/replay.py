@@ -13,7 +13,8 @@ import math
 import sys
 from pathlib import Path
 
-HELP = "serve a .tlog on a virtual serial port (original timing or N× faster, fault injection)"
+from hil_replay.player import TlogPlayer, read_tlog_packets
+from hil_replay.pty import VirtualSerialPort
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,9 +41,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hil_replay.player import TlogPlayer, read_tlog_packets
-    from hil_replay.pty import VirtualSerialPort
-
     if args.speed < 0 or math.isnan(args.speed):
         raise ValueError(f"--speed: {args.speed} must be >= 0")
     for flag, rate in (("--corrupt", args.corrupt), ("--drop", args.drop)):

@@ -14,7 +14,13 @@ import argparse
 import json
 from pathlib import Path
 
-HELP = "write one self-contained HTML flight report (flight, model, frequency domain, gap, across flights)"
+from rich.console import Console
+
+from groundstation.commands.identify import config_from_args
+from groundstation.parallel import spare_core_jobs, worker_map
+from groundstation.pipeline import about_logs
+from groundstation.report import one_line_summary, render_report, write_html
+from groundstation.report.collect import collect
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,20 +46,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from groundstation.parallel import spare_core_jobs, worker_map
-    from groundstation.pipeline import about_logs
-
     with about_logs(args.logs), worker_map(spare_core_jobs() if args.jobs is None else args.jobs) as pmap:
         return _run(args, pmap)
 
 
 def _run(args: argparse.Namespace, pmap) -> int:
-    from rich.console import Console
-
-    from groundstation.commands.identify import config_from_args
-    from groundstation.report import one_line_summary, render_report, write_html
-    from groundstation.report.collect import collect
-
     con = Console(stderr=True, quiet=args.quiet)
     cfg = config_from_args(args)
     with con.status("report") as status:

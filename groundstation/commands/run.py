@@ -13,8 +13,7 @@ import sys
 from typing import Any
 
 from groundstation.config import ServiceConfig, load_config
-
-HELP = "run the live ground-station service (no --link: built-in simulated helicopter)"
+from groundstation.service import Service
 
 
 def add_common(parser: argparse.ArgumentParser) -> None:
@@ -136,8 +135,6 @@ def sim_options(args: argparse.Namespace) -> dict[str, Any] | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from groundstation.service import Service
-
     cfg = config_from_args(args)
     service = Service(cfg, sim_options=sim_options(args))
     report = asyncio.run(service.run())

@@ -17,7 +17,9 @@ import asyncio
 import contextlib
 from pathlib import Path
 
-HELP = "write a simulated helicopter flight (.tlog + .truth.json), or serve a simulated FC on a pty"
+from hil_replay.dataflash import write_bin
+from hil_replay.fc import FcConfig, serve_simulated_fc
+from hil_replay.sim import MESSAGE_NAMES, parse_effect, resolve_aircraft, write_tlog
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -48,8 +50,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hil_replay.sim import parse_effect, resolve_aircraft
-
     effects = tuple(parse_effect(e) for e in args.effect)  # bad input fails before anything is written
     aircraft = resolve_aircraft(args.aircraft)
     if args.flights is None:
@@ -64,7 +64,6 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("give exactly one of --out FILE.tlog or --serve")
     if args.serve:
         return _serve(args, effects, aircraft)
-    from hil_replay.sim import write_tlog
 
     out: Path = args.out
     if args.bin or out.suffix.lower() == ".bin":
@@ -80,7 +79,6 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--rate {item!r}: expected MESSAGE=HZ, e.g. LOCAL_POSITION_NED=10") from None
         if not eq:
             raise ValueError(f"--rate {item!r}: expected MESSAGE=HZ, e.g. LOCAL_POSITION_NED=10")
-    from hil_replay.sim import MESSAGE_NAMES
 
     for name, hz in rates.items():
         if name not in MESSAGE_NAMES:
@@ -111,8 +109,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _write_bin(args: argparse.Namespace, effects: tuple, aircraft: object) -> int:
-    from hil_replay.dataflash import write_bin
-
     out: Path = args.out
     if out.suffix.lower() != ".bin":
         raise ValueError(f"--out {out}: with --bin the file name must end in .bin")
@@ -128,8 +124,6 @@ def _write_bin(args: argparse.Namespace, effects: tuple, aircraft: object) -> in
 
 
 def _serve(args: argparse.Namespace, effects: tuple, aircraft: object) -> int:
-    from hil_replay.fc import FcConfig, serve_simulated_fc
-
     if not args.speed > 0:
         raise ValueError(f"--speed: {args.speed} must be > 0")
     flights = args.flights

@@ -15,7 +15,35 @@ import argparse
 import json
 from pathlib import Path
 
-HELP = "score a hover model file on flight logs (match degree, NRMSE fit, Theil U, correlation per channel)"
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from groundstation.commands.freq_support import (
+    add_freq_arguments,
+    load_freq_config,
+    print_verification,
+    verification_json,
+    write_rerun,
+)
+from groundstation.config import load_config
+from groundstation.freq.model_response import delays_from_augmentations
+from groundstation.freq.spectra import estimate_responses
+from groundstation.freq.verify import verify
+from groundstation.jsonio import dumps
+from groundstation.pipeline import (
+    about_logs,
+    load_aircraft,
+    load_logs,
+    prepare_logs,
+    prepare_native,
+    with_aircraft,
+)
+from groundstation.pipeline import load_model as _load
+from groundstation.sinks.bode import plot_bode
+from groundstation.sysid.model import OUTPUTS
+from groundstation.sysid.plots import plot_fit
+from groundstation.sysid.validate import validate
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -34,30 +62,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bode", type=Path, default=None, help="with --freq: Bode PNGs, one per input (PATH_<input>.png)")
     parser.add_argument("--rerun", nargs="+", metavar="MODE", default=None,
                         help="with --freq: 'save FILE.rrd' writes the Bode data to a Rerun recording")
-    from groundstation.commands.freq_support import add_freq_arguments
 
     add_freq_arguments(parser)
 
 
 def load_model(path: Path):
     """The model file as a HoverModel (:func:`groundstation.pipeline.load_model`)."""
-    from groundstation.pipeline import load_model as _load
-
     return _load(path)
 
 
 def run(args: argparse.Namespace) -> int:
-    from groundstation.pipeline import about_logs
-
     with about_logs(args.logs):
         return _run(args)
 
 
 def _run(args: argparse.Namespace) -> int:
-    from groundstation.config import load_config
-    from groundstation.pipeline import load_aircraft, prepare_logs, with_aircraft
-    from groundstation.sysid.validate import validate
-
     aircraft = load_aircraft(args.aircraft)
     cfg = with_aircraft(load_config(args.config), aircraft)
     model = load_model(args.model)
@@ -74,18 +93,12 @@ def _run(args: argparse.Namespace) -> int:
     res["notes"] = list(prepared.notes)
     res["link_quality"] = dict(prepared.link_quality)
     if args.plot is not None and series is not None:
-        from groundstation.sysid.plots import plot_fit
-
         plot_fit(series, res["channels"], args.plot, title=f"{args.model.name} on {', '.join(p.name for p in args.logs)}")
     if args.rrd is not None and series is not None:
         write_rrd(series, res["channels"], args.rrd, "groundstation-validate")
     if args.json:
-        from groundstation.jsonio import dumps
-
         print(dumps(res, indent=1))
         return 0
-    from rich.console import Console
-    from rich.table import Table
 
     t = Table(title=f"{args.model.name} on {', '.join(p.name for p in args.logs)} "
                     f"({res['windows']} windows of {res['window_s']:g} s)")
@@ -103,24 +116,11 @@ def _run(args: argparse.Namespace) -> int:
 
 def run_freq(args: argparse.Namespace, model, cfg) -> int:
     """``validate --freq``: the J table (or one JSON object), Bode PNGs and Rerun recording."""
-    from groundstation.commands.freq_support import (
-        load_freq_config,
-        print_verification,
-        verification_json,
-        write_rerun,
-    )
-    from groundstation.freq.model_response import delays_from_augmentations
-    from groundstation.freq.spectra import estimate_responses
-    from groundstation.freq.verify import verify
-    from groundstation.pipeline import load_logs, prepare_native
-
     fcfg = load_freq_config(args.freq_config, cfg)
     prepared = prepare_native(load_logs(args.logs, args.segments), cfg.prepare, grid_only=args.grid_rate)
     v = verify(model.theta, estimate_responses(prepared, fcfg), delays_from_augmentations(model.augmentations))
     names = ", ".join(p.name for p in args.logs)
     if args.bode is not None:
-        from groundstation.sinks.bode import plot_bode
-
         plot_bode(v, args.bode, title=f"{args.model.name} on {names}")
     if args.rerun is not None:
         write_rerun(v, args.rerun, "groundstation-validate-freq")
@@ -128,7 +128,6 @@ def run_freq(args: argparse.Namespace, model, cfg) -> int:
         print(verification_json(v, model=str(args.model), logs=[str(p) for p in args.logs],
                                 prepare_notes=list(prepared.notes)))
         return 0
-    from rich.console import Console
 
     con = Console()
     print_verification(v, f"Tischler's J of {args.model.name} on {names} "
@@ -141,10 +140,7 @@ def run_freq(args: argparse.Namespace, model, cfg) -> int:
 
 def write_rrd(series: dict, channels: dict, path: Path, app: str) -> None:
     """Measured and model outputs per channel on the ``fc_time`` timeline, saved as a Rerun recording."""
-    import numpy as np
     import rerun as rr
-
-    from groundstation.sysid.model import OUTPUTS
 
     path.parent.mkdir(parents=True, exist_ok=True)
     rec = rr.RecordingStream(app)

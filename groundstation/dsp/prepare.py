@@ -38,10 +38,12 @@ Train/validation splitting lives in :mod:`groundstation.dsp.split`.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 
+from groundstation.dsp.bridge import bridge_limit
 from groundstation.dsp.frames import ned_to_body
 from groundstation.dsp.grid import (
     fill_short_holes,
@@ -53,6 +55,7 @@ from groundstation.dsp.grid import (
 )
 from groundstation.dsp.smoothing import smooth5
 from groundstation.dsp.timeskew import shift_inputs
+from groundstation.dsp.velocity_check import check_horizontal
 from groundstation.errors import DspError
 
 INPUTS: tuple[str, ...] = ("lat", "lon", "col", "ped")
@@ -448,7 +451,6 @@ def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str], holes: list[float
     if not flights:
         if log.has("HEARTBEAT"):
             raise DspError(f"{src}: the vehicle was never armed (no flight in HEARTBEAT base_mode)")
-        from types import SimpleNamespace
 
         att = log.series["ATTITUDE"]
         flights = [SimpleNamespace(index=0, start_fc_s=float(att.t_fc_s[0]), end_fc_s=float(att.t_fc_s[-1]),
@@ -559,7 +561,6 @@ def derive_bridge(logs: list[Any], cfg: PrepConfig) -> dict[str, Any]:
     and for a derived one each input's limit, the rotor's 1/tau_s and the seconds measured."""
     if cfg.max_input_bridge_s is not None:
         return {"limit_s": float(cfg.max_input_bridge_s), "rule": "configured"}
-    from groundstation.dsp.bridge import bridge_limit
 
     found = []
     for log in logs:
@@ -773,8 +774,6 @@ def link_quality(logs: list[Any], raws: list[_Raw], holes: list[float], cfg: Pre
 
 def _drop_inconsistent_velocities(segs: list[Segment], dt_s: float, notes: list[str]) -> list[Segment]:
     """Segments without the horizontal velocity channels the attitude contradicts, and a note for each."""
-    from groundstation.dsp.velocity_check import check_horizontal
-
     bad = [c for c in check_horizontal(segs, dt_s) if not c.usable]
     if not bad:
         return segs

@@ -28,15 +28,15 @@ Pure numpy/scipy; the model file and the timing are the caller's.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import replace
 from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from groundstation.freq import FreqError
 from groundstation.freq.cost import coherence_weight, error_residuals, pair_residuals
+from groundstation.freq.fdoe import FdoeCost
 from groundstation.freq.model_response import has_path, model_response
 from groundstation.freq.settings import FreqIdentifyConfig
 from groundstation.freq.spectra import ResponseSet
@@ -51,6 +51,8 @@ from groundstation.sysid.model import (
     VER_PARAMS,
     HoverModel,
     bounds_array,
+    build_matrices,
+    discretize,
 )
 from groundstation.sysid.optimizers import ALGORITHMS
 
@@ -137,8 +139,6 @@ class _VarProCost:
         return self.a_pos + list(range(len(self.base.free_idx), self.n_x))
 
     def complete(self, Xs: np.ndarray) -> np.ndarray:
-        from groundstation.sysid.model import build_matrices, discretize
-
         Xs = np.atleast_2d(Xs)
         X = np.zeros((Xs.shape[0], self.n_x))
         X[:, self.search_dims()] = Xs
@@ -209,6 +209,8 @@ def _distinct_best(opt: Any, k: int, span: np.ndarray, min_dist: float = 0.2) ->
 
 
 def _refine(cost: Any, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_nfev: int) -> Any:
+    from scipy.optimize import least_squares  # here: the time-domain identify loads no scipy
+
     span = hi - lo
     x0 = np.clip(x0, lo + 1e-9 * span, hi - 1e-9 * span)
 
@@ -235,8 +237,8 @@ def _std(res: Any, n_params: int) -> np.ndarray:
 
 
 def _global_search(cost: _SubCost, lo: np.ndarray, hi: np.ndarray, name: str, cfg: FreqIdentifyConfig,
-                   algorithm: str, rng: np.random.Generator, callback: Callable[[dict], Any] | None
-                   ) -> tuple[list[np.ndarray], np.ndarray, float, list[float]]:
+                   algorithm: str, rng: np.random.Generator, callback: Callable[[dict], Any] | None,
+                   search_options: Mapping[str, Any]) -> tuple[list[np.ndarray], np.ndarray, float, list[float]]:
     """The optimiser's search of one subsystem: (refinement starts, best point, its cost, history)."""
 
     def cb(res: Any) -> bool:
@@ -251,7 +253,7 @@ def _global_search(cost: _SubCost, lo: np.ndarray, hi: np.ndarray, name: str, cf
         search = _VarProCost(cost, lo, hi)
         dims = search.search_dims()
     opt = ALGORITHMS[algorithm](search, np.stack([lo[dims], hi[dims]], axis=1), rng=rng, maxiter=cfg.maxiter,
-                                callback=cb)
+                                callback=cb, **search_options)
     starts = _distinct_best(opt, cfg.refine_starts, hi[dims] - lo[dims])
     if search is not cost:
         starts = list(search.complete(np.array(starts)))
@@ -261,8 +263,13 @@ def _global_search(cost: _SubCost, lo: np.ndarray, hi: np.ndarray, name: str, cf
 
 def identify_frequency(responses: ResponseSet, prepared: Any = None, *, algorithm: str = "cabc", seed: int = 0,
                        bounds: dict[str, tuple[float, float]] | None = None, config: FreqIdentifyConfig | None = None,
-                       callback: Callable[[dict], Any] | None = None, start: np.ndarray | None = None) -> HoverModel:
+                       callback: Callable[[dict], Any] | None = None, start: np.ndarray | None = None,
+                       search_options: Mapping[str, Any] | None = None) -> HoverModel:
     """Fit the hover model to ``responses``; trims and sources come from ``prepared`` when given.
+
+    ``search_options``: the optimiser's hyper-parameters (colony size, population, ...), as the
+    time-domain identification takes them from ``[identify]``
+    (:meth:`groundstation.sysid.settings.IdentifyConfig.search_options`); None: the optimiser's defaults.
 
     ``start`` (31,): no global search; the refinement runs from this parameter vector only (the
     J minimum nearest a given model, e.g. a time-domain fit's or, on simulated data, the truth's).
@@ -301,8 +308,6 @@ def identify_frequency(responses: ResponseSet, prepared: Any = None, *, algorith
         jcost = _SubCost(rs, pairs, free_idx, d_in, theta, "coherence" if cfg.weighting == "output_error" else cfg.weighting)
         cost: Any = jcost
         if cfg.weighting == "output_error":
-            from groundstation.freq.fdoe import FdoeCost
-
             sub = 0 if name == "horizontal" else 1
             cost = FdoeCost(prepared.segments, prepared.dt_s, sub, jcost.unpack, f_min_hz=cfg.oe_band_hz[0],
                             f_max_hz=cfg.oe_band_hz[1], n_freq=cfg.oe_n_freq, window_s=cfg.oe_window_s)
@@ -310,7 +315,8 @@ def identify_frequency(responses: ResponseSet, prepared: Any = None, *, algorith
         hi = np.concatenate([b_all[free_idx, 1], np.full(len(d_in), cfg.max_delay_s)])
 
         if start is None:   # output error: the search (and first refinement) on J, then the output error from there
-            runs = [_global_search(jcost, lo, hi, name, cfg, algorithm, rng, callback) for _ in range(cfg.searches)]
+            runs = [_global_search(jcost, lo, hi, name, cfg, algorithm, rng, callback, search_options or {})
+                    for _ in range(cfg.searches)]
             starts = [x for r in runs for x in r[0]]
             _, x_s, f_s, history = min(runs, key=lambda r: r[2])
         else:  # refine the given model only

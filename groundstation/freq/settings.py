@@ -12,6 +12,8 @@ from groundstation.freq import FreqError
 class FreqIdentifyConfig:
     """Frequency-domain identification settings (``[freq_identify]`` TOML table)."""
 
+    #: iterations of each global search; the optimiser's other settings (colony size, population, ...)
+    #: are [identify]'s, as for the time-domain search
     maxiter: int = 150
     fit_delays: bool = False
     max_delay_s: float = 0.3

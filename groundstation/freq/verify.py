@@ -149,3 +149,14 @@ def verify(theta: np.ndarray, responses: ResponseSet, delays_s: np.ndarray | Non
         if d is not None:
             delays[inp] = d
     return FreqVerification(rs, G, tuple(pairs), tuple(no_resp), tuple(unmod), delays, bw)
+
+
+def freq_pairs(v: Any) -> list[dict[str, Any]]:
+    """The pairs of a :class:`FreqVerification` as :meth:`groundstation.sinks.rerun_sink.RerunSink.log_frequency_response`
+    takes them (data, model and coherence per scored input-output pair); ``[]`` for anything else."""
+    if v is None or not hasattr(v, "responses") or not hasattr(v, "pairs"):
+        return []
+    scored = {(s.input, s.output) for s in v.pairs}
+    return [{"input": p.input, "output": p.output, "f_hz": p.f_hz, "data": p.response, "coherence": p.coherence,
+             "model": v.model[:, OUTPUTS.index(p.output), INPUTS.index(p.input)]}
+            for p in v.responses.with_response if (p.input, p.output) in scored]

@@ -7,6 +7,7 @@ catalogue effect), ``fingerprints`` (spectral lines, Euler kinematics), ``noise`
 ``locate``, ``attribute``, ``report``, ``plots`` (matplotlib; used by the command only).
 """
 
+import importlib
 from typing import Any
 
 __all__ = ["CATALOGUE", "DiagnoseConfig", "Diagnosis", "diagnose", "run_diagnosis"]
@@ -16,8 +17,6 @@ def __getattr__(name: str) -> Any:
     """The public API, imported on first use: ``groundstation.gap.config`` (read by every command's
     configuration) then does not import the diagnosis and scipy.stats (~1 s of CPU at every start)."""
     if name in __all__:
-        import importlib
-
         mod = importlib.import_module("groundstation.gap.diagnose")
         # as the eager import did: the package's names are the API's (``diagnose`` the function, not the module)
         globals().update({n: getattr(mod, n) for n in __all__})

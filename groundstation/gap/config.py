@@ -167,7 +167,8 @@ class DiagnoseConfig:
     #: prediction windows (s) of the command-response and hover models over the held-out folds (from
     #: the measured states), and of the closed-loop evidence the finding carries
     controller_window_s: float = 5.0
-    #: the finding's closed-loop evidence: an input "follows the output error" when its change up to
+    #: the finding's closed-loop evidence (the gap report's; the model file's closed-loop notes run the
+    #: same test with [identify] feedback_*): an input "follows the output error" when its change up to
     #: this lag (s) later correlates with the error ...
     controller_feedback_max_lag_s: float = 1.0
     #: ... beyond this many times 1 / sqrt(effective samples) (the chance level)

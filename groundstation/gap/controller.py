@@ -33,17 +33,19 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.dsp.split import contiguous_kfold
 from groundstation.gap.config import DiagnoseConfig
+from groundstation.gap.noise import noise_floor
 from groundstation.parallel import Map, serial_map
+from groundstation.sysid.heldout import feedback_evidence, predict
 from groundstation.sysid.model import OUTPUTS
+from groundstation.sysid.structure import CommandModel, identify_command, predict_command
 
 EFFECT = "stabilising_controller"
 
 
 def _fold_fit(pair: tuple[Any, Any], kind: str) -> Any:
     """The command-response structure of a fold's training part (module level: picklable)."""
-    from groundstation.sysid.structure import identify_command
-
     try:
         return identify_command(pair[0], kind)
     except (ValueError, ArithmeticError):
@@ -61,8 +63,6 @@ def _mean_square(prepared: Any) -> tuple[np.ndarray, np.ndarray]:
 
 def _sigma(prepared: Any) -> np.ndarray:
     """The smoothed-noise floor per output when the caller has none (stand-alone use)."""
-    from groundstation.gap.noise import noise_floor
-
     raw = [np.asarray(getattr(s, "outputs_raw", s.outputs), float) for s in prepared.segments]
     sm = [np.asarray(s.outputs, float) for s in prepared.segments]
     return np.asarray(noise_floor(raw, sm)["sigma_smoothed"], float)
@@ -78,9 +78,6 @@ def stabilising_controller(prepared: Any, model: Any, *, sigma: np.ndarray | Non
     closed-loop evidence (``controller_*``; None: the defaults). ``prior`` is accepted for compatibility
     and not used (no hover refit)."""
     cfg = config or DiagnoseConfig()
-    from groundstation.dsp.split import contiguous_kfold
-    from groundstation.sysid.heldout import feedback_evidence, predict
-    from groundstation.sysid.structure import identify_command, predict_command
 
     folds = [(tr, va) for tr, va in contiguous_kfold(prepared, k) if tr.segments and va.segments]
     fits = pmap(partial(_fold_fit, kind=kind), folds)
@@ -125,7 +122,6 @@ def stabilising_controller(prepared: Any, model: Any, *, sigma: np.ndarray | Non
         return None
     loop = feedback_evidence(model, prepared, window_s=cfg.controller_window_s,
                              max_lag_s=cfg.controller_feedback_max_lag_s, z=cfg.controller_feedback_z)
-    from groundstation.sysid.structure import CommandModel
 
     own = getattr(model, "command", None)
     cm = CommandModel.from_json(own) if own and own.get("kind") == kind else identify_command(prepared, kind)

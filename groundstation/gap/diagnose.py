@@ -36,8 +36,11 @@ from functools import partial
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
+from groundstation.dsp.velocity_check import check_horizontal
 from groundstation.errors import GapError
+from groundstation.freq.model_response import model_response
 from groundstation.gap import (
     attribute,
     bridging,
@@ -53,8 +56,9 @@ from groundstation.gap import (
 )
 from groundstation.gap.config import DiagnoseConfig
 from groundstation.gap.evaluate import Evaluator, SegmentArrays
-from groundstation.gap.report import build_report
+from groundstation.gap.report import _effect_entry, build_report
 from groundstation.parallel import Map, serial_map
+from groundstation.sysid.identify import IdentifyConfig, identify
 from groundstation.sysid.model import INPUTS, OUTPUTS, HoverModel
 
 __all__ = ["CATALOGUE", "VERDICTS", "DiagnoseConfig", "Diagnosis", "diagnose", "run_diagnosis", "segments_from_prepared"]
@@ -130,8 +134,6 @@ def _trims(prepared: Any) -> np.ndarray:
         return np.array([float(tr.get(k, 0.0) or 0.0) for k in OUTPUTS])
     arr = np.asarray(tr, float).ravel()
     return arr if arr.shape == (8,) else np.zeros(8)
-
-
 
 
 @dataclass(frozen=True)
@@ -338,8 +340,6 @@ def compat_stage(prepared: Any, cfg: DiagnoseConfig) -> tuple[compat.Compatibili
 def _horizontal_checks(prepared: Any, cfg: DiagnoseConfig) -> list:
     """The horizontal velocities against the attitude (:mod:`groundstation.dsp.velocity_check`) on the
     prepared segments; empty when they do not carry what the check needs."""
-    from groundstation.dsp.velocity_check import check_horizontal
-
     segs = [s for s in prepared.segments if hasattr(s, "available") and hasattr(s, "n")]
     if not segs or len(segs) < len(prepared.segments):
         return []
@@ -373,8 +373,6 @@ def base_stage(model: HoverModel | None, prepared: Any, cfg: DiagnoseConfig, see
     notes: list[str] = list(getattr(prepared, "notes", []) or [])
     identified_here = model is None
     if model is None:
-        from groundstation.sysid.identify import IdentifyConfig, identify
-
         # the diagnosis blames whatever the base model gets wrong: a search stuck in a wrong basin
         # would be reported as an effect, so it pays for independent searches here. The base model keeps
         # one configuration (no held-out choice between settings): the scans score the effects against
@@ -528,8 +526,6 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
 
 def _response(theta: np.ndarray, dt_s: float) -> Any:
     """``f_hz -> (F, 8, 4)`` the base model's discrete frequency response (for the spectral-line test)."""
-    from groundstation.freq.model_response import model_response
-
     return partial(model_response, np.asarray(theta, float), dt_s=dt_s)
 
 
@@ -904,7 +900,6 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
         "rest": rest,
         "headline": headline,
     }
-    from groundstation.gap.report import _effect_entry
 
     partial_entries = []
     for c in partial:
@@ -946,8 +941,6 @@ def _confirm_beside_first(kept: list[attribute.Candidate], rem: dict[int, np.nda
     still be in the raw residual of the model with the first effect in (:func:`_line_given_first`).
     Effects failing are not named: they stay among the scored candidates with the reason. Returns
     (named, not confirmed)."""
-    from scipy import stats
-
     if len(kept) < 2:
         return kept, []
     named = [kept[0]]

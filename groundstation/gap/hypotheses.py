@@ -19,6 +19,7 @@ again in another context (around a re-identified base, or given another effect).
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -90,12 +91,15 @@ def shift(x: np.ndarray, d: float) -> np.ndarray:
 
 def rate_limit(x: np.ndarray, max_step: np.ndarray) -> np.ndarray:
     """Slew-limit x (n,) with per-variant maximum step per sample (V,) -> (n, V)."""
-    n = x.shape[0]
-    out = np.empty((n, max_step.shape[0]))
-    y = np.full(max_step.shape[0], x[0])
-    for k in range(n):
-        y = y + np.clip(x[k] - y, -max_step, max_step)
-        out[k] = y
+    xs = x.tolist()  # Python floats: a scalar loop over numpy scalars or a ufunc call per sample costs more
+    out = np.empty((x.shape[0], max_step.shape[0]))
+    for j, m in enumerate(max_step.tolist()):
+        lo, y, col = -m, xs[0], []
+        for xk in xs:
+            d = xk - y
+            y = y + (lo if d < lo else (m if d > m else d))  # y + clip(x - y, -m, m)
+            col.append(y)
+        out[:, j] = col
     return out
 
 
@@ -138,6 +142,10 @@ class Context:
         self.blocks: dict[str, np.ndarray] = {}  # effect -> (W, n_blocks) nested held-out cost
         self.base_blocks = ev.last_blocks.copy()
         self.pwm_per_unit = 500.0
+        # input_variants' caches: theta0 they were made for, the context's windowed inputs and
+        # residual at theta0, the weighted response of the fitted simulation per input channel
+        self._linear: tuple[bytes, np.ndarray, np.ndarray] | None = None
+        self._response: dict[int, np.ndarray] = {}
 
     def variants_residual(self, U_list: list[np.ndarray] | None = None,
                           Y_list: list[np.ndarray] | None = None) -> np.ndarray:
@@ -150,9 +158,59 @@ class Context:
         yh = yh.reshape(V, ev.W, ev.L, 8)
         return yh
 
-    def nested(self, effect: str, variants: Sequence[tuple[dict[str, Any], np.ndarray, np.ndarray | None]]
-               ) -> tuple[np.ndarray, int, list[np.ndarray]]:
-        """Nested selection over variants (label, r (W,L,8), X or None).
+    def _base_residual(self) -> tuple[np.ndarray, np.ndarray]:
+        """(windowed inputs (W, L, 4) of the context's segments, weighted residual (W, L, 8) of their
+        simulation at theta0), computed once per theta0."""
+        ev = self.ev
+        key = ev.theta0.tobytes()
+        if self._linear is None or self._linear[0] != key:
+            U = ev.cut([s.inputs for s in self.segments])
+            yh = lsim(ev.theta0, U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available, start=ev.start)[0]
+            self._linear = (key, U, ev.residual(yh))
+            self._response = {}
+        return self._linear[1], self._linear[2]
+
+    def response(self, c: int) -> np.ndarray:
+        """(L, L 8): the weighted change of a window's fitted simulation at theta0 (initial states
+        re-fitted as :func:`groundstation.gap.linsim.simulate` fits them) per unit change at each of
+        its samples of input ``c`` (0-3: lat lon col ped; 4-14: the forcing of state ``c - 4``). The
+        model and the initial-state fit are linear, so this matrix is the same for every window, and
+        a variant of one input (or a forcing) changes the base simulation by its product with it:
+        one product instead of a simulation."""
+        self._base_residual()
+        if c not in self._response:
+            ev, L = self.ev, self.ev.L
+            E = np.zeros((L, L, 4 + 11))
+            E[np.arange(L), np.arange(L), c] = 1.0  # window l: a unit on column c at sample l
+            M = lsim(ev.theta0, E[..., :4], np.zeros((1, L, 8)), ev.dt_s, weights=ev.w8, available=ev.available,
+                     start=ev.start, forcing=E[..., 4:] if c >= 4 else None)[0]
+            self._response[c] = np.ascontiguousarray((M * ev.w8).reshape(L, L * 8))
+        return self._response[c]
+
+    def input_variants(self, groups: Sequence[tuple[int, np.ndarray]]) -> np.ndarray:
+        """Weighted residuals (V, W, L, 8) at theta0 of V variants of single inputs, the same numbers
+        as simulating each variant's inputs (to round-off): ``groups`` of (input channel ``c``, that
+        channel's windows in each variant (Vc, W, L)); every other input as in the context's segments."""
+        ev = self.ev
+        U, r0 = self._base_residual()
+        V = sum(u.shape[0] for _, u in groups)
+        out = np.empty((V, ev.W, ev.L, 8))
+        v0 = 0
+        for c, u in groups:
+            v1 = v0 + u.shape[0]
+            d = out[v0:v1]
+            with np.errstate(over="ignore", invalid="ignore"):
+                np.matmul((u - U[None, :, :, c]).reshape(-1, ev.L), self.response(c),
+                          out=d.reshape(-1, ev.L * 8))
+            d *= ev.wmask
+            np.subtract(r0, d, out=d)
+            v0 = v1
+        return out
+
+    def nested(self, effect: str, variants: Sequence[tuple[dict[str, Any], np.ndarray, np.ndarray | None]],
+               rs: np.ndarray | None = None) -> tuple[np.ndarray, int, list[np.ndarray]]:
+        """Nested selection over variants (label, r (W,L,8), X or None); ``rs`` (V, W, L, 8): the
+        variants' residuals already stacked (input variants), else they are stacked here.
 
         Returns the nested held-out cost (W, 8), the index of the variant with the lowest total
         training cost, and the per-variant linear-parameter estimates (folds, K).
@@ -161,7 +219,7 @@ class Context:
         sses, trains, coefs, blks = [], [], [], []
         if self.given is None and len(variants) > 1 and all(X is None for _, _, X in variants):
             # input variants: one batched re-fit (the normal matrix is the base model's for all)
-            s_all, T, b_all = ev.heldout_many(np.stack([r for _, r, _ in variants]))
+            s_all, T, b_all = ev.heldout_many(np.stack([r for _, r, _ in variants]) if rs is None else rs)
             sses, blks = list(s_all), list(b_all)
             ev.last_blocks = b_all[-1].copy()
             coefs = [np.zeros((ev.folds, 0))] * len(variants)
@@ -213,25 +271,19 @@ def input_excitation(segments: list[SegmentArrays]) -> np.ndarray:
 
 def scan_input_delay(ctx: Context, channels: list[int]) -> Hypothesis:
     ev, segs = ctx.ev, ctx.segments
-    variants = []
-    U_list = []
+    groups = []
     labels: list[dict[str, Any]] = []
     for c in channels:
-        for d_s in DELAY_GRID_S:
-            d = d_s / ev.dt_s
-            Us = [s.inputs.copy() for s in segs]
-            for u in Us:
-                u[:, c] = shift(u[:, c], d)
-            U_list.append(ev.cut(Us))
-            labels.append({"channel": c, "delay_s": d_s})
-    yh = ctx.variants_residual(U_list=U_list)
-    for lab, y in zip(labels, yh, strict=True):
-        variants.append((lab, ev.residual(y), None))
-    sse, best, _ = ctx.nested("input_delay", variants)
+        groups.append((c, np.stack([ev.cut([shift(s.inputs[:, c], d_s / ev.dt_s) for s in segs])
+                                    for d_s in DELAY_GRID_S])))
+        labels += [{"channel": c, "delay_s": d_s} for d_s in DELAY_GRID_S]
+    rs = ctx.input_variants(groups)
+    variants = [(lab, r, None) for lab, r in zip(labels, rs, strict=True)]
+    sse, best, _ = ctx.nested("input_delay", variants, rs)
     lab = labels[best]
     return Hypothesis("input_delay", input=INPUTS[lab["channel"]], estimate={"delay_s": lab["delay_s"]},
                       sse=sse, channels=(3, 4, 5, 6, 7),
-                      extra={"variants": len(variants), "label": lab, "r_best": variants[best][1]})
+                      extra={"variants": len(variants), "label": lab, "r_best": rs[best].copy()})
 
 
 def slew_grid(du: np.ndarray) -> np.ndarray:
@@ -243,27 +295,22 @@ def slew_grid(du: np.ndarray) -> np.ndarray:
 
 def scan_rate_limit(ctx: Context, channels: list[int]) -> Hypothesis:
     ev, segs = ctx.ev, ctx.segments
-    U_list: list[np.ndarray] = []
+    groups = []
     labels: list[dict[str, Any]] = []
     for c in channels:
         du = np.concatenate([np.abs(np.diff(s.inputs[:, c])) for s in segs])
         steps = slew_grid(du)
-        lim = [rate_limit(s.inputs[:, c], steps) for s in segs]
-        for j in range(steps.size):
-            Us = [s.inputs.copy() for s in segs]
-            for u, lm in zip(Us, lim, strict=True):
-                u[:, c] = lm[:, j]
-            U_list.append(ev.cut(Us))
-            labels.append({"channel": c, "rate_per_s": float(steps[j] / ev.dt_s),
-                           "quantile": float(np.mean(du <= steps[j]))})
-    yh = ctx.variants_residual(U_list=U_list)
-    variants = [(lab, ev.residual(y), None) for lab, y in zip(labels, yh, strict=True)]
-    sse, best, _ = ctx.nested("rate_limit", variants)
+        groups.append((c, np.moveaxis(ev.cut([rate_limit(s.inputs[:, c], steps) for s in segs]), 2, 0)))
+        labels += [{"channel": c, "rate_per_s": float(st / ev.dt_s), "quantile": float(np.mean(du <= st))}
+                   for st in steps]
+    rs = ctx.input_variants(groups)
+    variants = [(lab, r, None) for lab, r in zip(labels, rs, strict=True)]
+    sse, best, _ = ctx.nested("rate_limit", variants, rs)
     lab = labels[best]
     return Hypothesis("rate_limit", input=INPUTS[lab["channel"]],
                       estimate={"rate_limit_per_s": lab["rate_per_s"],
                                 "rate_limit_pwm_us_per_s": lab["rate_per_s"] * ctx_pwm(ctx)},
-                      sse=sse, channels=(3, 4, 5, 6, 7), extra={"label": lab, "r_best": variants[best][1]})
+                      sse=sse, channels=(3, 4, 5, 6, 7), extra={"label": lab, "r_best": rs[best].copy()})
 
 
 def ctx_pwm(ctx: Context) -> float:
@@ -272,20 +319,20 @@ def ctx_pwm(ctx: Context) -> float:
 
 def scan_deadband(ctx: Context, channels: list[int]) -> Hypothesis:
     ev, segs = ctx.ev, ctx.segments
-    U_list: list[np.ndarray] = []
+    groups = []
     labels: list[dict[str, Any]] = []
     for c in channels:
         au = np.concatenate([np.abs(s.inputs[:, c]) for s in segs])
         widths = np.unique(np.round(np.concatenate([np.quantile(au, DEADBAND_QUANTILES),
                                                     np.array(DEADBAND_STD) * au.std()]), 6))
-        for b in widths:
-            for kind, off in [("deadzone", f) for f in DEADBAND_CENTRE] + [("backlash", 0.0)]:
-                lab: dict[str, Any] = {"channel": c, "width": float(b), "kind": kind, "centre": float(off * b)}
-                U_list.append(ev.cut(apply_deadband(segs, lab)))
-                labels.append(lab)
-    yh = ctx.variants_residual(U_list=U_list)
-    variants = [(lab, ev.residual(y), None) for lab, y in zip(labels, yh, strict=True)]
-    sse, best, _ = ctx.nested("deadband", variants)
+        labs: list[dict[str, Any]] = [{"channel": c, "width": float(b), "kind": kind, "centre": float(off * b)}
+                                      for b in widths
+                                      for kind, off in [("deadzone", f) for f in DEADBAND_CENTRE] + [("backlash", 0.0)]]
+        groups.append((c, np.stack([ev.cut([deadband_input(s.inputs[:, c], lab) for s in segs]) for lab in labs])))
+        labels += labs
+    rs = ctx.input_variants(groups)
+    variants = [(lab, r, None) for lab, r in zip(labels, rs, strict=True)]
+    sse, best, _ = ctx.nested("deadband", variants, rs)
     lab = labels[best]
     # resolution of the recorded input: MAVLink servo/RC values are whole microseconds, so a
     # "deadband" of a few quanta is indistinguishable from quantisation
@@ -293,7 +340,7 @@ def scan_deadband(ctx: Context, channels: list[int]) -> Hypothesis:
     return Hypothesis("deadband", input=INPUTS[lab["channel"]],
                       estimate={"deadband": lab["width"], "deadband_pwm_us": lab["width"] * ctx_pwm(ctx)},
                       sse=sse, channels=(3, 4, 5, 6, 7),
-                      extra={"kind": lab["kind"], "quantum": quantum, "label": lab, "r_best": variants[best][1]})
+                      extra={"kind": lab["kind"], "quantum": quantum, "label": lab, "r_best": rs[best].copy()})
 
 
 INPUT_EFFECTS = ("input_delay", "rate_limit", "deadband")
@@ -321,16 +368,21 @@ def apply_input_effect(h: Hypothesis, segments: list[SegmentArrays], dt_s: float
 
 def apply_deadband(segments: Sequence[SegmentArrays], lab: dict[str, Any]) -> list[np.ndarray]:
     """Each segment's inputs with the deadband variant ``lab`` (channel, width, kind, centre) applied."""
-    c, b = int(lab["channel"]), float(lab["width"])
+    c = int(lab["channel"])
     out = []
     for s in segments:
         u = s.inputs.copy()
-        if lab["kind"] == "deadzone":
-            u[:, c] = deadzone(u[:, c], b, float(lab.get("centre", 0.0)))
-        else:
-            u[:, c] = backlash(u[:, c], b)
+        u[:, c] = deadband_input(u[:, c], lab)
         out.append(u)
     return out
+
+
+def deadband_input(x: np.ndarray, lab: dict[str, Any]) -> np.ndarray:
+    """One input channel's samples (n,) through the deadband variant ``lab`` (width, kind, centre)."""
+    b = float(lab["width"])
+    if lab["kind"] == "deadzone":
+        return deadzone(x, b, float(lab.get("centre", 0.0)))
+    return backlash(x, b)
 
 
 def rescan_input_effect(ctx: Context, h: Hypothesis) -> Hypothesis:
@@ -388,16 +440,15 @@ def scan_gyro_bias(ctx: Context) -> Hypothesis:
 
 
 def _forcing_columns(ctx: Context, F_list: list[np.ndarray]) -> np.ndarray:
-    """Weighted sensitivities (W, L, 8, K) of the outputs to K forcing patterns (W, L, 11) each."""
+    """Weighted sensitivities (W, L, 8, K) of the outputs to K forcing patterns (W, L, 11) each: each
+    forced state's samples times its response (:meth:`Context.response`; the model is linear in the
+    forcing, so this is the simulation with the forcing less the one without, to round-off)."""
     ev = ctx.ev
-    K = len(F_list)
-    U = np.tile(ev.U, (K + 1, 1, 1))
-    Y = np.tile(ev.Y, (K + 1, 1, 1))
-    F = np.concatenate([np.zeros_like(F_list[0])] + F_list)
-    yh = lsim(ev.theta0, U, Y, ev.dt_s, forcing=F, weights=ev.w8, available=ev.available,
-              start=ev.start)[0].reshape(K + 1, ev.W, ev.L, 8)
-    X = _mask_w(ev, yh[1:] - yh[0][None])
-    return np.moveaxis(X, 0, -1)
+    X = np.zeros((len(F_list), ev.W, ev.L * 8))
+    for k, F in enumerate(F_list):
+        for j in np.flatnonzero(np.abs(F).sum(axis=(0, 1))):
+            X[k] += np.matmul(F[:, :, j], ctx.response(4 + int(j)))
+    return np.moveaxis(X.reshape(len(F_list), ev.W, ev.L, 8) * ev.wmask, 0, -1)
 
 
 def scan_quadratic_drag(ctx: Context) -> Hypothesis:
@@ -467,7 +518,9 @@ def scan_ground_effect(ctx: Context) -> Hypothesis:
 
 
 def _air_columns(ev: Evaluator, theta: np.ndarray, n_knots: int = 3) -> np.ndarray:
-    """Per-window responses (W, L, 8, 2 n_knots) to a piecewise-linear horizontal air velocity."""
+    """Responses (1, L, 8, 2 n_knots) to a piecewise-linear horizontal air velocity, the same in every
+    window (zero initial state, no input: :func:`groundstation.gap.linsim.simulate` takes them as
+    shared by every window)."""
     A, _ = full_matrices(theta)
     # horizontal air velocity only: a vertical one would also soak up any heave-model error
     Fdir = np.stack([-A[0, :, s_idx] for s_idx in (0, 1)])  # (2, 11) per unit air velocity
@@ -475,14 +528,11 @@ def _air_columns(ev: Evaluator, theta: np.ndarray, n_knots: int = 3) -> np.ndarr
     tt = np.linspace(0.0, 1.0, L)
     knots = np.linspace(0.0, 1.0, n_knots)
     hats = [np.maximum(0.0, 1.0 - np.abs(tt - c) * (n_knots - 1)) for c in knots]
-    Z = np.zeros_like(ev.U)
-    Y0 = np.zeros_like(ev.Y)
-    cols = []
-    for comp in range(Fdir.shape[0]):
-        for hat in hats:
-            F = np.broadcast_to(hat[:, None] * Fdir[comp][None, :], (ev.W, L, 11)).copy()
-            cols.append(np.asarray(lsim(theta, Z, Y0, ev.dt_s, forcing=F, fit_initial=False))[0])
-    return np.stack(cols, axis=-1) * ev.available[None, None, :, None]
+    F = np.stack([hat[:, None] * Fdir[comp][None, :] for comp in range(Fdir.shape[0]) for hat in hats])
+    K = F.shape[0]  # one "window" per column
+    cols = np.asarray(lsim(theta, np.zeros((K, L, 4)), np.zeros((1, L, 8)), ev.dt_s, forcing=F,
+                           fit_initial=False))[0]  # (K, L, 8)
+    return np.moveaxis(cols, 0, -1)[None] * ev.available[None, None, :, None]
 
 
 def scan_wind_gust(ctx: Context, chunk_s: float | None = None, refine_iterations: int | None = None,
@@ -518,8 +568,11 @@ def scan_wind_gust(ctx: Context, chunk_s: float | None = None, refine_iterations
     sig2 = float((ev.r0 ** 2).sum() / max(n_scored, 1))
     n_knots = max(int(round(L * ev.dt_s / knot_s)) + 1, 2)
     prec = np.full(2 * n_knots, sig2 / s_air ** 2)
-    evg = Evaluator(ctx.segments, ev.dt_s, ev.theta0, ev.available, window_s=L * ev.dt_s,
-                    folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s)
+    if ctx.segments is ev.segments:  # the context's evaluator as it is: its Jacobian is recomputed below
+        evg = copy.copy(ev)
+    else:
+        evg = Evaluator(ctx.segments, ev.dt_s, ev.theta0, ev.available, window_s=L * ev.dt_s,
+                        folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s)
     evg.nuisance = _air_columns(evg, ev.theta0, n_knots)
     evg.nuisance_prec = prec
     evg.set_theta(ev.theta0)

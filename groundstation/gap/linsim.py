@@ -136,7 +136,8 @@ def simulate(
     weights : array (8,) or None, per-channel weights (1/scale) of the initial-state least squares
     available : array (8,) bool or None, measured channels (others are estimated, not copied)
     nuisance : array (W, L, 8, K) or None, extra per-window output columns estimated with the
-        unmeasured initial states (e.g. disturbance responses)
+        unmeasured initial states (e.g. disturbance responses); (1, L, 8, K): the same columns in every
+        window (one normal matrix per candidate)
     start, stop : int, the least squares uses samples ``start:stop`` of each window
     fit_initial : bool, False: measured initial states only, unknown ones zero, no least squares
     all_initial : bool, True: every initial state is fitted (the measured value is only the
@@ -208,9 +209,13 @@ def simulate(
         ridge = 1e-9 * np.trace(Gss, axis1=1, axis2=2)[:, None, None] / nu + 1e-12
         Gr = Gss + ridge * np.eye(nu)
     else:
-        Nall = np.moveaxis(nuisance, 3, 1)  # (W, K, L, 8) view
-        Gss_b = Gss[:, None]
+        Nall = np.moveaxis(nuisance, 3, 1)  # (W or 1, K, L, 8) view
         prec = None if nuisance_prec is None else np.asarray(nuisance_prec, float)
+        shared = nuisance.shape[0] == 1
+        if shared:  # the same columns in every window: one normal matrix per candidate, as without them
+            N1 = np.ascontiguousarray((Nall[0][:, sel, :] * w8).reshape(K, -1))  # (K, n)
+            Gn = _nuisance_normal(Sw, Gss, N1[None], prec)[:, 0]  # (C, nu + K, nu + K)
+            N2 = np.ascontiguousarray(nuisance[0].reshape(L * 8, K).T)  # (K, L 8)
     for w0 in range(0, Wn, wc):
         w1 = min(Wn, w0 + wc)
         Wc = w1 - w0
@@ -221,23 +226,16 @@ def simulate(
         if nuisance is None:
             a = np.swapaxes(np.linalg.solve(Gr, np.swapaxes(hs, 1, 2)), 1, 2)  # (C, Wc, nu)
             yc += np.matmul(a, S2).reshape(C, Wc, L, 8)
+        elif shared:
+            h = np.concatenate([hs, np.matmul(rw, N1.T)], axis=2)  # (C, Wc, nu + K)
+            a = np.swapaxes(np.linalg.solve(Gn, np.swapaxes(h, 1, 2)), 1, 2)
+            yc += np.matmul(a[..., :nu], S2).reshape(C, Wc, L, 8)
+            yc += np.matmul(a[..., nu:], N2).reshape(C, Wc, L, 8)
         else:
             Nw = np.ascontiguousarray((Nall[w0:w1, :, sel, :] * w8).reshape(Wc, K, -1))  # (Wc, K, n)
-            Gsn = np.matmul(Sw[:, None], np.swapaxes(Nw, 1, 2)[None])  # (C, Wc, nu, K)
-            Gnn = np.matmul(Nw, np.swapaxes(Nw, 1, 2))  # (Wc, K, K)
-            G = np.empty((C, Wc, nu + K, nu + K))
-            G[:, :, :nu, :nu] = Gss_b
-            G[:, :, :nu, nu:] = Gsn
-            G[:, :, nu:, :nu] = np.swapaxes(Gsn, 2, 3)
-            G[:, :, nu:, nu:] = Gnn[None]
             hn = np.matmul(Nw[None], rw[..., None])[..., 0]  # (C, Wc, K)
             h = np.concatenate([hs, hn], axis=2)
-            ridge = 1e-9 * np.trace(G, axis1=2, axis2=3)[..., None, None] / G.shape[-1] + 1e-12
-            G += ridge * np.eye(nu + K)
-            if prec is not None:
-                idx = np.arange(nu, nu + K)
-                G[..., idx, idx] += prec
-            a = np.linalg.solve(G, h[..., None])[..., 0]  # (C, Wc, nu + K)
+            a = np.linalg.solve(_nuisance_normal(Sw, Gss, Nw, prec), h[..., None])[..., 0]  # (C, Wc, nu + K)
             yc += np.matmul(a[..., :nu], S2).reshape(C, Wc, L, 8)
             # nuisance responses: per window (L 8, K) @ (K, C)
             yc += np.moveaxis(np.matmul(nuisance[w0:w1].reshape(Wc, L * 8, K),
@@ -249,3 +247,23 @@ def simulate(
     if coef is not None:
         return yhat, coef
     return yhat
+
+
+def _nuisance_normal(Sw: np.ndarray, Gss: np.ndarray, Nw: np.ndarray, prec: np.ndarray | None) -> np.ndarray:
+    """Normal matrices (C, Wc, nu + K, nu + K) of the initial states (weighted free responses ``Sw``
+    (C, nu, n), their Gram ``Gss`` (C, nu, nu)) and the nuisance columns ``Nw`` (Wc, K, n), with the
+    relative ridge and the nuisance's prior precision ``prec`` (K,) added."""
+    C, nu = Gss.shape[:2]
+    Wc, K = Nw.shape[:2]
+    Gsn = np.matmul(Sw[:, None], np.swapaxes(Nw, 1, 2)[None])  # (C, Wc, nu, K)
+    G = np.empty((C, Wc, nu + K, nu + K))
+    G[:, :, :nu, :nu] = Gss[:, None]
+    G[:, :, :nu, nu:] = Gsn
+    G[:, :, nu:, :nu] = np.swapaxes(Gsn, 2, 3)
+    G[:, :, nu:, nu:] = np.matmul(Nw, np.swapaxes(Nw, 1, 2))[None]
+    ridge = 1e-9 * np.trace(G, axis1=2, axis2=3)[..., None, None] / G.shape[-1] + 1e-12
+    G += ridge * np.eye(nu + K)
+    if prec is not None:
+        idx = np.arange(nu, nu + K)
+        G[..., idx, idx] += prec
+    return G

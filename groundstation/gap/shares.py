@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 from groundstation.gap import attribute, fingerprints, hypotheses
 from groundstation.gap.config import DiagnoseConfig
@@ -446,7 +447,6 @@ def _gust_consistency(c: attribute.Candidate, ev: Evaluator, level: float, out: 
     if air is None:
         out["why"] = "no per-window air velocity to compare"
         return out
-    from scipy import stats
 
     rms = np.sqrt((np.asarray(air) ** 2).sum(axis=1).mean(axis=1)) + 1e-9
     hv = halves(ev)
@@ -502,8 +502,6 @@ def gap_over_time(ev: Evaluator, base_sse: np.ndarray, noise_sse: np.ndarray, re
                   cols: list[int]) -> dict[str, Any]:
     """The gap above the noise per half of the flight, what the named effects remove there, and the
     rank correlation of the windows' excess with time."""
-    from scipy import stats
-
     hv = halves(ev)
     unit = np.where(noise_sse > 0, 1.0 / np.where(noise_sse > 0, noise_sse, 1.0), 0.0)
     E = ((base_sse - noise_sse) * unit)[:, cols].sum(axis=1) if cols else np.zeros(ev.W)

@@ -11,6 +11,7 @@ from results computed elsewhere (the service's worker, a campaign job). Drawing 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from collections.abc import Callable, Sequence
@@ -20,9 +21,16 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.analysis import STEPS, AnalysisError, analyse
+from groundstation.campaign.store import CampaignStore
+from groundstation.config import ServiceConfig
+from groundstation.dsp.prepare import prepare
+from groundstation.gap.pictures import gap_pictures
+from groundstation.loginfo import summarise
 from groundstation.parallel import Map, serial_map
+from groundstation.pipeline import load_aircraft, load_logs, with_aircraft
 from groundstation.report.data import FlightReportData, Timeline
-from groundstation.sysid.validate import Validation
+from groundstation.sysid.validate import Validation, validate
 
 #: ArduCopter (helicopter frame) flight modes by HEARTBEAT custom_mode
 COPTER_MODES = {0: "STABILIZE", 1: "ACRO", 2: "ALT_HOLD", 3: "AUTO", 4: "GUIDED", 5: "LOITER", 6: "RTL",
@@ -78,7 +86,6 @@ def load_history(db: str | os.PathLike[str] | None, aircraft: str | None) -> tup
     ((), "") without one. With no aircraft name, the table's only aircraft."""
     if not db or not Path(db).exists():
         return (), ""
-    from groundstation.campaign.store import CampaignStore
 
     store = CampaignStore(Path(db))
     try:
@@ -96,9 +103,6 @@ def collect(logs: Sequence[str | os.PathLike[str]], *, config: Any = None, aircr
             title: str | None = None, segments: str = "flights", pmap: Map = serial_map,
             progress: Progress | None = None) -> FlightReportData:
     """Analyse ``logs`` as far as they allow (see module docstring); never raises for bad data."""
-    from groundstation.config import ServiceConfig
-    from groundstation.pipeline import load_aircraft, load_logs, with_aircraft
-
     say = progress or (lambda _msg: None)
     cfg = config if config is not None else ServiceConfig()
     aircraft = load_aircraft(aircraft_path)   # a bad aircraft file is the user's error: raised
@@ -115,7 +119,6 @@ def collect(logs: Sequence[str | os.PathLike[str]], *, config: Any = None, aircr
     except Exception as exc:  # the page still says what could not be read
         errors["logs"] = _line(exc)
         return FlightReportData(**parts, errors=errors)
-    from groundstation.loginfo import summarise
 
     parts["log_info"] = tuple(summarise(log) for log in raw)
     parts["timelines"] = tuple(timeline(log) for log in raw)
@@ -136,8 +139,6 @@ def collect(logs: Sequence[str | os.PathLike[str]], *, config: Any = None, aircr
         if res.validation is not None:
             parts["validation"] = res.validation
         if res.gap is not None:
-            from groundstation.gap.pictures import gap_pictures
-
             parts["gap"] = res.gap.to_json()
             try:
                 parts["pictures"] = gap_pictures(res.gap.diagnosis) if res.gap.diagnosis is not None else None
@@ -165,14 +166,9 @@ def assemble(logs: Sequence[str | os.PathLike[str]], cfg: Any, *, prepared: Any,
     """A :class:`FlightReportData` from results already computed elsewhere (the service's worker, a
     campaign job): reads the logs again for their data quality and timeline, validates the model on
     its training windows when ``validation`` is not given; nothing else is recomputed."""
-    from groundstation.loginfo import summarise
-    from groundstation.pipeline import load_logs
-
     errs = {k: v for k, v in (errors or {}).items() if v}
     raw = load_logs(logs)
     if validation is None and model is not None and prepared is not None:
-        from groundstation.sysid.validate import validate
-
         try:
             validation = validate(model, prepared, return_series=True)
         except Exception as exc:
@@ -188,8 +184,6 @@ def assemble(logs: Sequence[str | os.PathLike[str]], cfg: Any, *, prepared: Any,
 
 
 def _prepare(raw: list[Any], cfg: Any, errors: dict[str, str]) -> Any:
-    from groundstation.dsp.prepare import prepare
-
     try:
         prepared = prepare(raw, cfg.prepare)
     except Exception as exc:
@@ -205,9 +199,6 @@ def _analyse(raw: list[Any], names: tuple[str, ...], cfg: Any, aircraft: Any, mo
              folds: int, errors: dict[str, str], pmap: Map, say: Progress) -> Any:
     """The :func:`groundstation.analysis.analyse` result of the logs (frequency check and diagnosis kept going
     on failure), or None with the reason in ``errors`` when there is nothing to analyse or the model fails."""
-    import dataclasses
-
-    from groundstation.analysis import STEPS, AnalysisError, analyse
 
     steps = [s for s in STEPS if (s != "identify" or model_path is None) and (s != "diagnose" or diagnose)]
     cfg = dataclasses.replace(cfg, identification=dataclasses.replace(cfg.identification, heldout_folds=folds))

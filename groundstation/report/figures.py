@@ -19,7 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from groundstation.sysid.model import INPUTS, OUTPUT_UNITS, OUTPUTS, PARAM_NAMES
+from groundstation.freq.verify import J_AVG_GOOD, J_PAIR_ACCEPTABLE
+from groundstation.sinks.bode import _series
+from groundstation.sysid.fit_section import PriorReport
+from groundstation.sysid.model import INPUTS, OUTPUT_UNITS, OUTPUTS, PARAM_NAMES, build_matrices
 from groundstation.sysid.validate import Validation
 
 #: grid and report colours (colour-blind safe pair for measured/model)
@@ -214,9 +217,9 @@ def parameters_figure(model: Any) -> Figure | None:
     if model is None:
         return None
     fit = model.fit
-    prior = fit.prior
-    share = prior.get("prior_share", {})
-    fixed = set(fit.fixed) | set(prior.get("fixed_at_prior", []))
+    prior = fit.prior or PriorReport()
+    share = prior.prior_share
+    fixed = set(fit.fixed) | set(prior.fixed_at_prior)
     fig, axes = _new(10, 3.4, 1, 1)
     ax = axes[0, 0]
     rel, colors = [], []
@@ -256,7 +259,6 @@ def parameters_figure(model: Any) -> Figure | None:
 def modes_figure(model: Any) -> Figure | None:
     if model is None:
         return None
-    from groundstation.sysid.model import build_matrices
 
     Ah, _, Av, _ = build_matrices(np.asarray(model.theta, dtype=float))
     fig, axes = _new(5.2, 3.6, 1, 1)
@@ -341,7 +343,6 @@ def heldout_figure(heldout: Any) -> Figure | None:
 def bode_figures(v: Any) -> list[Figure]:
     if v is None:
         return []
-    from groundstation.sinks.bode import _series
 
     scores = {(s.input, s.output): s for s in v.pairs}
     out = []
@@ -384,7 +385,6 @@ def bode_figures(v: Any) -> list[Figure]:
 def j_figure(v: Any) -> Figure | None:
     if v is None or not v.pairs:
         return None
-    from groundstation.freq.verify import J_AVG_GOOD, J_PAIR_ACCEPTABLE
 
     fig, axes = _new(10, 3.0, 1, 2, width_ratios=(3, 1))
     ax, ad = axes[0]

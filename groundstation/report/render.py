@@ -13,10 +13,11 @@ import math
 from typing import Any
 
 import numpy as np
+from jinja2 import Environment, PackageLoader, StrictUndefined, select_autoescape
 
 from groundstation.report import figures as F
 from groundstation.report.data import SECTIONS, FlightReportData
-from groundstation.sysid.fit_section import HeldOut
+from groundstation.sysid.fit_section import HeldOut, PriorReport
 from groundstation.sysid.model import OUTPUT_UNITS, OUTPUTS, PARAM_NAMES
 
 #: what to do next, per verdict (the gap section's last paragraph)
@@ -50,8 +51,6 @@ def _f(x: Any, fmt: str = ".3g", none: str = "–") -> str:
 
 
 def _env() -> Any:
-    from jinja2 import Environment, PackageLoader, StrictUndefined, select_autoescape
-
     env = Environment(loader=PackageLoader("groundstation.report", "templates"),
                       autoescape=select_autoescape(["html", "j2"]), undefined=StrictUndefined,
                       trim_blocks=True, lstrip_blocks=True)
@@ -96,9 +95,9 @@ def model_view(d: FlightReportData) -> dict[str, Any]:
     if m is None:
         return {"error": d.errors.get("model") or "no model"}
     fit = m.fit
-    prior = fit.prior
-    share = prior.get("prior_share", {})
-    fixed = set(fit.fixed) | set(prior.get("fixed_at_prior", []))
+    prior = fit.prior or PriorReport()
+    share = prior.prior_share
+    fixed = set(fit.fixed) | set(prior.fixed_at_prior)
     params = []
     for n in PARAM_NAMES:
         s = m.parameter_std.get(n)
@@ -108,13 +107,13 @@ def model_view(d: FlightReportData) -> dict[str, Any]:
             status = "on a search bound: not an estimate"
         elif share.get(n, 0.0) > 0.5:
             status = "kept near the prior"
-        elif prior:
+        elif prior.to_json():
             status = "determined by the flight"
         else:
             status = "estimated" if s is not None else "no std error"
         params.append({"name": n, "value": _f(m.params[n], ".4g"), "std": _f(s, ".2g"),
-                       "prior": (f"{_f(prior['nominal'].get(n), '.3g')} ± {_f(prior['std'].get(n), '.2g')}"
-                                 if prior.get("nominal") else "–"),
+                       "prior": (f"{_f(prior.nominal.get(n), '.3g')} ± {_f(prior.std.get(n), '.2g')}"
+                                 if prior.nominal else "–"),
                        "share": _f(100 * share[n], ".0f") + " %" if n in share else "–", "status": status,
                        "flag": status not in ("determined by the flight", "estimated")})
     ho = fit.heldout or HeldOut()
@@ -143,9 +142,9 @@ def model_view(d: FlightReportData) -> dict[str, Any]:
         warnings.append(f"The {sub} subsystem's held-out prediction runs away ({runs}): not a model of the aircraft.")
     for u in fit.unstable_modes:
         warnings.append(u[0].upper() + u[1:] + ".")
-    if prior.get("prior_dominated"):
-        warnings.append(f"Not determined by this flight, kept near the prior ({prior.get('source')}): "
-                        f"{', '.join(prior['prior_dominated'])}.")
+    if prior.prior_dominated:
+        warnings.append(f"Not determined by this flight, kept near the prior ({prior.source}): "
+                        f"{', '.join(prior.prior_dominated)}.")
     for name, why in fit.pinned_reasons.items():
         warnings.append(f"{name} {why}.")
     notes = list(fit.fixed_reasons) + list(fit.notes) + list(fit.closed_loop)
@@ -346,8 +345,8 @@ def unsupported(d: FlightReportData) -> list[str]:
         for c in fit.closed_loop[:1]:
             out.append(f"Closed loop: {c}")
         pr = fit.prior
-        if pr.get("prior_dominated"):
-            out.append(f"Kept near the prior, not determined by this flight: {', '.join(pr['prior_dominated'])}.")
+        if pr is not None and pr.prior_dominated:
+            out.append(f"Kept near the prior, not determined by this flight: {', '.join(pr.prior_dominated)}.")
     v = d.freq
     if v is not None:
         if v.J_avg is not None and not v.good:

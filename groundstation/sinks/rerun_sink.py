@@ -32,6 +32,7 @@ import numpy as np
 import rerun as rr
 
 from groundstation.errors import GroundstationError
+from groundstation.freq.verify import freq_pairs
 from groundstation.sinks.rerun_layout import (
     INPUT_MEANING,
     INPUTS,
@@ -51,17 +52,6 @@ __all__ = ["INPUTS", "OUTPUTS", "UNITS", "RerunSink", "RerunSinkError", "bluepri
 _COLORS = {"raw": (170, 170, 170), "smoothed": (31, 119, 180), "model": (214, 39, 40),
            "residual": (44, 160, 44), "flagged": (255, 127, 14), "before": (150, 150, 150), "after": (44, 160, 44)}
 _STATE_COLORS = {"on ground": 0x9E9E9EFF, "armed": 0xFFB300FF, "in air": 0x43A047FF}
-
-
-def freq_pairs(v: Any) -> list[dict[str, Any]]:
-    """The pairs of a :class:`groundstation.freq.verify.FreqVerification` as :meth:`RerunSink.log_frequency_response`
-    takes them (data, model and coherence per scored input-output pair); ``[]`` for anything else."""
-    if v is None or not hasattr(v, "responses") or not hasattr(v, "pairs"):
-        return []
-    scored = {(s.input, s.output) for s in v.pairs}
-    return [{"input": p.input, "output": p.output, "f_hz": p.f_hz, "data": p.response, "coherence": p.coherence,
-             "model": v.model[:, OUTPUTS.index(p.output), INPUTS.index(p.input)]}
-            for p in v.responses.with_response if (p.input, p.output) in scored]
 
 
 class RerunSinkError(GroundstationError):

@@ -12,6 +12,7 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+from groundstation.gap.report import through_flight_lines
 from groundstation.sinks.rerun_layout import OUTPUTS, SYMBOL, UNITS
 
 NEXT_STEP = {
@@ -160,7 +161,6 @@ def verdict_text(flight: int, gap: Mapping[str, Any]) -> str:
         lines += _effect_lines(e, alpha)
     for e in (gap.get("partial_findings") or [])[:3]:
         lines += ["*Partial finding (not named):*"] + _effect_lines(e, alpha)
-    from groundstation.gap.report import through_flight_lines
 
     lines += [f"- {t}" for t in through_flight_lines(dict(gap))] + ([""] if gap.get("through_flight") else [])
     if verdict in ("none", "unexplained"):

@@ -41,9 +41,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import zenoh
 
 from groundstation.errors import GroundstationError
+from groundstation.sinks.zenoh_security import ZenohSecurityError, check_zenoh_config, explain_open_failure
 
 
 class ZenohSinkError(GroundstationError):
@@ -71,15 +73,10 @@ def loopback_peer_config(listen_port: int = 0, connect_ports: tuple[int, ...] = 
 
 
 def _json_default(o: Any) -> Any:
-    try:
-        import numpy as np
-
-        if isinstance(o, np.ndarray):
-            return o.tolist()
-        if isinstance(o, np.generic):
-            return o.item()
-    except ImportError:  # pragma: no cover - numpy is a dependency
-        pass
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
     return str(o)
 
 
@@ -91,8 +88,6 @@ def dumps_numeric(doc: Any) -> str:
 
 def _security_check(path: str) -> tuple[str | None, bool]:
     """(one-line problem or None, whether it is a client config) from :mod:`zenoh_security`."""
-    from groundstation.sinks.zenoh_security import ZenohSecurityError, check_zenoh_config
-
     try:
         return None, check_zenoh_config(path).mode == "client"
     except ZenohSecurityError as exc:
@@ -101,8 +96,6 @@ def _security_check(path: str) -> tuple[str | None, bool]:
 
 def _explain_failure(path: str) -> str | None:
     """Why a client could not open its session (unreachable, certificate, password), one line."""
-    from groundstation.sinks.zenoh_security import ZenohSecurityError, explain_open_failure
-
     try:
         return f"{path}: zenoh not connected yet: {explain_open_failure(path)}"
     except (ZenohSecurityError, OSError):

@@ -106,6 +106,8 @@ class WindowedCost:
     estimate_trim : solve one constant offset per input (the trim) with the initial states (see
         :class:`~groundstation.sysid.simulate.WindowSimulator`; not with ``varpro``)
     forcing : (W, L, 3) known accelerations on u, v, w (see WindowSimulator; not with ``varpro``)
+    window_offsets : one constant offset per input in each window (see WindowSimulator; not with
+        ``varpro`` or ``estimate_trim``)
     varpro : the free B-matrix parameters (:data:`LINEAR_B`) are not searched but solved by least
         squares inside every evaluation (variable projection); ``x`` then holds only the other free
         parameters and :meth:`complete` returns full vectors with the solved B entries
@@ -113,7 +115,8 @@ class WindowedCost:
 
     def __init__(self, windows: Windows, free: np.ndarray, theta_fixed: np.ndarray, *,
                  estimate_all_initial: bool = False, subsystems: tuple[int, ...] = (0, 1),
-                 varpro: bool = False, estimate_trim: bool = False, forcing: np.ndarray | None = None) -> None:
+                 varpro: bool = False, estimate_trim: bool = False, forcing: np.ndarray | None = None,
+                 window_offsets: bool = False) -> None:
         self.windows = windows
         free = np.asarray(free, dtype=bool)
         self.theta_fixed = np.asarray(theta_fixed, dtype=float).copy()
@@ -133,7 +136,8 @@ class WindowedCost:
         self.free = self.searched
         self.sim = WindowSimulator(windows.inputs, windows.outputs, windows.dt_s, windows.available,
                                    estimate_all_initial=estimate_all_initial, subsystems=subsystems, linear=linear,
-                                   estimate_trim=estimate_trim, forcing=forcing, measured=windows.measured)
+                                   estimate_trim=estimate_trim, forcing=forcing, measured=windows.measured,
+                                   window_offsets=window_offsets)
         self.nfev = 0
         self.used: np.ndarray = np.asarray(self.sim.mask.any(axis=0), dtype=bool)  # (8,) channels in the cost
 

@@ -3,8 +3,10 @@
 ``ModelFit.from_json(model.fit)`` reads the section a model file (docs/model-file.md) carries: how the
 model was found (algorithm, cost, fitness, evaluations, seconds, windows), the channels it was fitted
 on, the held-out verdict (:class:`HeldOut`, ``usable``, ``unusable_subsystems``, ``closed_loop``),
-and, as plain JSON values in ``extra``, the sections only some fits have (the configuration
-selection, the prior, the search history, the frequency scores, ...). ``to_json()`` gives the
+the prior's part (:class:`PriorReport`), the held-out choice of the configuration (:class:`Selection`)
+and of the stabilised aircraft's structure (:class:`StructureChoice`), each candidate a
+:class:`CandidateScore`; the search history, the service's cross-flight check and the frequency
+scores stay plain JSON values; keys the version does not know go to ``extra``. ``to_json()`` gives the
 section back key for key and in the same order, so a file read and written again is unchanged.
 Every field is optional (None or empty): a model from the frequency-domain fit, the reference fit
 or an older file has fewer of them. A field is in the document when it was read from one or set by
@@ -141,6 +143,9 @@ def _read(tp: Any, v: Any) -> Any:
         if isinstance(t, type) and issubclass(t, JsonSection) and isinstance(v, Mapping):
             return t.from_json(v)
         if typing.get_origin(t) is tuple and isinstance(v, list):
+            item = typing.get_args(t)[0] if typing.get_args(t) else None
+            if isinstance(item, type) and issubclass(item, JsonSection):
+                return tuple(item.from_json(x) if isinstance(x, Mapping) else copy.deepcopy(x) for x in v)
             return tuple(copy.deepcopy(v))
         if typing.get_origin(t) is Mapping and isinstance(v, Mapping):
             item = typing.get_args(t)[1]
@@ -155,7 +160,7 @@ def _write(v: Any) -> Any:
     if isinstance(v, Mapping):
         return {k: _write(x) for k, x in v.items()}
     if isinstance(v, tuple):
-        return [copy.deepcopy(x) for x in v]
+        return [_write(x) for x in v]
     return copy.deepcopy(v)
 
 
@@ -178,6 +183,83 @@ class HeldOut(JsonSection):
     runaway: Mapping[str, Any] = field(default_factory=dict)
     unusable_subsystems: tuple[str, ...] = ()
     skipped: str | None = None
+
+
+@dataclass(frozen=True)
+class PriorReport(JsonSection):
+    """The prior model's part in the fit (``fit.prior``, output error with a priori weighting): which free
+    parameters the flight determines and which stay near their prior. Empty (``{}`` in the file) when
+    the fit had no prior."""
+
+    #: where the prior came from (the aircraft file's path, or "given")
+    source: str | None = None
+    #: free parameters the flight determines (the prior's share of their information at most one half)
+    determined: tuple[str, ...] = ()
+    #: free parameters kept near the prior (its share above one half)
+    prior_dominated: tuple[str, ...] = ()
+    #: parameters on a search bound: neither determined nor near the prior, and not an estimate
+    on_bound: tuple[str, ...] = ()
+    #: parameters the data cannot move at all: the prior's value and std
+    fixed_at_prior: tuple[str, ...] = ()
+    #: the prior's share of each free parameter's information (0..1)
+    prior_share: Mapping[str, float] = field(default_factory=dict)
+    nominal: Mapping[str, float] = field(default_factory=dict)
+    std: Mapping[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class CandidateScore(JsonSection):
+    """One candidate of a held-out comparison (a row of ``fit.selection.candidates`` or
+    ``fit.structure_choice.candidates``): its per-fold scores and, beside the first row (the base),
+    its paired gain over the base and whether that gain counts."""
+
+    name: str | None = None
+    #: the configuration keys it changes (the selection's candidates)
+    overrides: Mapping[str, Any] = field(default_factory=dict)
+    #: per fold: the mean over channels of the held-out match (%), each channel floored
+    fold_score: tuple[float, ...] = ()
+    mean_match: float | None = None
+    channel_mean: Mapping[str, float] = field(default_factory=dict)
+    #: fold -> channels whose prediction ran away
+    runaway: Mapping[str, Any] = field(default_factory=dict)
+    #: mean paired gain over the base (points per fold) and its standard error
+    gain: float | None = None
+    gain_se: float | None = None
+    #: folds it gains on
+    gain_folds: int | None = None
+    significant: bool | None = None
+    #: why it cannot win (a runaway prediction), when that decides
+    reason: str | None = None
+    #: the selection round it ran in (1 = the first)
+    round: int | None = None
+    #: the winner refitted with its full search, scored again
+    final: CandidateScore | None = None
+
+
+@dataclass(frozen=True)
+class Selection(JsonSection):
+    """The held-out choice of the fitting configuration (``fit.selection``): every candidate's scores,
+    the one chosen and the rule; ``skipped`` says why no comparison ran (then the rest is empty)."""
+
+    #: folds
+    k: int | None = None
+    chosen: str | None = None
+    candidates: tuple[CandidateScore, ...] = ()
+    #: the configuration keys the chosen candidate changes
+    overrides: Mapping[str, Any] = field(default_factory=dict)
+    rule: str | None = None
+    skipped: str | None = None
+
+
+@dataclass(frozen=True)
+class StructureChoice(JsonSection):
+    """The stabilised aircraft's structure comparison (``fit.structure_choice``): ``chosen`` is "hover"
+    or "command_response", ``reason`` says why; ``candidates`` the two structures' held-out scores when
+    they were compared."""
+
+    chosen: str | None = None
+    reason: str | None = None
+    candidates: tuple[CandidateScore, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -228,9 +310,9 @@ class ModelFit(JsonSection):
     #: unstable modes with their time constants (one sentence each)
     unstable_modes: tuple[str, ...] = ()
     #: the prior model's part in the fit (which parameters it decided, its nominal and std)
-    prior: Mapping[str, Any] = field(default_factory=dict)
+    prior: PriorReport | None = None
     #: the held-out choice of the fitting configuration
-    selection: Mapping[str, Any] = field(default_factory=dict)
+    selection: Selection | None = None
     heldout: HeldOut | None = None
     #: False when a subsystem's held-out prediction runs away; None when not checked
     usable: bool | None = None
@@ -240,7 +322,7 @@ class ModelFit(JsonSection):
     #: channels whose prediction runs away (``identify --domain``)
     runaway_channels: tuple[str, ...] = ()
     #: the stabilised aircraft's structure comparison: which structure predicts, and why
-    structure_choice: Mapping[str, Any] = field(default_factory=dict)
+    structure_choice: StructureChoice | None = None
     #: the command-response fit, one line per axis
     command_response: tuple[str, ...] = ()
     #: the hover structure's held-out check when the command-response structure was chosen

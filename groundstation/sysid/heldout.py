@@ -30,12 +30,15 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from groundstation.dsp.split import contiguous_kfold
 from groundstation.parallel import Map, serial_map
 from groundstation.sysid.cost import make_windows
 from groundstation.sysid.model import INPUTS, OUTPUTS, HoverModel, build_matrices
 from groundstation.sysid.prediction import Prediction
+from groundstation.sysid.refine import residual_tau
 from groundstation.sysid.settings import IdentifyConfig
 from groundstation.sysid.simulate import WindowSimulator
+from groundstation.sysid.structure import CommandModel, predict_command
 
 #: channels of each subsystem (which outputs a subsystem's instability spoils)
 SUBSYSTEM_CHANNELS: dict[str, tuple[str, ...]] = {
@@ -81,14 +84,12 @@ def predict(model: HoverModel, prepared: Any, *, window_s: float = IdentifyConfi
     """Score ``model`` on held-out ``prepared`` data (see the module docstring). A model whose
     ``structure`` is the command-response one predicts with it (:mod:`groundstation.sysid.structure`)."""
     if getattr(model, "structure", "hover") == "command_response" and model.command is not None:
-        from groundstation.sysid.structure import CommandModel, predict_command
-
         return predict_command(CommandModel.from_json(model.command), prepared, window_s=window_s)
     win = make_windows(prepared.segments, prepared.dt_s, window_s)
     u = win.inputs + (input_offset(model, prepared)[None, None, :] if use_model_trim else 0.0)
     with threadpool_limits(1):
         sim = WindowSimulator(u, win.outputs, win.dt_s, win.available, estimate_all_initial=False,
-                              measured=win.measured)
+                              measured=win.measured, window_offsets=model.window_input_offsets)
         yhat = sim.simulate(model.theta[None])[0]
     match: dict[str, float] = {}
     ratio: dict[str, float] = {}
@@ -141,8 +142,6 @@ def crossvalidate(prepared: Any, fit_fold: Any, *, k: int = IdentifyConfig.selec
     """Fit on k-1 contiguous blocks of the in-air time with ``fit_fold(train) -> HoverModel``, predict
     the left-out block (:func:`predict`), for each of the k blocks. ``pmap`` fits the folds (in worker
     processes with :func:`groundstation.parallel.worker_map`; ``fit_fold`` must then be picklable)."""
-    from groundstation.dsp.split import contiguous_kfold
-
     folds = [(f, train, val) for f, (train, val) in enumerate(contiguous_kfold(prepared, k))
              if train.segments and val.segments]
     models = pmap(partial(_fit_or_none, fit_fold), [train for _, train, _ in folds])
@@ -185,13 +184,11 @@ def feedback_evidence(model: HoverModel, prepared: Any, *, window_s: float = Ide
     later is compared with ``z`` / sqrt(N_eff) (N_eff the samples over the error's autocorrelation
     time). One line per input that responds.
     """
-    from groundstation.sysid.refine import residual_tau
-
     win = make_windows(prepared.segments, prepared.dt_s, window_s)
     u = win.inputs + input_offset(model, prepared)[None, None, :]
     with threadpool_limits(1):
         sim = WindowSimulator(u, win.outputs, win.dt_s, win.available, estimate_all_initial=False,
-                              measured=win.measured)
+                              measured=win.measured, window_offsets=model.window_input_offsets)
         e = sim.errors(model.theta[None])[0]  # (W, L, 8), zero in holes of the link
     du = np.diff(win.inputs, axis=1)
     out = []

@@ -16,7 +16,9 @@
    cost separates exactly and each search is in fewer dimensions;
 4. ``search_restarts`` independent searches per subsystem (after the first with
    ``restart_algorithm``, DE by default), each screened and refined; the lowest refined cost wins
-   (the search cost does not tell a wrong basin from the right one);
+   (the search cost does not tell a wrong basin from the right one); the searches draw the random
+   numbers, the screening and refinements none, so with worker processes a subsystem is screened and
+   refined on them while this process searches the next one (the same model);
    refine with least squares from the best solution (:mod:`groundstation.sysid.refine`) and
    compute the standard errors; parameters within 0.1 % of a bound are ``pinned``. The refinement
    cost also solves one input trim offset per input (``estimate_trim``; the model file's
@@ -40,6 +42,7 @@ while identifying: the batched products are small and threads only contend on a 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
@@ -51,6 +54,7 @@ from groundstation.errors import SysidError
 from groundstation.parallel import Map, serial_map
 from groundstation.sysid.cost import WindowedCost, make_windows, subset_windows
 from groundstation.sysid.fit_section import ModelFit
+from groundstation.sysid.heldout import unstable_modes
 from groundstation.sysid.model import (
     HOR_PARAMS,
     N_PARAMS,
@@ -64,8 +68,10 @@ from groundstation.sysid.model import (
 from groundstation.sysid.optimizers import ALGORITHMS
 from groundstation.sysid.refine import map_objective, with_standard_errors
 from groundstation.sysid.refine import refine as refine_ls
+from groundstation.sysid.select import best_refinement, select_config
 from groundstation.sysid.settings import IdentifyConfig
 from groundstation.sysid.simulate import kinematic_forcing
+from groundstation.sysid.structure_choice import attach_command_structure
 
 #: Parameters that need each input to move.
 INPUT_PARAMS: dict[str, tuple[str, ...]] = {
@@ -249,7 +255,7 @@ def _costs(plan: _Plan, cfg: IdentifyConfig, sub: int, sub_free: np.ndarray, the
     """(refinement cost, screening cost, search cost with B by variable projection) of one subsystem."""
     kw = dict(estimate_all_initial=cfg.estimate_all_initial, subsystems=(sub,))
     cost = _refine_cost(plan, cfg, sub, sub_free, theta, trim)
-    cost_s = WindowedCost(plan.win_s, sub_free, theta, estimate_trim=trim, forcing=plan.forcing_s, **kw)  # type: ignore[arg-type]
+    cost_s = WindowedCost(plan.win_s, sub_free, theta, forcing=plan.forcing_s, **_offsets(cfg, trim), **kw)  # type: ignore[arg-type]
     cost_v = WindowedCost(plan.win_s, sub_free, theta, varpro=cfg.varpro, **kw)  # type: ignore[arg-type]
     return cost, cost_s, cost_v
 
@@ -257,8 +263,16 @@ def _costs(plan: _Plan, cfg: IdentifyConfig, sub: int, sub_free: np.ndarray, the
 def _refine_cost(plan: _Plan, cfg: IdentifyConfig, sub: int, sub_free: np.ndarray, theta: np.ndarray,
                  trim: bool) -> WindowedCost:
     """The refinement cost of one subsystem alone (a refit needs no search or screening cost)."""
-    return WindowedCost(plan.win, sub_free, theta, estimate_trim=trim, forcing=plan.forcing,
+    return WindowedCost(plan.win, sub_free, theta, forcing=plan.forcing, **_offsets(cfg, trim),
                         estimate_all_initial=cfg.estimate_all_initial, subsystems=(sub,))
+
+
+def _offsets(cfg: IdentifyConfig, on: bool) -> dict[str, Any]:
+    """WindowedCost keywords of the input offsets: one per flight (``estimate_trim``, the trim), one per
+    window (``window_input_offsets``), or none (``on`` False)."""
+    if not on:
+        return {}
+    return {"window_offsets": True} if cfg.window_input_offsets else {"estimate_trim": True}
 
 
 def _progress(callback: Callable[[dict], Any] | None, stage: str, fun: float, nfev: int) -> None:
@@ -271,14 +285,11 @@ def _score(cost: WindowedCost, r: Any, sig_eff: np.ndarray, prior: tuple[np.ndar
     return float(r.fun) if prior is None else map_objective(cost, r.x, sig_eff, prior)
 
 
-def _search_once(alg: str, it: int, label: str, costs: tuple, plan: _Plan, cfg: IdentifyConfig, sub_free: np.ndarray,
-                 refine: bool, rng: np.random.Generator, cb: Callable, callback: Callable | None,
-                 sub_name: str) -> tuple[float, np.ndarray, Any]:
-    """One search, then (with ``refine``) successive-halving screening of its best distinct points (and
-    the prior's nominal) on the search windows: (F, x, opt), x the screening's winner, the start of
-    the full refinement (:func:`_full_refine`), F nan; without ``refine`` the search's best point and
-    its cost."""
-    cost, cost_s, cost_v = costs
+def _search_once(alg: str, it: int, costs: tuple, plan: _Plan, cfg: IdentifyConfig, sub_free: np.ndarray,
+                 refine: bool, rng: np.random.Generator, cb: Callable) -> tuple[float, list[np.ndarray], Any]:
+    """One search: (F, starts, opt). With ``refine`` the starts of its screening (:func:`_screen`): its best
+    distinct points and the prior's nominal, F nan; without, the search's best point and its cost."""
+    cost, _, cost_v = costs
     bfree = plan.bounds[sub_free]
     prior = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
 
@@ -290,12 +301,23 @@ def _search_once(alg: str, it: int, label: str, costs: tuple, plan: _Plan, cfg: 
                           **cfg.search_options(alg))
     if not refine:
         xr = to_free(opt.x)
-        return float(cost(xr[None])[0]), xr, opt
+        return float(cost(xr[None])[0]), [xr], opt
     vb = plan.bounds[cost_v.free]
     starts = [to_free(xv) for xv in _starts(opt, cfg.refine_starts, vb[:, 1] - vb[:, 0], cfg.refine_start_min_dist)]
     if prior is not None:
         span = bfree[:, 1] - bfree[:, 0]
         starts.append(np.clip(prior[0], bfree[:, 0] + 1e-6 * span, bfree[:, 1] - 1e-6 * span))
+    return float("nan"), starts, opt
+
+
+def _screen(starts: list[np.ndarray], opt: Any, label: str, costs: tuple, plan: _Plan, cfg: IdentifyConfig,
+            sub_free: np.ndarray, callback: Callable | None, sub_name: str) -> np.ndarray:
+    """Successive-halving screening of a search's ``starts`` on the search windows: short refinements of
+    many, longer ones of the best few; returns the winner, the start of the full refinement
+    (:func:`_full_refine`). Draws no random numbers."""
+    cost, cost_s, _ = costs
+    bfree = plan.bounds[sub_free]
+    prior = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
     nfev_round = cfg.screen_max_nfev
     screen_f = float("nan")
     while len(starts) > 1:   # short refinements of many starts, longer ones of the best few
@@ -310,7 +332,7 @@ def _search_once(alg: str, it: int, label: str, costs: tuple, plan: _Plan, cfg: 
         screen_f = scored[0][0]
         nfev_round *= 2
     _progress(callback, f"screened {sub_name}{label}", screen_f, cost_s.nfev + cost.nfev)
-    return float("nan"), starts[0], opt
+    return starts[0]
 
 
 def _full_refine(cost: WindowedCost, bfree: np.ndarray, cfg: IdentifyConfig,
@@ -349,19 +371,37 @@ def _extra_start_points(plan: _Plan, cfg: IdentifyConfig, sub_free: np.ndarray) 
     return out
 
 
-def _identify_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], plan: _Plan, cfg: IdentifyConfig,
-                        run: _Run, *, algorithm: str, iters: int, maxiter: int | None, refine: bool,
-                        rng: np.random.Generator, callback: Callable[[dict], Any] | None) -> None:
-    """Search (with restarts), screen and refine one subsystem; results go into ``run``."""
+@dataclass(eq=False)
+class _SubSearch:
+    """One subsystem's searches, before their screening and refinement (internal)."""
+
+    sub: int
+    name: str
+    free: np.ndarray
+    costs: tuple
+    #: per search: (F, its best point without refinement, OptimizeResult, algorithm, the screening's winner:
+    #: a call that returns it, with refinement)
+    found: list[tuple[float, np.ndarray, Any, str, Callable[[], np.ndarray] | None]]
+
+
+#: ``later(fn)``: a call that returns ``fn()``, which runs on a background thread (with worker processes)
+#: or when first called (with the serial map)
+Later = Callable[[Callable[[], Any]], Callable[[], Any]]
+
+
+def _search_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], plan: _Plan, cfg: IdentifyConfig,
+                      run: _Run, *, algorithm: str, iters: int, maxiter: int | None, refine: bool,
+                      rng: np.random.Generator, callback: Callable[[dict], Any] | None, later: Later) -> _SubSearch | None:
+    """The searches of one subsystem (the only part that draws random numbers), each search's screening
+    handed to ``later`` as soon as it ends; None without a measured output. The costs are built at
+    ``run.theta`` as it stands: the subsystem's simulation reads only its own parameters."""
     idx = np.array([PARAM_INDEX[p] for p in sub_params])
     sub_free = np.zeros(N_PARAMS, dtype=bool)
     sub_free[idx] = plan.free[idx]
-    trim = cfg.estimate_trim and refine
-    costs = _costs(plan, cfg, sub, sub_free, run.theta, trim)
-    cost = costs[0]
-    if not cost.used.any():
+    costs = _costs(plan, cfg, sub, sub_free, run.theta, cfg.input_offsets and refine)
+    if not costs[0].used.any():
         plan.reasons.append(f"{sub_name} subsystem: no measured output, not identified")
-        return
+        return None
 
     def cb(res: Any) -> bool:
         if callback is not None:
@@ -371,71 +411,113 @@ def _identify_subsystem(sub: int, sub_name: str, sub_params: tuple[str, ...], pl
 
     # the vertical/yaw search's iterations relative to the horizontal one's (cfg.vertical_iter_factor)
     sub_iters = iters if sub == 0 else int(iters * cfg.vertical_iter_factor)
-    best: tuple[float, np.ndarray, Any, Any, str] | None = None   # (F, x, opt, refinement, algorithm)
-    pr = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
-    sig_ref = None   # with a prior, restarts are compared by the MAP objective at the first one's scales
-    found: list[tuple[float, np.ndarray, Any, str]] = []
+    found = []
     for restart in range(max(1, cfg.search_restarts if refine else 1)):
         alg = algorithm if restart == 0 or not cfg.restart_algorithm else cfg.restart_algorithm
         it = sub_iters
         if alg != algorithm and not (maxiter or cfg.maxiter):
             it = DEFAULT_MAXITER[alg] if sub == 0 else int(DEFAULT_MAXITER[alg] * cfg.vertical_iter_factor)
-        F, xr, opt = _search_once(alg, it, f" (search {restart + 1})" if restart else "", costs, plan, cfg,
-                                  sub_free, refine, rng, cb, callback, sub_name)
+        F, starts, opt = _search_once(alg, it, costs, plan, cfg, sub_free, refine, rng, cb)
         run.nit += int(opt.nit)
-        found.append((F, xr, opt, alg))
-    if refine:
-        # the full refinements of every search's winner and of the extra starts are independent (and
-        # draw no random numbers): side by side in the worker processes, compared in the same order
-        extra = _extra_start_points(plan, cfg, sub_free)
-        x0s = [xr for _, xr, _, _ in found] + [x0 for _, x0 in extra]
-        _progress(callback, f"refine {sub_name} ({len(x0s)} start{'s' if len(x0s) > 1 else ''})",
-                  float(found[0][2].fun), sum(c.nfev for c in costs))
-        nfev0 = cost.nfev
-        refs = plan.pmap(partial(_full_refine, cost, plan.bounds[sub_free], cfg, pr), x0s)
-        if cost.nfev == nfev0:    # refined in worker processes, on copies of the cost
-            cost.nfev += sum(int(r.nfev) for r in refs)
-        for (_, _, opt, alg), r in zip(found, refs[:len(found)], strict=True):
-            F = float(r.fun)
-            if pr is not None:
-                sig_ref = r.sig_eff if sig_ref is None else sig_ref
-                F = map_objective(cost, r.x, sig_ref, pr)
-            if best is None or F < best[0]:
-                best = (F, r.x, opt, r, alg)
-        assert best is not None
-        for (n, _), r in zip(extra, refs[len(found):], strict=True):
-            F = float(r.fun) if pr is None or sig_ref is None else map_objective(cost, r.x, sig_ref, pr)
-            if F < best[0]:
-                best = (F, r.x, best[2], r, f"{best[4]}+{n} start")
-    else:
-        for F, xr, opt, alg in found:
+        label = f" (search {restart + 1})" if restart else ""
+        screened = later(partial(_screen, starts, opt, label, costs, plan, cfg, sub_free, callback, sub_name)) \
+            if refine else None
+        found.append((F, starts[0], opt, alg, screened))
+    return _SubSearch(sub, sub_name, sub_free, costs, found)
+
+
+def _refine_subsystem(s: _SubSearch, plan: _Plan, cfg: IdentifyConfig,
+                      callback: Callable | None) -> tuple[float, np.ndarray, Any, Any, str]:
+    """The full refinements of every search's screened winner and of the extra starts (independent,
+    drawing no random numbers: side by side in the worker processes), and the lowest refined (MAP)
+    cost of them with its standard errors: (F, x, the search's result, the refinement, algorithm)."""
+    cost = s.costs[0]
+    pr = None if plan.prior is None else (plan.prior[0][s.free], plan.prior[1][s.free])
+    extra = _extra_start_points(plan, cfg, s.free)
+    x0s = [screened() for *_, screened in s.found if screened is not None] + [x0 for _, x0 in extra]
+    _progress(callback, f"refine {s.name} ({len(x0s)} start{'s' if len(x0s) > 1 else ''})",
+              float(s.found[0][2].fun), sum(c.nfev for c in s.costs))
+    nfev0 = cost.nfev
+    refs = plan.pmap(partial(_full_refine, cost, plan.bounds[s.free], cfg, pr), x0s)
+    if cost.nfev == nfev0:    # refined in worker processes, on copies of the cost
+        cost.nfev += sum(int(r.nfev) for r in refs)
+    best: tuple[float, np.ndarray, Any, Any, str] | None = None
+    sig_ref = None   # with a prior, restarts are compared by the MAP objective at the first one's scales
+    for (_, _, opt, alg, _), r in zip(s.found, refs[:len(s.found)], strict=True):
+        F = float(r.fun)
+        if pr is not None:
+            sig_ref = r.sig_eff if sig_ref is None else sig_ref
+            F = map_objective(cost, r.x, sig_ref, pr)
+        if best is None or F < best[0]:
+            best = (F, r.x, opt, r, alg)
+    assert best is not None
+    for (n, _), r in zip(extra, refs[len(s.found):], strict=True):
+        F = float(r.fun) if pr is None or sig_ref is None else map_objective(cost, r.x, sig_ref, pr)
+        if F < best[0]:
+            best = (F, r.x, best[2], r, f"{best[4]}+{n} start")
+    # the standard errors of the winner only (each restart's refinement skips them)
+    return best[:3] + (with_standard_errors(cost, best[3], plan.bounds[s.free], pr), best[4])
+
+
+def _record_subsystem(s: _SubSearch, best: tuple[float, np.ndarray, Any, Any, str] | None, plan: _Plan,
+                      cfg: IdentifyConfig, run: _Run) -> None:
+    """One subsystem's winner into ``run``: ``best`` from :func:`_refine_subsystem`; None without
+    refinement: the search of the lowest search cost."""
+    sub, sub_name, sub_free, costs = s.sub, s.name, s.free, s.costs
+    cost = costs[0]
+    if best is None:
+        for F, xr, opt, alg, _ in s.found:
             if best is None or F < best[0]:
                 best = (F, xr, opt, None, alg)
     assert best is not None
-    F, x, opt, ref, won = best
-    if ref is not None:   # the standard errors of the winner only (each restart's refinement skips them)
-        ref = with_standard_errors(cost, ref, plan.bounds[sub_free], pr)
+    _, x, opt, ref, won = best
     run.search_alg[sub_name] = won
     run.F_search += float(opt.fun)
     run.search_by_sub[sub_name] = float(opt.fun)
     run.histories[sub_name] = [float(h) for h in opt.history]
     run.histories_nfev[sub_name] = [int(h) for h in opt.history_nfev]
     if ref is not None:
-        record_tradeoffs(run, sub_free, ref, None if pr is None else pr[1])
+        pr_std = None if plan.prior is None else plan.prior[1][sub_free]
+        record_tradeoffs(run, sub_free, ref, pr_std)
         run.std[np.flatnonzero(sub_free)] = ref.std
         run.share[np.flatnonzero(sub_free)] = ref.prior_share if plan.prior is not None else 0.0
         run.sigma[cost.used] = ref.sigma[cost.used]
-    run.theta = cost.full(x)[0]
-    if trim:
+    run.theta = run.theta.copy()
+    run.theta[sub_free] = x   # the cost's own full(x) would also reset what earlier subsystems left
+    if cfg.flight_trim and ref is not None:
         run.delta[list(_SUBS_INPUTS[sub])] = cost.sim.solve_trim(run.theta[None])[sub][0]
     run.F_total += float(cost(x[None])[0])
     run.nfev += sum(c.nfev for c in costs)
 
 
+def _identify_subsystems(plan: _Plan, cfg: IdentifyConfig, run: _Run, *, refine: bool,
+                         callback: Callable[[dict], Any] | None, **search: Any) -> None:
+    """Search, screen and refine both subsystems into ``run``. The searches run one after the other in
+    this process (they share the random number generator). The screening of each search's starts and
+    each subsystem's full refinements draw no random numbers: with worker processes a background
+    thread hands them to the workers as soon as their search ends, while this process runs the next
+    search; with the serial map they run after the searches. The same model either way."""
+    subs = ((0, "horizontal", HOR_PARAMS), (1, "vertical", VER_PARAMS))
+    parallel = plan.pmap is not serial_map and refine
+    with ThreadPoolExecutor(max_workers=1) as bg:   # one thread: the jobs run in the order handed over
+
+        def later(fn: Callable[[], Any]) -> Callable[[], Any]:
+            return bg.submit(fn).result if parallel else fn
+
+        pending = []
+        for sub, sub_name, sub_params in subs:
+            s = _search_subsystem(sub, sub_name, sub_params, plan, cfg, run, refine=refine, callback=callback,
+                                  later=later, **search)
+            if s is not None:
+                pending.append((s, later(partial(_refine_subsystem, s, plan, cfg, callback)) if refine else None))
+        for s, best in pending:   # recorded in order: the totals add up as before
+            _record_subsystem(s, None if best is None else best(), plan, cfg, run)
+
+
 def _in_sample_match(plan: _Plan, cfg: IdentifyConfig, theta: np.ndarray, trim: bool) -> tuple[dict[str, float], np.ndarray]:
     """Eq. 19 match per used channel on the training windows, and the used-channel mask (8,)."""
     full_cost = WindowedCost(plan.win, np.zeros(N_PARAMS, dtype=bool), theta, estimate_all_initial=cfg.estimate_all_initial,
-                             estimate_trim=trim, forcing=plan.forcing)
+                             forcing=plan.forcing, **_offsets(cfg, trim))
     errs = full_cost.sim.errors(theta[None])[0]
     y = full_cost.sim.outputs
     match = {}
@@ -501,22 +583,17 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
     _check(cfg, algorithm, prepared)
     iters = maxiter or cfg.maxiter or DEFAULT_MAXITER[algorithm]
     rng = np.random.default_rng(seed)
-    trim = cfg.estimate_trim and refine
+    trim = cfg.input_offsets and refine
     with threadpool_limits(1):
         plan = _plan(prepared, cfg, refine, bounds, prior, pmap)
         run = _Run(theta=np.clip(_fixed_values(plan), plan.bounds[:, 0], plan.bounds[:, 1]))
-        for sub, sub_name, sub_params in ((0, "horizontal", HOR_PARAMS), (1, "vertical", VER_PARAMS)):
-            _identify_subsystem(sub, sub_name, sub_params, plan, cfg, run, algorithm=algorithm, iters=iters,
-                                maxiter=maxiter, refine=refine, rng=rng, callback=callback)
+        _identify_subsystems(plan, cfg, run, refine=refine, callback=callback, algorithm=algorithm, iters=iters,
+                             maxiter=maxiter, rng=rng)
         match, used = _in_sample_match(plan, cfg, run.theta, trim)
     model = _model(prepared, plan, cfg, run, match, used, algorithm=algorithm, seed=seed, refine=refine, prior=prior)
     if refine and cfg.select_candidates.strip() and cfg.select_folds >= 2:
-        from groundstation.sysid.select import select_config
-
         model = select_config(prepared, model, cfg, prior=prior, bounds=bounds, pmap=pmap, fit=fit_candidate, refit=refit)
     if refine and cfg.input_kind != "blade":
-        from groundstation.sysid.structure_choice import attach_command_structure
-
         model = attach_command_structure(prepared, model, cfg, pmap=pmap, refit=refit)
     return model
 
@@ -528,7 +605,7 @@ def _subsystem_costs(plan: Any, cfg: Any, run: Any) -> Iterator[tuple[int, np.nd
         idx = np.array([PARAM_INDEX[p] for p in sub_params])
         sub_free = np.zeros(N_PARAMS, dtype=bool)
         sub_free[idx] = plan.free[idx]
-        cost = _refine_cost(plan, cfg, sub, sub_free, run.theta, cfg.estimate_trim)
+        cost = _refine_cost(plan, cfg, sub, sub_free, run.theta, cfg.input_offsets)
         if cost.used.any():
             yield sub, sub_free, cost
 
@@ -536,7 +613,7 @@ def _subsystem_costs(plan: Any, cfg: Any, run: Any) -> Iterator[tuple[int, np.nd
 def _take(run: Any, cost: Any, x: np.ndarray, sub: int, cfg: Any) -> None:
     """``run`` moved to the subsystem's refined parameters ``x`` (and its trims, where estimated)."""
     run.theta = cost.full(x)[0]
-    if cfg.estimate_trim:
+    if cfg.flight_trim:
         run.delta[list(_SUBS_INPUTS[sub])] = cost.sim.solve_trim(run.theta[None])[sub][0]
 
 
@@ -545,8 +622,6 @@ def fit_candidate(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
     """``cfg``'s model of ``prepared``: refinements from ``model0``'s parameters and ``cfg.extra_starts``,
     the lowest refined (MAP) objective per subsystem; standard errors and report as :func:`identify`'s.
     ``quick``: one refinement pass from ``model0``'s parameters only (the selection's screening fit)."""
-    from groundstation.sysid.select import best_refinement
-
     with threadpool_limits(1):
         plan = _plan(prepared, cfg, True, bounds, prior, search=False)
         run = _Run(theta=np.clip(model0.theta, plan.bounds[:, 0], plan.bounds[:, 1]))
@@ -559,7 +634,7 @@ def fit_candidate(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
             _take(run, cost, x, sub, cfg)
             run.F_total += float(cost(x[None])[0])
             run.nfev += cost.nfev
-        match, used = _in_sample_match(plan, cfg, run.theta, cfg.estimate_trim)
+        match, used = _in_sample_match(plan, cfg, run.theta, cfg.input_offsets)
     f0 = model0.fit
     run.F_search = float(np.nan if f0.search_cost is None else f0.search_cost)  # type: ignore[arg-type]
     run.nit = int(f0.iterations or 0)
@@ -582,8 +657,6 @@ def _fixed_values(plan: _Plan) -> np.ndarray:
 
 def _model(prepared: Any, plan: _Plan, cfg: IdentifyConfig, run: _Run, match: dict[str, float], used: np.ndarray, *,
            algorithm: str, seed: int, refine: bool, prior: Any) -> HoverModel:
-    from groundstation.sysid.heldout import unstable_modes
-
     theta = run.theta
     pinned = _pinned(theta, plan.free, plan.bounds, run.partner)
     std: dict[str, float | None] = {n: (float(run.std[i]) if np.isfinite(run.std[i]) else None)
@@ -605,7 +678,7 @@ def _model(prepared: Any, plan: _Plan, cfg: IdentifyConfig, run: _Run, match: di
                        for r in plan.reasons],
         noise_sigma={OUTPUTS[j]: float(run.sigma[j]) for j in range(8) if np.isfinite(run.sigma[j])},
         history=run.histories, history_nfev=run.histories_nfev, notes=list(prepared.notes),
-        trim_estimated=bool(cfg.estimate_trim and refine), kinematic_forcing=plan.kf,
+        trim_estimated=bool(cfg.flight_trim and refine), kinematic_forcing=plan.kf,
         input_trim_correction_pwm={k: float(run.delta[j]) * float(prepared.pwm_per_unit)
                                    for j, k in enumerate(prepared.input_trim_pwm)},
         pinned_reasons=pinned,
@@ -622,7 +695,7 @@ def _model(prepared: Any, plan: _Plan, cfg: IdentifyConfig, run: _Run, match: di
                 "window_s": [float(min(s.t_s[0] for s in segs)), float(max(s.t_s[-1] for s in segs))],
                 "segments": [[s.source, int(s.flight), float(s.t_s[0]), float(s.t_s[-1])] for s in segs],
                 "link_quality": _link_report(prepared, plan.win)},
-        pinned=list(pinned),
+        pinned=list(pinned), window_input_offsets=cfg.window_input_offsets,
     )
 
 
@@ -655,4 +728,5 @@ def refit(prepared: Any, model: HoverModel, *, config: IdentifyConfig | None = N
                       input_trim_pwm={k: float(v) + float(run.delta[j]) * float(prepared.pwm_per_unit)
                                       for j, (k, v) in enumerate(prepared.input_trim_pwm.items())},
                       pwm_per_unit=float(prepared.pwm_per_unit), output_trim=dict(prepared.output_trim),
-                      fit=ModelFit.make(window_s=cfg.window_s, estimate_all_initial=cfg.estimate_all_initial))
+                      fit=ModelFit.make(window_s=cfg.window_s, estimate_all_initial=cfg.estimate_all_initial),
+                      window_input_offsets=cfg.window_input_offsets)

@@ -276,6 +276,9 @@ class HoverModel:
     command: dict[str, Any] | None = None
     #: which structure predicts: "hover" (eq. 8) or "command_response"
     structure: str = "hover"
+    #: every prediction estimates one constant offset per input in each window, with the window's
+    #: unmeasured initial states (``identify.window_input_offsets``: a stabiliser's integrator trim)
+    window_input_offsets: bool = False
 
     @property
     def theta(self) -> np.ndarray:
@@ -305,6 +308,7 @@ class HoverModel:
             "fit": self.fit.to_json(),
             "source": dict(self.source),
             **({} if self.command is None else {"structure": self.structure, "command_response": dict(self.command)}),
+            **({"window_input_offsets": True} if self.window_input_offsets else {}),
         }
 
     @classmethod
@@ -330,4 +334,5 @@ class HoverModel:
             pinned=list(doc.get("pinned_at_bound", [])),
             command=dict(doc["command_response"]) if isinstance(doc.get("command_response"), dict) else None,
             structure=str(doc.get("structure", "hover")),
+            window_input_offsets=bool(doc.get("window_input_offsets", False)),
         )

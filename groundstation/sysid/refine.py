@@ -20,9 +20,9 @@ took the worst |estimate - truth| / std from 5.0 to 3.2 (X_u, Y_v, Z_col were th
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import OptimizeResult
 
 from groundstation.sysid.cost import WindowedCost
+from groundstation.sysid.optimizers import OptimizeResult
 from groundstation.sysid.settings import IdentifyConfig
 
 #: residual bytes simulated per batch of perturbed candidates in the finite-difference Jacobians.

@@ -47,14 +47,19 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from groundstation.errors import SysidError
 from groundstation.parallel import Map, serial_map
+from groundstation.sysid.heldout import crossvalidate
 from groundstation.sysid.model import HoverModel
+from groundstation.sysid.refine import map_objective, with_standard_errors
+from groundstation.sysid.refine import refine as refine_ls
 from groundstation.sysid.settings import IdentifyConfig
 
 #: named candidate configurations (overrides of IdentifyConfig fields)
@@ -99,9 +104,6 @@ def parse_candidates(spec: str) -> list[tuple[str, dict[str, Any]]]:
 
 def _refine_start(cost: Any, bfree: np.ndarray, kw: dict[str, Any], x0: np.ndarray) -> Any:
     """One refinement of :func:`best_refinement` (module-level: worker processes run the starts)."""
-    from threadpoolctl import threadpool_limits
-
-    from groundstation.sysid.refine import refine as refine_ls
 
     with threadpool_limits(1):
         return refine_ls(cost, x0, bfree, **kw)
@@ -111,8 +113,6 @@ def best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_fre
                     quick: bool, pmap: Map = serial_map) -> tuple[np.ndarray, Any]:
     """The refinement of the lowest (MAP) objective from the model's point and ``cfg.extra_starts``
     (the starts' refinements are independent: ``pmap`` may run them side by side)."""
-    from groundstation.sysid.refine import map_objective
-
     bfree = plan.bounds[sub_free]
     span = bfree[:, 1] - bfree[:, 0]
     prior = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
@@ -142,7 +142,6 @@ def best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_fre
             best = (F, ref.x, ref)
     assert best is not None
     if not quick:   # standard errors of the winner only; the screening fit's model is only cross-validated
-        from groundstation.sysid.refine import with_standard_errors
 
         with_standard_errors(cost, best[2], bfree, prior)
     return best[1], best[2]
@@ -163,8 +162,6 @@ def _gain(s: np.ndarray, s0: np.ndarray) -> tuple[float, float]:
 
 
 def _crossvalidate(prepared: Any, model: HoverModel, cfg: Any, prior: Any, pmap: Map, refit: Any) -> Any:
-    from groundstation.sysid.heldout import crossvalidate
-
     c = dataclasses.replace(cfg, refine_max_nfev=min(int(cfg.refine_max_nfev), int(cfg.select_refit_nfev)))
     return crossvalidate(prepared, partial(refit, model=model, config=c, prior=prior), k=int(cfg.select_folds),
                          window_s=float(cfg.heldout_window_s), runaway_factor=float(cfg.runaway_factor), pmap=pmap)
@@ -178,18 +175,35 @@ def _row(name: str, c_cfg: Any, cfg: Any, cv: Any) -> dict[str, Any]:
             "runaway": {k: list(v) for k, v in cv.runaway.items()}}
 
 
-def _round(prepared: Any, base: tuple[str, Any, HoverModel, Any], cands: list[tuple[str, dict[str, Any]]],
-           cfg0: Any, prior: Any, bounds: dict | None, pmap: Map, fit: Any, refit: Any
-           ) -> tuple[int, list[tuple], list[dict[str, Any]]]:
-    """One comparison: the base (name, config, model, its cross-validation) and the candidates applied
-    to its config. Returns the winner's index (0 = the base), the entries and their report rows."""
-    name0, cfg, model0, cv0 = base
-    entries = [base]
+def _now(fn: Any) -> Any:
+    """``fn()`` computed now, handed back as a call (the serial counterpart of a background job's result)."""
+    out = fn()
+    return lambda: out
+
+
+def _candidates(prepared: Any, cfg: Any, model0: HoverModel, cands: list[tuple[str, dict[str, Any]]], prior: Any,
+                bounds: dict | None, pmap: Map, fit: Any, refit: Any, later: Any = _now) -> list[tuple]:
+    """The candidates applied to ``cfg`` (each configuration once, none equal to ``cfg``): each fitted from
+    ``model0`` (a screening fit), its cross-validation handed to ``later``: (name, config, model, call
+    returning the cross-validation)."""
+    out: list[tuple] = []
     for name, kw in cands:
         c_cfg = dataclasses.replace(cfg, **kw)
-        if all(c_cfg != e[1] for e in entries):
+        if c_cfg != cfg and all(c_cfg != e[1] for e in out):
             m = fit(prepared, model0, c_cfg, prior=prior, bounds=bounds, quick=True)
-            entries.append((name, c_cfg, m, _crossvalidate(prepared, m, c_cfg, prior, pmap, refit)))
+            out.append((name, c_cfg, m, later(partial(_crossvalidate, prepared, m, c_cfg, prior, pmap, refit))))
+    return out
+
+
+def _round(prepared: Any, base: tuple[str, Any, HoverModel, Any], cands: list[tuple[str, dict[str, Any]]],
+           cfg0: Any, prior: Any, bounds: dict | None, pmap: Map, fit: Any, refit: Any,
+           pending: list[tuple] | None = None) -> tuple[int, list[tuple], list[dict[str, Any]]]:
+    """One comparison: the base (name, config, model, its cross-validation) and the candidates applied
+    to its config (``pending``: already started by :func:`_candidates`). Returns the winner's index
+    (0 = the base), the entries and their report rows."""
+    if pending is None:
+        pending = _candidates(prepared, base[1], base[2], cands, prior, bounds, pmap, fit, refit)
+    entries = [base] + [(n, c, m, cv()) for n, c, m, cv in pending]
     rows = [_row(n, c, cfg0, cv) for n, c, _, cv in entries]
     return choose(rows, cfg0.select_gain_z), entries, rows
 
@@ -234,14 +248,45 @@ def select_config(prepared: Any, model0: HoverModel, cfg: Any, *, prior: Any = N
     (:func:`groundstation.sysid.identify.fit_candidate` and :func:`~groundstation.sysid.identify.refit`:
     given by the identification, so this module does not import it back)."""
     rounds = [parse_candidates(r) for r in cfg.select_candidates.split("|")]
-    try:
-        cur = ("as configured", cfg, model0, _crossvalidate(prepared, model0, cfg, prior, pmap, refit))
-    except ValueError as exc:   # too little data for k folds: keep the configuration as given
-        model0.fit = model0.fit.set(selection={"skipped": str(exc)})
-        return model0
+    with ThreadPoolExecutor(max_workers=2) as bg:
+        return _select(prepared, model0, cfg, rounds, prior, bounds, pmap, fit, refit, bg)
+
+
+def _skipped(model0: HoverModel, exc: BaseException | None) -> HoverModel:
+    """``model0`` as configured: too little data for the selection's folds."""
+    model0.fit = model0.fit.set(selection={"skipped": str(exc)})
+    return model0
+
+
+def _select(prepared: Any, model0: HoverModel, cfg: Any, rounds: list, prior: Any, bounds: dict | None, pmap: Map,
+            fit: Any, refit: Any, bg: ThreadPoolExecutor) -> HoverModel:
+    """:func:`select_config`. With worker processes the configuration's cross-validation runs (from a
+    background thread ``bg``) while this process fits the first round's candidates, whose folds then
+    queue behind it on the same workers; with the serial map one after the other. The same choice
+    either way (nothing here draws random numbers)."""
+    job = partial(_crossvalidate, prepared, model0, cfg, prior, pmap, refit)
+    first = None
+    if pmap is serial_map:
+        try:
+            cv = job()
+        except ValueError as exc:   # too little data for k folds: keep the configuration as given
+            return _skipped(model0, exc)
+    else:
+        fut = bg.submit(job)
+        try:
+            first = _candidates(prepared, cfg, model0, rounds[0], prior, bounds, pmap, fit, refit,
+                                lambda fn: bg.submit(fn).result)
+        except ValueError:
+            if isinstance(fut.exception(), ValueError):   # the configuration's own folds fail first
+                return _skipped(model0, fut.exception())
+            raise
+        if isinstance(fut.exception(), ValueError):
+            return _skipped(model0, fut.exception())
+        cv = fut.result()
+    cur = ("as configured", cfg, model0, cv)
     report: list[dict[str, Any]] = []
     for k, cands in enumerate(rounds):
-        best, entries, rows = _round(prepared, cur, cands, cfg, prior, bounds, pmap, fit, refit)
+        best, entries, rows = _round(prepared, cur, cands, cfg, prior, bounds, pmap, fit, refit, first if k == 0 else None)
         for r in rows[int(k > 0):]:
             report.append(r | {"round": k + 1})
         if not best:

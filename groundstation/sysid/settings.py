@@ -119,8 +119,10 @@ class IdentifyConfig:
     #: a channel's held-out prediction "runs away" when its error is more than this many times the
     #: signal itself (the subsystem is then not usable)
     runaway_factor: float = 3.0
-    #: the closed-loop notes (``fit.closed_loop``): the model's output error is simulated in windows of
-    #: this length (s) from the measured states ...
+    #: the closed-loop notes of the model file (``fit.closed_loop``, written by identify; the diagnosis's
+    #: stabilising-controller finding runs the same test with [diagnose] controller_window_s and
+    #: controller_feedback_*): the model's output error is simulated in windows of this length (s) from
+    #: the measured states ...
     feedback_window_s: float = 5.0
     #: ... and an input "follows" it when the input's change up to this lag (s) later correlates with it ...
     feedback_max_lag_s: float = 1.0
@@ -141,6 +143,22 @@ class IdentifyConfig:
     command_step_s: float = 2.5
     #: least-squares iterations per axis of the command-response fit (each delay of the grid)
     command_maxiter: int = 60
+    #: one constant offset per input in each refinement window (and each held-out window), estimated
+    #: with the window's unmeasured initial states: a stabiliser's integrator trim, or a stick held away
+    #: from its logged value, that changes from window to window. Replaces ``estimate_trim``'s single
+    #: offset per flight. The model file records it (``window_input_offsets``), and every prediction of
+    #: the model then estimates them too
+    window_input_offsets: bool = False
+
+    @property
+    def input_offsets(self) -> bool:
+        """Input offsets are estimated at all (one per flight or one per window)."""
+        return self.estimate_trim or self.window_input_offsets
+
+    @property
+    def flight_trim(self) -> bool:
+        """One input offset per flight (the trim): ``estimate_trim`` without per-window offsets."""
+        return self.estimate_trim and not self.window_input_offsets
 
     def search_options(self, algorithm: str) -> dict[str, Any]:
         """The keyword arguments of ``algorithm``'s optimiser (:data:`groundstation.sysid.optimizers.ALGORITHMS`)

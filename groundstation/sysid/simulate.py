@@ -132,6 +132,9 @@ class WindowSimulator:
     measured : (W, L, 8) bool or None, sample measured (False in a hole of the link: not counted)
     forcing : (W, L, 3) known accelerations (m/s^2) added to u_dot, v_dot, w_dot, e.g. the measured
         kinematic and gravity terms that eq. 8 linearises away (:func:`kinematic_forcing`)
+    window_offsets : solve one constant offset per input in each window, with the window's unmeasured
+        initial states (a stabiliser's integrator trim, or a stick held away from its logged value, that
+        changes from window to window); excludes ``estimate_trim``
     estimate_trim : also solve, per subsystem, one constant offset per input shared by all windows
         (the model sees ``u - delta``): the input trim, which the in-air median only approximates,
         is a nuisance of the perturbation model like the initial states (see :meth:`solve_trim`)
@@ -154,7 +157,8 @@ class WindowSimulator:
                  subsystems: tuple[int, ...] = (0, 1),
                  linear: dict[int, tuple[tuple[int, int], ...]] | None = None,
                  lifted_block: tuple[int, int] = (5, 5), estimate_trim: bool = False,
-                 forcing: np.ndarray | None = None, measured: np.ndarray | None = None) -> None:
+                 forcing: np.ndarray | None = None, measured: np.ndarray | None = None,
+                 window_offsets: bool = False) -> None:
         u = np.asarray(inputs, dtype=float)
         y = np.asarray(outputs, dtype=float)
         if u.ndim != 3 or u.shape[2] != 4 or y.ndim != 3 or y.shape[2] != 8 or u.shape[:2] != y.shape[:2]:
@@ -185,8 +189,11 @@ class WindowSimulator:
         self.linear = {k: tuple(v) for k, v in (linear or {}).items() if v}
         self.lifted_block = (int(block), int(block)) if block is not None else tuple(int(v) for v in lifted_block)
         self.estimate_trim = bool(estimate_trim)
-        if self.estimate_trim and linear:
-            raise SysidError("estimate_trim and linear (projected B entries) cannot be combined")
+        self.window_offsets = bool(window_offsets)
+        if (self.estimate_trim or self.window_offsets) and linear:
+            raise SysidError("input offsets and linear (projected B entries) cannot be combined")
+        if self.estimate_trim and self.window_offsets:
+            raise SysidError("estimate_trim (one offset per flight) and window_offsets (one per window) exclude each other")
         self.forcing = None if forcing is None else np.nan_to_num(np.asarray(forcing, dtype=float))
         if self.forcing is not None:
             if self.forcing.shape != (u.shape[0], u.shape[1], 3):
@@ -330,7 +337,7 @@ class WindowSimulator:
             Phi[:, :, jv:, nb - 1] = 0.0
         Phi = Phi.reshape(C, nch, Lp, n)
         nt = 0
-        if self.estimate_trim:
+        if self.estimate_trim or self.window_offsets:
             # response to a constant unit input on each channel from rest: the same in every window, so
             # one lifted "window" per input; appended to Phi as global least-squares columns
             mi = len(sub.inputs)
@@ -392,7 +399,13 @@ class WindowSimulator:
             # with global columns too: one G for every window when the windows are alike
             G = _window_gram(w_ch[:1], Hzz, unk[:1], self.ridge)[:, 0] if pre["same_G"] else \
                 _window_gram(w_ch, Hzz, unk, self.ridge)
-            if nt:
+            if nt and self.window_offsets:
+                # per-window columns: solved with the window's initial states
+                unk_o = np.concatenate([unk, np.ones((W, nt))], axis=1)
+                rhs_o = np.einsum("wh,chwn->cwn", w_ch, g) * unk_o[None]
+                zo = np.linalg.solve(_window_gram(w_ch, H, unk_o, self.ridge), rhs_o[..., None])[..., 0]
+                z, offsets = zo[..., :n], zo[..., n:]
+            elif nt:
                 # global columns: Schur complement over the windows (variable projection)
                 E = np.matmul(w_ch[None], np.ascontiguousarray(H[:, :, :n, n:]).reshape(k, nch, n * nt))
                 E = E.reshape(k, W, n, nt) * unk[None, :, :, None]
@@ -401,9 +414,10 @@ class WindowSimulator:
                 z, beta = _schur_solve(G, E, rhs, FF, rb)
             else:
                 z = np.linalg.solve(G, rhs[..., None])[..., 0]  # (k, W, n), zero on known dims
-        if not nt:
-            beta = np.zeros((k, 0))
-        v = np.concatenate([z, np.broadcast_to(beta[:, None, :], (k, W, nt))], axis=-1) if nt else z  # (k, W, na)
+        if not nt or self.window_offsets:
+            beta = np.zeros((k, nt))
+        v = z if not nt else np.concatenate(
+            [z, offsets if self.window_offsets else np.broadcast_to(beta[:, None, :], (k, W, nt))], axis=-1)  # (k, W, na)
         if explicit or pre["hole_lift"] is not None:
             e = np.matmul(Phi, np.swapaxes(v, 1, 2)[:, None])  # (k, nch, Lp, W)
             e -= R4

@@ -45,10 +45,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.linalg import expm
 
 from groundstation.errors import SysidError
 from groundstation.sysid.model import G_M_S2, INPUTS, OUTPUTS
+from groundstation.sysid.optimizers import minimize_grid_lsq
+from groundstation.sysid.prediction import Prediction
 from groundstation.sysid.settings import IdentifyConfig
 
 #: what the aircraft file's ``[inputs] kind`` may say
@@ -128,6 +129,8 @@ def delay_grid() -> np.ndarray:
 
 
 def _discretize(A: np.ndarray, B: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    from scipy.linalg import expm  # here: identify of a blade-input aircraft loads no scipy
+
     n, m = B.shape
     M = np.zeros((n + m, n + m))
     M[:n, :n], M[:n, n:] = A, B
@@ -460,8 +463,6 @@ def fit_axis(axis: _Axis, win: CommandWindows, *, x0: np.ndarray | None = None, 
     """(x, std, cost) of one axis: the nonlinear parameters over a grid of delays, then every one of
     them free (:func:`groundstation.sysid.optimizers.minimize_grid_lsq`), the linear ones solved inside;
     standard errors from the Jacobian of every parameter at the end."""
-    from groundstation.sysid.optimizers import minimize_grid_lsq
-
     cost = _AxisCost(axis, win)
     b = axis.bounds()
     nl = ~cost.lin
@@ -550,8 +551,6 @@ def identify_command(prepared: Any, kind: str = "rate_command", *, window_s: flo
 def predict_command(model: CommandModel, prepared: Any, *, window_s: float = 5.0) -> Any:
     """Held-out prediction as :func:`groundstation.sysid.heldout.predict` (eq. 19 per channel over
     ``window_s`` windows started from the measured states; inputs against the model's trim)."""
-    from groundstation.sysid.prediction import Prediction
-
     ppu = float(prepared.pwm_per_unit)
     off = np.array([(float(prepared.input_trim_pwm.get(k, 0.0)) - float(model.input_trim_pwm.get(k, prepared.input_trim_pwm.get(k, 0.0)))) / ppu
                     for k in INPUTS])

@@ -123,7 +123,7 @@ def validate(model: HoverModel, prepared: Any, *, window_s: float | None = None,
     with threadpool_limits(1):
         win = make_windows(prepared.segments, prepared.dt_s, ws, key="window_s")
         sim = WindowSimulator(win.inputs, win.outputs, win.dt_s, win.available, estimate_all_initial=est_all,
-                              measured=win.measured)
+                              measured=win.measured, window_offsets=model.window_input_offsets)
         yhat = sim.simulate(model.theta[None])[0]
     y = sim.outputs
     mask = sim.smask if sim.holes else sim.mask

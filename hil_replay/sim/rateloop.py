@@ -143,7 +143,7 @@ def closed_loop_response(ac: Aircraft, loop: RateLoop, axis: str, w_rad_s: np.nd
 def closed_loop_truth(ac: Aircraft, loop: RateLoop, band_rad_s: tuple[float, float] = (1.0, 12.0)) -> dict[str, Any]:
     """Per axis: the first-order-plus-delay equivalent system of the closed loop (gain, ``bandwidth_rad_s``
     = 1/T_eq, ``delay_s`` = tau_eq) and its mismatch (Hoh's, sum over 20 log-spaced frequencies)."""
-    from scipy.optimize import least_squares
+    from scipy.optimize import least_squares  # here: the simulator itself needs no scipy.optimize
 
     w = np.logspace(np.log10(band_rad_s[0]), np.log10(band_rad_s[1]), 20)
     out: dict[str, Any] = {}

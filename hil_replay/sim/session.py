@@ -27,7 +27,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from firmware_interface.tlog import TlogWriter
 from hil_replay.sim.aircraft import INPUTS, PARAM_NAMES, Aircraft, resolve_aircraft
 from hil_replay.sim.card import Card, make_card
 from hil_replay.sim.dynamics import G_M_S2, ground_effect_excess, make_specific_force, make_stepper
@@ -583,9 +585,6 @@ def write_tlog(path: str | os.PathLike[str], *, seed: int = 0, flights: int = 1,
     :class:`NoiseConfig`. Returns the truth dict (also written).
     Same arguments, same bytes.
     """
-    from pymavlink.dialects.v20 import ardupilotmega as mavlink
-
-    from firmware_interface.tlog import TlogWriter
 
     rates = dict(DEFAULT_TLOG_RATES_HZ)
     if rates_hz:

@@ -44,6 +44,15 @@ def test_campaign_table_skip_parquet_and_trends(logs, tmp_path, capsys):
     # the second flight's model is scored on the first (cross-flight fit); the first has no reference
     assert rows[0]["cross_match_pct"] is None and rows[1]["cross_log"] == "flight0.tlog"
     assert np.isfinite(rows[1]["cross_match_pct"])
+    # scored by the caller on the first log as its own job prepared it: the match of that log read again
+    from groundstation.campaign.job import cross_fit
+    from groundstation.config import ServiceConfig
+    from groundstation.pipeline import prepare_logs
+    from groundstation.sysid.model import HoverModel
+
+    ref = prepare_logs([str(logs / "flight0.tlog")], ServiceConfig())
+    again = cross_fit(HoverModel.from_json(json.loads(rows[1]["model"])), ref, "flight0.tlog")
+    assert again["cross_match_pct"] == pytest.approx(rows[1]["cross_match_pct"], rel=1e-9, abs=0)
     import pyarrow.parquet as pq
 
     t = pq.read_table(tmp_path / "pq" / "aircraft.parquet")

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 from groundstation.campaign import runner
-from groundstation.campaign.job import FlightJob, Settings
+from groundstation.campaign.job import FlightJob, Handover, Settings
 
 
 class _Recorder:
@@ -18,8 +20,9 @@ class _Recorder:
 
     def results(self, jobs):
         self.seen = [j.log for j in jobs]
+        self.jobs = list(jobs)
         for k in reversed(range(len(jobs))):  # completion order unlike submission order
-            yield k, [{"log": jobs[k].log}]
+            yield k, ([{"log": jobs[k].log, "flight_index": 0, "error": None}], Handover())
 
 
 def _jobs(tmp_path, sizes):
@@ -44,3 +47,20 @@ def test_a_pool_gets_the_largest_logs_first_and_results_come_back_in_job_order(t
     one = _Recorder(workers=1)   # one process: the given order (progress follows the user's list)
     runner.run(jobs, executor=one)
     assert one.seen == [j.log for j in jobs]
+
+
+def test_a_job_scored_on_another_jobs_log_waits_for_it_and_no_log_is_prepared_twice(tmp_path):
+    """The cross-flight fit of a job whose reference is another job of the run is the caller's (the
+    reference's job hands its prepared log over); its rows come back once that job has finished."""
+    jobs = _jobs(tmp_path, [300, 200, 100])
+    jobs = [dataclasses.replace(j, reference_log=jobs[k - 1].log if k else None) for k, j in enumerate(jobs)]
+    pool = _Recorder(workers=2)   # finishes the last log first: each waits for its reference
+    done = []
+    rows = runner.run(jobs, executor=pool, on_result=lambda job, r: done.append(job.log))
+    # finished f2, f1, f0: f2 is reported once f1 has handed its log over, f1 once f0 has
+    assert done == [jobs[2].log, jobs[1].log, jobs[0].log]
+    assert [r[0]["log"] for r in rows] == [j.log for j in jobs]
+    assert [(j.cross_by_caller, j.hand_over) for j in pool.jobs] == [(False, True), (True, True), (True, False)]
+    # a reference outside the run (a log already done) is read by the job itself
+    alone = [dataclasses.replace(jobs[1], reference_log=str(tmp_path / "elsewhere.tlog"))]
+    assert [(j.cross_by_caller, j.hand_over) for j in runner.hand_over_plan(alone)] == [(False, False)]

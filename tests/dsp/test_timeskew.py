@@ -49,3 +49,36 @@ def test_the_aircraft_file_sets_the_shift_for_its_flights():
     assert parse_aircraft({}, "heli.toml").prep_config(PrepConfig(input_shift_s=0.02)).input_shift_s == 0.02
     with pytest.raises(AircraftError, match=r"heli.toml: inputs.shift_s"):
         parse_aircraft({"inputs": {"shift_s": "60 ms"}}, "heli.toml")
+
+
+def _pulses(skew_s: float, seed: int = 0) -> object:
+    """A pilot's isolated stick steps (one every 1.5 s) and a fast causal pitch-rate response
+    (first order, 60 ms); the stick is logged ``skew_s`` late against the gyro."""
+    rng, dt, n = np.random.default_rng(seed), 0.02, 6000
+    lvl = np.repeat(rng.choice([-1.0, 1.0], n // 75) * rng.uniform(0.05, 0.2, n // 75), 75)
+    stick = np.zeros(n)
+    q = np.zeros(n)
+    for k in range(1, n):   # the stick moves within ~50 ms, the rate follows it
+        stick[k] = stick[k - 1] + (1 - np.exp(-dt / 0.02)) * (lvl[k - 1] - stick[k - 1])
+        q[k] = q[k - 1] + (1 - np.exp(-dt / 0.06)) * (2.0 * stick[k - 1] - q[k - 1])
+    u = np.zeros((n, 4))
+    t = np.arange(n) * dt
+    u[:, 1] = np.interp(t - skew_s, t, stick)
+    y = np.full((n, 8), np.nan)
+    y[:, 4] = q + 0.02 * rng.standard_normal(n)
+    return prepared_from_arrays(u, y, dt)
+
+
+def test_the_response_lead_on_sharp_steps_bounds_the_skew_from_below():
+    from groundstation.dsp.timeskew import response_lead
+
+    (none,) = response_lead(_pulses(0.0))
+    assert (none.input, none.output) == ("lon", "q") and none.events >= 30
+    assert none.lead_hi_s < 0.0          # a causal response never rises first
+    (late,) = response_lead(_pulses(0.08))
+    # found, never more than the skew (the response's own lag takes its share), and moved by the skew
+    assert 0.0 < late.lead_lo_s and late.lead_s <= 0.08
+    assert late.lead_s - none.lead_s == pytest.approx(0.08, abs=0.015)
+    assert "before lon" in late.describe()
+    (fixed,) = response_lead(shift_inputs(_pulses(0.08), 0.08))
+    assert fixed.lead_s == pytest.approx(none.lead_s, abs=0.01)

@@ -179,3 +179,20 @@ def test_a_frequency_model_the_flight_does_not_support_is_marked(flight150):
     assert any(u.startswith("vertical subsystem unstable") and "time constant" in u for u in bad.fit.unstable_modes)
     assert "r" in bad.fit.runaway_channels and bad.fit.unusable_subsystems == ("vertical",)
     assert not bad.fit.usable
+
+
+def test_the_search_takes_the_identifications_optimiser_settings(responses150):
+    """``search_options`` (``[identify]`` colony size, ... as the time-domain search gets them) reach the
+    frequency-domain search: a smaller colony spends fewer evaluations on the same iterations, and the
+    configuration's defaults are the optimiser's own (the same fit as without them)."""
+    from groundstation.sysid.settings import IdentifyConfig
+
+    cfg = FreqIdentifyConfig(weighting="coherence", maxiter=3, refine=False, searches=1)
+
+    def fit(options):
+        return identify_frequency(responses150, None, algorithm="cabc", seed=0, config=cfg, search_options=options)
+
+    plain, small = fit(None), fit({"colony_size": 6, "limit": 3})
+    assert small.fit.evaluations < plain.fit.evaluations
+    same = fit(IdentifyConfig().search_options("cabc"))
+    assert same.fit.evaluations == plain.fit.evaluations and same.params == plain.params

@@ -156,3 +156,40 @@ def test_slew_grid_is_as_fine_as_the_delay_grid_over_the_fractions_of_the_larges
     assert np.exp(nearest.max()) < 1.2
     delay_ratio = np.max(np.array(DELAY_GRID_S[1:])[1:] / np.array(DELAY_GRID_S[1:])[:-1])  # from 0.04 s on
     assert np.exp(2 * nearest.max()) <= delay_ratio + 1e-9  # candidate spacing no coarser than the delays'
+
+
+def test_input_variants_are_the_simulated_variants(flight_factory, paper_theta):
+    """The residual of a variant of one input from the linear response (one product) is the one of
+    simulating the variant's inputs, on every channel and for a change of any shape."""
+    from groundstation.gap.diagnose import segments_from_prepared
+    from groundstation.gap.evaluate import Evaluator
+    from groundstation.gap.hypotheses import Context, backlash, shift
+    from groundstation.gap.linsim import simulate
+
+    prep = flight_factory(T_s=18.0, seed=3)
+    segs, avail = segments_from_prepared(prep)
+    ev = Evaluator(segs, prep.dt_s, paper_theta * 1.05, avail, window_s=3.0, folds=3)
+    ctx = Context(ev, segs)
+    groups = [(c, np.stack([ev.cut([fn(s.inputs[:, c]) for s in segs]) for fn in
+                            (lambda x: shift(x, 3.5), lambda x: backlash(x, 0.02), lambda x: 0.0 * x)]))
+              for c in range(4)]
+    got = ctx.input_variants(groups)
+    assert got.shape == (12, ev.W, ev.L, 8)
+    for v, (c, u) in enumerate((c, u) for c, us in groups for u in us):
+        U = ev.U.copy()
+        U[:, :, c] = u
+        want = ev.residual(simulate(ev.theta0, U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available,
+                                    start=ev.start)[0])
+        np.testing.assert_allclose(got[v], want, rtol=0, atol=1e-10 * np.abs(want).max())
+        assert np.abs(got[v] - ev.r0).max() > 1e-3 * np.abs(ev.r0).max()  # the change is seen
+    # forcing columns (drag, ground effect): the simulation with the forcing less the one without
+    from groundstation.gap.hypotheses import _forcing_columns
+
+    F = np.zeros((ev.W, ev.L, 11))
+    F[:, :, 0] = np.sin(ev.T)
+    F[:, :, 8] = 0.3 * np.cos(2 * ev.T)
+    yh = simulate(ev.theta0, np.concatenate([ev.U, ev.U]), ev.Y, ev.dt_s, forcing=np.concatenate([0 * F, F]),
+                  weights=ev.w8, available=ev.available, start=ev.start)[0]
+    want = (yh[ev.W:] - yh[:ev.W]) * ev.w8 * ev.wmask
+    got = _forcing_columns(ctx, [F])[..., 0]
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())

@@ -42,3 +42,15 @@ def test_rates_table_counts_the_targets_over_seeds():
     cells = [c.strip() for c in line.split("│") if c.strip()]
     # flight kind loss cases crash 8/8 as-loss-free >=97% median false-alarm same invented
     assert cells == ["none", "bursty", "10", "3", "1", "1", "2", "1", "97.0", "1", "1", "0"]
+
+
+def test_a_lossy_case_is_judged_against_the_loss_free_flights_own_spread():
+    """A key parameter off by more than 10 % passes when a window layout of the loss-free flight is off
+    by as much; one beyond every layout does not."""
+    from groundstation.bench.link_loss import KEY, _within_spread
+
+    base = {"key_error_pct": dict.fromkeys(KEY, 2.0), "layout_error_pct": [{**dict.fromkeys(KEY, 3.0), "A_lat": 18.0}]}
+    assert _within_spread({"key_error_pct": {**dict.fromkeys(KEY, 5.0), "A_lat": 17.0}}, base) is True
+    assert _within_spread({"key_error_pct": {**dict.fromkeys(KEY, 5.0), "M_a": 12.0}}, base) is False
+    assert _within_spread({"key_error_pct": dict.fromkeys(KEY, 9.9)}, {"key_error_pct": dict.fromkeys(KEY, 0.0)}) is True
+    assert _within_spread({"refused": "x"}, base) is None

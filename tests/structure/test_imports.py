@@ -9,6 +9,7 @@ tested) without the command line or the live service.
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -16,7 +17,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("groundstation", "firmware_interface", "hil_replay", "benchkit")
 #: the top layer: may import anything, imported by nothing else in the packages
-TOP = ("groundstation.cli", "groundstation.commands", "groundstation.bench", "groundstation.service")
+TOP = ("groundstation.__main__", "groundstation.cli", "groundstation.commands", "groundstation.bench",
+       "groundstation.service")
 
 
 def _modules() -> dict[str, Path]:
@@ -28,6 +30,7 @@ def _modules() -> dict[str, Path]:
     return mods
 
 
+@functools.cache
 def import_graph() -> dict[str, set[str]]:
     """module -> the project modules it imports (anywhere in its source); a package's ``__init__`` is
     not counted as a dependency of its sub-modules' importers (importing ``a.b`` runs ``a``, but
@@ -169,3 +172,81 @@ def test_numerical_packages_are_pure(package):
                                 "groundstation.campaign", "groundstation.analysis", "groundstation.pipeline")):
                 bad.append(f"{f.relative_to(ROOT)} imports {name} (a layer above)")
     assert not bad, "\n".join(bad)
+
+
+#: Imports that stay inside functions, each with its reason; every other import is at module level, so
+#: a module's dependencies are in its first lines and an import circle fails at once, not on some later
+#: call. (The command line's dispatch imports a command's module only when it runs, through
+#: ``importlib.import_module`` in ``cli.py`` and ``commands/bench.py``: one lazy import per command.)
+#: Third-party modules, by top-level name (or dotted prefix): heavy at import, needed by a few paths only.
+LAZY_THIRD_PARTY = {
+    "matplotlib": "plots only (about 0.5 s of CPU to import)",
+    "rerun": "the Rerun sink and its figures only (about 0.6 s)",
+    "zenoh": "the zenoh sink and its benchmarks only",
+    "pyarrow": "the campaign store's Parquet files only",
+    "dask": "campaigns on a Dask cluster only",
+    "distributed": "campaigns on a Dask cluster only (about 0.5 s)",
+    "psutil": "optional (the bench extra): machine-wide CPU accounting of bench campaign",
+    "scipy.signal": "about 0.9 s: only tapers other than Hann and the report's spectrum figure",
+    "scipy.optimize": "about 0.25 s: the time-domain identification uses none of scipy; the least-squares fits "
+                      "(frequency domain, reference, command-response structure) load it",
+    "scipy.linalg": "the command-response structure's matrix exponential only (identify uses none of scipy)",
+    "pyulog": "PX4 .ulg logs only (0.1 s at every start otherwise)",
+    "resource": "Unix only (the import fails elsewhere)",
+}
+#: Our own modules, by (importing module, imported package or module).
+LAZY_OWN = {
+    ("groundstation.analysis", "groundstation.gap"):
+        "the diagnosis brings scipy.stats (about 0.9 s); `identify` and the API's identify() never need it",
+    ("groundstation.worker", "groundstation.campaign.live"):
+        "the trend tests bring scipy.stats (about 0.9 s) into the service's own process, which never runs them",
+    ("groundstation.service", "groundstation.sinks.rerun_sink"):
+        "the Rerun sink imports rerun (about 0.6 s): only when the service is given a Rerun viewer or file",
+    ("groundstation.service", "hil_replay.fc"):
+        "the built-in simulated flight controller (scipy.linalg, about 0.5 s): only when no link is given",
+}
+
+
+def _function_imports(path: Path) -> list[tuple[int, str]]:
+    """(line, module) of every import statement inside a function of ``path`` (relative ones resolved
+    to the name as written, with its dots)."""
+    out: list[tuple[int, str]] = []
+
+    def visit(node: ast.AST, in_function: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.Import) and in_function:
+                out.extend((child.lineno, a.name) for a in child.names)
+            elif isinstance(child, ast.ImportFrom) and in_function:
+                out.append((child.lineno, "." * child.level + (child.module or "")))
+            else:
+                visit(child, in_function or isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda))
+
+    visit(ast.parse(path.read_text()), False)
+    return out
+
+
+def _allowed(importer: str, module: str) -> bool:
+    def under(name: str, prefix: str) -> bool:
+        return name == prefix or name.startswith(prefix + ".")
+
+    return (any(under(module, p) for p in LAZY_THIRD_PARTY)
+            or any(importer == i and under(module, m) for i, m in LAZY_OWN))
+
+
+def test_imports_are_at_module_level_unless_listed_with_a_reason():
+    found = sorted(f"{f.relative_to(ROOT)}:{line} imports {mod} inside a function"
+                   for name, f in _modules().items() for line, mod in _function_imports(f)
+                   if not _allowed(name, mod))
+    assert not found, "\n".join(found)
+
+
+def test_the_function_import_walk_sees_nested_and_relative_imports(tmp_path):
+    f = tmp_path / "m.py"
+    f.write_text("import json\n\ndef f():\n    if True:\n        from . import x\n    def g():\n"
+                 "        import matplotlib.pyplot\n    return [lambda: __import__('os')]\n\nclass C:\n"
+                 "    import sys\n    def h(self):\n        from groundstation.gap import diagnose\n")
+    assert _function_imports(f) == [(5, "."), (7, "matplotlib.pyplot"), (13, "groundstation.gap")]
+    assert _allowed("x", "matplotlib.pyplot") and not _allowed("x", "matplotlib_extra")
+    assert _allowed("groundstation.analysis", "groundstation.gap.diagnose")
+    assert not _allowed("groundstation.worker", "groundstation.gap.diagnose")
+    assert not _allowed("x", "scipy.stats") and not _allowed("x", ".")

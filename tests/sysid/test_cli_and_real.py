@@ -119,6 +119,8 @@ def test_identify_real_log_with_aircraft_file_reports_heldout_prior_and_closed_l
     assert fit["prior"]["source"].startswith("wide defaults")
     assert set(fit["prior"]["determined"]) | set(fit["prior"]["prior_dominated"]) | set(fit["prior"]["on_bound"]) | set(fit["fixed"]) >= {"inv_tau_s", "N_r"}
     assert isinstance(fit["closed_loop"], list) and isinstance(fit["unstable_modes"], list)
+    # the pitch rate still rises before the stick on the pilot's sharp steps: the inputs are logged late
+    assert any("before lon" in c and "60 ms already applied" in c for c in fit["closed_loop"])
     printed = capsys.readouterr().err
     assert "held-out match over 3 contiguous folds" in printed and "the model predicts" in printed
     # the configuration was compared with the aircraft file's candidate over 5 folds, and the printed

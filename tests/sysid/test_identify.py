@@ -7,6 +7,7 @@ import pytest
 
 from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
 from groundstation.dsp.prepare import prepared_from_arrays
+from groundstation.sysid.heldout import predict
 from groundstation.sysid.identify import identify
 from groundstation.sysid.model import PARAM_NAMES, HoverModel, theta_from_dict
 from groundstation.sysid.validate import match_degree, nrmse, pearson, theil_u, validate
@@ -103,6 +104,12 @@ def test_fit_section_and_validation_are_typed_and_round_trip_unchanged(flights, 
     assert m2.fit.usable is (not ho.unusable_subsystems)
     again = HoverModel.from_json(json.loads(json.dumps(m2.to_json())))
     assert again.fit == m2.fit and json.dumps(again.to_json()) == json.dumps(m2.to_json())
+    # a model whose predictions estimate per-window input offsets says so in its file, and predicts
+    # the held-out data at least as well as without them (more per-window unknowns, same model)
+    assert "window_input_offsets" not in m2.to_json()
+    per_window = HoverModel.from_json(m2.to_json() | {"window_input_offsets": True})
+    assert per_window.window_input_offsets and per_window.to_json()["window_input_offsets"] is True
+    assert predict(per_window, other).mean_match > predict(m2, other).mean_match - 1.0
 
     v = validate(model, other, return_series=True)
     assert isinstance(v.channels["q"], ChannelScore) and v.series is not None and v.series["y"].ndim == 3
@@ -121,14 +128,49 @@ def test_a_model_file_of_the_version_before_the_typed_fit_reads_and_writes_back_
     from pathlib import Path
 
     from groundstation.jsonio import dumps
-    from groundstation.sysid.fit_section import HeldOut, ModelFit
+    from groundstation.sysid.fit_section import CandidateScore, HeldOut, ModelFit, PriorReport, Selection
 
     text = (Path(__file__).parents[1] / "data" / "models" / "sim-seed5-identify.json").read_text()
     doc = json.loads(text)
     m = HoverModel.from_json(doc)
     assert isinstance(m.fit, ModelFit) and isinstance(m.fit.heldout, HeldOut) and not m.fit.extra
-    assert m.fit.selection["chosen"] and m.fit.heldout.k == 5 and m.fit.usable is doc["fit"]["usable"]
+    assert m.fit.heldout.k == 5 and m.fit.usable is doc["fit"]["usable"]
+    # the nested sections are typed too: the selection with its candidate rows, the (empty) prior report
+    sel = m.fit.selection
+    assert isinstance(sel, Selection) and sel.chosen == "as configured" and sel.k == 5 and not sel.extra
+    base, pred = sel.candidates
+    assert isinstance(pred, CandidateScore) and not base.extra and not pred.extra
+    assert base.gain is None and pred.gain < 0 and pred.significant is False and pred.runaway == {"fold 3": ["u", "p", "q"]}
+    assert pred.fold_score == tuple(doc["fit"]["selection"]["candidates"][1]["fold_score"])
+    assert isinstance(m.fit.prior, PriorReport) and m.fit.prior.to_json() == {} and m.fit.has("prior")
     assert dumps(m.to_json(), indent=1) == text   # as identify writes it
+
+
+def test_structure_choice_and_prior_report_are_typed_and_round_trip_unchanged():
+    """The structure comparison (candidates with gains, a refitted winner's ``final`` row) and a prior
+    report written as dicts by the producers read into their sections and write back key for key."""
+    import json
+
+    from groundstation.sysid.fit_section import CandidateScore, ModelFit, PriorReport, StructureChoice
+
+    rows = [{"name": "hover (blade inputs)", "fold_score": [10.0, 20.0], "mean_match": 15.0, "runaway": {}},
+            {"name": "command response (rate_command)", "fold_score": [30.0, 40.0], "mean_match": 35.0,
+             "runaway": {}, "gain": 20.0, "gain_se": 0.0, "gain_folds": 2, "significant": True,
+             "final": {"name": "command response (rate_command)", "fold_score": [31.0, 41.0], "mean_match": 36.0}}]
+    choice = {"chosen": "command_response", "candidates": rows, "reason": "predicts better"}
+    prior = {"source": "trex550.toml", "determined": ["X_u"], "prior_dominated": ["Z_w"], "on_bound": [],
+             "fixed_at_prior": ["A_lat"], "prior_share": {"X_u": 0.1, "Z_w": 0.9}, "nominal": {"X_u": -0.1},
+             "std": {"X_u": 0.05}, "from_a_newer_version": 1}
+    fit = ModelFit.make(algorithm="cabc", structure_choice=choice, prior=prior)
+    sc, pr = fit.structure_choice, fit.prior
+    assert isinstance(sc, StructureChoice) and sc.chosen == "command_response" and sc.reason == "predicts better"
+    assert isinstance(sc.candidates[1].final, CandidateScore) and sc.candidates[1].final.mean_match == 36.0
+    assert sc.candidates[1].significant is True and sc.candidates[0].gain is None
+    assert isinstance(pr, PriorReport) and pr.prior_dominated == ("Z_w",) and pr.extra == {"from_a_newer_version": 1}
+    doc = {"algorithm": "cabc", "structure_choice": choice, "prior": prior}
+    assert json.dumps(fit.to_json()) == json.dumps(doc)
+    assert json.dumps(ModelFit.from_json(doc).to_json()) == json.dumps(doc)
+    assert ModelFit.from_json(doc) == fit
 
 
 def test_pinned_parameters_are_flagged(flights):
@@ -140,7 +182,7 @@ def test_pinned_parameters_are_flagged(flights):
     assert "search bound" in m.fit.pinned_reasons["M_a"]
     # not an estimate: neither "determined" nor "held near the prior", but on a bound
     pr = m.fit.prior
-    assert "M_a" in pr["on_bound"] and "M_a" not in pr["determined"] + pr["prior_dominated"]
+    assert "M_a" in pr.on_bound and "M_a" not in pr.determined + pr.prior_dominated
 
 
 def test_a_bound_reason_names_the_parameter_it_trades_off_with():

@@ -79,3 +79,40 @@ def test_chaotic_radius_schedule():
     half = minimize_cabc(sphere, BOUNDS, maxiter=20, callback=lambda r: r.nit >= 10, **kw)
     assert 1e-3 < half.chaos_radius < 5e-3  # half way in iterations: geometric mean ~2.2e-3
     assert minimize_abc(sphere, BOUNDS, rng=0, maxiter=5).chaos_radius == 0.0
+
+
+def _scipy_de(fun, bounds, rng, maxiter, popsize, callback=None):
+    """The DE search as it was written on scipy's ``differential_evolution`` (the reference)."""
+    from scipy.optimize import differential_evolution
+
+    from groundstation.sysid.optimizers import _Tracker
+
+    tr = _Tracker(fun, None, callback)
+    res = differential_evolution(lambda x: tr(np.asarray(x).T), bounds, maxiter=maxiter, popsize=popsize, rng=rng,
+                                 callback=lambda intermediate_result: tr.end_iteration(), vectorized=True,
+                                 updating="deferred", polish=False, tol=0.0)
+    return tr, res
+
+
+@pytest.mark.parametrize("popsize, D, stop", [(1, 22, None), (1, 3, None), (2, 9, 7)])
+def test_de_draws_what_scipys_differential_evolution_draws(popsize, D, stop):
+    """The same generator gives the same evaluations in the same order as scipy's DE (bit for bit),
+    on a rugged cost with non-finite values and candidates pushed out of the bounds."""
+    from groundstation.sysid.optimizers import minimize_de
+
+    lo = -np.linspace(1.0, 3.0, D)
+    bounds = np.stack([lo, np.linspace(0.5, 4.0, D)], axis=1)
+    centre = np.linspace(-0.5, 0.5, D)
+
+    def rugged(X):
+        X = np.atleast_2d(X)
+        f = ((X - centre) ** 2).sum(axis=1) + 0.3 * np.sin(7 * X).sum(axis=1)
+        return np.where(X[:, 0] > 0.45, np.nan, f)   # a region that fails to simulate
+
+    cb = None if stop is None else (lambda r: r.nit >= stop)
+    ref_tr, ref = _scipy_de(rugged, bounds, np.random.default_rng(3), 40, popsize, cb)
+    res = minimize_de(rugged, bounds, rng=np.random.default_rng(3), maxiter=40, popsize=popsize, callback=cb)
+    np.testing.assert_array_equal(res.archive_x, np.concatenate(ref_tr.archive_x))
+    np.testing.assert_array_equal(res.history, ref_tr.history)
+    assert res.fun == ref_tr.best_f and res.nit == ref_tr.nit == (stop or 40)
+    assert res.message == ref.message

@@ -78,7 +78,7 @@ def test_parameters_the_data_cannot_move_keep_the_prior_value_and_std():
     assert {"A_lat", "L_lat", "Z_w"} <= fixed
     for name in fixed:
         assert m.params[name] == nominal[name] and m.parameter_std[name] == std[name], name
-    assert set(m.fit.prior["fixed_at_prior"]) == fixed
+    assert set(m.fit.prior.fixed_at_prior) == fixed
     assert any("fixed at the prior's value" in r for r in m.fit.fixed_reasons)
     assert not any("fixed at 0" in r for r in m.fit.fixed_reasons)
     assert m.params["Z_w"] != 0.0  # the wide prior's heave damping, not 0

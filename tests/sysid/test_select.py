@@ -37,20 +37,20 @@ def test_real_log_without_aircraft_file_switches_to_the_predictive_setting():
     prep = prepare_logs([Path(real_log("trex550/flight1.tlog"))], ServiceConfig())
     m = identify(prep, seed=0, maxiter=6, config=IdentifyConfig(**QUICK))
     sel = m.fit.selection
-    rows = {r["name"]: r for r in sel["candidates"]}
-    assert sel["chosen"].startswith("predictive"), rows
+    rows = {r.name: r for r in sel.candidates}
+    assert sel.chosen.startswith("predictive"), rows
     pred, given = rows["predictive"], rows["as configured"]
-    assert pred["significant"] and pred["gain"] > 2 * pred["gain_se"] > 0 and pred["round"] == 1
+    assert pred.significant and pred.gain > 2 * pred.gain_se > 0 and pred.round == 1
     # the second round (overlapping windows) ran because the first switched, and was judged the same way
     over = rows["window_step_s=2.5"]
-    assert over["round"] == 2 and over["significant"] == (over["gain"] > over["gain_se"] and over["gain"] > 0)
-    assert (sel["chosen"] == "predictive, window_step_s=2.5") == over["significant"]
+    assert over.round == 2 and over.significant == (over.gain > over.gain_se and over.gain > 0)
+    assert (sel.chosen == "predictive, window_step_s=2.5") == over.significant
     # the configuration as given does not predict yaw; the chosen model does, and runs away nowhere
     ho = m.fit.heldout
-    assert given["channel_mean"]["r"] < 0 < ho.channel_mean["r"]
+    assert given.channel_mean["r"] < 0 < ho.channel_mean["r"]
     assert m.fit.window_s == 5.0 and m.fit.estimate_all_initial is False
     assert ho.k == 5 and not ho.unusable_subsystems and "r" in ho.predicted
-    assert ho.mean_match > given["mean_match"] + 10
+    assert ho.mean_match > given.mean_match + 10
 
 
 def test_simulated_flight_keeps_the_configuration_as_given(tmp_path):
@@ -62,8 +62,8 @@ def test_simulated_flight_keeps_the_configuration_as_given(tmp_path):
     write_tlog(p, seed=3, flights=1, effects=(), aircraft=None, flight_duration_s=90.0)
     m = identify(prepare([load_log(p)]), seed=0, maxiter=10, config=IdentifyConfig(**QUICK))
     sel = m.fit.selection
-    assert sel["chosen"] == "as configured", sel["candidates"]
-    assert [r["name"] for r in sel["candidates"]] == ["as configured", "predictive"]   # no second round
+    assert sel.chosen == "as configured", sel.candidates
+    assert [r.name for r in sel.candidates] == ["as configured", "predictive"]   # no second round
     assert m.fit.window_s == 3.0 and m.fit.estimate_all_initial is True
     assert m.fit.heldout.k == 5 and len(m.fit.heldout.folds) == 5
 
@@ -140,3 +140,31 @@ def test_a_candidate_better_on_every_fold_wins_even_with_a_wide_spread():
     assert rows and choose(rows) == 1 and rows[1]["gain_folds"] == 5
     rows = _rows([20.0, 20.0, 20.0, 20.0, 20.0], [21.0, 19.0, 20.5, 20.0, 20.2])  # inside the noise
     assert choose(rows) == 0
+
+
+def test_with_workers_the_selection_is_the_serial_one():
+    """With any map but the serial one the configuration's folds run on a background thread while the
+    candidates are fitted, and the candidates' folds queue behind them: the same report and model as
+    one after the other (a 12-s flight: folds too short to refit give no score, NaN in both)."""
+    import json
+
+    from benchkit.synthetic import EXAMPLE_TRUTH, simulate_flight
+    from groundstation.dsp.prepare import prepared_from_arrays
+    from groundstation.parallel import serial_map
+    from groundstation.sysid.identify import fit_candidate, refit
+    from groundstation.sysid.model import HoverModel, theta_from_dict
+    from groundstation.sysid.select import select_config
+
+    u, _, ym = simulate_flight(theta_from_dict(EXAMPLE_TRUTH), 12.0, seed=5)
+    prep = prepared_from_arrays(u, ym, 0.02)
+    model0 = identify(prep, seed=0, maxiter=2, config=IdentifyConfig(search_restarts=1, refine_max_nfev=3,
+                                                                    refine_passes=1, select_folds=0))
+    cfg = IdentifyConfig(**{**QUICK, "refine_max_nfev": 3})
+
+    def in_process(fn, xs):   # not the serial map: the selection takes its path for worker processes
+        return [fn(x) for x in xs]
+
+    out = [select_config(prep, HoverModel.from_json(model0.to_json()), cfg, pmap=pmap, fit=fit_candidate,
+                         refit=refit).to_json() for pmap in (serial_map, in_process)]
+    assert [r["name"] for r in out[0]["fit"]["selection"]["candidates"]] == ["as configured", "predictive"]
+    assert json.dumps(out[0], sort_keys=True) == json.dumps(out[1], sort_keys=True)

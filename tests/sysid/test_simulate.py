@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from benchkit.synthetic import EXAMPLE_TRUTH
+from groundstation.errors import SysidError
 from groundstation.sysid.model import build_matrices, discretize, theta_from_dict
 from groundstation.sysid.simulate import WindowSimulator, objective, simulate_windows
 
@@ -171,6 +172,22 @@ def test_input_trim_offsets_are_recovered(windows):
     # without the trim the same data fit clearly worse
     plain = WindowSimulator(u + delta, y, dt, estimate_all_initial=True, ridge=1e-12)
     assert plain.sse(th[None])[0].sum() > 1e3 * sim.sse(th[None])[0].sum()
+
+
+def test_input_offsets_per_window_are_solved_with_the_initial_states(windows):
+    """Each window's inputs logged with its own constant offset (a stabiliser's integrator trim that
+    changes from window to window): per-window offsets fit exactly, one offset per flight does not,
+    and the two modes exclude each other."""
+    th, u, y, _, _, dt = windows
+    rng = np.random.default_rng(3)
+    delta = rng.normal(0, 0.02, (u.shape[0], 1, 4))   # (W, 1, 4): one offset per window and input
+    per_window = WindowSimulator(u + delta, y, dt, ridge=1e-12, window_offsets=True)
+    assert per_window.sse(th[None])[0].max() < 1e-10
+    assert np.abs(per_window.errors(th[None])).max() < 1e-5
+    flight = WindowSimulator(u + delta, y, dt, ridge=1e-12, estimate_trim=True)
+    assert flight.sse(th[None])[0].sum() > 1e3 * per_window.sse(th[None])[0].sum()
+    with pytest.raises(SysidError, match="exclude each other"):
+        WindowSimulator(u, y, dt, estimate_trim=True, window_offsets=True)
 
 
 def test_known_forcing_enters_like_an_input(windows):
