@@ -114,7 +114,22 @@ def _default_campaign(paths: list[Path]) -> dict[str, float]:
           f"{wall / n:.1f} s wall and {cpu / n:.1f} s CPU per flight; load average {os.getloadavg()[0]:.1f} on "
           f"{os.cpu_count()} cores, other work {others:.2f} cores on average (wall is a measurement only when that "
           f"is near 0){'; errors: ' + '; '.join(map(str, errors)) if errors else ''}", flush=True)
+    _print_flights([r for rows in res for r in rows], cpu)
     return {"workers": workers, "wall_s": wall, "cpu_s": cpu, "flights": n, "others_cores": others}
+
+
+def _print_flights(rows: list[dict], tree_cpu_s: float) -> None:
+    """Each flight's wall and CPU in its worker (identify, diagnose, its share of reading its log), and
+    what the rest of the process tree took (workers' start, the fork server, the cross-flight fits)."""
+    in_tasks = 0.0
+    for r in rows:
+        task_cpu = float(r.get("cpu_s") or 0.0)
+        in_tasks += task_cpu
+        wall = (r["task_end_s"] - r["task_start_s"]) if r.get("task_end_s") is not None else float("nan")
+        print(f"    {r['log_name']}#{int(r.get('flight_index') or 0)}: {wall:.1f} s wall, {task_cpu:.1f} s CPU in its "
+              f"worker, verdict {r.get('verdict')}", flush=True)
+    print(f"    outside the flights' tasks (workers' start, fork server, cross-flight fits): "
+          f"{tree_cpu_s - in_tasks:.1f} s CPU", flush=True)
 
 
 def _speedup(paths: list[Path], settings: Any) -> dict[str, dict[str, float]]:

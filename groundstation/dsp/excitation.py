@@ -480,10 +480,10 @@ class ExcitationMonitor:
             u = np.concatenate([p[1] for p in fl.pending])
             az, az_measured = self._accel_z(t)
             y = np.column_stack([np.concatenate([p[2] for p in fl.pending]), az])
-            m = np.column_stack([np.concatenate([p[3] if p[3] is not None else np.ones(p[2].shape, bool)
-                                                 for p in fl.pending]), az_measured])
-            if (m | ~np.isfinite(y)).all():
-                m = None            # no hole of the link in these rows: the spectra take their plain path
+            mask = np.column_stack([np.concatenate([p[3] if p[3] is not None else np.ones(p[2].shape, bool)
+                                                    for p in fl.pending]), az_measured])
+            # no hole of the link in these rows: the spectra take their plain path
+            m = None if (mask | ~np.isfinite(y)).all() else mask
             fl.pending.clear()
             fl.pending_rows = 0
             fl.spectra.add(u, y, m)

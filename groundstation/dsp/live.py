@@ -670,7 +670,7 @@ class LivePipeline:
         velocities from LOCAL_POSITION_NED where it has them, else GLOBAL_POSITION_INT (rotated by the
         attitude, so the attitude must be measured too), the rates and angles from ATTITUDE."""
         al = self.aligner
-        att = m[:, al.columns("att")].all(axis=1)
+        att = np.asarray(m[:, al.columns("att")].all(axis=1))
         vel = np.where(np.isnan(lpn[:, 1:4]), m[:, al.columns("gpi")][:, 1:4], m[:, al.columns("lpn")][:, 1:4])
-        uvw = vel.all(axis=1) & att              # each body velocity mixes all three NED ones
+        uvw = np.asarray(vel.all(axis=1)) & att   # each body velocity mixes all three NED ones
         return np.column_stack([np.repeat(uvw[:, None], 3, axis=1), np.repeat(att[:, None], 5, axis=1)])

@@ -4,7 +4,7 @@ projection of a pool's wall time from its tasks' CPU seconds."""
 import subprocess
 import sys
 
-from groundstation.bench.campaign import _makespan, _tree_cpu_s
+from groundstation.bench.campaign import _makespan, _print_flights, _tree_cpu_s
 
 
 def test_tree_cpu_counts_a_finished_child_process():
@@ -51,3 +51,14 @@ def test_balance_gives_each_workers_busy_and_tail_idle_time():
     out = _balance(rows, 10.0, 16.5)
     assert out == ("per worker (6.5 s campaign): 2 tasks busy 5.0 s, idle 1.5 s at the tail; "
                    "2 tasks busy 6.0 s, idle 0.5 s at the tail")
+
+
+def test_default_campaign_prints_each_flights_wall_and_cpu_and_the_rest(capsys):
+    rows = [{"log_name": "a.tlog", "flight_index": 0, "cpu_s": 9.5, "task_start_s": 10.0, "task_end_s": 20.5,
+             "verdict": "none"},
+            {"log_name": "b.tlog", "flight_index": 1, "cpu_s": 8.0, "task_start_s": 11.0, "task_end_s": 19.0,
+             "verdict": "deadband"}]
+    _print_flights(rows, 20.0)
+    out = capsys.readouterr().out
+    assert "a.tlog#0: 10.5 s wall, 9.5 s CPU" in out and "b.tlog#1: 8.0 s wall, 8.0 s CPU" in out
+    assert "verdict deadband" in out and "2.5 s CPU" in out   # 20 s of the tree less the flights' 17.5 s
