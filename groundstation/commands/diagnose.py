@@ -18,7 +18,6 @@ from rich.table import Table
 
 from groundstation.analysis import analyse, native_vibration, unfold_rotor_line  # noqa: F401 - their home is the analysis
 from groundstation.config import load_config
-from groundstation.gap.plots import write_all
 from groundstation.gap.report import frequency_rows, summary_rows, through_flight_lines
 from groundstation.jsonio import write_atomic
 from groundstation.parallel import spare_core_jobs, worker_map
@@ -66,6 +65,8 @@ def _run(args: argparse.Namespace, pmap) -> int:
 
     write_atomic(args.out, report)
     if args.plots:
+        from groundstation.gap.plots import write_all  # matplotlib only when plotting
+
         write_all(res.gap.arrays, report, args.plots)
     if args.rrd:
         write_rrd(res.gap.arrays, report, args.rrd)

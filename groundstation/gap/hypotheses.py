@@ -39,8 +39,10 @@ DELAY_GRID_S = (0.02, 0.04, 0.06, 0.08, 0.10, 0.13, 0.16, 0.20, 0.25)
 RATE_QUANTILES = (0.6, 0.75, 0.85, 0.92, 0.96, 0.98, 0.99, 0.995, 0.998)
 #: ... and as fractions of its largest |input rate|: on a card of steps (multisteps, no sweeps) the
 #: quantiles are set by the small corrections between the steps (a few input quanta per sample)
-#: and a slew limit acts only on the step edges, far above every quantile
-RATE_OF_MAX = (0.05, 0.1, 0.2, 0.35, 0.5, 0.7)
+#: and a slew limit acts only on the step edges, far above every quantile. Successive fractions are
+#: no more than about 1.4x apart, the delay grid's own resolution (0.04 -> 0.06 s is 1.5x): a slew
+#: limit between two values twice apart fits worse than the delay that mimics it, and is read as one
+RATE_OF_MAX = (0.05, 0.07, 0.1, 0.14, 0.2, 0.27, 0.35, 0.5, 0.7)
 #: Deadband half-widths as quantiles of the channel's own |input|.
 DEADBAND_QUANTILES = (0.1, 0.2, 0.35, 0.5, 0.7, 0.85)
 #: ... and as multiples of the channel's input standard deviation.

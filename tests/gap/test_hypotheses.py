@@ -143,6 +143,21 @@ def test_slew_grid_reaches_a_limit_that_acts_only_on_step_edges():
     assert np.min(np.abs(np.log(grid / limit))) < np.log(1.5)
 
 
+def test_slew_grid_is_as_fine_as_the_delay_grid_over_the_fractions_of_the_largest_rate():
+    """Every slew limit between 5 % and 70 % of the largest input rate lies within a factor 1.2 of a
+    candidate: a limit halfway (in ratio) between two candidates twice apart fits worse than the
+    delay that mimics it (delay candidates are at most 1.5x apart from 0.04 s on), and was read as one."""
+    from groundstation.gap.hypotheses import DELAY_GRID_S, slew_grid
+
+    du = np.r_[np.full(99, 1e-4), 1.0]  # the quantiles sit at the input quantum, far below the largest step
+    grid = slew_grid(du)
+    limits = np.geomspace(0.05, 0.7, 200)
+    nearest = np.min(np.abs(np.log(grid[None, :] / limits[:, None])), axis=1)
+    assert np.exp(nearest.max()) < 1.2
+    delay_ratio = np.max(np.array(DELAY_GRID_S[1:])[1:] / np.array(DELAY_GRID_S[1:])[:-1])  # from 0.04 s on
+    assert np.exp(2 * nearest.max()) <= delay_ratio + 1e-9  # candidate spacing no coarser than the delays'
+
+
 def test_input_variants_are_the_simulated_variants(flight_factory, paper_theta):
     """The residual of a variant of one input from the linear response (one product) is the one of
     simulating the variant's inputs, on every channel and for a change of any shape."""

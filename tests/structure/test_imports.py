@@ -202,6 +202,8 @@ LAZY_OWN = {
         "the trend tests bring scipy.stats (about 0.9 s) into the service's own process, which never runs them",
     ("groundstation.service", "groundstation.sinks.rerun_sink"):
         "the Rerun sink imports rerun (about 0.6 s): only when the service is given a Rerun viewer or file",
+    ("groundstation.commands.diagnose", "groundstation.gap.plots"):
+        "the diagnosis's PNG figures import matplotlib (about 0.5-1 s of CPU): only with --plots",
     ("groundstation.service", "hil_replay.fc"):
         "the built-in simulated flight controller (scipy.linalg, about 0.5 s): only when no link is given",
 }
