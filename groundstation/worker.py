@@ -35,9 +35,7 @@ from groundstation.pipeline import prepare_logs, with_aircraft_file
 from groundstation.report import one_line_summary, render_report, write_html
 from groundstation.report.collect import assemble, load_history
 from groundstation.sysid.heldout import predict
-from groundstation.sysid.model import HoverModel
-
-OUTPUTS = ("u", "v", "w", "p", "q", "r", "theta", "phi")
+from groundstation.sysid.model import OUTPUT_UNITS, OUTPUTS, HoverModel
 
 
 @dataclass(frozen=True)
@@ -141,10 +139,10 @@ def _plot(overlay: dict[str, Any], path: Path, title: str) -> None:
     for i, (ax, c) in enumerate(zip(axes.T.ravel(), OUTPUTS, strict=True)):
         ax.plot(t, overlay["measured"][:, i], ".", ms=1.5, color="0.5", label="measured (smoothed)")
         ax.plot(t, overlay["model"][:, i], "-", lw=0.8, color="tab:red", label="model")
-        ax.set_ylabel(c)
+        ax.set_ylabel(f"{c} [{OUTPUT_UNITS[c]}]")
     axes[0, 0].legend(loc="upper right", fontsize=7)
     for ax in axes[-1]:
-        ax.set_xlabel("FC time (s)")
+        ax.set_xlabel("FC time [s]")
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
