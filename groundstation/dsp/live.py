@@ -167,6 +167,9 @@ def ned_to_body(v_ned: np.ndarray, roll_rad: np.ndarray, pitch_rad: np.ndarray,
 # --------------------------------------------------------------------------------------------
 
 
+_GAP_EVERY = 32  # new samples between two recomputations of a stream's median interval
+
+
 @dataclass
 class _Stream:
     n_cols: int
@@ -174,6 +177,9 @@ class _Stream:
     t: deque[float] = field(default_factory=lambda: deque(maxlen=256))
     v: deque[np.ndarray] = field(default_factory=lambda: deque(maxlen=256))
     t_host: deque[float] = field(default_factory=lambda: deque(maxlen=256))
+    added: int = 0                    # samples added since the last reset
+    gap_s: float = math.nan           # cached ordinary-sampling limit (see GridAligner._measured_gap)
+    gap_at: int = 0                   # ``added`` when gap_s was computed
 
 
 class GridAligner:
@@ -231,6 +237,7 @@ class GridAligner:
             s.t.clear()
             s.v.clear()
             s.t_host.clear()
+            s.added, s.gap_s, s.gap_at = 0, math.nan, 0
         self._next_k = None
         self._newest = -math.inf
         self._first = math.nan
@@ -243,6 +250,7 @@ class GridAligner:
         s.t.append(float(t_fc_s))
         s.v.append(np.asarray(values, dtype=float))
         s.t_host.append(float(t_host_s))
+        s.added += 1
         self._newest = max(self._newest, float(t_fc_s))
         if self._next_k is None:
             self._next_k = math.ceil(t_fc_s * self.rate_hz - 1e-6)
@@ -272,7 +280,8 @@ class GridAligner:
         rows: list[np.ndarray] = []
         hosts: list[float] = []
         meas: list[np.ndarray] = []
-        gaps = {name: self._measured_gap(s) for name, s in self._streams.items()}
+        gaps = ({name: self._measured_gap(s) for name, s in self._streams.items()}
+                if self._next_k * self.dt_s <= wm + 1e-9 else {})
         while self._next_k * self.dt_s <= wm + 1e-9:
             t = self._next_k * self.dt_s
             row = np.full(self.n_cols, np.nan)
@@ -298,11 +307,17 @@ class GridAligner:
         return np.array(ts), np.array(rows), np.array(hosts), restarted
 
     def _measured_gap(self, s: _Stream) -> float:
-        """Longest interval between a stream's samples that is ordinary sampling (s)."""
+        """Longest interval between a stream's samples that is ordinary sampling (s). The median interval
+        over the kept samples is recomputed every ``_GAP_EVERY`` new samples once the buffer is full
+        (it is a property of the stream's rate, and a median per packet cost the service half its CPU)."""
         if len(s.t) < 3:
             return self.measured_gap_s
+        if s.gap_s == s.gap_s and len(s.t) == s.t.maxlen and s.added - s.gap_at < _GAP_EVERY:
+            return s.gap_s
         d = np.diff(np.asarray(s.t))
-        return max(self.measured_gap_s, self.measured_gap_factor * float(np.median(d)))
+        s.gap_s = max(self.measured_gap_s, self.measured_gap_factor * float(np.median(d)))
+        s.gap_at = s.added
+        return s.gap_s
 
     def _at(self, s: _Stream, t: float) -> tuple[np.ndarray | None, float, float]:
         """Value at ``t``, the host time of the sample that made it known and the interval (s) between
