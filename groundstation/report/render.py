@@ -394,7 +394,7 @@ def one_line_summary(d: FlightReportData) -> str:
         if ho.unusable_subsystems:
             parts.append(f"unusable: {', '.join(ho.unusable_subsystems)}")
     if d.freq is not None and d.freq.J_avg is not None:
-        parts.append(f"J_avg {d.freq.J_avg:.0f}")
+        parts.append(f"J_avg {d.freq.J_avg:.1f}")
     if d.gap is not None:
         parts.append(f"verdict {d.gap.get('verdict')}")
     return "; ".join(parts) or "nothing analysed"

@@ -15,10 +15,12 @@ import subprocess
 import sys
 from html.parser import HTMLParser
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
-from groundstation.report.data import SECTIONS
+from groundstation.report.data import SECTIONS, FlightReportData
+from groundstation.report.render import one_line_summary
 from tests.report.browser import Browser, ensure_chromium
 
 SECTION_IDS = [s for s, _ in SECTIONS]
@@ -155,3 +157,11 @@ def test_a_log_without_flight_still_gets_a_page(tmp_path, sim_page, browser):
         if readable:
             assert "fig-timeline" in text and "fig-rates" in text   # the data-quality section is there
         assert browser.open(out) == []
+
+
+def test_the_one_line_summary_gives_j_avg_as_the_page_does():
+    """The published one-line summary rounds J_avg to one decimal, as the page's frequency section does
+    (a J_avg of 3.43 read "J_avg 3" beside "J_avg = 3.4")."""
+    freq = SimpleNamespace(J_avg=3.43)  # the one figure the line reads of a FreqVerification
+    line = one_line_summary(FlightReportData(title="t", logs=(), freq=freq))
+    assert "J_avg 3.4" in line
