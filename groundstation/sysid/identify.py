@@ -116,21 +116,22 @@ def free_mask(prepared: Any) -> tuple[np.ndarray, list[str]]:
 def _starts(opt: Any, k: int, span: np.ndarray, min_dist: float = IdentifyConfig.refine_start_min_dist) -> list[np.ndarray]:
     """Up to k good and mutually distinct points of everything the search evaluated, best first.
 
-    Distinct: normalised distance ``||(x - y) / span|| / sqrt(D)`` of at least ``min_dist``.
-    """
+    Distinct: normalised distance ``||(x - y) / span|| / sqrt(D)`` of at least ``min_dist``. Each
+    point taken rules out the archive near it in one vectorised step (the archive holds thousands of
+    points, often many close to the best)."""
     X = getattr(opt, "archive_x", None)
     if X is None:
         return [np.asarray(opt.x, dtype=float)]
     f = opt.archive_f
     order = np.argsort(f)
-    D = X.shape[1]
+    bad = np.flatnonzero(~np.isfinite(f[order]))
+    order = order[:bad[0]] if bad.size else order
+    far = np.ones(order.size, dtype=bool)
     out: list[np.ndarray] = []
-    for i in order:
-        if len(out) >= k or not np.isfinite(f[i]):
-            break
-        x = X[i]
-        if all(np.linalg.norm((x - o) / span) / np.sqrt(D) >= min_dist for o in out):
-            out.append(np.asarray(x, dtype=float))
+    while len(out) < k and far.any():
+        x = np.asarray(X[order[int(np.argmax(far))]], dtype=float)
+        out.append(x)
+        far &= np.linalg.norm((X[order] - x) / span, axis=1) / np.sqrt(X.shape[1]) >= min_dist
     return out or [np.asarray(opt.x, dtype=float)]
 
 
