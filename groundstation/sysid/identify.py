@@ -712,7 +712,8 @@ def _link_report(prepared: Any, win: Any) -> dict[str, Any]:
 
 def refit(prepared: Any, model: HoverModel, *, config: IdentifyConfig | None = None, prior: Any = None) -> HoverModel:
     """The model refined on ``prepared`` from ``model``'s parameters (no search): the cheap refit of
-    a cross-validation fold. Same windows, trims, forcing, weighting and prior as :func:`identify`."""
+    a cross-validation fold (one pass, stopped at ``fold_refit_ftol``). Same windows, trims, forcing,
+    weighting and prior as :func:`identify`."""
     cfg = config or IdentifyConfig()
     _check(cfg, "cabc", prepared)
     with threadpool_limits(1):
@@ -722,7 +723,7 @@ def refit(prepared: Any, model: HoverModel, *, config: IdentifyConfig | None = N
             pr = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
             ref = refine_ls(cost, run.theta[sub_free], plan.bounds[sub_free], passes=1, max_nfev=cfg.refine_max_nfev,
                             with_std=False, prior=pr, weighting=cfg.channel_weighting,
-                        prior_colour=cfg.prior_weighting == "effective")
+                            prior_colour=cfg.prior_weighting == "effective", ftol=cfg.fold_refit_ftol)
             _take(run, cost, ref.x, sub, cfg)
     return HoverModel(params={n: float(v) for n, v in zip(PARAM_NAMES, run.theta, strict=True)},
                       sample_rate_hz=float(1.0 / prepared.dt_s),
