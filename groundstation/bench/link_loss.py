@@ -34,6 +34,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from rich.console import Console
 from rich.table import Table
 
@@ -49,6 +50,9 @@ from hil_replay.sim import parse_effect, write_tlog
 HELP = "identification and diagnosis on simulated flights with bursty / uniform telemetry loss"
 
 KEY = ("M_a", "L_b", "inv_tau_s", "A_lat", "B_lon", "Z_col", "N_ped", "N_r")
+#: a key parameter is "as determined" when within 10 % of the truth or within this many of the model
+#: file's own standard errors (a two-sided 0.3 % chance per parameter when the errors are honest)
+Z_LIM = 3.0
 RATES = {"ATTITUDE": 25.0, "SERVO_OUTPUT_RAW": 25.0, "LOCAL_POSITION_NED": 25.0}
 
 
@@ -83,6 +87,7 @@ def _case(path: Path, truth: dict, val: Any, cfg: Any, diagnose: bool) -> dict[s
         err = {k: 100.0 * abs(model.params[k] - truth[k]) / abs(truth[k]) for k in KEY}
         out["key_within_10"] = sum(v <= 10.0 for v in err.values())
         out["key_error_pct"] = err
+        out.update(_determined(model, truth, err))
         out["heldout_match"] = validate(model, val).mean_match
         if res.gap is not None:
             rep = res.gap.report
@@ -96,6 +101,37 @@ def _case(path: Path, truth: dict, val: Any, cfg: Any, diagnose: bool) -> dict[s
     out["wall_s"] = time.perf_counter() - t0
     out["cpu_s"] = time.process_time() - c0
     return out
+
+
+def _determined(model: Any, truth: dict, err: dict[str, float]) -> dict[str, Any]:
+    """Each key parameter's standard error (% of the truth, from the model file), its error in those
+    standard errors (z), and how many are within 10 % or within ``Z_LIM`` standard errors."""
+    std = {k: float(model.parameter_std.get(k) or np.nan) for k in KEY}
+    z = {k: (model.params[k] - truth[k]) / std[k] for k in KEY}
+    within = sum(err[k] <= 10.0 or abs(z[k]) <= Z_LIM for k in KEY)
+    return {"key_std_pct": {k: _finite(100.0 * std[k] / abs(truth[k])) for k in KEY},
+            "key_z": {k: _finite(z[k]) for k in KEY}, "key_as_determined": within}
+
+
+def _finite(x: float) -> float | None:
+    """``x``, or None where it is not a number (a standard error the model file does not give)."""
+    return float(x) if np.isfinite(x) else None
+
+
+def _counted(r: dict[str, Any]) -> float:
+    """Output samples the identification counted, in windows (windows x share measured)."""
+    lk = r.get("link") or {}
+    return float(lk.get("windows") or 0) * (1.0 - float(lk.get("unmeasured_pct") or 0.0) / 100.0)
+
+
+def _widening(r: dict[str, Any], base: dict[str, Any]) -> dict[str, float]:
+    """How much the key standard errors widened against the loss-free flight's (median ratio), and how
+    much the information lost predicts: sqrt(counted loss-free / counted lossy)."""
+    ratios = [r["key_std_pct"][k] / base["key_std_pct"][k] for k in KEY
+              if r["key_std_pct"].get(k) and base["key_std_pct"].get(k)]
+    n0, n1 = _counted(base), _counted(r)
+    return {"std_vs_lossfree": statistics.median(ratios) if ratios else float("nan"),
+            "std_predicted": (n0 / n1) ** 0.5 if n0 > 0 and n1 > 0 else float("nan")}
 
 
 def _layout_errors(path: Path, truth: dict, cfg: Any, layouts: int) -> list[dict[str, float]]:
@@ -160,6 +196,8 @@ def run(args: argparse.Namespace) -> int:
                                                              for e in r["layout_error_pct"]]
                         if base is not None and "key_within_10" in base:
                             r["key_lossfree"] = base["key_within_10"]
+                            if "key_std_pct" in r and loss > 0:
+                                r.update(_widening(r, base))
                             if "layout_error_pct" in base:
                                 r["within_lossfree_spread"] = _within_spread(r, base)
                         if base is not None and "heldout_match" in r and "heldout_match" in base:
@@ -190,6 +228,12 @@ def _line(r: dict[str, Any]) -> str:
     if "refused" in r:
         return f"{head} {link}; refused: {r['refused']} ({r['cpu_s']:.1f} s CPU)"
     verdict = f", verdict {r['verdict']} {r.get('named')}" if "verdict" in r else ""
+    zk = max(KEY, key=lambda k: abs(r["key_z"][k] or 0.0))
+    verdict += (f"; {r['key_as_determined']}/8 within 10 % or {Z_LIM:g} standard errors (largest "
+                f"{zk} {r['key_z'][zk] or 0.0:+.1f})")
+    if "std_vs_lossfree" in r:
+        verdict += (f"; standard errors x{r['std_vs_lossfree']:.2f} the loss-free ones "
+                    f"(information lost predicts x{r['std_predicted']:.2f})")
     if "layout_key_within_10" in r:
         verdict += f"; other window layouts {r['layout_key_within_10']}/8"
     if r.get("within_lossfree_spread") is not None:
@@ -228,8 +272,10 @@ def _rates(rows: list[dict[str, Any]], diagnose: bool) -> Any:
 
     t = Table(title="link loss over the seeds: cases meeting each target")
     spread = any("within_lossfree_spread" in r for r in rows)
-    for c in ("flight", "kind", "loss %", "cases", "crash/refused", "8/8 key", "key as loss-free",
-              *(("within loss-free spread",) if spread else ()), "held-out >= 97 %", "median held-out %"):
+    for c in ("flight", "kind", "loss %", "cases", "crash/refused", "8/8 key", f"8/8 in 10 % or {Z_LIM:g} SE",
+              "key as loss-free",
+              *(("within loss-free spread",) if spread else ()), "rms z", "SE x (info)", "held-out >= 97 %",
+              "median held-out %"):
         t.add_column(c, justify="right")
     if diagnose:
         for c in ("false alarm", "same verdict", "invented"):
@@ -242,11 +288,27 @@ def _rates(rows: list[dict[str, Any]], diagnose: bool) -> Any:
         rel = [r["heldout_vs_lossfree_pct"] for r in ok if "heldout_vs_lossfree_pct" in r]
         cells = [flight, kind, f"{loss:g}", str(len(rs)), str(len(rs) - len(ok)),
                  str(sum(r["key_within_10"] == 8 for r in ok)),
+                 str(sum(r.get("key_as_determined") == 8 for r in ok)),
                  str(sum(r["key_within_10"] >= r.get("key_lossfree", 8) for r in ok)),
                  *((str(sum(bool(r.get("within_lossfree_spread")) for r in ok)),) if spread else ()),
-                 str(sum(v >= 97.0 for v in rel)), f"{statistics.median(rel):.1f}" if rel else "-"]
+                 _rms_z(ok), _widening_cell(ok), str(sum(v >= 97.0 for v in rel)), f"{statistics.median(rel):.1f}" if rel else "-"]
         if diagnose:
             cells += [str(sum(r.get("verdict") not in (None, "none") for r in ok)) if flight == "none" else "-",
                       str(sum(bool(r.get("same_verdict")) for r in ok)), str(sum(bool(r.get("invented")) for r in ok))]
         t.add_row(*cells)
     return t
+
+
+def _rms_z(rs: list[dict[str, Any]]) -> str:
+    """Root mean square of the key parameters' errors in their own standard errors over the cases
+    (about 1 when the model file's standard errors are honest)."""
+    zs = [z for r in rs for z in (r.get("key_z") or {}).values() if z is not None]
+    return f"{(sum(z * z for z in zs) / len(zs)) ** 0.5:.2f}" if zs else "-"
+
+
+def _widening_cell(rs: list[dict[str, Any]]) -> str:
+    """Median widening of the key standard errors against the loss-free flight's, and (in brackets)
+    the median that the information lost predicts."""
+    w = [r["std_vs_lossfree"] for r in rs if "std_vs_lossfree" in r]
+    p = [r["std_predicted"] for r in rs if "std_predicted" in r]
+    return f"{statistics.median(w):.2f} ({statistics.median(p):.2f})" if w and p else "-"
