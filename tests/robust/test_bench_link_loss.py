@@ -23,6 +23,7 @@ def test_bench_link_loss_smoke(tmp_path, capsys):
     assert "crash" not in lossy and "refused" not in lossy, lossy
     assert lossy["link"]["in_air_holes"] > 0 and lossy["link"]["unmeasured_pct"] > 0
     assert 0 <= lossy["key_within_10"] <= 8 and lossy["heldout_vs_lossfree_pct"] > 0
+    assert lossy["std_predicted"] > 1.0 and lossy["std_vs_lossfree"] > 0
     assert "held-out match" in capsys.readouterr().out
 
 
@@ -66,8 +67,8 @@ def test_key_parameters_are_judged_in_the_model_files_own_standard_errors():
     assert d["key_z"]["M_a"] == pytest.approx(2.5) and d["key_z"]["A_lat"] == pytest.approx(-5.0)
     assert d["key_z"]["N_r"] is None and d["key_std_pct"]["M_a"] == pytest.approx(8.0)
     assert d["key_as_determined"] == 7                        # A_lat is 5 standard errors off
-    base = {"key_std_pct": dict.fromkeys(KEY, 2.0), "link": {"windows": 40, "unmeasured_pct": 0.0}}
-    lossy = {"key_std_pct": dict.fromkeys(KEY, 2.4), "link": {"windows": 32, "unmeasured_pct": 20.0}}
+    base = {"key_std_pct": dict.fromkeys(KEY, 2.0), "windows": 40, "link": {"unmeasured_pct": 0.0}}
+    lossy = {"key_std_pct": dict.fromkeys(KEY, 2.4), "windows": 32, "link": {"unmeasured_pct": 20.0}}
     w = _widening(lossy, base)
     assert w["std_vs_lossfree"] == pytest.approx(1.2) and w["std_predicted"] == pytest.approx((40 / 25.6) ** 0.5)
 
