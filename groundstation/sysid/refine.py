@@ -45,7 +45,7 @@ def _fd_step(x: np.ndarray, span: np.ndarray) -> np.ndarray:
 def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: int = IdentifyConfig.refine_passes,
            max_nfev: int = IdentifyConfig.refine_max_nfev,
            with_std: bool = True, prior: tuple[np.ndarray, np.ndarray] | None = None,
-           weighting: str = "noise", prior_colour: bool = False) -> OptimizeResult:
+           weighting: str = "noise", prior_colour: bool = False, ftol: float = 1e-10) -> OptimizeResult:
     """Levenberg-Marquardt-like trust-region refinement from ``x0`` (free parameters, (D,)).
 
     ``prior`` = (nominal (D,), std (D,)): output error with a priori weighting (Morelli & Klein
@@ -66,6 +66,9 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
     common level from the residuals: when model error, not noise, makes the residual, ML weighting
     gives up the channels the model fits worst, and those are then not predicted at all.
 
+    ``ftol``: each pass stops once an accepted step lowers its cost by less than this fraction
+    (:func:`levenberg_marquardt`).
+
     Returns an OptimizeResult with ``x``, ``fun`` (eq. 11 cost), ``sigma`` (8,) channel noise
     scales, ``std`` (D,) standard errors, ``nfev`` (candidate evaluations) and ``jac`` (n_res, D).
     """
@@ -82,7 +85,7 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
         if prior is not None and prior_colour:
             sig = sigma * np.sqrt(residual_tau(cost.residuals(x[None], sigma)[0], cost.used))
 
-        res = levenberg_marquardt(cost, x, lo, hi, sig, max_nfev=max_nfev, prior=prior)
+        res = levenberg_marquardt(cost, x, lo, hi, sig, max_nfev=max_nfev, prior=prior, ftol=ftol)
         x = res.x
         sigma = _sigma(cost, x, weighting)
     assert res is not None

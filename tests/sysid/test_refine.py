@@ -47,6 +47,20 @@ def test_a_parameter_held_by_its_bound_stays_on_it():
     assert min(abs(res.x[i] - b[i, 0]), abs(res.x[i] - b[i, 1])) < 1e-9 * abs(b[i, 1] - b[i, 0]) + 1e-12
 
 
+def test_a_fold_refit_tolerance_stops_a_start_near_the_optimum_only():
+    cost, th, free = _cost()
+    b = bounds_array()[free]
+    kw = dict(passes=1, max_nfev=6, with_std=False)
+    full = refine(cost, th[free], b, **kw, ftol=1e-10)
+    opt = full.x
+    near = np.clip(opt * 1.001, b[:, 0], b[:, 1])
+    loose, tight = refine(cost, near, b, **kw, ftol=1e-4), refine(cost, near, b, **kw, ftol=1e-10)
+    assert loose.nfev < tight.nfev and loose.message == "cost decrease below ftol"
+    assert abs(loose.fun - tight.fun) <= 1e-4 * tight.fun
+    far = np.clip(th[free] * 1.3, b[:, 0], b[:, 1])   # every step gains more than the tolerance: the same run
+    np.testing.assert_array_equal(refine(cost, far, b, **kw, ftol=1e-4).x, refine(cost, far, b, **kw, ftol=1e-10).x)
+
+
 def test_stage_timer_charges_the_innermost_stage_and_restores_the_functions(monkeypatch):
     """``bench identify --profile``: CPU goes to the stage running, every reference is put back."""
     import groundstation.bench.identify as bench
