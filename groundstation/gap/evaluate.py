@@ -4,7 +4,8 @@ The flight is cut into windows of ``window_s``; window i belongs to fold ``i % f
 excitation of the flight-test card is in some training fold. A model variant (inputs transformed,
 outputs delayed, extra forcing ...) is simulated once at the base parameters ``theta0``; the base
 parameters are then re-fitted on the training folds by one regularised Gauss-Newton step with the
-Jacobian of the base model (computed once, batched finite differences), together with the variant's
+Jacobian of the base model (computed once, batched finite differences, each subsystem's parameters on
+that subsystem alone), together with the variant's
 linear parameters (extra columns), and the re-fitted variant is scored on the held-out fold.
 The base model goes through the same step, so base and variants are compared on equal terms.
 
@@ -23,7 +24,7 @@ import numpy as np
 
 from groundstation.errors import GapError
 from groundstation.gap.config import DiagnoseConfig
-from groundstation.gap.linsim import simulate
+from groundstation.gap.linsim import HORIZONTAL, PARAM_BLOCKS, VERTICAL, simulate
 from groundstation.sysid.model import N_PARAMS
 
 
@@ -167,16 +168,43 @@ class Evaluator:
         """Set the base parameters; recompute base residual and Jacobian (batched finite differences)."""
         self.theta0 = np.asarray(theta, float).copy()
         h = 1e-4 * np.maximum(np.abs(self.theta0), 1e-2)
-        batch = np.vstack([self.theta0[None], self.theta0[None] + np.diag(h)])
-        yh = self.simulate(batch)
-        r = self.residual(yh)
-        self.r0 = r[0]
-        # d residual / d theta ; column-normalised for conditioning
-        J = (r[1:] - r[0][None]) / h[:, None, None, None]  # (31, W, L, 8)
-        # C order: a worker process gets this array unpickled in C order, and products of another
-        # layout round differently (the report must not depend on --jobs)
-        self.J = np.ascontiguousarray(np.moveaxis(J, 0, -1))  # (W, L, 8, 31)
+        if self.nuisance is not None:  # columns fitted across both subsystems: one joint batch
+            batch = np.vstack([self.theta0[None], self.theta0[None] + np.diag(h)])
+            r = self.residual(self.simulate(batch))
+            self.r0 = r[0]
+            # d residual / d theta ; column-normalised for conditioning
+            J = (r[1:] - r[0][None]) / h[:, None, None, None]  # (31, W, L, 8)
+            # C order: a worker process gets this array unpickled in C order, and products of another
+            # layout round differently (the report must not depend on --jobs)
+            self.J = np.ascontiguousarray(np.moveaxis(J, 0, -1))  # (W, L, 8, 31)
+        else:
+            gram: dict = {}
+            y0 = simulate(self.theta0, self.U, self.Y, self.dt_s, weights=self.w8, available=self.available,
+                          start=self.start, gram=gram)
+            assert isinstance(y0, np.ndarray)
+            self.r0 = self.residual(y0)[0]
+            self.J = self._block_jacobian(h, gram)
         self._prepare_folds()
+
+    def _block_jacobian(self, h: np.ndarray, gram: dict) -> np.ndarray:
+        """d residual / d theta (W, L, 8, 31) by finite differences ``h`` (31,), each subsystem's parameters
+        simulated on that subsystem alone (the other's outputs do not depend on them: zero there), the
+        initial states' ridge that of both (``gram``: the base simulation's, see
+        :func:`groundstation.gap.linsim.simulate`): the same numbers as one simulation of both to round-off."""
+        J = np.zeros((self.W, self.L, 8, N_PARAMS))
+        for block, other, idx in ((HORIZONTAL, VERTICAL, PARAM_BLOCKS[0]), (VERTICAL, HORIZONTAL, PARAM_BLOCKS[1])):
+            oc = np.array(block.outputs)
+            theirs = [j for j, st in enumerate(gram["unknown"]) if st in other.states]
+            extra = (float(gram["diag"][0, theirs].sum()), len(theirs))
+            batch = np.vstack([self.theta0[None], self.theta0[None] + np.diag(h)[idx]])
+            yh = simulate(batch, self.U, self.Y, self.dt_s, weights=self.w8, available=self.available,
+                          start=self.start, block=block, ridge_extra=extra)
+            wm = self.wmask if self.wmask.shape[-1] == 1 else self.wmask[..., oc]
+            r = (self.Y[..., oc] - yh) * self.w8[oc] * wm
+            r[1:] -= r[0]
+            r[1:] /= h[idx, None, None, None]
+            J[:, :, oc[:, None], idx[None, :]] = np.moveaxis(r[1:], 0, -1)
+        return J
 
     def _prepare_folds(self) -> None:
         Jf = self.J.reshape(self.W, -1, N_PARAMS)
