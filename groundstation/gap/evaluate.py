@@ -168,7 +168,8 @@ class Evaluator:
         """Set the base parameters; recompute base residual and Jacobian (batched finite differences)."""
         self.theta0 = np.asarray(theta, float).copy()
         h = 1e-4 * np.maximum(np.abs(self.theta0), 1e-2)
-        if self.nuisance is not None:  # columns fitted across both subsystems: one joint batch
+        nuisance_blocks = self._nuisance_blocks()
+        if nuisance_blocks is None:  # columns fitted across both subsystems: one joint batch
             batch = np.vstack([self.theta0[None], self.theta0[None] + np.diag(h)])
             r = self.residual(self.simulate(batch))
             self.r0 = r[0]
@@ -180,39 +181,73 @@ class Evaluator:
         else:
             gram: dict = {}
             y0 = simulate(self.theta0, self.U, self.Y, self.dt_s, weights=self.w8, available=self.available,
-                          start=self.start, gram=gram)
+                          start=self.start, gram=gram, nuisance=self.nuisance, nuisance_prec=self.nuisance_prec)
             assert isinstance(y0, np.ndarray)
             self.r0 = self.residual(y0)[0]
-            self.J = self._block_jacobian(h, gram)
+            self.J, pieces = self._block_jacobian(h, gram, nuisance_blocks)
+            self._prepare_folds(pieces)
+            return
         self._prepare_folds()
 
-    def _block_jacobian(self, h: np.ndarray, gram: dict) -> np.ndarray:
+    def _nuisance_blocks(self) -> tuple[bool, bool] | None:
+        """Which subsystems' outputs the nuisance columns reach ((False, False) without any); None when
+        they are per window and reach both (the Jacobian is then simulated in one joint batch)."""
+        if self.nuisance is None:
+            return False, False
+        reach = tuple(bool(self.nuisance[..., list(b.outputs), :].any()) for b in (HORIZONTAL, VERTICAL))
+        return None if self.nuisance.shape[0] != 1 or all(reach) else (reach[0], reach[1])
+
+    def _block_jacobian(self, h: np.ndarray, gram: dict,
+                        nuisance_blocks: tuple[bool, bool]) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
         """d residual / d theta (W, L, 8, 31) by finite differences ``h`` (31,), each subsystem's parameters
         simulated on that subsystem alone (the other's outputs do not depend on them: zero there), the
         initial states' ridge that of both (``gram``: the base simulation's, see
-        :func:`groundstation.gap.linsim.simulate`): the same numbers as one simulation of both to round-off."""
+        :func:`groundstation.gap.linsim.simulate`): the same numbers as one simulation of both to round-off.
+        Also each block's (parameter indices, its part of the Jacobian (W, L ny, k)) (the rest is zero)."""
         J = np.zeros((self.W, self.L, 8, N_PARAMS))
-        for block, other, idx in ((HORIZONTAL, VERTICAL, PARAM_BLOCKS[0]), (VERTICAL, HORIZONTAL, PARAM_BLOCKS[1])):
+        pieces = []
+        blocks = ((HORIZONTAL, VERTICAL, PARAM_BLOCKS[0], nuisance_blocks[0]),
+                  (VERTICAL, HORIZONTAL, PARAM_BLOCKS[1], nuisance_blocks[1]))
+        for block, other, idx, with_nuisance in blocks:
             oc = np.array(block.outputs)
             theirs = [j for j, st in enumerate(gram["unknown"]) if st in other.states]
             extra = (float(gram["diag"][0, theirs].sum()), len(theirs))
+            if self.nuisance is not None and not with_nuisance:  # the other block's unknowns
+                extra = (extra[0] + float(gram["nuisance_diag"].sum()), extra[1] + self.nuisance.shape[-1])
             batch = np.vstack([self.theta0[None], self.theta0[None] + np.diag(h)[idx]])
             yh = simulate(batch, self.U, self.Y, self.dt_s, weights=self.w8, available=self.available,
-                          start=self.start, block=block, ridge_extra=extra)
+                          start=self.start, block=block, ridge_extra=extra,
+                          nuisance=self.nuisance if with_nuisance else None,
+                          nuisance_prec=self.nuisance_prec if with_nuisance else None)
             wm = self.wmask if self.wmask.shape[-1] == 1 else self.wmask[..., oc]
             r = (self.Y[..., oc] - yh) * self.w8[oc] * wm
             r[1:] -= r[0]
             r[1:] /= h[idx, None, None, None]
-            J[:, :, oc[:, None], idx[None, :]] = np.moveaxis(r[1:], 0, -1)
-        return J
+            piece = np.ascontiguousarray(np.moveaxis(r[1:], 0, -1))  # (W, L, ny, k)
+            J[:, :, oc[:, None], idx[None, :]] = piece
+            pieces.append((idx, piece.reshape(self.W, -1, len(idx))))
+        return J, pieces
 
-    def _prepare_folds(self) -> None:
+    def _prepare_folds(self, pieces: list[tuple[np.ndarray, np.ndarray]] | None = None) -> None:
+        """Column norms, the column-normalised Jacobian and its normal matrix per window; ``pieces``: the
+        Jacobian's non-zero blocks (:meth:`_block_jacobian`), the normal matrix from them alone."""
         Jf = self.J.reshape(self.W, -1, N_PARAMS)
         self.Jw = Jf
-        self.col = np.sqrt((Jf ** 2).sum(axis=(0, 1))) + 1e-30
+        if pieces is None:
+            self.col = np.sqrt((Jf ** 2).sum(axis=(0, 1))) + 1e-30
+        else:
+            self.col = np.empty(N_PARAMS)
+            for idx, P in pieces:
+                self.col[idx] = np.sqrt((P ** 2).sum(axis=(0, 1))) + 1e-30
         #: column-normalised Jacobian per window (W, n, 31), formed once for every held-out re-fit
         self.Jn = Jf / self.col
-        self.JtJ = np.matmul(np.swapaxes(self.Jn, 1, 2), self.Jn)  # per window (W, 31, 31)
+        if pieces is None:
+            self.JtJ = np.matmul(np.swapaxes(self.Jn, 1, 2), self.Jn)  # per window (W, 31, 31)
+            return
+        self.JtJ = np.zeros((self.W, N_PARAMS, N_PARAMS))
+        for idx, P in pieces:
+            Pn = P / self.col[idx]
+            self.JtJ[:, idx[:, None], idx[None, :]] = np.matmul(np.swapaxes(Pn, 1, 2), Pn)
 
     # ---------------------------------------------------------------------------------------
     def heldout(self, r: np.ndarray, X: np.ndarray | None = None,

@@ -184,10 +184,12 @@ def simulate(
         starting point), so that sensor noise at the window start does not seed a divergence
     block : :data:`HORIZONTAL` or :data:`VERTICAL`: that subsystem alone (its states, inputs and
         forcing; ``yhat`` and ``coef`` then hold its output channels and unknown states only)
-    ridge_extra : (trace, count) of the other block's unknown initial states (without nuisance): the
-        least squares' ridge is then relative to the whole model's, as in a simulation of both blocks
-    gram : a dict that receives ``unknown`` (the unknown initial states, indices of the 11) and
-        ``diag`` (C, n_unknown), the diagonal of the initial states' normal matrix (its trace sets the ridge)
+    ridge_extra : (trace, count) of the unknowns outside this block (the other block's initial states,
+        nuisance columns that only the other block's outputs see): the least squares' ridge is then
+        relative to the whole model's, as in a simulation of both blocks (no per-window nuisance)
+    gram : a dict that receives ``unknown`` (the unknown initial states, indices of the 11), ``diag``
+        (C, n_unknown), the diagonal of the initial states' normal matrix, and with nuisance columns
+        shared by every window ``nuisance_diag`` (K,), theirs (the traces set the ridge)
 
     Returns
     -------
@@ -271,7 +273,9 @@ def simulate(
         shared = nuisance.shape[0] == 1
         if shared:  # the same columns in every window: one normal matrix per candidate, as without them
             N1 = np.ascontiguousarray((Nall[0][:, sel, :] * w8).reshape(K, -1))  # (K, n)
-            Gn = _nuisance_normal(Sw, Gss, N1[None], prec)[:, 0]  # (C, nu + K, nu + K)
+            Gn = _nuisance_normal(Sw, Gss, N1[None], prec, ridge_extra)[:, 0]  # (C, nu + K, nu + K)
+            if gram is not None:
+                gram["nuisance_diag"] = (N1 ** 2).sum(axis=1)
             N2 = np.ascontiguousarray(nuisance[0].reshape(L * ny, K).T)  # (K, L 8)
     for w0 in range(0, Wn, wc):
         w1 = min(Wn, w0 + wc)
@@ -320,10 +324,12 @@ def _restrict(block: Block, A: np.ndarray, B: np.ndarray, inputs: np.ndarray, fo
             tuple(st.index(i) for i in UNMEASURED if i in st))
 
 
-def _nuisance_normal(Sw: np.ndarray, Gss: np.ndarray, Nw: np.ndarray, prec: np.ndarray | None) -> np.ndarray:
+def _nuisance_normal(Sw: np.ndarray, Gss: np.ndarray, Nw: np.ndarray, prec: np.ndarray | None,
+                     ridge_extra: tuple[float, int] | None = None) -> np.ndarray:
     """Normal matrices (C, Wc, nu + K, nu + K) of the initial states (weighted free responses ``Sw``
     (C, nu, n), their Gram ``Gss`` (C, nu, nu)) and the nuisance columns ``Nw`` (Wc, K, n), with the
-    relative ridge and the nuisance's prior precision ``prec`` (K,) added."""
+    relative ridge (relative also to ``ridge_extra``, see :func:`simulate`) and the nuisance's prior
+    precision ``prec`` (K,) added."""
     C, nu = Gss.shape[:2]
     Wc, K = Nw.shape[:2]
     Gsn = np.matmul(Sw[:, None], np.swapaxes(Nw, 1, 2)[None])  # (C, Wc, nu, K)
@@ -332,7 +338,10 @@ def _nuisance_normal(Sw: np.ndarray, Gss: np.ndarray, Nw: np.ndarray, prec: np.n
     G[:, :, :nu, nu:] = Gsn
     G[:, :, nu:, :nu] = np.swapaxes(Gsn, 2, 3)
     G[:, :, nu:, nu:] = np.matmul(Nw, np.swapaxes(Nw, 1, 2))[None]
-    ridge = 1e-9 * np.trace(G, axis1=2, axis2=3)[..., None, None] / G.shape[-1] + 1e-12
+    tr, n_tr = np.trace(G, axis1=2, axis2=3), G.shape[-1]
+    if ridge_extra is not None:
+        tr, n_tr = tr + ridge_extra[0], n_tr + ridge_extra[1]
+    ridge = 1e-9 * tr[..., None, None] / n_tr + 1e-12
     G += ridge * np.eye(nu + K)
     if prec is not None:
         idx = np.arange(nu, nu + K)
