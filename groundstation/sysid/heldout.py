@@ -80,16 +80,19 @@ def input_offset(model: HoverModel, prepared: Any) -> np.ndarray:
 
 
 def predict(model: HoverModel, prepared: Any, *, window_s: float = IdentifyConfig.heldout_window_s,
-            use_model_trim: bool = True) -> Prediction:
+            use_model_trim: bool = True, window_offsets: bool | None = None) -> Prediction:
     """Score ``model`` on held-out ``prepared`` data (see the module docstring). A model whose
-    ``structure`` is the command-response one predicts with it (:mod:`groundstation.sysid.structure`)."""
+    ``structure`` is the command-response one predicts with it (:mod:`groundstation.sysid.structure`).
+    ``window_offsets``: estimate input offsets on each held-out window (None: as the model was fitted;
+    False: nothing but the unmeasured initial states comes from a window's own outputs)."""
     if getattr(model, "structure", "hover") == "command_response" and model.command is not None:
         return predict_command(CommandModel.from_json(model.command), prepared, window_s=window_s)
     win = make_windows(prepared.segments, prepared.dt_s, window_s)
     u = win.inputs + (input_offset(model, prepared)[None, None, :] if use_model_trim else 0.0)
     with threadpool_limits(1):
         sim = WindowSimulator(u, win.outputs, win.dt_s, win.available, estimate_all_initial=False,
-                              measured=win.measured, window_offsets=model.window_input_offsets)
+                              measured=win.measured,
+                              window_offsets=model.window_input_offsets if window_offsets is None else window_offsets)
         yhat = sim.simulate(model.theta[None])[0]
     match: dict[str, float] = {}
     ratio: dict[str, float] = {}

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from groundstation.errors import SysidError
+from groundstation.sysid.markov import markov_data, markov_sse
 from groundstation.sysid.model import build_matrices, discretize
 
 # (state index, output column) of the measured states per subsystem
@@ -230,6 +231,11 @@ class WindowSimulator:
                 u_sub = np.concatenate([u_sub, self.forcing[:, :, [c for _, c in _FORCED[_SUBS.index(sub)]]]], axis=2)
             self._prep[-1].update(self._lifted_prep(sub, u_sub, self.outputs[:, :, o_idx], xm, known,
                                                     w_ch, lb))
+            # the search's projected cost by Markov parameters (:mod:`groundstation.sysid.markov`)
+            markov = lin and not known.any() and self._prep[-1]["same_G"] and self._prep[-1]["full_mask"] \
+                and not self.holes
+            self._prep[-1]["markov"] = markov_data(u_sub, self.outputs[:, :, o_idx], lin, w_ch[0], ridge) \
+                if markov else None
 
     def _lift_mask(self, m: np.ndarray, block: int) -> np.ndarray:
         """Sample mask (W, L, nch) in the lifted layout of the errors (nch, Lp, W), as floats."""
@@ -454,6 +460,9 @@ class WindowSimulator:
         response, and the coefficients ``beta`` (global) and the initial states (per window) come from
         one least-squares solve (Schur complement over the windows). Returns ``(e or sse, x0, beta)``.
         """
+        if not explicit and pre["markov"] is not None and not Bd.any():
+            z, beta, sse = markov_sse(pre["markov"], Ad, Gam, pre["s_idx"])
+            return sse, z, beta  # no known initial state: x0 = z
         C = Ad.shape[0]
         W, L, n = self.W, self.L, sub.n
         b, nb = pre["lb"], pre["lnb"]
