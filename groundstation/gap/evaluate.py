@@ -400,7 +400,7 @@ class Evaluator:
             xs = np.ones(0)
             M = Jn
         Mf = M.reshape(-1, M.shape[2])
-        G = Mf.T @ Mf
+        G = self.JtJ.sum(0) if not K else Mf.T @ Mf  # the base model's: the per-window ones summed
         b = Mf.T @ rf.ravel()
         lam = ridge * np.trace(G) / M.shape[2]
         d = np.linalg.solve(G + lam * np.eye(M.shape[2]), b)

@@ -112,16 +112,16 @@ def deadzone(x: np.ndarray, b: float, centre: float = 0.0) -> np.ndarray:
 
 def backlash(x: np.ndarray, b: float) -> np.ndarray:
     """Mechanical play of total width 2b: the output follows only when pushed past +-b."""
-    n = x.shape[0]
-    out = np.empty(n)
-    y = x[0]
-    for k in range(n):
-        if x[k] > y + b:
-            y = x[k] - b
-        elif x[k] < y - b:
-            y = x[k] + b
-        out[k] = y
-    return out
+    xs = x.tolist()  # Python floats: the same arithmetic as numpy's scalars, a third of the time
+    b = float(b)
+    y, col = xs[0], []
+    for xk in xs:
+        if xk > y + b:
+            y = xk - b
+        elif xk < y - b:
+            y = xk + b
+        col.append(y)
+    return np.array(col, dtype=float)
 
 
 # ---------------------------------------------------------------------------------------------
