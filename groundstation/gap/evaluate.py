@@ -177,17 +177,14 @@ class Evaluator:
             J = (r[1:] - r[0][None]) / h[:, None, None, None]  # (31, W, L, 8)
             # C order: a worker process gets this array unpickled in C order, and products of another
             # layout round differently (the report must not depend on --jobs)
-            self.J = np.ascontiguousarray(np.moveaxis(J, 0, -1))  # (W, L, 8, 31)
-        else:
-            gram: dict = {}
-            y0 = simulate(self.theta0, self.U, self.Y, self.dt_s, weights=self.w8, available=self.available,
-                          start=self.start, gram=gram, nuisance=self.nuisance, nuisance_prec=self.nuisance_prec)
-            assert isinstance(y0, np.ndarray)
-            self.r0 = self.residual(y0)[0]
-            self.J, pieces = self._block_jacobian(h, gram, nuisance_blocks)
-            self._prepare_folds(pieces)
+            self._prepare_folds([(np.arange(N_PARAMS), np.arange(8), np.ascontiguousarray(np.moveaxis(J, 0, -1)))])
             return
-        self._prepare_folds()
+        gram: dict = {}
+        y0 = simulate(self.theta0, self.U, self.Y, self.dt_s, weights=self.w8, available=self.available,
+                      start=self.start, gram=gram, nuisance=self.nuisance, nuisance_prec=self.nuisance_prec)
+        assert isinstance(y0, np.ndarray)
+        self.r0 = self.residual(y0)[0]
+        self._prepare_folds(self._block_jacobian(h, gram, nuisance_blocks))
 
     def _nuisance_blocks(self) -> tuple[bool, bool] | None:
         """Which subsystems' outputs the nuisance columns reach ((False, False) without any); None when
@@ -198,13 +195,12 @@ class Evaluator:
         return None if self.nuisance.shape[0] != 1 or all(reach) else (reach[0], reach[1])
 
     def _block_jacobian(self, h: np.ndarray, gram: dict,
-                        nuisance_blocks: tuple[bool, bool]) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
-        """d residual / d theta (W, L, 8, 31) by finite differences ``h`` (31,), each subsystem's parameters
-        simulated on that subsystem alone (the other's outputs do not depend on them: zero there), the
-        initial states' ridge that of both (``gram``: the base simulation's, see
-        :func:`groundstation.gap.linsim.simulate`): the same numbers as one simulation of both to round-off.
-        Also each block's (parameter indices, its part of the Jacobian (W, L ny, k)) (the rest is zero)."""
-        J = np.zeros((self.W, self.L, 8, N_PARAMS))
+                        nuisance_blocks: tuple[bool, bool]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """d residual / d theta by finite differences ``h`` (31,), each subsystem's parameters simulated
+        on that subsystem alone (the other's outputs do not depend on them: zero there), the initial
+        states' ridge that of both (``gram``: the base simulation's, see
+        :func:`groundstation.gap.linsim.simulate`): the same numbers as one simulation of both to
+        round-off. Per block: (parameter indices (k,), output channels (ny,), d residual (W, L, ny, k))."""
         pieces = []
         blocks = ((HORIZONTAL, VERTICAL, PARAM_BLOCKS[0], nuisance_blocks[0]),
                   (VERTICAL, HORIZONTAL, PARAM_BLOCKS[1], nuisance_blocks[1]))
@@ -223,31 +219,29 @@ class Evaluator:
             r = (self.Y[..., oc] - yh) * self.w8[oc] * wm
             r[1:] -= r[0]
             r[1:] /= h[idx, None, None, None]
-            piece = np.ascontiguousarray(np.moveaxis(r[1:], 0, -1))  # (W, L, ny, k)
-            J[:, :, oc[:, None], idx[None, :]] = piece
-            pieces.append((idx, piece.reshape(self.W, -1, len(idx))))
-        return J, pieces
+            pieces.append((idx, oc, np.ascontiguousarray(np.moveaxis(r[1:], 0, -1))))
+        return pieces
 
-    def _prepare_folds(self, pieces: list[tuple[np.ndarray, np.ndarray]] | None = None) -> None:
-        """Column norms, the column-normalised Jacobian and its normal matrix per window; ``pieces``: the
-        Jacobian's non-zero blocks (:meth:`_block_jacobian`), the normal matrix from them alone."""
-        Jf = self.J.reshape(self.W, -1, N_PARAMS)
-        self.Jw = Jf
-        if pieces is None:
-            self.col = np.sqrt((Jf ** 2).sum(axis=(0, 1))) + 1e-30
-        else:
-            self.col = np.empty(N_PARAMS)
-            for idx, P in pieces:
-                self.col[idx] = np.sqrt((P ** 2).sum(axis=(0, 1))) + 1e-30
-        #: column-normalised Jacobian per window (W, n, 31), formed once for every held-out re-fit
-        self.Jn = Jf / self.col
-        if pieces is None:
-            self.JtJ = np.matmul(np.swapaxes(self.Jn, 1, 2), self.Jn)  # per window (W, 31, 31)
-            return
-        self.JtJ = np.zeros((self.W, N_PARAMS, N_PARAMS))
-        for idx, P in pieces:
-            Pn = P / self.col[idx]
+    def _prepare_folds(self, pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> None:
+        """Column norms ``col``, the column-normalised Jacobian per window ``Jn`` (W, L 8, 31) and its
+        normal matrix per window ``JtJ`` (W, 31, 31) from the Jacobian's non-zero blocks ``pieces``
+        (parameter indices, output channels, d residual (W, L, ny, k)); zero elsewhere."""
+        W = self.W
+        self.col = np.empty(N_PARAMS)
+        Jn = np.zeros((W, self.L, 8, N_PARAMS)) if len(pieces) > 1 else None
+        self.JtJ = np.zeros((W, N_PARAMS, N_PARAMS))
+        for idx, oc, P in pieces:
+            Pf = P.reshape(W, -1, len(idx))
+            self.col[idx] = np.sqrt((Pf ** 2).sum(axis=(0, 1))) + 1e-30
+            Pn = Pf / self.col[idx]
             self.JtJ[:, idx[:, None], idx[None, :]] = np.matmul(np.swapaxes(Pn, 1, 2), Pn)
+            if Jn is None:
+                Jn = Pn.reshape(W, self.L, 8, N_PARAMS)
+            else:
+                Jn[:, :, oc[:, None], idx[None, :]] = Pn.reshape(P.shape)
+        assert Jn is not None
+        #: column-normalised Jacobian per window (W, n, 31), formed once for every held-out re-fit
+        self.Jn = Jn.reshape(W, -1, N_PARAMS)
 
     # ---------------------------------------------------------------------------------------
     def heldout(self, r: np.ndarray, X: np.ndarray | None = None,
