@@ -21,6 +21,15 @@ def draw(job: tuple[str, tuple, dict]) -> Path:
     return globals()[name](*args, **kwargs)
 
 
+def _save(fig: Any, path: str | Path) -> Path:
+    """Write ``fig`` at 90 dpi; a PNG with zlib level 1 (a third less encoding time than PIL's default 6
+    for about 8 % more bytes: line plots compress well at any level)."""
+    p = Path(path)
+    png = p.suffix.lower() in ("", ".png")
+    fig.savefig(p, dpi=90, **({"pil_kwargs": {"compress_level": 1}} if png else {}))
+    return p
+
+
 def _figure(figsize: tuple[float, float]) -> Any:
     """A matplotlib Figure drawn by Agg, outside pyplot (no figure registry, nothing to close)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -75,9 +84,7 @@ def plot_fit(series: dict[str, Any], metrics: dict[str, dict[str, float]], path:
     h = fig.get_figheight()
     fig.subplots_adjust(left=1.0 / 11, right=1 - 0.2 / 11, bottom=0.55 / h, top=1 - (0.55 if title else 0.3) / h,
                         hspace=0.45)
-    p = Path(path)
-    fig.savefig(p, dpi=90)
-    return p
+    return _save(fig, path)
 
 
 def plot_convergence(curves: dict[str, list[tuple[np.ndarray, np.ndarray]]], path: str | Path, *,
@@ -99,6 +106,4 @@ def plot_convergence(curves: dict[str, list[tuple[np.ndarray, np.ndarray]]], pat
     ax.legend()
     ax.grid(alpha=0.3)
     fig.subplots_adjust(left=0.1, right=0.97, bottom=0.12, top=0.92)   # fixed margins: no second draw
-    p = Path(path)
-    fig.savefig(p, dpi=90)
-    return p
+    return _save(fig, path)

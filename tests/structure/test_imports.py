@@ -204,6 +204,8 @@ LAZY_OWN = {
         "the Rerun sink imports rerun (about 0.6 s): only when the service is given a Rerun viewer or file",
     ("groundstation.commands.diagnose", "groundstation.gap.plots"):
         "the diagnosis's PNG figures import matplotlib (about 0.5-1 s of CPU): only with --plots",
+    ("firmware_interface.readers", "firmware_interface.dfcolumns"):
+        "dataflash .bin/.px4log only: pymavlink's DFReader and mavutil (about 0.03 s at every start otherwise)",
     ("groundstation.service", "hil_replay.fc"):
         "the built-in simulated flight controller (scipy.linalg, about 0.5 s): only when no link is given",
 }
