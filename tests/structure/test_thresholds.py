@@ -42,6 +42,7 @@ NOT_SETTINGS = {
     "locate.merge_intervals.gap_s": "rounding guard when merging touching intervals",
     "heldout.unstable_modes.min_real_1_s": "rounding guard: an eigenvalue on the imaginary axis is not unstable",
     "refine.levenberg_marquardt.ftol": "convergence tolerance of the numerics",
+    "refine.refine.ftol": "convergence tolerance of the numerics (a fold's refit passes [identify] fold_refit_ftol)",
     "refine.levenberg_marquardt.xtol": "convergence tolerance of the numerics",
     "refine.levenberg_marquardt.gtol": "convergence tolerance of the numerics",
     "refine.residual_tau.max_lag": "autocorrelation lags summed for the effective sample count (numerics)",
