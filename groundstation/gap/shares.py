@@ -12,10 +12,12 @@ Two questions a flight-test engineer asks before acting on a name:
   (whole 3 s windows, so the residual's dependence inside a window stays in each draw).
 * **Through the flight.** The windows are cut into a first and a second half (in time order). In
   each half, the named effect's parameter is estimated again (the same scan, base parameters
-  re-fitted inside each fold) and both values are scored on each half's held-out blocks: the
-  effect *holds* when neither half's data reject the other half's value (paired tests over the
-  ~0.5 s blocks, the analytic tests of the conditional step, Bonferroni over the halves and the
-  effects tested, and a practical loss: the other value gives up more than
+  re-fitted inside each fold) and both values are scored on each half's held-out blocks (the own
+  value as chosen inside each fold, never on the windows it is scored on): the effect *holds*
+  when a half's data do not reject the other half's value (paired tests over the ~0.5 s blocks,
+  the analytic tests of the conditional step with a window's correlated blocks counted as fewer
+  independent ones, Bonferroni over the halves and the effects tested, and a practical loss: the
+  other value gives up more than
   ``consistency_min_loss`` of the effect's gain in that half); it *changes* when both do (a half
   whose data accept the other half's value holds the two estimates within its uncertainty); it is
   *not checked* when a half is too short for the windows and folds, or the effect does not lower
@@ -350,8 +352,9 @@ def consistency(c: attribute.Candidate, segs_h: tuple[list[SegmentArrays], list[
                       f"data reject the other half's value")
     else:
         out["status"] = "holds"
-        out["why"] = (f"{par} {out['first']} and {out['second']} in the two halves{common}: neither half rejects "
-                      f"the other's value")
+        accepts = ("neither half rejects the other's value" if not any(rejected) else
+                   f"the {('first', 'second')[rejected.index(False)]} half's data accept the other half's value")
+        out["why"] = f"{par} {out['first']} and {out['second']} in the two halves{common}: {accepts}"
     return out
 
 
@@ -414,7 +417,7 @@ def _compare(c: attribute.Candidate, h1: HalfFit, h2: HalfFit, level: float, min
         own, ob = hf.own_sse, hf.own_blocks
         oth, _, _ = ev_h.heldout(_residual(c, hf, _other_value(c, other.value, hf.value)))
         tb = ev_h.last_blocks.copy()
-        p_res = attribute.conditional_p(base.sum(1), own.sum(1), rng, n_boot, window_alpha, bb, ob, clustered=True)
+        p_res = attribute.conditional_p(base.sum(1), own.sum(1), rng, n_boot, window_alpha, bb, ob)
         p_rej = attribute.conditional_p(oth.sum(1), own.sum(1), rng, n_boot, window_alpha, tb, ob, clustered=True)
         gain = float(base.sum() - own.sum())
         loss = float(oth.sum() - own.sum())
