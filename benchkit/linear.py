@@ -14,7 +14,8 @@ by least squares on the training part's windows (one every second), and scores i
 held-out part's non-overlapping windows (the bench's). On each window an offset and a linear trend
 per channel are estimated from the window itself (removed by projection in the fit and in the
 score): two unknowns per channel and window, more than the unmeasured states the hover model
-(flapping states, yaw-gyro state) or the command-response structure (the controller's trim) estimate.
+(flapping states, yaw-gyro state) or the command-response structure (the controller's trim) estimate;
+``window_unknowns=False`` leaves them out (the start state only, nothing from the window's own outputs).
 Hundreds of coefficients per channel and no structure at all: held out, it says how much of each
 channel a linear function of the logged inputs and the start state carries, a ceiling to judge the
 physical structures against, not a model to fly.
@@ -67,8 +68,10 @@ def _design(prepared: Any, chans: list[int], active: list[int], lags: np.ndarray
 
 
 def linear_heldout(train: Any, val: Any, *, window_s: float = 5.0,
-                   lags_s: tuple[float, float, float] = (-0.3, 1.5, 0.08)) -> dict[str, Any]:
-    """Held-out eq.-19 match per channel of the unconstrained linear predictor (module docstring)."""
+                   lags_s: tuple[float, float, float] = (-0.3, 1.5, 0.08), window_unknowns: bool = True) -> dict[str, Any]:
+    """Held-out eq.-19 match per channel of the unconstrained linear predictor (module docstring);
+    ``window_unknowns=False``: no offset or trend from a window's own outputs (the start state only)."""
+    detrend = _detrend if window_unknowns else (lambda a, grp: np.asarray(a, dtype=float))
     dt = train.dt_s
     W = int(round(window_s / dt))
     lags = np.round(np.arange(lags_s[0], lags_s[1] + 1e-9, lags_s[2]) / dt).astype(int)
@@ -82,8 +85,8 @@ def linear_heldout(train: Any, val: Any, *, window_s: float = 5.0,
             mt, mv = Mt[:, k], Mv[:, k]
             if mv.sum() < W:
                 continue
-            h, *_ = np.linalg.lstsq(_detrend(Xt[mt], Gt[mt]), _detrend(Yt[mt, k], Gt[mt]), rcond=None)
-            e = _detrend(Yv[mv, k] - Xv[mv] @ h, Gv[mv])
+            h, *_ = np.linalg.lstsq(detrend(Xt[mt], Gt[mt]), detrend(Yt[mt, k], Gt[mt]), rcond=None)
+            e = detrend(Yv[mv, k] - Xv[mv] @ h, Gv[mv])
             match[OUTPUTS[j]] = float(100.0 * (1.0 - np.linalg.norm(e) / np.linalg.norm(Yv[mv, k])))
     return {"match": match, "mean": float(np.mean(list(match.values()))) if match else float("nan"),
             "runaway": [], "unstable": []}

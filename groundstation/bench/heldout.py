@@ -12,6 +12,9 @@ Held-out prediction on a real flight, the figure that says whether a model predi
   (:func:`benchkit.reference.shift_profile`), and the held-out part gets the same shift;
 * with ``--linear``, (c) an unconstrained linear predictor from the logged inputs and the window's
   start state (:mod:`benchkit.linear`): how much of each channel any linear model could predict;
+* "_no_offsets" rows: the project's model (when it estimates input offsets per window) and the linear
+  predictor scored again with nothing estimated from a held-out window's own outputs but its
+  unmeasured initial states, the figure that needs no caveat;
 * scored by eq. 19 on ``--window-s`` windows started from the measured states (unmeasured states
   by least squares over the window, inputs against the model's trim: :mod:`groundstation.sysid.heldout`),
   per channel and the mean over the channels measured in the held-out part, with any unstable
@@ -43,8 +46,10 @@ from groundstation.sysid.fit_section import Selection
 from groundstation.sysid.heldout import predict, runaway_channels, unstable_modes
 from groundstation.sysid.identify import IdentifyConfig, identify
 
-#: the predictors a split may score: the project's identification, the plain reference, the linear ceiling
-KINDS = ("project", "reference", "linear")
+#: the predictors a split may score: the project's identification, the plain reference, the linear ceiling;
+#: "_no_offsets": the same predictor with nothing estimated from a held-out window's own outputs but its
+#: unmeasured initial states (no input offsets per window; the linear ceiling without its offset and trend)
+KINDS = ("project", "project_no_offsets", "reference", "linear", "linear_no_offsets")
 
 HELP = "held-out prediction on real flights: project identification vs a plain least-squares reference, k-fold"
 
@@ -106,8 +111,8 @@ def _shifted(train: Any, val: Any, args: argparse.Namespace, row: dict[str, Any]
     return shift_inputs(train, shift), shift_inputs(val, shift)
 
 
-def _score(model: Any, val: Any, window_s: float) -> dict[str, Any]:
-    p = predict(model, val, window_s=window_s)
+def _score(model: Any, val: Any, window_s: float, **kw: Any) -> dict[str, Any]:
+    p = predict(model, val, window_s=window_s, **kw)
     return {"match": p.match, "mean": p.mean_match, "runaway": runaway_channels(p),
             "unstable": [m.describe() for m in unstable_modes(model.theta)]}
 
@@ -133,6 +138,8 @@ def run(args: argparse.Namespace) -> int:
         model = identify(train, seed=args.seed, prior=aircraft.prior if aircraft else None, config=id_cfg)
         row["project"] = _score(model, val, args.window_s) | {"seconds": time.perf_counter() - t0,
                                                               "selection": _selection(model)}
+        if model.window_input_offsets:
+            row["project_no_offsets"] = _score(model, val, args.window_s, window_offsets=False) | {"seconds": 0.0}
         if not args.no_reference:
             t0 = time.perf_counter()
             ref = fit_reference(train, starts=args.reference_starts, seed=args.seed, window_s=args.window_s)
@@ -140,6 +147,9 @@ def run(args: argparse.Namespace) -> int:
         if args.linear:
             t0 = time.perf_counter()
             row["linear"] = linear_heldout(train, val, window_s=args.window_s) | {"seconds": time.perf_counter() - t0}
+            t0 = time.perf_counter()
+            row["linear_no_offsets"] = linear_heldout(train, val, window_s=args.window_s, window_unknowns=False) | {
+                "seconds": time.perf_counter() - t0}
         results.append(row)
         _print_split(con, row)
     summary = _summary(results)
@@ -222,3 +232,6 @@ def _print_summary(con: Any, summary: dict[str, Any]) -> None:
             parts.append(f"train-first split {s['train_first_mean']:.1f} %")
         parts.append(f"splits with an unstable mode: {s['unstable_splits']}")
         con.print(f"[bold]{k}[/]: " + "; ".join(parts))
+    if any(k.endswith("_no_offsets") for k in summary):
+        con.print("(_no_offsets: the same predictor with nothing estimated from a held-out window's own outputs "
+                  "but its unmeasured initial states: no input offsets per window, no offset or trend of the linear one)")

@@ -1,7 +1,8 @@
 """``groundstation bench link-loss``: identification and diagnosis on telemetry a radio delivers.
 
-Simulated flights (``hil_replay.sim.write_tlog``, 25 Hz attitude, servo and velocity streams as a
-radio link carries them) are written once loss-free and then with the same flight's packets lost at
+Simulated flights (``hil_replay.sim.write_tlog``; ``--flight radio``, the default: 120 s of 25 Hz
+attitude, servo and velocity streams as a radio link carries them; ``--flight identify``: the identify
+bench's flight, 150 s of 50 Hz streams) are written once loss-free and then with the same flight's packets lost at
 each ``--losses`` rate, ``--kinds`` bursty (Gilbert fades of ``--burst`` packets of every message
 type, as a radio fade) and/or uniform (independent losses), for ``--seeds`` seeds; ``--effect``
 adds one flight with that effect per seed (``--no-effect-free``: only those). Every log goes through
@@ -13,6 +14,15 @@ the held-out match against the loss-free flight's, the diagnosis verdict and nam
 and wall time. A step that refuses gives its one line; a crash is reported as a crash.
 Targets (up to 10 % bursty loss): 8/8 key parameters, >= 97 % of the loss-free held-out match, no
 false alarm on effect-free flights, the loss-free verdict on one-effect flights, no invented effect.
+
+How well a flight determines the key parameters: each one's error is also given in the model file's
+own standard errors (z); a parameter is "as determined" when within 10 % or within 3 standard errors,
+and over the seeds the rms z says whether the standard errors are honest (about 1). On the radio
+flight the loss-free standard errors of M_a and A_lat are 7-16 % of their values, so "within 10 %"
+is about a one-standard-error target there and 8/8 is not reached by the loss-free flight itself on
+every seed; on the identify bench's flight they are 3-5 % and the loss-free flight keeps 8/8. Lossy
+cases also give how much their standard errors widened against the loss-free flight's, beside the
+widening that the samples not counted predict (sqrt of the ratio of counted samples).
 
 How far the key parameters move without any loss: with ``--layouts K`` the loss-free flight is also
 identified with its windows laid ``j * window_s / K`` s later (j = 1 .. K-1: each in-air segment
@@ -34,6 +44,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from rich.console import Console
 from rich.table import Table
 
@@ -49,7 +60,12 @@ from hil_replay.sim import parse_effect, write_tlog
 HELP = "identification and diagnosis on simulated flights with bursty / uniform telemetry loss"
 
 KEY = ("M_a", "L_b", "inv_tau_s", "A_lat", "B_lon", "Z_col", "N_ped", "N_r")
+#: a key parameter is "as determined" when within 10 % of the truth or within this many of the model
+#: file's own standard errors (a two-sided 0.3 % chance per parameter when the errors are honest)
+Z_LIM = 3.0
 RATES = {"ATTITUDE": 25.0, "SERVO_OUTPUT_RAW": 25.0, "LOCAL_POSITION_NED": 25.0}
+#: --flight: (stream rates (None: the simulator's defaults, 50 Hz), armed time s)
+FLIGHTS: dict[str, tuple[dict[str, float] | None, float]] = {"radio": (RATES, 120.0), "identify": (None, 150.0)}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -61,7 +77,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="one-effect flight per seed as well (e.g. gyro_bias:output=q,bias_rad_s=0.02); "
                              "repeatable")
     parser.add_argument("--no-effect-free", action="store_true", help="run only the --effect flights")
-    parser.add_argument("--duration-s", type=float, default=120.0, help="armed time per flight (s)")
+    parser.add_argument("--flight", choices=tuple(FLIGHTS), default="radio",
+                        help="radio: 25 Hz attitude, servo and velocity streams, 120 s (what a radio link carries); "
+                             "identify: the identify bench's flight (50 Hz streams, 150 s), on which the loss-free "
+                             "flight determines every key parameter to a few per cent")
+    parser.add_argument("--duration-s", type=float, default=None, help="armed time per flight (s; default: the --flight's)")
     parser.add_argument("--diagnose", action="store_true", help="also run the gap diagnosis on every log")
     parser.add_argument("--config", type=Path, default=None, help="configuration TOML for every step")
     parser.add_argument("--json", type=Path, default=None, help="write every case to this JSON file")
@@ -80,9 +100,11 @@ def _case(path: Path, truth: dict, val: Any, cfg: Any, diagnose: bool) -> dict[s
         res = analyse([path], config=cfg, steps=("identify", "diagnose") if diagnose else ("identify",))
         model = res.model
         out["link"] = dict(res.prepared.link_quality)
+        out["windows"] = int(model.fit.windows or 0)
         err = {k: 100.0 * abs(model.params[k] - truth[k]) / abs(truth[k]) for k in KEY}
         out["key_within_10"] = sum(v <= 10.0 for v in err.values())
         out["key_error_pct"] = err
+        out.update(_determined(model, truth, err))
         out["heldout_match"] = validate(model, val).mean_match
         if res.gap is not None:
             rep = res.gap.report
@@ -96,6 +118,37 @@ def _case(path: Path, truth: dict, val: Any, cfg: Any, diagnose: bool) -> dict[s
     out["wall_s"] = time.perf_counter() - t0
     out["cpu_s"] = time.process_time() - c0
     return out
+
+
+def _determined(model: Any, truth: dict, err: dict[str, float]) -> dict[str, Any]:
+    """Each key parameter's standard error (% of the truth, from the model file), its error in those
+    standard errors (z), and how many are within 10 % or within ``Z_LIM`` standard errors."""
+    std = {k: float(model.parameter_std.get(k) or np.nan) for k in KEY}
+    z = {k: (model.params[k] - truth[k]) / std[k] for k in KEY}
+    within = sum(err[k] <= 10.0 or abs(z[k]) <= Z_LIM for k in KEY)
+    return {"key_std_pct": {k: _finite(100.0 * std[k] / abs(truth[k])) for k in KEY},
+            "key_z": {k: _finite(z[k]) for k in KEY}, "key_as_determined": within}
+
+
+def _finite(x: float) -> float | None:
+    """``x``, or None where it is not a number (a standard error the model file does not give)."""
+    return float(x) if np.isfinite(x) else None
+
+
+def _counted(r: dict[str, Any]) -> float:
+    """Output samples the identification counted, in windows (windows x share measured)."""
+    lk = r.get("link") or {}
+    return float(r.get("windows") or 0) * (1.0 - float(lk.get("unmeasured_pct") or 0.0) / 100.0)
+
+
+def _widening(r: dict[str, Any], base: dict[str, Any]) -> dict[str, float]:
+    """How much the key standard errors widened against the loss-free flight's (median ratio), and how
+    much the information lost predicts: sqrt(counted loss-free / counted lossy)."""
+    ratios = [r["key_std_pct"][k] / base["key_std_pct"][k] for k in KEY
+              if r["key_std_pct"].get(k) and base["key_std_pct"].get(k)]
+    n0, n1 = _counted(base), _counted(r)
+    return {"std_vs_lossfree": statistics.median(ratios) if ratios else float("nan"),
+            "std_predicted": (n0 / n1) ** 0.5 if n0 > 0 and n1 > 0 else float("nan")}
 
 
 def _layout_errors(path: Path, truth: dict, cfg: Any, layouts: int) -> list[dict[str, float]]:
@@ -128,17 +181,20 @@ def run(args: argparse.Namespace) -> int:
     if bad:
         raise ValueError(f"--kinds: unknown {bad}; allowed bursty, uniform")
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+    rates, duration_s = FLIGHTS[args.flight]
+    duration_s = args.duration_s or duration_s
     flights: list[tuple[str, tuple]] = [] if args.no_effect_free else [("none", ())]
     for e in args.effect:
         flights.append((e.split(":")[0], (parse_effect(e),)))
     rows: list[dict[str, Any]] = []
-    con.print(f"load average at start {os.getloadavg()[0]:.1f} (2-core shared machine: CPU times travel better than wall)")
+    con.print(f"load average at start {os.getloadavg()[0]:.1f} (2-core shared machine: CPU times travel better than wall); "
+              f"{args.flight} flight: {duration_s:g} s, "
+              f"{'25 Hz' if rates else '50 Hz'} attitude, servo and velocity streams")
     with tempfile.TemporaryDirectory(prefix="bench-link-loss-") as tmp:
         d = Path(tmp)
         for seed in seeds:
             vpath = d / f"val{seed}.tlog"
-            write_tlog(vpath, seed=seed + 1, flights=1, flight_duration_s=args.duration_s, rates_hz=RATES,
-                       packet_loss=0.0)
+            write_tlog(vpath, seed=seed + 1, flights=1, flight_duration_s=duration_s, rates_hz=rates, packet_loss=0.0)
             val = prepare([load_log(vpath)], cfg.prepare)
             for label, effects in flights:
                 base: dict[str, Any] | None = None
@@ -148,7 +204,7 @@ def run(args: argparse.Namespace) -> int:
                             continue
                         path = d / f"s{seed}-{label}-{kind}-{loss:g}.tlog"
                         truth = write_tlog(path, seed=seed, flights=1, effects=effects,
-                                           flight_duration_s=args.duration_s, rates_hz=RATES,
+                                           flight_duration_s=duration_s, rates_hz=rates,
                                            packet_loss=loss / 100.0, loss_burst=args.burst if kind == "bursty" else 1.0)
                         r = {"seed": seed, "flight": label, "kind": "none" if loss == 0 else kind, "loss_pct": loss,
                              **_case(path, truth["parameters"], val, cfg, args.diagnose)}
@@ -160,6 +216,8 @@ def run(args: argparse.Namespace) -> int:
                                                              for e in r["layout_error_pct"]]
                         if base is not None and "key_within_10" in base:
                             r["key_lossfree"] = base["key_within_10"]
+                            if "key_std_pct" in r and loss > 0:
+                                r.update(_widening(r, base))
                             if "layout_error_pct" in base:
                                 r["within_lossfree_spread"] = _within_spread(r, base)
                         if base is not None and "heldout_match" in r and "heldout_match" in base:
@@ -190,6 +248,12 @@ def _line(r: dict[str, Any]) -> str:
     if "refused" in r:
         return f"{head} {link}; refused: {r['refused']} ({r['cpu_s']:.1f} s CPU)"
     verdict = f", verdict {r['verdict']} {r.get('named')}" if "verdict" in r else ""
+    zk = max(KEY, key=lambda k: abs(r["key_z"][k] or 0.0))
+    verdict += (f"; {r['key_as_determined']}/8 within 10 % or {Z_LIM:g} standard errors (largest "
+                f"{zk} {r['key_z'][zk] or 0.0:+.1f})")
+    if "std_vs_lossfree" in r:
+        verdict += (f"; standard errors x{r['std_vs_lossfree']:.2f} the loss-free ones "
+                    f"(information lost predicts x{r['std_predicted']:.2f})")
     if "layout_key_within_10" in r:
         verdict += f"; other window layouts {r['layout_key_within_10']}/8"
     if r.get("within_lossfree_spread") is not None:
@@ -228,8 +292,10 @@ def _rates(rows: list[dict[str, Any]], diagnose: bool) -> Any:
 
     t = Table(title="link loss over the seeds: cases meeting each target")
     spread = any("within_lossfree_spread" in r for r in rows)
-    for c in ("flight", "kind", "loss %", "cases", "crash/refused", "8/8 key", "key as loss-free",
-              *(("within loss-free spread",) if spread else ()), "held-out >= 97 %", "median held-out %"):
+    for c in ("flight", "kind", "loss %", "cases", "crash/refused", "8/8 key", f"8/8 in 10 % or {Z_LIM:g} SE",
+              "key as loss-free",
+              *(("within loss-free spread",) if spread else ()), "rms z", "SE x (info)", "held-out >= 97 %",
+              "median held-out %"):
         t.add_column(c, justify="right")
     if diagnose:
         for c in ("false alarm", "same verdict", "invented"):
@@ -242,11 +308,27 @@ def _rates(rows: list[dict[str, Any]], diagnose: bool) -> Any:
         rel = [r["heldout_vs_lossfree_pct"] for r in ok if "heldout_vs_lossfree_pct" in r]
         cells = [flight, kind, f"{loss:g}", str(len(rs)), str(len(rs) - len(ok)),
                  str(sum(r["key_within_10"] == 8 for r in ok)),
+                 str(sum(r.get("key_as_determined") == 8 for r in ok)),
                  str(sum(r["key_within_10"] >= r.get("key_lossfree", 8) for r in ok)),
                  *((str(sum(bool(r.get("within_lossfree_spread")) for r in ok)),) if spread else ()),
-                 str(sum(v >= 97.0 for v in rel)), f"{statistics.median(rel):.1f}" if rel else "-"]
+                 _rms_z(ok), _widening_cell(ok), str(sum(v >= 97.0 for v in rel)), f"{statistics.median(rel):.1f}" if rel else "-"]
         if diagnose:
             cells += [str(sum(r.get("verdict") not in (None, "none") for r in ok)) if flight == "none" else "-",
                       str(sum(bool(r.get("same_verdict")) for r in ok)), str(sum(bool(r.get("invented")) for r in ok))]
         t.add_row(*cells)
     return t
+
+
+def _rms_z(rs: list[dict[str, Any]]) -> str:
+    """Root mean square of the key parameters' errors in their own standard errors over the cases
+    (about 1 when the model file's standard errors are honest)."""
+    zs = [z for r in rs for z in (r.get("key_z") or {}).values() if z is not None]
+    return f"{(sum(z * z for z in zs) / len(zs)) ** 0.5:.2f}" if zs else "-"
+
+
+def _widening_cell(rs: list[dict[str, Any]]) -> str:
+    """Median widening of the key standard errors against the loss-free flight's, and (in brackets)
+    the median that the information lost predicts."""
+    w = [r["std_vs_lossfree"] for r in rs if "std_vs_lossfree" in r]
+    p = [r["std_predicted"] for r in rs if "std_predicted" in r]
+    return f"{statistics.median(w):.2f} ({statistics.median(p):.2f})" if w and p else "-"

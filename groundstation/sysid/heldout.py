@@ -80,16 +80,19 @@ def input_offset(model: HoverModel, prepared: Any) -> np.ndarray:
 
 
 def predict(model: HoverModel, prepared: Any, *, window_s: float = IdentifyConfig.heldout_window_s,
-            use_model_trim: bool = True) -> Prediction:
+            use_model_trim: bool = True, window_offsets: bool | None = None) -> Prediction:
     """Score ``model`` on held-out ``prepared`` data (see the module docstring). A model whose
-    ``structure`` is the command-response one predicts with it (:mod:`groundstation.sysid.structure`)."""
+    ``structure`` is the command-response one predicts with it (:mod:`groundstation.sysid.structure`).
+    ``window_offsets``: estimate input offsets on each held-out window (None: as the model was fitted;
+    False: nothing but the unmeasured initial states comes from a window's own outputs)."""
     if getattr(model, "structure", "hover") == "command_response" and model.command is not None:
         return predict_command(CommandModel.from_json(model.command), prepared, window_s=window_s)
     win = make_windows(prepared.segments, prepared.dt_s, window_s)
     u = win.inputs + (input_offset(model, prepared)[None, None, :] if use_model_trim else 0.0)
     with threadpool_limits(1):
         sim = WindowSimulator(u, win.outputs, win.dt_s, win.available, estimate_all_initial=False,
-                              measured=win.measured, window_offsets=model.window_input_offsets)
+                              measured=win.measured,
+                              window_offsets=model.window_input_offsets if window_offsets is None else window_offsets)
         yhat = sim.simulate(model.theta[None])[0]
     match: dict[str, float] = {}
     ratio: dict[str, float] = {}
@@ -193,7 +196,8 @@ def feedback_evidence(model: HoverModel, prepared: Any, *, window_s: float = Ide
     du = np.diff(win.inputs, axis=1)
     out = []
     chans = {0: ("p", "q", "theta", "phi"), 1: ("p", "q", "theta", "phi"), 2: ("w", "r"), 3: ("w", "r")}
-    lags = range(max(1, int(0.1 / win.dt_s)), max(2, int(max_lag_s / win.dt_s)))
+    lags = np.arange(max(1, int(0.1 / win.dt_s)), max(2, int(max_lag_s / win.dt_s)))
+    thresholds: dict[str, float] = {}   # per channel: its chance level depends on the error only
     for j, name in enumerate(INPUTS):
         if np.std(du[..., j]) <= 0:
             continue
@@ -204,16 +208,36 @@ def feedback_evidence(model: HoverModel, prepared: Any, *, window_s: float = Ide
             if m.sum() < 2:
                 continue
             ee = e[m, :-1, k]
-            tau = float(residual_tau(ee[..., None] / max(float(np.std(ee)), 1e-12), np.ones(1, dtype=bool))[0])
-            thr = z / np.sqrt(ee.size / max(tau, 1.0))
-            for lag in lags:
-                a, b = ee[:, :-lag].ravel(), du[m, lag:, j].ravel()
-                if a.std() > 0 and b.std() > 0:
-                    r = float(np.corrcoef(a, b)[0, 1])
-                    cands.append((abs(r) / thr, r, ch, lag * win.dt_s, thr))
+            if ch not in thresholds:
+                tau = float(residual_tau(ee[..., None] / max(float(np.std(ee)), 1e-12), np.ones(1, dtype=bool))[0])
+                thresholds[ch] = z / np.sqrt(ee.size / max(tau, 1.0))
+            thr = thresholds[ch]
+            for lag, r in zip(lags, lagged_correlations(ee, du[m, :, j], lags), strict=True):
+                if np.isfinite(r):
+                    cands.append((abs(r) / thr, float(r), ch, lag * win.dt_s, thr))
         if cands:
             ratio, r, ch, lag_s, thr = max(cands)
             if ratio > 1.0:
                 out.append(f"input {name} follows the model's {ch} error {lag_s:.2f} s later (correlation {r:+.2f}, "
                            f"chance level {thr:.2f}): the loop is closed (pilot or flight controller)")
+    return out
+
+
+def lagged_correlations(a: np.ndarray, b: np.ndarray, lags: np.ndarray) -> np.ndarray:
+    """(len(lags),) Pearson correlation of ``a[:, :n - lag]`` with ``b[:, lag:]`` over all windows and
+    samples (``a``, ``b`` (W, n)), for each lag (0 < lag < n); NaN where either part is constant (as
+    ``np.corrcoef`` of the flattened parts, from running sums: one pass per lag instead of four)."""
+    W, n = a.shape
+    sa, sa2 = np.cumsum(a.sum(axis=0)), np.cumsum((a * a).sum(axis=0))          # over the first m samples
+    rb = b[:, ::-1]
+    sb, sb2 = np.cumsum(rb.sum(axis=0)), np.cumsum((rb * rb).sum(axis=0))       # over the last m samples
+    out = np.full(len(lags), np.nan)
+    for i, lag in enumerate(lags):
+        m = n - int(lag)
+        N = W * m
+        va = sa2[m - 1] - sa[m - 1] ** 2 / N
+        vb = sb2[m - 1] - sb[m - 1] ** 2 / N
+        if va > 1e-12 * sa2[m - 1] and vb > 1e-12 * sb2[m - 1]:   # a part constant up to rounding: no correlation
+            sab = float(np.einsum("ij,ij->", a[:, :m], b[:, lag:]))
+            out[i] = (sab - sa[m - 1] * sb[m - 1] / N) / np.sqrt(va * vb)
     return out

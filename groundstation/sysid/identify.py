@@ -116,21 +116,22 @@ def free_mask(prepared: Any) -> tuple[np.ndarray, list[str]]:
 def _starts(opt: Any, k: int, span: np.ndarray, min_dist: float = IdentifyConfig.refine_start_min_dist) -> list[np.ndarray]:
     """Up to k good and mutually distinct points of everything the search evaluated, best first.
 
-    Distinct: normalised distance ``||(x - y) / span|| / sqrt(D)`` of at least ``min_dist``.
-    """
+    Distinct: normalised distance ``||(x - y) / span|| / sqrt(D)`` of at least ``min_dist``. Each
+    point taken rules out the archive near it in one vectorised step (the archive holds thousands of
+    points, often many close to the best)."""
     X = getattr(opt, "archive_x", None)
     if X is None:
         return [np.asarray(opt.x, dtype=float)]
     f = opt.archive_f
     order = np.argsort(f)
-    D = X.shape[1]
+    bad = np.flatnonzero(~np.isfinite(f[order]))
+    order = order[:bad[0]] if bad.size else order
+    far = np.ones(order.size, dtype=bool)
     out: list[np.ndarray] = []
-    for i in order:
-        if len(out) >= k or not np.isfinite(f[i]):
-            break
-        x = X[i]
-        if all(np.linalg.norm((x - o) / span) / np.sqrt(D) >= min_dist for o in out):
-            out.append(np.asarray(x, dtype=float))
+    while len(out) < k and far.any():
+        x = np.asarray(X[order[int(np.argmax(far))]], dtype=float)
+        out.append(x)
+        far &= np.linalg.norm((X[order] - x) / span, axis=1) / np.sqrt(X.shape[1]) >= min_dist
     return out or [np.asarray(opt.x, dtype=float)]
 
 
@@ -711,7 +712,8 @@ def _link_report(prepared: Any, win: Any) -> dict[str, Any]:
 
 def refit(prepared: Any, model: HoverModel, *, config: IdentifyConfig | None = None, prior: Any = None) -> HoverModel:
     """The model refined on ``prepared`` from ``model``'s parameters (no search): the cheap refit of
-    a cross-validation fold. Same windows, trims, forcing, weighting and prior as :func:`identify`."""
+    a cross-validation fold (one pass, stopped at ``fold_refit_ftol``). Same windows, trims, forcing,
+    weighting and prior as :func:`identify`."""
     cfg = config or IdentifyConfig()
     _check(cfg, "cabc", prepared)
     with threadpool_limits(1):
@@ -721,7 +723,7 @@ def refit(prepared: Any, model: HoverModel, *, config: IdentifyConfig | None = N
             pr = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
             ref = refine_ls(cost, run.theta[sub_free], plan.bounds[sub_free], passes=1, max_nfev=cfg.refine_max_nfev,
                             with_std=False, prior=pr, weighting=cfg.channel_weighting,
-                        prior_colour=cfg.prior_weighting == "effective")
+                            prior_colour=cfg.prior_weighting == "effective", ftol=cfg.fold_refit_ftol)
             _take(run, cost, ref.x, sub, cfg)
     return HoverModel(params={n: float(v) for n, v in zip(PARAM_NAMES, run.theta, strict=True)},
                       sample_rate_hz=float(1.0 / prepared.dt_s),

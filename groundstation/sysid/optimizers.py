@@ -74,11 +74,9 @@ def logistic_step(c: np.ndarray, rng: np.random.Generator, mu: float = 4.0, eps:
 
 def _avoid_bad(c: np.ndarray, rng: np.random.Generator, eps: float = 1e-6) -> np.ndarray:
     c = np.asarray(c, dtype=float).copy()
+    points = np.array(LOGISTIC_BAD_POINTS)
     for _ in range(10):
-        bad = np.zeros(c.shape, dtype=bool)
-        for p in LOGISTIC_BAD_POINTS:
-            bad |= np.abs(c - p) < eps
-        bad |= ~np.isfinite(c)
+        bad = (np.abs(c[..., None] - points) < eps).any(axis=-1) | ~np.isfinite(c)
         if not bad.any():
             break
         c[bad] = rng.uniform(eps, 1 - eps, size=int(bad.sum()))

@@ -45,7 +45,7 @@ def _fd_step(x: np.ndarray, span: np.ndarray) -> np.ndarray:
 def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: int = IdentifyConfig.refine_passes,
            max_nfev: int = IdentifyConfig.refine_max_nfev,
            with_std: bool = True, prior: tuple[np.ndarray, np.ndarray] | None = None,
-           weighting: str = "noise", prior_colour: bool = False) -> OptimizeResult:
+           weighting: str = "noise", prior_colour: bool = False, ftol: float = 1e-10) -> OptimizeResult:
     """Levenberg-Marquardt-like trust-region refinement from ``x0`` (free parameters, (D,)).
 
     ``prior`` = (nominal (D,), std (D,)): output error with a priori weighting (Morelli & Klein
@@ -66,6 +66,9 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
     common level from the residuals: when model error, not noise, makes the residual, ML weighting
     gives up the channels the model fits worst, and those are then not predicted at all.
 
+    ``ftol``: each pass stops once an accepted step lowers its cost by less than this fraction
+    (:func:`levenberg_marquardt`).
+
     Returns an OptimizeResult with ``x``, ``fun`` (eq. 11 cost), ``sigma`` (8,) channel noise
     scales, ``std`` (D,) standard errors, ``nfev`` (candidate evaluations) and ``jac`` (n_res, D).
     """
@@ -82,7 +85,7 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
         if prior is not None and prior_colour:
             sig = sigma * np.sqrt(residual_tau(cost.residuals(x[None], sigma)[0], cost.used))
 
-        res = levenberg_marquardt(cost, x, lo, hi, sig, max_nfev=max_nfev, prior=prior)
+        res = levenberg_marquardt(cost, x, lo, hi, sig, max_nfev=max_nfev, prior=prior, ftol=ftol)
         x = res.x
         sigma = _sigma(cost, x, weighting)
     assert res is not None
@@ -207,10 +210,19 @@ def standard_errors(cost: WindowedCost, x: np.ndarray, sigma: np.ndarray, bounds
     b = np.asarray(bounds, dtype=float)
     J = jac_final(cost, x, sigma, b[:, 1] - b[:, 0], b[:, 1])
     r = cost.residuals(x[None], sigma)[0]
+    counted = _counted(cost)
     if prior_std is None:
-        return J, coloured_std(J, r), np.zeros(x.size)
-    std, share = posterior_std(coloured_cov(J, r), np.asarray(prior_std, dtype=float))
+        return J, coloured_std(J, r, counted=counted), np.zeros(x.size)
+    std, share = posterior_std(coloured_cov(J, r, counted=counted), np.asarray(prior_std, dtype=float))
     return J, std, share
+
+
+def _counted(cost: WindowedCost) -> np.ndarray | None:
+    """(W, L, n_used) samples the residuals count, where the link left holes (None: every sample)."""
+    sim = getattr(cost, "sim", None)
+    if sim is None or not getattr(sim, "holes", False):
+        return None
+    return np.asarray(sim.smask[..., cost.used], dtype=bool)
 
 
 def with_standard_errors(cost: WindowedCost, res: OptimizeResult, bounds: np.ndarray,
@@ -332,17 +344,17 @@ def _jacobian_buffer(cost: WindowedCost, D: int, n_res: int) -> np.ndarray:
     return buf
 
 
-def coloured_cov(J: np.ndarray, r: np.ndarray, max_lag: int = 60) -> np.ndarray:
+def coloured_cov(J: np.ndarray, r: np.ndarray, max_lag: int = 60, counted: np.ndarray | None = None) -> np.ndarray:
     """Data covariance (D, D): the residual-colour-corrected sandwich with its diagonal raised to the
     window-clustered one where that is larger (the standard errors of :func:`coloured_std`)."""
-    cov, s_col, s_max = _sandwiches(J, r, max_lag)
+    cov, s_col, s_max = _sandwiches(J, r, max_lag, counted)
     scale = np.where(s_col > 0, s_max / np.maximum(s_col, 1e-300), 1.0)
     return cov * scale[:, None] * scale[None, :]
 
 
-def coloured_std(J: np.ndarray, r: np.ndarray, max_lag: int = 60) -> np.ndarray:
+def coloured_std(J: np.ndarray, r: np.ndarray, max_lag: int = 60, counted: np.ndarray | None = None) -> np.ndarray:
     """Standard errors: max of the residual-colour-corrected and the window-clustered sandwich."""
-    return _sandwiches(J, r, max_lag)[2]
+    return _sandwiches(J, r, max_lag, counted)[2]
 
 
 def lagged_products(Jt4: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -368,13 +380,17 @@ def lagged_products(Jt4: np.ndarray, weights: np.ndarray) -> np.ndarray:
     return T + T.T - np.einsum("c,cde->de", weights[0], C[:, 0])
 
 
-def _sandwiches(J: np.ndarray, r: np.ndarray, max_lag: int = 60) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _sandwiches(J: np.ndarray, r: np.ndarray, max_lag: int = 60,
+                counted: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(colour-corrected covariance, its standard errors, max of those and the clustered ones).
 
     Parameters
     ----------
     J : (W*L*nch, D) Jacobian of the residuals, rows ordered (window, sample, channel)
-    r : (W, L, nch) residuals at the solution
+    r : (W, L, nch) residuals at the solution (zero where not counted)
+    counted : (W, L, nch) bool, samples counted (None: all): with holes of the link the residuals'
+        autocovariance at each lag is the mean over the pairs of counted samples, not over all
+        pairs (the lost samples' zeros would shrink it by the share lost, and the errors with it)
     """
     W, L, nch = r.shape
     D = J.shape[1]
@@ -387,6 +403,10 @@ def _sandwiches(J: np.ndarray, r: np.ndarray, max_lag: int = 60) -> tuple[np.nda
     R = np.zeros((K + 1, nch))
     for k in range(K + 1):
         R[k] = (r[:, : L - k] * r[:, k:]).sum(axis=(0, 1)) / (W * L)
+    if counted is not None:   # per lag: the mean over counted pairs, with the taper of the all-pairs mean
+        m = counted.astype(float)
+        pairs = np.array([(m[:, : L - k] * m[:, k:]).sum(axis=(0, 1)) for k in range(K + 1)])
+        R *= np.where(pairs > 0, W * (L - np.arange(K + 1))[:, None] / np.maximum(pairs, 1.0), 0.0)
     M = lagged_products(Jt4, R * (1.0 - np.arange(K + 1) / (K + 1))[:, None])  # Bartlett taper: M stays PSD
     cov = Hinv @ M @ Hinv
     s_coloured = np.sqrt(np.maximum(np.diag(cov), 0.0))

@@ -113,6 +113,12 @@ class IdentifyConfig:
     #: TREX 550 log fewer make a candidate whose screening fit is far from its optimum look worse, which
     #: keeps the configuration: the cautious side). 6 keeps the selection within half the identification's time.
     select_refit_nfev: int = 6
+    #: a held-out fold's refit (the selection's folds and the held-out check) stops once an accepted step
+    #: lowers its cost by less than this fraction: far below the cost's own sampling spread (sqrt(2 / N)
+    #: relative, N the independent residual samples: about 1e-2 on a 150-s flight), so the steps it saves
+    #: cannot move a held-out score beyond the folds' noise; a refit from a start far from the fold's
+    #: optimum still takes every step ``select_refit_nfev`` allows (1e-10: the full refinement's own tolerance).
+    fold_refit_ftol: float = 1e-4
     #: held-out prediction (the selection's folds and the held-out check): each left-out block is
     #: predicted in windows of this length (s), each from its measured initial state
     heldout_window_s: float = 5.0

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from groundstation.cli import main
 
 
@@ -21,18 +23,21 @@ def test_bench_link_loss_smoke(tmp_path, capsys):
     assert "crash" not in lossy and "refused" not in lossy, lossy
     assert lossy["link"]["in_air_holes"] > 0 and lossy["link"]["unmeasured_pct"] > 0
     assert 0 <= lossy["key_within_10"] <= 8 and lossy["heldout_vs_lossfree_pct"] > 0
+    assert lossy["std_predicted"] > 1.0 and lossy["std_vs_lossfree"] > 0
     assert "held-out match" in capsys.readouterr().out
 
 
 def test_rates_table_counts_the_targets_over_seeds():
     from rich.console import Console
 
-    from groundstation.bench.link_loss import _rates
+    from groundstation.bench.link_loss import KEY, _rates
 
     rows = [
         {"seed": 1, "flight": "none", "kind": "bursty", "loss_pct": 10.0, "key_within_10": 8, "key_lossfree": 8,
+         "key_as_determined": 8, "key_z": dict.fromkeys(KEY, 1.0), "std_vs_lossfree": 1.2, "std_predicted": 1.25,
          "heldout_vs_lossfree_pct": 99.0, "verdict": "none", "same_verdict": True, "invented": []},
         {"seed": 2, "flight": "none", "kind": "bursty", "loss_pct": 10.0, "key_within_10": 6, "key_lossfree": 5,
+         "key_as_determined": 7, "key_z": dict.fromkeys(KEY, -2.0), "std_vs_lossfree": 1.0, "std_predicted": 1.15,
          "heldout_vs_lossfree_pct": 95.0, "verdict": "unexplained", "same_verdict": False, "invented": []},
         {"seed": 3, "flight": "none", "kind": "bursty", "loss_pct": 10.0, "crash": "ValueError: x"},
     ]
@@ -40,8 +45,32 @@ def test_rates_table_counts_the_targets_over_seeds():
     con.print(_rates(rows, diagnose=True))
     line = next(ln for ln in con.export_text().splitlines() if "bursty" in ln)
     cells = [c.strip() for c in line.split("│") if c.strip()]
-    # flight kind loss cases crash 8/8 as-loss-free >=97% median false-alarm same invented
-    assert cells == ["none", "bursty", "10", "3", "1", "1", "2", "1", "97.0", "1", "1", "0"]
+    # flight kind loss cases crash 8/8 8/8-as-determined as-loss-free rms-z SE-widening(predicted)
+    # >=97% median false-alarm same invented
+    assert cells == ["none", "bursty", "10", "3", "1", "1", "1", "2", "1.58", "1.10 (1.20)", "1", "97.0", "1", "1",
+                     "0"]
+
+
+def test_key_parameters_are_judged_in_the_model_files_own_standard_errors():
+    """A parameter off by more than 10 % but within 3 of its standard errors counts as determined; the
+    standard errors' widening is set against what the samples counted predict."""
+    from types import SimpleNamespace
+
+    from groundstation.bench.link_loss import KEY, _determined, _widening
+
+    truth = dict.fromkeys(KEY, 10.0)
+    params = {**truth, "M_a": 12.0, "A_lat": 8.5}          # M_a +20 %, A_lat -15 %
+    std = {**dict.fromkeys(KEY, 0.1), "M_a": 0.8, "A_lat": 0.3, "N_r": None}
+    model = SimpleNamespace(params=params, parameter_std=std)
+    err = {k: 100.0 * abs(params[k] - truth[k]) / truth[k] for k in KEY}
+    d = _determined(model, truth, err)
+    assert d["key_z"]["M_a"] == pytest.approx(2.5) and d["key_z"]["A_lat"] == pytest.approx(-5.0)
+    assert d["key_z"]["N_r"] is None and d["key_std_pct"]["M_a"] == pytest.approx(8.0)
+    assert d["key_as_determined"] == 7                        # A_lat is 5 standard errors off
+    base = {"key_std_pct": dict.fromkeys(KEY, 2.0), "windows": 40, "link": {"unmeasured_pct": 0.0}}
+    lossy = {"key_std_pct": dict.fromkeys(KEY, 2.4), "windows": 32, "link": {"unmeasured_pct": 20.0}}
+    w = _widening(lossy, base)
+    assert w["std_vs_lossfree"] == pytest.approx(1.2) and w["std_predicted"] == pytest.approx((40 / 25.6) ** 0.5)
 
 
 def test_a_lossy_case_is_judged_against_the_loss_free_flights_own_spread():

@@ -181,6 +181,7 @@ def test_numerical_packages_are_pure(package):
 #: Third-party modules, by top-level name (or dotted prefix): heavy at import, needed by a few paths only.
 LAZY_THIRD_PARTY = {
     "matplotlib": "plots only (about 0.5 s of CPU to import)",
+    "PIL": "the PNG writer of the identification's figures (drawn on matplotlib's Agg renderer), plots only",
     "rerun": "the Rerun sink and its figures only (about 0.6 s)",
     "zenoh": "the zenoh sink and its benchmarks only",
     "pyarrow": "the campaign store's Parquet files only",
@@ -204,6 +205,8 @@ LAZY_OWN = {
         "the Rerun sink imports rerun (about 0.6 s): only when the service is given a Rerun viewer or file",
     ("groundstation.commands.diagnose", "groundstation.gap.plots"):
         "the diagnosis's PNG figures import matplotlib (about 0.5-1 s of CPU): only with --plots",
+    ("firmware_interface.readers", "firmware_interface.dfcolumns"):
+        "dataflash .bin/.px4log only: pymavlink's DFReader and mavutil (about 0.03 s at every start otherwise)",
     ("groundstation.service", "hil_replay.fc"):
         "the built-in simulated flight controller (scipy.linalg, about 0.5 s): only when no link is given",
 }

@@ -47,6 +47,20 @@ def test_a_parameter_held_by_its_bound_stays_on_it():
     assert min(abs(res.x[i] - b[i, 0]), abs(res.x[i] - b[i, 1])) < 1e-9 * abs(b[i, 1] - b[i, 0]) + 1e-12
 
 
+def test_a_fold_refit_tolerance_stops_a_start_near_the_optimum_only():
+    cost, th, free = _cost()
+    b = bounds_array()[free]
+    kw = dict(passes=1, max_nfev=6, with_std=False)
+    full = refine(cost, th[free], b, **kw, ftol=1e-10)
+    opt = full.x
+    near = np.clip(opt * 1.001, b[:, 0], b[:, 1])
+    loose, tight = refine(cost, near, b, **kw, ftol=1e-4), refine(cost, near, b, **kw, ftol=1e-10)
+    assert loose.nfev < tight.nfev and loose.message == "cost decrease below ftol"
+    assert abs(loose.fun - tight.fun) <= 1e-4 * tight.fun
+    far = np.clip(th[free] * 1.3, b[:, 0], b[:, 1])   # every step gains more than the tolerance: the same run
+    np.testing.assert_array_equal(refine(cost, far, b, **kw, ftol=1e-4).x, refine(cost, far, b, **kw, ftol=1e-10).x)
+
+
 def test_stage_timer_charges_the_innermost_stage_and_restores_the_functions(monkeypatch):
     """``bench identify --profile``: CPU goes to the stage running, every reference is put back."""
     import groundstation.bench.identify as bench
@@ -84,3 +98,44 @@ def test_lagged_products_by_fft_are_the_sum_over_lags():
     got = lagged_products(Jt4, wts)
     assert np.allclose(got, M, rtol=1e-12, atol=1e-12 * np.abs(M).max())
     assert np.allclose(got, got.T)
+
+
+def test_standard_errors_with_holes_count_only_the_measured_pairs():
+    """White residuals of unit variance with a quarter of the samples lost in bursts: the colour-corrected
+    standard errors match the least-squares ones, sqrt(diag((J^T J)^-1)). Averaging the residual
+    autocovariance over every sample, lost ones as zeros, made them sqrt(1 - share lost) too small."""
+    from groundstation.sysid.refine import _sandwiches
+
+    rng = np.random.default_rng(3)
+    W, L, D = 60, 150, 3
+    t = np.arange(L) * 0.02
+    J = np.stack([np.sin(2 * np.pi * f * t + rng.uniform(0, 6, (W, 1))) for f in (0.4, 1.1, 2.3)], axis=-1)
+    r = rng.standard_normal((W, L))
+    lost = np.zeros((W, L), dtype=bool)
+    for w in range(W):          # bursts of 5-15 samples, about a quarter of each window
+        for s0 in rng.choice(L - 15, 4, replace=False):
+            lost[w, s0:s0 + int(rng.integers(5, 16))] = True
+    J[lost], r[lost] = 0.0, 0.0
+    ref = np.sqrt(np.diag(np.linalg.inv(J.reshape(-1, D).T @ J.reshape(-1, D))))
+    counted = ~lost[..., None]
+    with_mask = _sandwiches(J.reshape(-1, D), r[..., None], counted=counted)[1] / ref
+    without = _sandwiches(J.reshape(-1, D), r[..., None])[1] / ref
+    share = lost.mean()
+    assert share > 0.2
+    assert np.all(np.abs(with_mask - 1.0) < 0.08), with_mask
+    assert np.all(np.abs(without - np.sqrt(1.0 - share)) < 0.05) and np.all(without < 0.9), (without, share)
+
+
+def test_the_cost_tells_the_standard_errors_which_samples_it_counts():
+    from groundstation.sysid.refine import _counted
+
+    cost, th, free = _cost()
+    assert _counted(cost) is None
+    win = cost.windows
+    measured = np.ones(win.outputs.shape, dtype=bool)
+    measured[:, 40:55] = False
+    holed = WindowedCost(Windows(win.inputs, win.outputs, win.available, win.segment, win.t0_s, win.dt_s,
+                                 measured=measured), free, th, subsystems=(1,))
+    c = _counted(holed)
+    assert c is not None and c.shape == (win.outputs.shape[0], win.outputs.shape[1], int(holed.used.sum()))
+    assert not c[:, 40:55].any() and c[:, :40].all()

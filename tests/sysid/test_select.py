@@ -113,6 +113,9 @@ def test_bench_heldout_reports_the_choice_the_reference_and_the_lowest_channel(t
     assert 0 < sel["inv_tau_s"] and isinstance(sel["pinned"], list)
     for k in ("project", "reference"):
         assert abs(doc["summary"][k]["train_first_mean"] - split[k]["mean"]) < 1e-9
+    # the aircraft file estimates input offsets per window: the same model is also scored without them
+    assert set(split["project_no_offsets"]["match"]) == set(split["project"]["match"])
+    assert split["project_no_offsets"]["mean"] != split["project"]["mean"]
     printed = capsys.readouterr().out
     assert "configuration chosen by held-out prediction on the training part" in printed
 

@@ -242,16 +242,17 @@ def test_kinematic_forcing_terms():
     assert f2[2] == pytest.approx(9.81 * (np.cos(0.2) - 1.0))
 
 
-@pytest.mark.parametrize("est_all", [False, True])
-def test_variable_projection_cost_equals_the_plain_cost_at_the_solved_b(windows, est_all):
+@pytest.mark.parametrize(("est_all", "missing"), [(False, True), (True, True), (False, False), (True, False)])
+def test_variable_projection_cost_equals_the_plain_cost_at_the_solved_b(windows, est_all, missing):
     """The projected cost of x is the plain cost of the completed parameters (B entries = their LS values),
-    with a channel missing in one window and L not a multiple of the block."""
+    L not a multiple of the block; with a channel missing in one window, and with every channel in every
+    window (the search's batched products and quadratic-form SSE)."""
     from groundstation.sysid.cost import LINEAR_B, WindowedCost, Windows
 
     th, u, y, _, _, dt = windows
     rng = np.random.default_rng(4)
     avail = np.ones((6, 8), bool)
-    avail[2, 1] = False
+    avail[2, 1] = not missing
     win = Windows(u, y + rng.normal(0, 0.01, y.shape), avail, np.zeros(6, int), np.zeros(6), dt)
     free = np.ones(31, dtype=bool)
     cv = WindowedCost(win, free, th, estimate_all_initial=est_all, varpro=True)
@@ -271,6 +272,40 @@ def test_variable_projection_cost_equals_the_plain_cost_at_the_solved_b(windows,
         nudged[:, PARAM_INDEX[name]] *= 1.01
         assert (wsse(nudged) > wsse(full)).all()
     assert len(LINEAR_B) == 11
+
+
+@pytest.mark.parametrize("est_all", [False, True])
+def test_projected_sse_is_the_sum_of_the_explicit_errors(windows, est_all):
+    """The search's SSE with projected B entries (channel weights applied after the products, the SSE
+    as a quadratic form) equals the sum of the squared explicit errors: near the truth, at the truth on
+    noise-free data (the form cancels there and the errors are computed explicitly) and, to their
+    magnitude, for wild, mostly unstable candidates."""
+    from groundstation.sysid.cost import LINEAR_B
+    from groundstation.sysid.model import PARAM_INDEX, bounds_array
+
+    th, u, y, _, _, dt = windows
+    rng = np.random.default_rng(9)
+    b = bounds_array()
+    wild = b[:, 0] + rng.random((6, th.size)) * (b[:, 1] - b[:, 0])
+    near = th * (1 + 0.05 * rng.normal(size=(4, th.size)))
+    thetas = np.vstack([th, near, wild])
+    linear = {0: (), 1: ()}
+    for name, (sub, st, inp) in LINEAR_B.items():
+        linear[sub] = linear[sub] + ((st, inp),)
+        thetas[:, PARAM_INDEX[name]] = 0.0
+    for noise in (0.0, 0.01):
+        sim = WindowSimulator(u, y + rng.normal(0, noise, y.shape), dt, estimate_all_initial=est_all, linear=linear)
+        sse = sim.sse(thetas)
+        ref = (sim.errors(thetas) ** 2).sum(axis=(1, 2))
+        if noise == 0.0:  # the quadratic form would keep no digit of these
+            assert sse[0].sum() < 1e-9 * (y ** 2).sum()
+            assert np.allclose(sse[0], ref[0], rtol=1e-6, atol=0)
+            continue
+        assert np.allclose(sse[:5], ref[:5], rtol=1e-9, atol=0)
+        ok = ref < 1e200
+        # unstable candidates: the least squares is ill-conditioned and either computation keeps only
+        # a few digits of it (differences of either sign); the same magnitude
+        assert np.allclose(np.log10(sse[ok]), np.log10(ref[ok]), rtol=0, atol=0.5)
 
 
 @pytest.mark.parametrize("trim", [False, True])
