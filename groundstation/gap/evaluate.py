@@ -4,7 +4,8 @@ The flight is cut into windows of ``window_s``; window i belongs to fold ``i % f
 excitation of the flight-test card is in some training fold. A model variant (inputs transformed,
 outputs delayed, extra forcing ...) is simulated once at the base parameters ``theta0``; the base
 parameters are then re-fitted on the training folds by one regularised Gauss-Newton step with the
-Jacobian of the base model (computed once, batched finite differences), together with the variant's
+Jacobian of the base model (computed once, batched finite differences, each subsystem's parameters on
+that subsystem alone), together with the variant's
 linear parameters (extra columns), and the re-fitted variant is scored on the held-out fold.
 The base model goes through the same step, so base and variants are compared on equal terms.
 
@@ -23,7 +24,7 @@ import numpy as np
 
 from groundstation.errors import GapError
 from groundstation.gap.config import DiagnoseConfig
-from groundstation.gap.linsim import simulate
+from groundstation.gap.linsim import HORIZONTAL, PARAM_BLOCKS, VERTICAL, simulate
 from groundstation.sysid.model import N_PARAMS
 
 
@@ -167,24 +168,80 @@ class Evaluator:
         """Set the base parameters; recompute base residual and Jacobian (batched finite differences)."""
         self.theta0 = np.asarray(theta, float).copy()
         h = 1e-4 * np.maximum(np.abs(self.theta0), 1e-2)
-        batch = np.vstack([self.theta0[None], self.theta0[None] + np.diag(h)])
-        yh = self.simulate(batch)
-        r = self.residual(yh)
-        self.r0 = r[0]
-        # d residual / d theta ; column-normalised for conditioning
-        J = (r[1:] - r[0][None]) / h[:, None, None, None]  # (31, W, L, 8)
-        # C order: a worker process gets this array unpickled in C order, and products of another
-        # layout round differently (the report must not depend on --jobs)
-        self.J = np.ascontiguousarray(np.moveaxis(J, 0, -1))  # (W, L, 8, 31)
-        self._prepare_folds()
+        nuisance_blocks = self._nuisance_blocks()
+        if nuisance_blocks is None:  # columns fitted across both subsystems: one joint batch
+            batch = np.vstack([self.theta0[None], self.theta0[None] + np.diag(h)])
+            r = self.residual(self.simulate(batch))
+            self.r0 = r[0]
+            # d residual / d theta ; column-normalised for conditioning
+            J = (r[1:] - r[0][None]) / h[:, None, None, None]  # (31, W, L, 8)
+            # C order: a worker process gets this array unpickled in C order, and products of another
+            # layout round differently (the report must not depend on --jobs)
+            self._prepare_folds([(np.arange(N_PARAMS), np.arange(8), np.ascontiguousarray(np.moveaxis(J, 0, -1)))])
+            return
+        gram: dict = {}
+        y0 = simulate(self.theta0, self.U, self.Y, self.dt_s, weights=self.w8, available=self.available,
+                      start=self.start, gram=gram, nuisance=self.nuisance, nuisance_prec=self.nuisance_prec)
+        assert isinstance(y0, np.ndarray)
+        self.r0 = self.residual(y0)[0]
+        self._prepare_folds(self._block_jacobian(h, gram, nuisance_blocks))
 
-    def _prepare_folds(self) -> None:
-        Jf = self.J.reshape(self.W, -1, N_PARAMS)
-        self.Jw = Jf
-        self.col = np.sqrt((Jf ** 2).sum(axis=(0, 1))) + 1e-30
+    def _nuisance_blocks(self) -> tuple[bool, bool] | None:
+        """Which subsystems' outputs the nuisance columns reach ((False, False) without any); None when
+        they are per window and reach both (the Jacobian is then simulated in one joint batch)."""
+        if self.nuisance is None:
+            return False, False
+        reach = tuple(bool(self.nuisance[..., list(b.outputs), :].any()) for b in (HORIZONTAL, VERTICAL))
+        return None if self.nuisance.shape[0] != 1 or all(reach) else (reach[0], reach[1])
+
+    def _block_jacobian(self, h: np.ndarray, gram: dict,
+                        nuisance_blocks: tuple[bool, bool]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """d residual / d theta by finite differences ``h`` (31,), each subsystem's parameters simulated
+        on that subsystem alone (the other's outputs do not depend on them: zero there), the initial
+        states' ridge that of both (``gram``: the base simulation's, see
+        :func:`groundstation.gap.linsim.simulate`): the same numbers as one simulation of both to
+        round-off. Per block: (parameter indices (k,), output channels (ny,), d residual (W, L, ny, k))."""
+        pieces = []
+        blocks = ((HORIZONTAL, VERTICAL, PARAM_BLOCKS[0], nuisance_blocks[0]),
+                  (VERTICAL, HORIZONTAL, PARAM_BLOCKS[1], nuisance_blocks[1]))
+        for block, other, idx, with_nuisance in blocks:
+            oc = np.array(block.outputs)
+            theirs = [j for j, st in enumerate(gram["unknown"]) if st in other.states]
+            extra = (float(gram["diag"][0, theirs].sum()), len(theirs))
+            if self.nuisance is not None and not with_nuisance:  # the other block's unknowns
+                extra = (extra[0] + float(gram["nuisance_diag"].sum()), extra[1] + self.nuisance.shape[-1])
+            batch = np.vstack([self.theta0[None], self.theta0[None] + np.diag(h)[idx]])
+            yh = simulate(batch, self.U, self.Y, self.dt_s, weights=self.w8, available=self.available,
+                          start=self.start, block=block, ridge_extra=extra,
+                          nuisance=self.nuisance if with_nuisance else None,
+                          nuisance_prec=self.nuisance_prec if with_nuisance else None)
+            wm = self.wmask if self.wmask.shape[-1] == 1 else self.wmask[..., oc]
+            r = (self.Y[..., oc] - yh) * self.w8[oc] * wm
+            r[1:] -= r[0]
+            r[1:] /= h[idx, None, None, None]
+            pieces.append((idx, oc, np.ascontiguousarray(np.moveaxis(r[1:], 0, -1))))
+        return pieces
+
+    def _prepare_folds(self, pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> None:
+        """Column norms ``col``, the column-normalised Jacobian per window ``Jn`` (W, L 8, 31) and its
+        normal matrix per window ``JtJ`` (W, 31, 31) from the Jacobian's non-zero blocks ``pieces``
+        (parameter indices, output channels, d residual (W, L, ny, k)); zero elsewhere."""
+        W = self.W
+        self.col = np.empty(N_PARAMS)
+        Jn = np.zeros((W, self.L, 8, N_PARAMS)) if len(pieces) > 1 else None
+        self.JtJ = np.zeros((W, N_PARAMS, N_PARAMS))
+        for idx, oc, P in pieces:
+            Pf = P.reshape(W, -1, len(idx))
+            self.col[idx] = np.sqrt((Pf ** 2).sum(axis=(0, 1))) + 1e-30
+            Pn = Pf / self.col[idx]
+            self.JtJ[:, idx[:, None], idx[None, :]] = np.matmul(np.swapaxes(Pn, 1, 2), Pn)
+            if Jn is None:
+                Jn = Pn.reshape(W, self.L, 8, N_PARAMS)
+            else:
+                Jn[:, :, oc[:, None], idx[None, :]] = Pn.reshape(P.shape)
+        assert Jn is not None
         #: column-normalised Jacobian per window (W, n, 31), formed once for every held-out re-fit
-        self.Jn = Jf / self.col
-        self.JtJ = np.matmul(np.swapaxes(self.Jn, 1, 2), self.Jn)  # per window (W, 31, 31)
+        self.Jn = Jn.reshape(W, -1, N_PARAMS)
 
     # ---------------------------------------------------------------------------------------
     def heldout(self, r: np.ndarray, X: np.ndarray | None = None,
@@ -337,7 +394,7 @@ class Evaluator:
             xs = np.ones(0)
             M = Jn
         Mf = M.reshape(-1, M.shape[2])
-        G = Mf.T @ Mf
+        G = self.JtJ.sum(0) if not K else Mf.T @ Mf  # the base model's: the per-window ones summed
         b = Mf.T @ rf.ravel()
         lam = ridge * np.trace(G) / M.shape[2]
         d = np.linalg.solve(G + lam * np.eye(M.shape[2]), b)

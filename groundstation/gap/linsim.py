@@ -22,14 +22,49 @@ state are estimated per window by weighted least squares (the outputs are linear
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from groundstation.sysid.model import build_matrices, discretize
+from groundstation.sysid.model import N_PARAMS, build_matrices, discretize
 
 N_STATES = 11
 #: state index of each output channel (u v w p q r theta phi)
 OUT_STATE = np.array([0, 1, 8, 5, 4, 9, 2, 3])
 UNMEASURED = (6, 7, 10)
+
+
+@dataclass(frozen=True)
+class Block:
+    """One of the model's two uncoupled subsystems: its ``states`` (of the 11), the output channels it
+    drives (of the 8, in channel order) and the inputs that enter it (of the 4). A parameter of one
+    block leaves the other block's outputs unchanged: a finite-difference Jacobian simulates only the
+    block it perturbs (:func:`simulate` with ``block``)."""
+
+    states: tuple[int, ...]
+    outputs: tuple[int, ...]
+    inputs: tuple[int, ...]
+
+
+HORIZONTAL = Block(states=tuple(range(8)), outputs=(0, 1, 3, 4, 6, 7), inputs=(0, 1))
+VERTICAL = Block(states=(8, 9, 10), outputs=(2, 5), inputs=(2, 3))
+
+
+def _param_blocks() -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the parameters in the horizontal block's matrices and of those in the vertical's
+    (read off :func:`groundstation.sysid.model.build_matrices`; no parameter is in both)."""
+    th = 1.0 + np.arange(N_PARAMS, dtype=float)
+    base = build_matrices(th)
+    bumped = build_matrices(th + 0.5 * np.eye(N_PARAMS))
+    moves = [np.array([not np.array_equal(bumped[k][i], base[k]) for i in range(N_PARAMS)]) for k in range(4)]
+    hor, ver = moves[0] | moves[1], moves[2] | moves[3]
+    if (hor & ver).any():
+        raise AssertionError("a parameter enters both subsystems")
+    return np.flatnonzero(hor), np.flatnonzero(ver)
+
+
+#: the parameters of :data:`HORIZONTAL` and those of :data:`VERTICAL` (indices into theta)
+PARAM_BLOCKS = _param_blocks()
 
 
 def full_matrices(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -56,13 +91,14 @@ LIFT_BLOCK = 10
 CHUNK_BYTES = 4e6
 
 
-def _lift(Ad: np.ndarray, Bd: np.ndarray, b: int, nb: int):
+def _lift(Ad: np.ndarray, Bd: np.ndarray, b: int, nb: int, out_state: np.ndarray = OUT_STATE):
     """Lifted maps of blocks of ``b`` samples, per candidate.
 
     Returns ``AbT`` (C, 11, 11) = (A^b)^T; ``CbT`` (C, b m, 11): block input-to-state map transposed
     (row ``(l, input)``: ``(A^(b-1-l) B)^T``); ``TT`` (C, b m, b 8): block-Toeplitz Markov parameters
     transposed (``y_j = sum_{l<j} C A^(j-1-l) B u_l``); ``ObT`` (C, 11, b 8): ``(C A^j)^T``;
-    ``Phi`` (C, nb b, 8, 11): free response ``C A^t`` of every initial state at every sample.
+    ``Phi`` (C, nb b, 8, 11): free response ``C A^t`` of every initial state at every sample (of a
+    block: its outputs and states, ``out_state`` each output's state among ``Ad``'s).
     """
     C, n, m = Bd.shape
     pw = [np.broadcast_to(np.eye(n), (C, n, n)), Ad]
@@ -71,17 +107,18 @@ def _lift(Ad: np.ndarray, Bd: np.ndarray, b: int, nb: int):
     Apow = np.stack(pw, axis=1)  # (C, b+1, n, n)
     AB = np.matmul(Apow[:, :b], Bd[:, None])  # (C, b, n, m): A^q B
     Cb = AB[:, ::-1].transpose(0, 2, 1, 3).reshape(C, n, b * m)  # column block l: A^(b-1-l) B
-    CAB = np.concatenate([AB[:, :, OUT_STATE, :], np.zeros((C, 1, 8, m))], axis=1)  # (C, b+1, 8, m)
+    ny = len(out_state)
+    CAB = np.concatenate([AB[:, :, out_state, :], np.zeros((C, 1, ny, m))], axis=1)  # (C, b+1, 8, m)
     jj, ll = np.meshgrid(np.arange(b), np.arange(b), indexing="ij")
     Tq = CAB[:, np.where(ll < jj, jj - 1 - ll, b)]  # (C, b(j), b(l), 8, m)
-    TT = np.ascontiguousarray(Tq.transpose(0, 2, 4, 1, 3).reshape(C, b * m, b * 8))
-    Ob = Apow[:, :b][:, :, OUT_STATE, :]  # (C, b, 8, n): C A^j
-    ObT = np.ascontiguousarray(Ob.reshape(C, b * 8, n).transpose(0, 2, 1))
+    TT = np.ascontiguousarray(Tq.transpose(0, 2, 4, 1, 3).reshape(C, b * m, b * ny))
+    Ob = Apow[:, :b][:, :, out_state, :]  # (C, b, 8, n): C A^j
+    ObT = np.ascontiguousarray(Ob.reshape(C, b * ny, n).transpose(0, 2, 1))
     # free responses C A^j (A^b)^i at t = i b + j
     Abp = [np.broadcast_to(np.eye(n), (C, n, n))]
     for _ in range(nb - 1):
         Abp.append(np.matmul(Abp[-1], Apow[:, b]))
-    Phi = np.matmul(Ob.reshape(C, 1, b * 8, n), np.stack(Abp, axis=1)).reshape(C, nb * b, 8, n)
+    Phi = np.matmul(Ob.reshape(C, 1, b * ny, n), np.stack(Abp, axis=1)).reshape(C, nb * b, ny, n)
     return np.swapaxes(Apow[:, b], 1, 2), np.swapaxes(Cb, 1, 2), TT, ObT, Phi
 
 
@@ -102,7 +139,7 @@ def _lifted_outputs(x0: np.ndarray, u: np.ndarray, AbT: np.ndarray, CbT: np.ndar
         xs[:, :, i + 1] = np.matmul(xs[:, :, i], AbT) + UC[:, :, i]
     Y = np.matmul(Ub, TT)  # (C, W nb, b 8)
     Y += np.matmul(xs.reshape(C, W * nb, n), ObT)
-    return Y.reshape(C, W, nb * b, 8), xs
+    return Y.reshape(C, W, nb * b, -1), xs
 
 
 def simulate(
@@ -122,6 +159,9 @@ def simulate(
     return_coef: bool = False,
     fit_mask: np.ndarray | None = None,
     nuisance_prec: np.ndarray | None = None,
+    block: Block | None = None,
+    ridge_extra: tuple[float, int] | None = None,
+    gram: dict | None = None,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Simulate windows for a batch of parameter vectors.
 
@@ -142,6 +182,14 @@ def simulate(
     fit_initial : bool, False: measured initial states only, unknown ones zero, no least squares
     all_initial : bool, True: every initial state is fitted (the measured value is only the
         starting point), so that sensor noise at the window start does not seed a divergence
+    block : :data:`HORIZONTAL` or :data:`VERTICAL`: that subsystem alone (its states, inputs and
+        forcing; ``yhat`` and ``coef`` then hold its output channels and unknown states only)
+    ridge_extra : (trace, count) of the unknowns outside this block (the other block's initial states,
+        nuisance columns that only the other block's outputs see): the least squares' ridge is then
+        relative to the whole model's, as in a simulation of both blocks (no per-window nuisance)
+    gram : a dict that receives ``unknown`` (the unknown initial states, indices of the 11), ``diag``
+        (C, n_unknown), the diagonal of the initial states' normal matrix, and with nuisance columns
+        shared by every window ``nuisance_diag`` (K,), theirs (the traces set the ridge)
 
     Returns
     -------
@@ -156,6 +204,11 @@ def simulate(
     w8 = np.ones(8) if weights is None else np.asarray(weights, float)
     w8 = np.where(avail, w8, 0.0)
     A, B = full_matrices(th)
+    out_state, unmeasured = OUT_STATE, UNMEASURED
+    if block is not None:
+        A, B, inputs, forcing, outputs, avail, w8, nuisance, out_state, unmeasured = _restrict(
+            block, A, B, inputs, forcing, outputs, avail, w8, nuisance)
+    nx, ny = A.shape[1], len(out_state)
     Ad, Bd = discretize(A, B, dt_s)  # (C,11,11), (C,11,15)
     C = th.shape[0]
     u_all = inputs if forcing is None else np.concatenate([inputs, forcing], axis=2)
@@ -165,26 +218,26 @@ def simulate(
     up = np.zeros((Wn, nb * b, m))
     up[:, :L] = u_all
     # unknown initial states: unmeasured ones and unavailable channels
-    unknown = list(UNMEASURED) + [int(OUT_STATE[c]) for c in range(8) if not avail[c] or all_initial]
+    unknown = list(unmeasured) + [int(out_state[c]) for c in range(ny) if not avail[c] or all_initial]
     nu = len(unknown)
     W0 = outputs.shape[0]
     if Wn % W0:
         raise ValueError(f"outputs: {W0} windows do not divide the inputs' {Wn}")
-    x0 = np.zeros((Wn, N_STATES))
-    x0[:, OUT_STATE[avail]] = np.tile(outputs[:, 0, avail], (Wn // W0, 1))
-    yhat = np.empty((C, Wn, L, 8))
+    x0 = np.zeros((Wn, nx))
+    x0[:, out_state[avail]] = np.tile(outputs[:, 0, avail], (Wn // W0, 1))
+    yhat = np.empty((C, Wn, L, ny))
     runaway = np.zeros(C, bool)
     # an unstable candidate (a search or a Levenberg-Marquardt trial step) can overflow within a
     # window: it is simulated without warnings, zeroed for the least squares and returned as NaN
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        AbT, CbT, TT, ObT, Phi = _lift(Ad, Bd[:, :, :m], b, nb)
+        AbT, CbT, TT, ObT, Phi = _lift(Ad, Bd[:, :, :m], b, nb, out_state)
         S = np.ascontiguousarray(np.moveaxis(Phi[:, :L, :, unknown], 3, 1))  # (C, nu, L, 8), every window
         # a NaN propagates through max and fails the comparison like an overflow does
         runaway |= ~(np.abs(S).max(axis=(1, 2, 3), initial=0.0) < 1e150)
         wc = max(1, min(Wn, int(CHUNK_BYTES // (8 * C * L * 8))))
         for w0 in range(0, Wn, wc):
             w1 = min(Wn, w0 + wc)
-            y, xs = _lifted_outputs(np.broadcast_to(x0[None, w0:w1], (C, w1 - w0, N_STATES)), up[w0:w1],
+            y, xs = _lifted_outputs(np.broadcast_to(x0[None, w0:w1], (C, w1 - w0, nx)), up[w0:w1],
                                     AbT, CbT, TT, ObT, b)
             yhat[:, w0:w1] = y[:, :, :L]
             runaway |= ~((np.abs(y).max(axis=(1, 2, 3), initial=0.0) < 1e150)
@@ -201,12 +254,18 @@ def simulate(
     SwT = np.swapaxes(Sw, 1, 2)
     # the free responses S do not depend on the window: their Gram matrix is formed once
     Gss = np.matmul(Sw, SwT)  # (C, nu, nu)
-    S2 = S.reshape(C, nu, L * 8)
+    if gram is not None:
+        gram.update(unknown=unknown if block is None else [block.states[i] for i in unknown],
+                    diag=np.diagonal(Gss, axis1=1, axis2=2).copy())
+    S2 = S.reshape(C, nu, L * ny)
     K = 0 if nuisance is None else nuisance.shape[-1]
     coef = np.empty((C, Wn, nu + K)) if return_coef else None
     if nuisance is None:
         # one normal matrix per candidate: one factorisation, every window a right-hand side
-        ridge = 1e-9 * np.trace(Gss, axis1=1, axis2=2)[:, None, None] / nu + 1e-12
+        tr, n_tr = np.trace(Gss, axis1=1, axis2=2), nu
+        if ridge_extra is not None:
+            tr, n_tr = tr + ridge_extra[0], nu + ridge_extra[1]
+        ridge = 1e-9 * tr[:, None, None] / n_tr + 1e-12
         Gr = Gss + ridge * np.eye(nu)
     else:
         Nall = np.moveaxis(nuisance, 3, 1)  # (W or 1, K, L, 8) view
@@ -214,8 +273,10 @@ def simulate(
         shared = nuisance.shape[0] == 1
         if shared:  # the same columns in every window: one normal matrix per candidate, as without them
             N1 = np.ascontiguousarray((Nall[0][:, sel, :] * w8).reshape(K, -1))  # (K, n)
-            Gn = _nuisance_normal(Sw, Gss, N1[None], prec)[:, 0]  # (C, nu + K, nu + K)
-            N2 = np.ascontiguousarray(nuisance[0].reshape(L * 8, K).T)  # (K, L 8)
+            Gn = _nuisance_normal(Sw, Gss, N1[None], prec, ridge_extra)[:, 0]  # (C, nu + K, nu + K)
+            if gram is not None:
+                gram["nuisance_diag"] = (N1 ** 2).sum(axis=1)
+            N2 = np.ascontiguousarray(nuisance[0].reshape(L * ny, K).T)  # (K, L 8)
     for w0 in range(0, Wn, wc):
         w1 = min(Wn, w0 + wc)
         Wc = w1 - w0
@@ -225,21 +286,21 @@ def simulate(
         hs = np.matmul(rw, SwT)  # (C, Wc, nu)
         if nuisance is None:
             a = np.swapaxes(np.linalg.solve(Gr, np.swapaxes(hs, 1, 2)), 1, 2)  # (C, Wc, nu)
-            yc += np.matmul(a, S2).reshape(C, Wc, L, 8)
+            yc += np.matmul(a, S2).reshape(C, Wc, L, ny)
         elif shared:
             h = np.concatenate([hs, np.matmul(rw, N1.T)], axis=2)  # (C, Wc, nu + K)
             a = np.swapaxes(np.linalg.solve(Gn, np.swapaxes(h, 1, 2)), 1, 2)
-            yc += np.matmul(a[..., :nu], S2).reshape(C, Wc, L, 8)
-            yc += np.matmul(a[..., nu:], N2).reshape(C, Wc, L, 8)
+            yc += np.matmul(a[..., :nu], S2).reshape(C, Wc, L, ny)
+            yc += np.matmul(a[..., nu:], N2).reshape(C, Wc, L, ny)
         else:
             Nw = np.ascontiguousarray((Nall[w0:w1, :, sel, :] * w8).reshape(Wc, K, -1))  # (Wc, K, n)
             hn = np.matmul(Nw[None], rw[..., None])[..., 0]  # (C, Wc, K)
             h = np.concatenate([hs, hn], axis=2)
             a = np.linalg.solve(_nuisance_normal(Sw, Gss, Nw, prec), h[..., None])[..., 0]  # (C, Wc, nu + K)
-            yc += np.matmul(a[..., :nu], S2).reshape(C, Wc, L, 8)
+            yc += np.matmul(a[..., :nu], S2).reshape(C, Wc, L, ny)
             # nuisance responses: per window (L 8, K) @ (K, C)
-            yc += np.moveaxis(np.matmul(nuisance[w0:w1].reshape(Wc, L * 8, K),
-                                        np.moveaxis(a[..., nu:], 0, 2)), 2, 0).reshape(C, Wc, L, 8)
+            yc += np.moveaxis(np.matmul(nuisance[w0:w1].reshape(Wc, L * ny, K),
+                                        np.moveaxis(a[..., nu:], 0, 2)), 2, 0).reshape(C, Wc, L, ny)
         if coef is not None:
             coef[:, w0:w1] = a
     if runaway.any():
@@ -249,10 +310,26 @@ def simulate(
     return yhat
 
 
-def _nuisance_normal(Sw: np.ndarray, Gss: np.ndarray, Nw: np.ndarray, prec: np.ndarray | None) -> np.ndarray:
+def _restrict(block: Block, A: np.ndarray, B: np.ndarray, inputs: np.ndarray, forcing: np.ndarray | None,
+              outputs: np.ndarray, avail: np.ndarray, w8: np.ndarray, nuisance: np.ndarray | None) -> tuple:
+    """:func:`simulate`'s matrices and arrays cut to one block: A, B (its input then forcing columns),
+    inputs, forcing, outputs, available, weights, nuisance, each output's state and the unmeasured
+    states (as indices among the block's states)."""
+    st, oc = list(block.states), list(block.outputs)
+    cols = list(block.inputs) + [4 + i for i in st]
+    out_state = np.array([st.index(int(OUT_STATE[c])) for c in oc])
+    return (A[:, st][:, :, st], B[:, st][:, :, cols], inputs[..., list(block.inputs)],
+            None if forcing is None else forcing[..., st], outputs[..., oc], avail[oc], w8[oc],
+            None if nuisance is None else nuisance[..., oc, :], out_state,
+            tuple(st.index(i) for i in UNMEASURED if i in st))
+
+
+def _nuisance_normal(Sw: np.ndarray, Gss: np.ndarray, Nw: np.ndarray, prec: np.ndarray | None,
+                     ridge_extra: tuple[float, int] | None = None) -> np.ndarray:
     """Normal matrices (C, Wc, nu + K, nu + K) of the initial states (weighted free responses ``Sw``
     (C, nu, n), their Gram ``Gss`` (C, nu, nu)) and the nuisance columns ``Nw`` (Wc, K, n), with the
-    relative ridge and the nuisance's prior precision ``prec`` (K,) added."""
+    relative ridge (relative also to ``ridge_extra``, see :func:`simulate`) and the nuisance's prior
+    precision ``prec`` (K,) added."""
     C, nu = Gss.shape[:2]
     Wc, K = Nw.shape[:2]
     Gsn = np.matmul(Sw[:, None], np.swapaxes(Nw, 1, 2)[None])  # (C, Wc, nu, K)
@@ -261,7 +338,10 @@ def _nuisance_normal(Sw: np.ndarray, Gss: np.ndarray, Nw: np.ndarray, prec: np.n
     G[:, :, :nu, nu:] = Gsn
     G[:, :, nu:, :nu] = np.swapaxes(Gsn, 2, 3)
     G[:, :, nu:, nu:] = np.matmul(Nw, np.swapaxes(Nw, 1, 2))[None]
-    ridge = 1e-9 * np.trace(G, axis1=2, axis2=3)[..., None, None] / G.shape[-1] + 1e-12
+    tr, n_tr = np.trace(G, axis1=2, axis2=3), G.shape[-1]
+    if ridge_extra is not None:
+        tr, n_tr = tr + ridge_extra[0], n_tr + ridge_extra[1]
+    ridge = 1e-9 * tr[..., None, None] / n_tr + 1e-12
     G += ridge * np.eye(nu + K)
     if prec is not None:
         idx = np.arange(nu, nu + K)

@@ -111,6 +111,22 @@ def _schur_solve(G: np.ndarray, E: np.ndarray, rhs: np.ndarray, FF: np.ndarray,
     beta = np.linalg.solve(S, (rb - np.einsum("cwnp,cwn->cp", E, Gia))[..., None])[..., 0]
     return Gia - np.einsum("cwnp,cp->cwn", GiE, beta), beta
 
+def _schur_alike(G: np.ndarray, E: np.ndarray, rhs: np.ndarray, FF: np.ndarray,
+                 rb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_schur_solve` when every window has the same normal matrix ``G`` (k, n, n) and coupling
+    ``E`` (k, n, P): one solve for the coupling instead of one per window, and the Schur complement
+    ``FF - W E^T G^-1 E``. ``rhs`` (k, W, n), ``rb`` (k, P). Returns ``(z (k, W, n), beta (k, P))``."""
+    k, W, n = rhs.shape
+    P = E.shape[-1]
+    sol = np.linalg.solve(G, np.concatenate([E, np.swapaxes(rhs, 1, 2)], axis=-1))  # (k, n, P + W)
+    GiE, Gia = sol[..., :P], sol[..., P:]
+    S = FF - W * np.matmul(np.swapaxes(E, 1, 2), GiE)
+    dS = np.einsum("cpp->cp", S)
+    S += (1e-10 * np.maximum(dS.max(axis=-1), 1e-300))[:, None, None] * np.eye(P)
+    beta = np.linalg.solve(S, (rb - np.matmul(np.swapaxes(E, 1, 2), Gia.sum(axis=-1, keepdims=True))[..., 0])[..., None])
+    return np.swapaxes(Gia - np.matmul(GiE, beta), 1, 2), beta[..., 0]
+
+
 class WindowSimulator:
     """Precomputed windows; ``simulate(theta)`` returns ``yhat (C, W, L, 8)``, ``sse(theta)`` (C, 8).
 
@@ -411,6 +427,13 @@ class WindowSimulator:
                 rhs_o = np.einsum("wh,chwn->cwn", w_ch, g) * unk_o[None]
                 zo = np.linalg.solve(_window_gram(w_ch, H, unk_o, self.ridge), rhs_o[..., None])[..., 0]
                 z, offsets = zo[..., :n], zo[..., n:]
+            elif nt and pre["same_G"]:
+                # global columns, every window alike: one coupling block E for all windows
+                E1 = np.matmul(w_ch[0], np.ascontiguousarray(H[:, :, :n, n:]).reshape(k, nch, n * nt))
+                E1 = E1.reshape(k, n, nt) * unk[0][None, :, None]
+                FF = np.einsum("wh,chpq->cpq", w_ch, H[:, :, n:, n:])
+                rb = np.einsum("wh,chwp->cp", w_ch, g[..., n:])
+                z, beta = _schur_alike(G, E1, rhs, FF, rb)
             elif nt:
                 # global columns: Schur complement over the windows (variable projection)
                 E = np.matmul(w_ch[None], np.ascontiguousarray(H[:, :, :n, n:]).reshape(k, nch, n * nt))

@@ -161,3 +161,63 @@ def test_lifted_simulation_is_the_stepped_one_stable_and_unstable(paper_theta):
                 np.testing.assert_allclose(a[ok], b[ok], rtol=0, atol=1e-10 * np.abs(b[ok]).max())
     finally:
         linsim.CHUNK_BYTES = old
+
+
+def test_a_block_is_its_subsystem_of_the_joint_simulation_and_the_jacobian_by_blocks_the_joint_one(
+        paper_theta, flight_factory):
+    """Each subsystem simulated alone gives the joint simulation's outputs of that subsystem (its
+    initial states' ridge taken relative to both blocks: to round-off); the evaluator's Jacobian,
+    simulated block by block, is the finite-difference Jacobian of one joint batch to its round-off
+    (the other block's entries exactly zero)."""
+    from groundstation.gap.linsim import HORIZONTAL, PARAM_BLOCKS, VERTICAL
+
+    rng = np.random.default_rng(3)
+    W, L = 5, 43
+    th = paper_theta[None] * (1 + 0.1 * rng.standard_normal((3, paper_theta.size)))
+    inputs, outputs = 0.05 * rng.standard_normal((W, L, 4)), 0.1 * rng.standard_normal((W, L, 8))
+    avail = np.array([1, 1, 1, 1, 1, 0, 1, 1], bool)
+    for kw in (dict(), dict(available=avail, weights=rng.uniform(0.5, 2.0, 8), start=5)):
+        gram: dict = {}
+        joint = simulate(th, inputs, outputs, 0.02, gram=gram, **kw)
+        for block, other in ((HORIZONTAL, VERTICAL), (VERTICAL, HORIZONTAL)):
+            theirs = [j for j, st in enumerate(gram["unknown"]) if st in other.states]
+            for c in range(3):
+                got = simulate(th[c], inputs, outputs, 0.02, block=block,
+                               ridge_extra=(float(gram["diag"][c, theirs].sum()), len(theirs)), **kw)
+                want = joint[c:c + 1][..., list(block.outputs)]
+                np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
+    assert sorted(np.concatenate(PARAM_BLOCKS).tolist()) == list(range(paper_theta.size))
+
+    prep = flight_factory(T_s=60.0, seed=2)
+    s = prep.segments[0]
+    ev = Evaluator([SegmentArrays(s.t_s, s.inputs, s.outputs, s.outputs_raw, s.alt_m)], 0.02, paper_theta * 1.05,
+                   np.ones(8, bool))
+    h = 1e-4 * np.maximum(np.abs(ev.theta0), 1e-2)
+    r = ev.residual(ev.simulate(np.vstack([ev.theta0[None], ev.theta0[None] + np.diag(h)])))
+    J = np.moveaxis((r[1:] - r[0]) / h[:, None, None, None], 0, -1)
+    # one candidate or a batch of 32: the batched products round differently, through the initial-state fit
+    np.testing.assert_allclose(ev.r0, r[0], rtol=0, atol=1e-8 * np.abs(r[0]).max())
+    # the differences of two simulations 1e-4 apart carry their round-off amplified 1e4 times (and
+    # more through the initial-state fit): two batch sizes of the joint simulation differ by up to 1e-5
+    scale = np.abs(J).max(axis=(0, 1, 2))
+    got = ev.Jn.reshape(J.shape) * ev.col
+    assert (np.abs(got - J).max(axis=(0, 1, 2)) < 1e-3 * scale).all()
+    hor = list(HORIZONTAL.outputs)
+    assert not got[:, :, hor][..., PARAM_BLOCKS[1]].any()
+    # the normal matrices formed from the blocks are those of the whole Jacobian
+    Jf = got.reshape(ev.W, -1, paper_theta.size)
+    np.testing.assert_allclose(ev.col, np.sqrt((Jf ** 2).sum(axis=(0, 1))), rtol=1e-12)
+    np.testing.assert_allclose(ev.JtJ, np.matmul(np.swapaxes(ev.Jn, 1, 2), ev.Jn), rtol=0, atol=1e-12)
+    # nuisance columns the same in every window on the horizontal outputs only (the air-mass scan's):
+    # the vertical block is simulated without them, its ridge relative to them too
+    nuis = rng.standard_normal((1, ev.L, 8, 2))
+    nuis[..., list(VERTICAL.outputs), :] = 0.0
+    ev.nuisance, ev.nuisance_prec = nuis, np.array([0.1, 1.0])
+    ev.set_theta(ev.theta0)
+    r = ev.residual(ev.simulate(np.vstack([ev.theta0[None], ev.theta0[None] + np.diag(h)])))
+    J = np.moveaxis((r[1:] - r[0]) / h[:, None, None, None], 0, -1)
+    np.testing.assert_allclose(ev.r0, r[0], rtol=0, atol=1e-8 * np.abs(r[0]).max())
+    scale = np.abs(J).max(axis=(0, 1, 2))
+    got = ev.Jn.reshape(J.shape) * ev.col
+    assert (np.abs(got - J).max(axis=(0, 1, 2)) < 1e-3 * scale).all()
+    assert not got[:, :, hor][..., PARAM_BLOCKS[1]].any()
