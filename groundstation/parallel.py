@@ -51,7 +51,7 @@ PRELOAD = ("numpy", "scipy.optimize", "threadpoolctl", "pymavlink.dialects.v20.a
 IDENTIFY_PRELOAD = ("numpy", "threadpoolctl", "pymavlink.dialects.v20.ardupilotmega",
                     "firmware_interface.readers", "groundstation.pipeline", "groundstation.dsp.split",
                     "groundstation.dsp.velocity_check", "groundstation.sysid.identify", "groundstation.sysid.select",
-                    "groundstation.sysid.heldout", "matplotlib.figure", "matplotlib.backends.backend_agg",
+                    "groundstation.sysid.heldout", "matplotlib.backends.backend_agg", "matplotlib.ticker",
                     "groundstation.sysid.plots")
 
 # glibc mallopt parameters (malloc.h)

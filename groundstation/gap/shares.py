@@ -12,10 +12,12 @@ Two questions a flight-test engineer asks before acting on a name:
   (whole 3 s windows, so the residual's dependence inside a window stays in each draw).
 * **Through the flight.** The windows are cut into a first and a second half (in time order). In
   each half, the named effect's parameter is estimated again (the same scan, base parameters
-  re-fitted inside each fold) and both values are scored on each half's held-out blocks: the
-  effect *holds* when neither half's data reject the other half's value (paired tests over the
-  ~0.5 s blocks, the analytic tests of the conditional step, Bonferroni over the halves and the
-  effects tested, and a practical loss: the other value gives up more than
+  re-fitted inside each fold) and both values are scored on each half's held-out blocks (the own
+  value as chosen inside each fold, never on the windows it is scored on): the effect *holds*
+  when a half's data do not reject the other half's value (paired tests over the ~0.5 s blocks,
+  the analytic tests of the conditional step with a window's correlated blocks counted as fewer
+  independent ones, Bonferroni over the halves and the effects tested, and a practical loss: the
+  other value gives up more than
   ``consistency_min_loss`` of the effect's gain in that half); it *changes* when both do (a half
   whose data accept the other half's value holds the two estimates within its uncertainty); it is
   *not checked* when a half is too short for the windows and folds, or the effect does not lower
@@ -195,12 +197,17 @@ def split_segments(segs: list[SegmentArrays], ev: Evaluator) -> tuple[list[Segme
 
 @dataclass
 class HalfFit:
-    """One half: its evaluator, the effect's own estimate there and the variant builder."""
+    """One half: its evaluator, the effect's own estimate there, the variant builder, and the held-out
+    cost of the effect estimated inside each fold of the half (``own_sse`` (W, 8), ``own_blocks``
+    (W, n_blocks)): the half's own value chosen on the very windows it is scored on would be an
+    in-sample fit, which any other value loses to."""
 
     ev: Evaluator
     segs: list[SegmentArrays]
     value: Any  # the half's own estimate (label dict for input effects, float/array else)
     shown: float | None  # the value as reported
+    own_sse: np.ndarray
+    own_blocks: np.ndarray
     X: np.ndarray | None = None
 
 
@@ -221,18 +228,34 @@ def _latency_residual(ev: Evaluator, segs: list[SegmentArrays], lat_s: float) ->
 
 
 def _fit_half(c: attribute.Candidate, ev: Evaluator, segs: list[SegmentArrays]) -> HalfFit | None:
-    """The effect's own estimate in one half (its scan on that half, on its channel)."""
+    """The effect's own estimate in one half (its scan on that half, on its channel), with the held-out
+    cost of the effect estimated inside each fold (the scan's nested selection; a linear coefficient
+    re-fitted per fold)."""
     h = c.hyp
     ctx = hypotheses.Context(ev, segs)
     e = h.effect
-    if e in hypotheses.INPUT_EFFECTS:
-        hh = hypotheses.rescan_input_effect(ctx, h)
-        lab = dict(hh.extra["label"])
-        return HalfFit(ev, segs, lab, float(hh.estimate[str(PARAMETER[e])]))
-    if e == "velocity_latency":
-        hh = hypotheses.scan_velocity_latency(ctx)
-        return HalfFit(ev, segs, float(hh.estimate["latency_s"]), float(hh.estimate["latency_s"])) \
-            if hh.testable else None
+    if e in hypotheses.INPUT_EFFECTS or e == "velocity_latency":
+        hh = hypotheses.rescan_input_effect(ctx, h) if e != "velocity_latency" else hypotheses.scan_velocity_latency(ctx)
+        if not hh.testable or hh.sse is None:
+            return None
+        own = (hh.sse, ctx.blocks[e])
+        if e == "velocity_latency":
+            return HalfFit(ev, segs, float(hh.estimate["latency_s"]), float(hh.estimate["latency_s"]), *own)
+        return HalfFit(ev, segs, dict(hh.extra["label"]), float(hh.estimate[str(PARAMETER[e])]), *own)
+    X = _half_columns(c, ev, segs, ctx)
+    if X is None:
+        return None
+    sse, _, coef = ev.heldout(ev.r0, X)
+    v = coef.mean(axis=0)
+    shown = {"gyro_bias": float(v[0]), "ground_effect": -float(np.mean(v))}.get(e, float(np.mean(v)))
+    return HalfFit(ev, segs, float(v[0]) if e == "gyro_bias" else v, shown, sse, ev.last_blocks.copy(), X)
+
+
+def _half_columns(c: attribute.Candidate, ev: Evaluator, segs: list[SegmentArrays],
+                  ctx: hypotheses.Context) -> np.ndarray | None:
+    """The linear columns (W, L, 8, K) of an effect entering as a coefficient (gyro bias, ground
+    effect, drag) on one half; None for other effects or when it cannot be built there."""
+    h, e = c.hyp, c.hyp.effect
     if e == "gyro_bias" and h.output in hypotheses.RATE_CH:
         ch = hypotheses.RATE_CH[h.output]
         b = 0.01
@@ -240,28 +263,17 @@ def _fit_half(c: attribute.Candidate, ev: Evaluator, segs: list[SegmentArrays]) 
         Y2[:, :, ch] -= b
         yh = ev.simulate(ev.theta0, Y=Y2)[0]
         yh[:, :, ch] += b
-        X = hypotheses._mask_w(ev, (yh - ev.simulate(ev.theta0)[0]) / b)[..., None]
-        _, _, coef = ev.heldout(ev.r0, X)
-        v = float(coef[:, 0].mean())
-        return HalfFit(ev, segs, v, v, X)
+        return hypotheses._mask_w(ev, (yh - ev.simulate(ev.theta0)[0]) / b)[..., None]
     if e == "ground_effect":
         # the whole flight's shape of height in both halves: only its amplitude is estimated again
         shape, hgt = h.extra.get("shape"), hypotheses.heights(ev, segs)
         if shape is None or hgt is None:
             return None
-        X = hypotheses.ground_effect_columns(ctx, hgt, float(shape["h0"]), str(shape["kind"]), float(shape["hmin"]))
-        _, _, coef = ev.heldout(ev.r0, X)
-        v = coef.mean(axis=0)
-        return HalfFit(ev, segs, v, -float(np.mean(v)), X)
+        return hypotheses.ground_effect_columns(ctx, hgt, float(shape["h0"]), str(shape["kind"]), float(shape["hmin"]))
     if e == "quadratic_drag":
         hh = hypotheses.scan_quadratic_drag(ctx)
         Xf = hh.extra.get("X")
-        if not hh.testable or Xf is None:
-            return None
-        X = np.asarray(Xf)
-        _, _, coef = ev.heldout(ev.r0, X)
-        v = coef.mean(axis=0)
-        return HalfFit(ev, segs, v, float(np.mean(v)), X)
+        return None if not hh.testable or Xf is None else np.asarray(Xf)
     return None
 
 
@@ -328,7 +340,7 @@ def consistency(c: attribute.Candidate, segs_h: tuple[list[SegmentArrays], list[
     resolved, rejected, out["p_values"] = _compare(c, fits[0], fits[1], level, min_loss, rng, n_boot, window_alpha)
     if not all(resolved):
         half = "first" if not resolved[0] else "second"
-        where = f" ({c.hyp.input} little excited there)" if c.hyp.input else ""
+        where = f" (the {c.hyp.input} inputs there do not determine it)" if c.hyp.input else ""
         out["why"] = f"the effect does not lower the held-out cost of the {half} half{common} significantly{where}"
         return out
     if all(rejected):
@@ -340,8 +352,9 @@ def consistency(c: attribute.Candidate, segs_h: tuple[list[SegmentArrays], list[
                       f"data reject the other half's value")
     else:
         out["status"] = "holds"
-        out["why"] = (f"{par} {out['first']} and {out['second']} in the two halves{common}: neither half rejects "
-                      f"the other's value")
+        accepts = ("neither half rejects the other's value" if not any(rejected) else
+                   f"the {('first', 'second')[rejected.index(False)]} half's data accept the other half's value")
+        out["why"] = f"{par} {out['first']} and {out['second']} in the two halves{common}: {accepts}"
     return out
 
 
@@ -401,12 +414,11 @@ def _compare(c: attribute.Candidate, h1: HalfFit, h2: HalfFit, level: float, min
         ev_h = hf.ev
         base, _, _ = ev_h.heldout(ev_h.r0)
         bb = ev_h.last_blocks.copy()
-        own, _, _ = ev_h.heldout(_residual(c, hf, hf.value))
-        ob = ev_h.last_blocks.copy()
+        own, ob = hf.own_sse, hf.own_blocks
         oth, _, _ = ev_h.heldout(_residual(c, hf, _other_value(c, other.value, hf.value)))
         tb = ev_h.last_blocks.copy()
         p_res = attribute.conditional_p(base.sum(1), own.sum(1), rng, n_boot, window_alpha, bb, ob)
-        p_rej = attribute.conditional_p(oth.sum(1), own.sum(1), rng, n_boot, window_alpha, tb, ob)
+        p_rej = attribute.conditional_p(oth.sum(1), own.sum(1), rng, n_boot, window_alpha, tb, ob, clustered=True)
         gain = float(base.sum() - own.sum())
         loss = float(oth.sum() - own.sum())
         name = ("first", "second")[k]

@@ -55,6 +55,7 @@ from groundstation.parallel import Map, serial_map
 from groundstation.sysid.cost import WindowedCost, make_windows, subset_windows
 from groundstation.sysid.fit_section import ModelFit
 from groundstation.sysid.heldout import unstable_modes
+from groundstation.sysid.holes import restart_windows
 from groundstation.sysid.model import (
     HOR_PARAMS,
     N_PARAMS,
@@ -225,10 +226,11 @@ def _prior_arrays(prior: Any) -> tuple[np.ndarray, np.ndarray] | None:
 def _plan(prepared: Any, cfg: IdentifyConfig, refine: bool, bounds: dict | None, prior: Any,
           pmap: Map = serial_map, search: bool = True) -> _Plan:
     """``search=False``: no search windows (a refit from a model: :func:`refit`, the selection's fits)."""
-    win = make_windows(prepared.segments, prepared.dt_s, cfg.window_s, key="identify.window_s", step_s=cfg.window_step_s)
+    cut = restart_windows if cfg.restart_after_holes else make_windows   # no hole: the same windows
+    win = cut(prepared.segments, prepared.dt_s, cfg.window_s, key="identify.window_s", step_s=cfg.window_step_s)
     win_s = None
     if search:
-        win_s = make_windows(prepared.segments, prepared.dt_s, cfg.search_window_s, key="identify.search_window_s")
+        win_s = cut(prepared.segments, prepared.dt_s, cfg.search_window_s, key="identify.search_window_s")
         if cfg.search_stride > 1 and win_s.count >= 2 * cfg.search_stride:
             win_s = subset_windows(win_s, np.arange(0, win_s.count, cfg.search_stride))
     free, reasons = free_mask(prepared)

@@ -1,12 +1,13 @@
 """The search's cost with projected B entries, from Markov parameters and per-flight data products.
 
 :class:`~groundstation.sysid.simulate.WindowSimulator` solves the projected B entries (variable
-projection) and every window's initial state by least squares inside each evaluation. When every
-initial state is estimated, the B entries that are not projected are zero (the horizontal search:
-all eight of its B entries are projected), every window has the same channel weights and every
-sample counts, the residual before that least squares is the measured output itself, and the unit
-response of projected entry ``p`` (state ``st_p``, input ``i_p``) on channel ``h`` in window ``w`` is
-a convolution of the window's input with the entry's Markov parameters::
+projection) and every window's initial state by least squares inside each evaluation. When the B
+entries that are not projected are zero (the horizontal search: all of its B entries are projected
+or held at zero), every window has the same channels and weights and no sample is missing from the
+link, the residual before that least squares is the measured output less the free response of the
+window's measured initial states (if any are taken as measured), and the unit response of projected
+entry ``p`` (state ``st_p``, input ``i_p``) on channel ``h`` in window ``w`` is a convolution of the
+window's input with the entry's Markov parameters::
 
     F_phw[k] = sum_{j<k} m_ph[j] u_w[k-1-j],   m_ph[j] = C_h A^j Gamma e_st
 
@@ -15,8 +16,8 @@ the least squares and the per-channel SSE need then splits into products of the 
 input Grams ``Q = sum_w T_w^T T_w'``, ``sum_w T_w^T y_hw``, ``||y_h||^2``: computed once per flight,
 :func:`markov_data`) and small products with the candidate's Markov parameters and free-response
 basis ``Phi_h[k] = C_h A^k``. The projections of the unit responses on the free responses,
-``Phi_h^T F_phw = sum_l u_w[l] K_ph[l]``, use ``K_ph[l] = (sum_{j <= L-2-l} m_ph[j] Phi_h[j]) A^(l+1)``.
-No unit response is simulated: about a fifth of the multiply-adds of the lifted simulation, in
+``Phi_h^T F_phw = sum_l u_w[l] K_ph[l]``, use ``K_ph[l] = (sum_{j <= L-2-l} m_ph[j] Phi_h[j]) A^(l+1)``
+(through partial observability Gramians, see :func:`_gramian_sum`). No unit response is simulated: about a fifth of the multiply-adds of the lifted simulation, in
 arrays that stay in cache. The per-channel SSE ``||Phi_h z + F_h beta - y_h||^2`` is a quadratic form
 of those products; where it keeps fewer than about eight digits (a fit close to the data, or a
 wildly unstable candidate) the errors are computed explicitly.
@@ -51,12 +52,16 @@ class MarkovData:
     inputs: np.ndarray  # (P,) input of each entry
     w: np.ndarray  # (nch,) channel weights of the least squares
     ridge: float
+    unknown: np.ndarray  # (n,) 1.0 for the initial states solved, 0.0 for the measured ones
+    known: np.ndarray | None  # (W, n) the measured initial states (None: every state is solved)
+    known_u: dict[int, np.ndarray]  # input -> (L-1, n) sum_w u_w[l] known_w
 
 
 def markov_data(u: np.ndarray, y: np.ndarray, lin: tuple[tuple[int, int], ...], w: np.ndarray,
-                ridge: float) -> MarkovData:
+                ridge: float, known: np.ndarray, unknown: np.ndarray) -> MarkovData:
     """Data products of one subsystem: ``u (W, L, m)`` its inputs, ``y (W, L, nch)`` its measured
-    outputs, ``lin`` the projected (state, input) entries, ``w (nch,)`` the channel weights."""
+    outputs, ``lin`` the projected (state, input) entries, ``w (nch,)`` the channel weights, ``known
+    (W, n)`` the measured initial states (zero where solved) and ``unknown (n,)`` which are solved."""
     W, L, _ = u.shape
     inputs = np.array([i for _, i in lin])
     used = sorted({int(i) for i in inputs})
@@ -74,7 +79,9 @@ def markov_data(u: np.ndarray, y: np.ndarray, lin: tuple[tuple[int, int], ...], 
         yy=np.einsum("wkh,wkh->h", y, y), u_p=np.ascontiguousarray(np.stack([u[:, :L - 1, i] for i in inputs])),
         u_in={i: np.ascontiguousarray(u[:, :L - 1, i].T) for i in used},
         groups=tuple((i, np.flatnonzero(inputs == i)) for i in used),
-        states=np.array([s for s, _ in lin]), inputs=inputs, w=np.asarray(w, dtype=float), ridge=float(ridge))
+        states=np.array([s for s, _ in lin]), inputs=inputs, w=np.asarray(w, dtype=float), ridge=float(ridge),
+        unknown=np.asarray(unknown, dtype=float), known=np.asarray(known, dtype=float) if np.any(known) else None,
+        known_u={i: np.ascontiguousarray(u[:, :L - 1, i].T) @ known for i in used} if np.any(known) else {})
 
 
 def powers(A: np.ndarray, k: int) -> np.ndarray:
@@ -100,11 +107,28 @@ def markov_sse(d: MarkovData, Ad: np.ndarray, Gam: np.ndarray,
     nch, W, L = d.y.shape
     pw = powers(Ad, L)
     t = _terms(d, pw, Gam, s_idx)
+    t["yy"] = np.broadcast_to(d.yy, (Ad.shape[0], nch))
+    if d.known is not None:
+        _subtract_known(d, t)
     z, beta = _solve(d, t)
     sse = _quadratic(d, t, z, beta)
+    x0 = z if d.known is None else z + d.known
     for c in np.flatnonzero(np.isnan(sse).any(axis=1)):  # the form keeps too few digits here
-        sse[c] = _explicit(d, t["obs"][c], t["m"][c], z[c], beta[c])
+        sse[c] = _explicit(d, t["obs"][c], t["m"][c], x0[c], beta[c])
     return z, beta, sse
+
+
+def _subtract_known(d: MarkovData, t: dict[str, np.ndarray]) -> None:
+    """The residual before the least squares is ``y_hw - Phi_h k_w``, ``k_w`` the window's measured
+    initial states: ``yy``, ``gy`` and ``Fy`` of that residual into ``t`` (``Phi_h^T F_phw . k_w`` as in
+    :func:`_cross`)."""
+    H, gy, k = t["H"], t["gy"], d.known
+    assert k is not None
+    Hk = np.matmul(k, H)  # (C, nch, W, n); H is symmetric
+    t["yy"] = t["yy"] - np.einsum("chwn,wn->ch", 2.0 * gy - Hk, k)
+    t["gy"] = gy - Hk
+    for i, gi in d.groups:
+        t["Fy"][:, :, gi] -= np.matmul(_gramian_sum(t, d.known_u[i]), t["g"][:, :, gi])
 
 
 def _terms(d: MarkovData, pw: np.ndarray, Gam: np.ndarray, s_idx: np.ndarray) -> dict[str, np.ndarray]:
@@ -137,13 +161,15 @@ def _terms(d: MarkovData, pw: np.ndarray, Gam: np.ndarray, s_idx: np.ndarray) ->
 def _solve(d: MarkovData, t: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """``z`` (C, W, n) and ``beta`` (C, P): the per-window normal equations eliminated by their Schur
     complement, with the relative ridges of the lifted path (1e-10 on the shared entries)."""
-    E, w = t["E"], d.w
+    w, uk = d.w, d.unknown
+    E = t["E"] * uk
     C, P, W, n = E.shape
-    G = np.einsum("h,chij->cij", w, t["H"])
-    G += (d.ridge * np.maximum(np.einsum("cii->ci", G).max(axis=-1), 1e-300))[:, None, None] * np.eye(n)
+    G = np.einsum("h,chij->cij", w, t["H"]) * (uk[:, None] * uk[None, :])
+    scale = np.maximum(np.einsum("cii->ci", G).max(axis=-1), 1e-300)
+    G += np.where(uk > 0, d.ridge * scale[:, None], 1.0)[..., :, None] * np.eye(n)  # measured states: z = 0
     GiT = np.swapaxes(np.linalg.solve(G, np.broadcast_to(np.eye(n), G.shape)), -1, -2)
     GiE = np.matmul(E, GiT[:, None]).reshape(C, P, W * n)
-    gia = np.matmul(np.einsum("h,chwn->cwn", w, t["gy"]), GiT).reshape(C, W * n, 1)
+    gia = np.matmul(np.einsum("h,chwn->cwn", w, t["gy"]) * uk, GiT).reshape(C, W * n, 1)
     E2 = E.reshape(C, P, W * n)
     S = np.einsum("h,chpq->cpq", w, t["FF"]) - np.matmul(E2, np.swapaxes(GiE, 1, 2))
     S += (1e-10 * np.maximum(np.einsum("cpp->cp", S).max(axis=-1), 1e-300))[:, None, None] * np.eye(P)
@@ -159,25 +185,33 @@ def _quadratic(d: MarkovData, t: dict[str, np.ndarray], z: np.ndarray, beta: np.
     H, FF = t["H"], t["FF"]
     zHz = np.einsum("chwn,cwn->ch", np.matmul(z[:, None], H), z)
     bFFb = np.einsum("chpq,cp,cq->ch", FF, beta, beta)
-    sse = d.yy[None] - 2.0 * (np.einsum("chwn,cwn->ch", t["gy"], z) + np.einsum("chp,cp->ch", t["Fy"], beta)
+    sse = t["yy"] - 2.0 * (np.einsum("chwn,cwn->ch", t["gy"], z) + np.einsum("chp,cp->ch", t["Fy"], beta)
                               - _cross(d, t, z, beta)) + zHz + bFFb
-    size = d.yy[None] + np.einsum("cwn,cwn->c", z, z)[:, None] * np.einsum("chii->ch", H) \
+    zz = np.einsum("cwn,cwn->c", z, z) + (0.0 if d.known is None else np.einsum("wn,wn->", d.known, d.known))
+    size = d.yy[None] + zz[:, None] * np.einsum("chii->ch", H) \
         + np.einsum("cp,cp->c", beta, beta)[:, None] * np.einsum("chpp->ch", FF)
     return np.where((sse > TRUST * size) | ~np.isfinite(size), sse, np.nan)
 
 
 def _cross(d: MarkovData, t: dict[str, np.ndarray], z: np.ndarray, beta: np.ndarray) -> np.ndarray:
-    """``sum_w (Phi_h z_w) . (F_hw beta)`` (C, nch): per input ``i``, with ``a[l] = A^(l+1) sum_w u_w[l]
-    z_w`` and its sums ``A_i[j] = sum_{l <= L-2-j} a[l]``, it is ``sum_{p of i} beta_p g_p^T b_hi`` with
-    ``b_hi = sum_j obs_h[j]^T (obs_h[j] . A_i[j])``."""
-    pw, obs, g = t["pw"], t["obs"][:, :-1], t["g"]
-    out = np.zeros(obs.shape[:1] + obs.shape[2:3])
+    """``sum_w (Phi_h z_w) . (F_hw beta)`` (C, nch): ``sum_{p of i} beta_p g_p^T b_hi`` over the inputs
+    ``i``, ``b_hi`` from :func:`_gramian_sum` of ``sum_w u_w[l] z_w``."""
+    out = np.zeros(t["yy"].shape)
     for i, gi in d.groups:
-        a = np.matmul(pw[:, 1:], np.matmul(d.u_in[i][None], z)[..., None])[..., 0]  # (C, L-1, n)
-        acc = np.cumsum(a, axis=1)[:, ::-1]
-        b = np.einsum("cjh,cjhn->chn", np.einsum("cjhn,cjn->cjh", obs, acc), obs)
-        out += np.matmul(b, np.matmul(g[:, :, gi], beta[:, gi, None]))[..., 0]
+        b = _gramian_sum(t, np.matmul(d.u_in[i][None], z))
+        out += np.matmul(b, np.matmul(t["g"][:, :, gi], beta[:, gi, None]))[..., 0]
     return out
+
+
+def _gramian_sum(t: dict[str, np.ndarray], v: np.ndarray) -> np.ndarray:
+    """``b_h = sum_l Wo_h[L-2-l] A^(l+1) v[l]`` (C, nch, n) for ``v`` ((C,) L-1, n), with ``Wo_h[J] =
+    sum_{j<=J} obs_h[j]^T obs_h[j]``: with ``a[l] = A^(l+1) v[l]`` and ``S[j] = sum_{l <= L-2-j} a[l]``,
+    ``b_h = sum_j obs_h[j]^T (obs_h[j] . S[j])`` (no Gramian is formed). ``sum_w z_w . Phi_h^T F_phw
+    = g_p^T b_h`` for ``v[l] = sum_w u_w[l] z_w``, ``u`` the input of entry p."""
+    pw, obs = t["pw"], t["obs"][:, :-1]
+    a = np.matmul(pw[:, 1:], np.broadcast_to(v, obs.shape[:2] + v.shape[-1:])[..., None])[..., 0]  # (C, L-1, n)
+    acc = np.cumsum(a, axis=1)[:, ::-1]
+    return np.einsum("cjh,cjhn->chn", np.einsum("cjhn,cjn->cjh", obs, acc), obs)
 
 
 def _explicit(d: MarkovData, obs: np.ndarray, m: np.ndarray, z: np.ndarray, beta: np.ndarray) -> np.ndarray:

@@ -17,6 +17,10 @@ class IdentifyConfig:
     #: real TREX 550 log 5-s windows every 2.5 s raised the 5-fold held-out match from 27.5 to 31 %.
     window_step_s: float = 0.0
     search_window_s: float = 1.0
+    #: on a lossy link, windows restart after each bridged hole of the inputs (from the first sample
+    #: measured again) instead of simulating through the straight line into the samples they count
+    #: (:mod:`groundstation.sysid.holes`); a flight without bridged inputs has the same windows either way
+    restart_after_holes: bool = True
     search_stride: int = 3
     refine_starts: int = 9
     #: independent searches per subsystem, each screened and refined; the lowest refined cost wins.

@@ -248,10 +248,10 @@ class WindowSimulator:
             self._prep[-1].update(self._lifted_prep(sub, u_sub, self.outputs[:, :, o_idx], xm, known,
                                                     w_ch, lb))
             # the search's projected cost by Markov parameters (:mod:`groundstation.sysid.markov`)
-            markov = lin and not known.any() and self._prep[-1]["same_G"] and self._prep[-1]["full_mask"] \
-                and not self.holes
-            self._prep[-1]["markov"] = markov_data(u_sub, self.outputs[:, :, o_idx], lin, w_ch[0], ridge) \
-                if markov else None
+            # (same channels in every window: a channel missing in all of them has weight 0 and its SSE is 0)
+            markov = lin and self._prep[-1]["same_G"] and not self.holes
+            self._prep[-1]["markov"] = markov_data(u_sub, self.outputs[:, :, o_idx], lin, w_ch[0], ridge, xm,
+                                                   (~known[0]).astype(float)) if markov else None
 
     def _lift_mask(self, m: np.ndarray, block: int) -> np.ndarray:
         """Sample mask (W, L, nch) in the lifted layout of the errors (nch, Lp, W), as floats."""
@@ -485,7 +485,7 @@ class WindowSimulator:
         """
         if not explicit and pre["markov"] is not None and not Bd.any():
             z, beta, sse = markov_sse(pre["markov"], Ad, Gam, pre["s_idx"])
-            return sse, z, beta  # no known initial state: x0 = z
+            return sse * pre["mask_hw"][:, 0], pre["xm"][None] + z, beta
         C = Ad.shape[0]
         W, L, n = self.W, self.L, sub.n
         b, nb = pre["lb"], pre["lnb"]

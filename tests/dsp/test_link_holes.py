@@ -185,3 +185,36 @@ def test_inputs_shifted_for_a_time_skew_keep_where_they_were_bridged(lossy):
     for s in p.segments:
         assert s.inputs_bridged is None or s.inputs_bridged.shape == s.t_s.shape
     assert any(s.inputs_bridged is not None and s.inputs_bridged.any() for s in p.segments)
+
+
+def test_identification_windows_restart_after_each_bridged_hole(lossy):
+    """No window simulates through a bridged hole into the samples it counts (except a start too close
+    to the segment's end, which takes the segment's last window); every measured sample is counted
+    once; a flight without holes gets make_windows' windows."""
+    from groundstation.sysid.cost import make_windows
+    from groundstation.sysid.holes import restart_windows
+
+    log, clean = lossy
+    c = prepare([clean])
+    a, b = restart_windows(c.segments, c.dt_s, 3.0), make_windows(c.segments, c.dt_s, 3.0)
+    assert b.measured is None and a.measured is None
+    np.testing.assert_array_equal(a.inputs, b.inputs)
+    np.testing.assert_array_equal(a.t0_s, b.t0_s)
+    p = prepare([log])
+    win = restart_windows(p.segments, p.dt_s, 3.0)
+    through = make_windows(p.segments, p.dt_s, 3.0)
+    counted = {i: np.zeros(s.n, int) for i, s in enumerate(p.segments)}
+    for w in range(win.count):
+        s = p.segments[win.segment[w]]
+        a0 = int(round((win.t0_s[w] - s.t_s[0]) / p.dt_s))
+        rows = np.flatnonzero(win.measured[w].any(axis=1))
+        assert rows.size
+        counted[win.segment[w]][a0 + rows] += 1
+        br = s.inputs_bridged[a0:a0 + rows[-1] + 1] if s.inputs_bridged is not None else np.zeros(1, bool)
+        # from its start, or (a start too close to the segment's end) from the first sample it counts
+        first = rows[0] if a0 == s.n - win.length else 0
+        assert not br[first:].any(), f"window {w} counts samples after a bridged hole"
+    for i, s in enumerate(p.segments):
+        assert counted[i].max() <= 1
+        assert counted[i].sum() >= 0.97 * s.measured_mask().all(axis=1).sum() - 5
+    assert win.count > through.count

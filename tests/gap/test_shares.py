@@ -67,3 +67,29 @@ def test_a_ground_effect_flown_lower_in_one_half_is_compared_where_both_halves_f
     ge = next(e for e in r["effects"] if e["effect"] == "ground_effect")
     assert ge["consistency"]["status"] in ("holds", "not_checked")
     assert "where both halves flew (height down to 1.3 m)" in ge["consistency"]["why"]
+
+
+def test_a_constant_deadband_on_a_short_flight_is_not_read_as_changing(tmp_path):
+    # a 40-s flight of the independent simulator with a constant lon deadband (0.0153): the first half
+    # moves lon mostly inside the deadband, the second swings it far outside, so each half estimates
+    # the width on different excursions (0.020 and 0.006). Each half's own value must be scored as the
+    # whole flight's is, chosen inside each fold (chosen on the very windows it is scored on, it beats
+    # the other half's value there), and the ~0.5 s blocks of a window are not independent evidence:
+    # before both, the deadband read as "changes through the flight" (p 5e-13 and 3e-3)
+    from firmware_interface.readers import load_log
+    from groundstation.dsp.prepare import prepare
+    from hil_replay.sim import parse_effect, write_tlog
+
+    path = tmp_path / "short.tlog"
+    truth = write_tlog(path, seed=3, flights=1, effects=(parse_effect("deadband:input=lon,half_width=0.01533"),),
+                       flight_duration_s=40.0)
+    r = diagnose(HoverModel(params=dict(truth["parameters"])), prepare([load_log(path)]), seed=0)
+    assert r["through_flight"]["checked"] and not r["through_flight"]["changes"]
+    assert r["verdict"] == "deadband"
+    db = r["effects"][0]
+    assert db["input"] == "lon" and db["consistency"]["status"] == "holds"
+    first, second = db["consistency"]["first"], db["consistency"]["second"]
+    assert min(first, second) < 0.01 < 0.015 < max(first, second)  # the halves' estimates do differ
+    # the test counts each half's correlated ~0.5 s blocks as fewer independent ones: the second half
+    # (large lon swings, which a deadband barely changes) does not reject the first half's value
+    assert db["consistency"]["p_values"]["second_rejects_other"] > 0.01

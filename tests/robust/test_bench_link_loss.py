@@ -67,8 +67,8 @@ def test_key_parameters_are_judged_in_the_model_files_own_standard_errors():
     assert d["key_z"]["M_a"] == pytest.approx(2.5) and d["key_z"]["A_lat"] == pytest.approx(-5.0)
     assert d["key_z"]["N_r"] is None and d["key_std_pct"]["M_a"] == pytest.approx(8.0)
     assert d["key_as_determined"] == 7                        # A_lat is 5 standard errors off
-    base = {"key_std_pct": dict.fromkeys(KEY, 2.0), "windows": 40, "link": {"unmeasured_pct": 0.0}}
-    lossy = {"key_std_pct": dict.fromkeys(KEY, 2.4), "windows": 32, "link": {"unmeasured_pct": 20.0}}
+    base = {"key_std_pct": dict.fromkeys(KEY, 2.0), "counted_samples": 40000}
+    lossy = {"key_std_pct": dict.fromkeys(KEY, 2.4), "counted_samples": 25600}
     w = _widening(lossy, base)
     assert w["std_vs_lossfree"] == pytest.approx(1.2) and w["std_predicted"] == pytest.approx((40 / 25.6) ** 0.5)
 

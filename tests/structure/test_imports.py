@@ -181,6 +181,7 @@ def test_numerical_packages_are_pure(package):
 #: Third-party modules, by top-level name (or dotted prefix): heavy at import, needed by a few paths only.
 LAZY_THIRD_PARTY = {
     "matplotlib": "plots only (about 0.5 s of CPU to import)",
+    "PIL": "the PNG writer of the identification's figures (drawn on matplotlib's Agg renderer), plots only",
     "rerun": "the Rerun sink and its figures only (about 0.6 s)",
     "zenoh": "the zenoh sink and its benchmarks only",
     "pyarrow": "the campaign store's Parquet files only",
