@@ -29,7 +29,7 @@ import numpy as np
 from groundstation.errors import GapError
 from groundstation.gap.config import DiagnoseConfig
 from groundstation.gap.evaluate import Evaluator, SegmentArrays
-from groundstation.gap.linsim import HORIZONTAL, VERTICAL, full_matrices
+from groundstation.gap.linsim import full_matrices
 from groundstation.gap.linsim import simulate as lsim
 from groundstation.sysid.model import INPUTS
 
@@ -112,7 +112,7 @@ def deadzone(x: np.ndarray, b: float, centre: float = 0.0) -> np.ndarray:
 
 def backlash(x: np.ndarray, b: float) -> np.ndarray:
     """Mechanical play of total width 2b: the output follows only when pushed past +-b."""
-    xs = x.tolist()  # Python floats: the same arithmetic as numpy's scalars, a third of the time
+    xs = x.tolist()  # Python floats: the same arithmetic as numpy's scalars, half the time
     b = float(b)
     y, col = xs[0], []
     for xk in xs:
@@ -146,7 +146,6 @@ class Context:
         # residual at theta0, the weighted response of the fitted simulation per input channel
         self._linear: tuple[bytes, np.ndarray, np.ndarray] | None = None
         self._response: dict[int, np.ndarray] = {}
-        self._block_response: dict[int, np.ndarray] = {}
 
     def variants_residual(self, U_list: list[np.ndarray] | None = None,
                           Y_list: list[np.ndarray] | None = None) -> np.ndarray:
@@ -168,7 +167,7 @@ class Context:
             U = ev.cut([s.inputs for s in self.segments])
             yh = lsim(ev.theta0, U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available, start=ev.start)[0]
             self._linear = (key, U, ev.residual(yh))
-            self._response, self._block_response = {}, {}
+            self._response = {}
         return self._linear[1], self._linear[2]
 
     def response(self, c: int) -> np.ndarray:
@@ -188,15 +187,6 @@ class Context:
             self._response[c] = np.ascontiguousarray((M * ev.w8).reshape(L, L * 8))
         return self._response[c]
 
-    def block_response(self, c: int) -> tuple[list[int], np.ndarray]:
-        """(the output channels of input ``c``'s subsystem, :meth:`response` of ``c`` on those channels
-        only (L, L ny)): the other subsystem's outputs do not move (its columns are zero)."""
-        oc = list((HORIZONTAL if c in HORIZONTAL.inputs else VERTICAL).outputs)
-        if c not in self._block_response:
-            L = self.ev.L
-            self._block_response[c] = np.ascontiguousarray(self.response(c).reshape(L, L, 8)[:, :, oc].reshape(L, -1))
-        return oc, self._block_response[c]
-
     def input_variants(self, groups: Sequence[tuple[int, np.ndarray]]) -> np.ndarray:
         """Weighted residuals (V, W, L, 8) at theta0 of V variants of single inputs, the same numbers
         as simulating each variant's inputs (to round-off): ``groups`` of (input channel ``c``, that
@@ -208,13 +198,12 @@ class Context:
         v0 = 0
         for c, u in groups:
             v1 = v0 + u.shape[0]
-            oc, R = self.block_response(c)  # the other subsystem's residual stays r0
-            d = np.empty((v1 - v0, ev.W, ev.L, len(oc)))
+            d = out[v0:v1]
             with np.errstate(over="ignore", invalid="ignore"):
-                np.matmul((u - U[None, :, :, c]).reshape(-1, ev.L), R, out=d.reshape(-1, R.shape[1]))
-            d *= ev.wmask if ev.wmask.shape[-1] == 1 else ev.wmask[..., oc]
-            out[v0:v1] = r0
-            out[v0:v1, ..., oc] = r0[..., oc] - d
+                np.matmul((u - U[None, :, :, c]).reshape(-1, ev.L), self.response(c),
+                          out=d.reshape(-1, ev.L * 8))
+            d *= ev.wmask
+            np.subtract(r0, d, out=d)
             v0 = v1
         return out
 
@@ -245,25 +234,6 @@ class Context:
                 coefs.append(c[:, :k_own])
                 blks.append(ev.last_blocks.copy())
             T = np.array(trains)  # (V, folds)
-
-        def change_of(v: int, f: int, te: np.ndarray) -> np.ndarray:
-            _, r_b, X_b = variants[v]
-            d = r_b[te] - ev.r0[te]
-            if X_b is not None:
-                d = d - np.einsum("wlck,k->wlc", X_b[te], coefs[v][f])
-            return d
-
-        out, best = self._select(effect, sses, T, blks, change_of)
-        return out, best, coefs
-
-    def _select(self, effect: str, sses: Sequence[np.ndarray] | np.ndarray, T: np.ndarray,
-                blks: Sequence[np.ndarray] | np.ndarray,
-                change_of: Any) -> tuple[np.ndarray, int]:
-        """The nested choice: per fold the variant of lowest training cost ``T`` (V, folds), its held-out
-        cost ``sses[v]`` (W, 8) and blocks ``blks[v]`` on that fold's windows; returns the nested cost
-        and the variant of lowest total training cost. Records the blocks and, from ``change_of(v, f,
-        te)`` (the change of variant v's re-fitted residual on windows ``te``), the change per window."""
-        ev = self.ev
         out = np.empty((ev.W, 8))
         out_b = np.empty((ev.W, ev.n_blocks))
         for f in range(ev.folds):
@@ -272,14 +242,20 @@ class Context:
             out[te] = sses[v][te]
             out_b[te] = blks[v][te]
         self.blocks[effect] = out_b
+        best = int(np.argmin(T.sum(axis=1)))
         # how much the selected variant changes each window's prediction (at theta0): windows it
         # leaves untouched carry no evidence either way
         change = np.zeros(ev.W)
         for f in range(ev.folds):
+            v = int(np.argmin(T[:, f]))
             te = ev.fold == f
-            change[te] = (change_of(int(np.argmin(T[:, f])), f, te) ** 2).sum(axis=(1, 2))
+            _, r_b, X_b = variants[v]
+            d = r_b[te] - ev.r0[te]
+            if X_b is not None:
+                d = d - np.einsum("wlck,k->wlc", X_b[te], coefs[v][f])
+            change[te] = (d ** 2).sum(axis=(1, 2))
         self.change[effect] = change
-        return out, int(np.argmin(T.sum(axis=1)))
+        return out, best, coefs
 
 
 def _mask_w(ev: Evaluator, yh: np.ndarray) -> np.ndarray:

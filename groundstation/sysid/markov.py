@@ -1,12 +1,13 @@
 """The search's cost with projected B entries, from Markov parameters and per-flight data products.
 
 :class:`~groundstation.sysid.simulate.WindowSimulator` solves the projected B entries (variable
-projection) and every window's initial state by least squares inside each evaluation. When every
-initial state is estimated, the B entries that are not projected are zero (the horizontal search:
-all eight of its B entries are projected), every window has the same channel weights and every
-sample counts, the residual before that least squares is the measured output itself, and the unit
-response of projected entry ``p`` (state ``st_p``, input ``i_p``) on channel ``h`` in window ``w`` is
-a convolution of the window's input with the entry's Markov parameters::
+projection) and every window's initial state by least squares inside each evaluation. When the B
+entries that are not projected are zero (the horizontal search: all of its B entries are projected
+or held at zero), every window has the same channels and weights and no sample is missing from the
+link, the residual before that least squares is the measured output less the free response of the
+window's measured initial states (if any are taken as measured), and the unit response of projected
+entry ``p`` (state ``st_p``, input ``i_p``) on channel ``h`` in window ``w`` is a convolution of the
+window's input with the entry's Markov parameters::
 
     F_phw[k] = sum_{j<k} m_ph[j] u_w[k-1-j],   m_ph[j] = C_h A^j Gamma e_st
 
@@ -15,8 +16,8 @@ the least squares and the per-channel SSE need then splits into products of the 
 input Grams ``Q = sum_w T_w^T T_w'``, ``sum_w T_w^T y_hw``, ``||y_h||^2``: computed once per flight,
 :func:`markov_data`) and small products with the candidate's Markov parameters and free-response
 basis ``Phi_h[k] = C_h A^k``. The projections of the unit responses on the free responses,
-``Phi_h^T F_phw = sum_l u_w[l] K_ph[l]``, use ``K_ph[l] = (sum_{j <= L-2-l} m_ph[j] Phi_h[j]) A^(l+1)``.
-No unit response is simulated: about a fifth of the multiply-adds of the lifted simulation, in
+``Phi_h^T F_phw = sum_l u_w[l] K_ph[l]``, use ``K_ph[l] = (sum_{j <= L-2-l} m_ph[j] Phi_h[j]) A^(l+1)``
+(through partial observability Gramians, see :func:`_gramian_sum`). No unit response is simulated: about a fifth of the multiply-adds of the lifted simulation, in
 arrays that stay in cache. The per-channel SSE ``||Phi_h z + F_h beta - y_h||^2`` is a quadratic form
 of those products; where it keeps fewer than about eight digits (a fit close to the data, or a
 wildly unstable candidate) the errors are computed explicitly.

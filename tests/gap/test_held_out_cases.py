@@ -134,3 +134,23 @@ def test_second_effect_test_is_not_floored_and_keeps_its_level_on_noise():
         p.append(conditional_p(base.sum(1), alt.sum(1), np.random.default_rng(1), 2000, 0.1, base, alt))
     assert np.mean(np.array(p) < 0.05) <= 0.08
     assert np.sum(np.array(p) < level) == 0
+
+
+def test_blocks_of_a_window_that_move_together_count_as_fewer_independent_ones():
+    from groundstation.gap.attribute import clustered_paired_p, design_effect, paired_p
+
+    W, n = 7, 6  # a half of a 40-s flight: seven windows of six ~0.5 s blocks
+    shared = np.repeat(np.arange(W, dtype=float)[:, None], n, axis=1)
+    assert design_effect(shared) == n  # blocks equal within each window: one unit per window
+    assert abs(design_effect(np.random.default_rng(0).standard_normal((200, n))) - 1) < 0.3
+    # no difference on average, but each window's blocks share a slow part: the plain block tests
+    # count 42 blocks and reject far above their level, the clustered ones keep it
+    plain, clustered = [], []
+    for k in range(150):
+        r = np.random.default_rng(k)
+        base = 10 + r.standard_normal((W, n))
+        alt = base - (r.standard_normal((W, 1)) + 0.3 * r.standard_normal((W, n)))
+        plain.append(paired_p(base.ravel(), alt.ravel()))
+        clustered.append(clustered_paired_p(base, alt))
+    assert np.mean(np.array(plain) < 0.01) > 0.1
+    assert np.mean(np.array(clustered) < 0.01) <= 0.035  # 3 of 150 at the 1 % level
