@@ -19,8 +19,9 @@ basis ``Phi_h[k] = C_h A^k``. The projections of the unit responses on the free 
 ``Phi_h^T F_phw = sum_l u_w[l] K_ph[l]``, use ``K_ph[l] = (sum_{j <= L-2-l} m_ph[j] Phi_h[j]) A^(l+1)``
 (through partial observability Gramians, see :func:`_gramian_sum`). No unit response is simulated: about a fifth of the multiply-adds of the lifted simulation, in
 arrays that stay in cache. The per-channel SSE ``||Phi_h z + F_h beta - y_h||^2`` is a quadratic form
-of those products; where it keeps fewer than about eight digits (a fit close to the data, or a
-wildly unstable candidate) the errors are computed explicitly.
+of those products; where it keeps fewer than about eight digits (a fit close to the data) the errors
+are computed explicitly, and a candidate whose free response grows more than :data:`GROWTH` over a
+window (a runaway trial step) is left to the caller's lifted simulation.
 
 Array conventions as in :mod:`groundstation.sysid.simulate`: C candidates, W windows of L samples,
 nch measured channels of the subsystem, n states, P projected entries. Pure numpy.
@@ -34,6 +35,10 @@ import numpy as np
 
 #: the quadratic-form SSE is trusted where it is at least this fraction of the size of its terms
 TRUST = 1e-8
+#: a candidate whose free response grows more than this over a window (``max |A^k|``, k < L) is left to
+#: the lifted simulation: the products here then lose digits the trust test does not see (runaway trial
+#: candidates of an unstable search, e.g. a real flight without its aircraft file)
+GROWTH = 1e3
 
 
 @dataclass(frozen=True, eq=False)
@@ -103,7 +108,8 @@ def markov_sse(d: MarkovData, Ad: np.ndarray, Gam: np.ndarray,
                s_idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Least squares of the initial states (per window) and the projected entries (shared) for C
     candidates, ``Ad (C, n, n)`` and ``Gam (C, n, n)`` (the ZOH input matrix of unit columns), with
-    the measured states ``s_idx`` (nch,). Returns ``(z (C, W, n), beta (C, P), sse (C, nch))``."""
+    the measured states ``s_idx`` (nch,). Returns ``(z (C, W, n), beta (C, P), sse (C, nch))``; ``sse`` is
+    NaN for a candidate whose free response grows more than :data:`GROWTH` over a window."""
     nch, W, L = d.y.shape
     pw = powers(Ad, L)
     t = _terms(d, pw, Gam, s_idx)
@@ -113,8 +119,10 @@ def markov_sse(d: MarkovData, Ad: np.ndarray, Gam: np.ndarray,
     z, beta = _solve(d, t)
     sse = _quadratic(d, t, z, beta)
     x0 = z if d.known is None else z + d.known
-    for c in np.flatnonzero(np.isnan(sse).any(axis=1)):  # the form keeps too few digits here
+    wild = ~(np.abs(pw).max(axis=(1, 2, 3)) <= GROWTH)
+    for c in np.flatnonzero(np.isnan(sse).any(axis=1) & ~wild):  # the form keeps too few digits here
         sse[c] = _explicit(d, t["obs"][c], t["m"][c], x0[c], beta[c])
+    sse[wild] = np.nan  # the caller simulates these
     return z, beta, sse
 
 

@@ -475,7 +475,20 @@ class WindowSimulator:
             sse[c] = np.einsum("hkw,hkw->h", e, e)
         return z, beta, sse
 
-    def _lifted_vp(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, Gam: np.ndarray, *, explicit: bool | str):
+    def _markov_vp(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, Gam: np.ndarray):
+        """:meth:`_lifted_vp` by Markov parameters (:func:`~groundstation.sysid.markov.markov_sse`); the
+        candidates whose free response grows too far over a window for those products to keep their
+        digits (NaN rows) are simulated as the lifted path does."""
+        z, beta, sse = markov_sse(pre["markov"], Ad, Gam, pre["s_idx"])
+        sse, x0 = sse * pre["mask_hw"][:, 0], pre["xm"][None] + z
+        wild = np.flatnonzero(np.isnan(sse).any(axis=1))
+        if wild.size:
+            sse[wild], x0[wild], beta[wild] = self._lifted_vp(sub, pre, Ad[wild], Bd[wild], Gam[wild], explicit=False,
+                                                              markov=False)
+        return sse, x0, beta
+
+    def _lifted_vp(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, Gam: np.ndarray, *, explicit: bool | str,
+                   markov: bool = True):
         """Lifted simulation with the ``linear`` B entries solved by least squares (variable projection).
 
         For a given A the output is linear in those entries: each has a unit response ``F_p`` (input
@@ -483,9 +496,8 @@ class WindowSimulator:
         response, and the coefficients ``beta`` (global) and the initial states (per window) come from
         one least-squares solve (Schur complement over the windows). Returns ``(e or sse, x0, beta)``.
         """
-        if not explicit and pre["markov"] is not None and not Bd.any():
-            z, beta, sse = markov_sse(pre["markov"], Ad, Gam, pre["s_idx"])
-            return sse * pre["mask_hw"][:, 0], pre["xm"][None] + z, beta
+        if markov and not explicit and pre["markov"] is not None and not Bd.any():
+            return self._markov_vp(sub, pre, Ad, Bd, Gam)
         C = Ad.shape[0]
         W, L, n = self.W, self.L, sub.n
         b, nb = pre["lb"], pre["lnb"]
