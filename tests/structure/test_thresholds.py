@@ -34,6 +34,7 @@ NOT_SETTINGS = {
     "fingerprints.spectral_lines.alpha": "every caller passes the level ([diagnose] alpha, or the shares' own)",
     "cost.make_windows.step_s": "every caller passes [identify] window_step_s (0 = non-overlapping windows)",
     "structure.command_windows.step_s": "0 = non-overlapping windows; its callers pass the step",
+    "holes.restart_windows.step_s": "as cost.make_windows (0 = non-overlapping windows); identify passes [identify] window_step_s",
     "pictures.gap_pictures.max_effects": "how many effects the report draws",
     "report._r.nd": "digits written to the report",
     "report.frequency_rows.limit": "rows of the report's frequency table",
