@@ -72,6 +72,9 @@ class IdentifyConfig:
     ga_mutation_scale: float = 0.1
     #: de: population per free parameter (scipy's ``popsize``)
     de_popsize: int = 1
+    #: de: scipy's relative convergence tolerance ``tol``: the search stops once the spread of its
+    #: population's costs is at most this fraction of their mean (0 = every iteration runs)
+    de_tol: float = 0.0
     screen_max_nfev: int = 5
     maxiter: int | None = None
     maxfev: int | None = None
@@ -192,5 +195,5 @@ class IdentifyConfig:
             "abc": bees,
             "ga": {"population": self.ga_population, "crossover": self.ga_crossover, "mutation": self.ga_mutation,
                    "elite": self.ga_elite, "tournament": self.ga_tournament, "mutation_scale": self.ga_mutation_scale},
-            "de": {"popsize": self.de_popsize}}
+            "de": {"popsize": self.de_popsize, "tol": self.de_tol}}
         return options.get(algorithm, {})
