@@ -38,12 +38,13 @@ from rich.table import Table
 
 from benchkit.linear import linear_heldout
 from benchkit.reference import fit_reference, shift_profile
+from benchkit.residuals import BAND_HZ, residual_table
 from groundstation.config import ServiceConfig
 from groundstation.dsp.split import contiguous_kfold, train_first
 from groundstation.dsp.timeskew import shift_inputs
 from groundstation.pipeline import load_aircraft, prepare_logs
 from groundstation.sysid.fit_section import Selection
-from groundstation.sysid.heldout import predict, runaway_channels, unstable_modes
+from groundstation.sysid.heldout import predict, predicted_windows, runaway_channels, unstable_modes
 from groundstation.sysid.identify import IdentifyConfig, identify
 
 #: the predictors a split may score: the project's identification, the plain reference, the linear ceiling;
@@ -74,6 +75,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "to look at, not a value to trust)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override an IdentifyConfig field of the project's identification (repeatable)")
+    parser.add_argument("--residuals", action="store_true",
+                        help="also say where each hover model misses: per channel the noise floor and the "
+                             "residual's share in drift / in-band / high frequencies (:mod:`benchkit.residuals`)")
 
 
 def _identify_config(pairs: list[str], aircraft: Any) -> Any:
@@ -111,10 +115,13 @@ def _shifted(train: Any, val: Any, args: argparse.Namespace, row: dict[str, Any]
     return shift_inputs(train, shift), shift_inputs(val, shift)
 
 
-def _score(model: Any, val: Any, window_s: float, **kw: Any) -> dict[str, Any]:
+def _score(model: Any, val: Any, window_s: float, residuals: bool = False, **kw: Any) -> dict[str, Any]:
     p = predict(model, val, window_s=window_s, **kw)
-    return {"match": p.match, "mean": p.mean_match, "runaway": runaway_channels(p),
-            "unstable": [m.describe() for m in unstable_modes(model.theta)]}
+    out = {"match": p.match, "mean": p.mean_match, "runaway": runaway_channels(p),
+           "unstable": [m.describe() for m in unstable_modes(model.theta)]}
+    if residuals and getattr(model, "structure", "hover") != "command_response":
+        out["residuals"] = residual_table(predicted_windows(model, val, window_s=window_s, **kw))
+    return out
 
 
 def _selection(model: Any) -> dict[str, Any]:
@@ -136,14 +143,14 @@ def run(args: argparse.Namespace) -> int:
         train, val = _shifted(train, val, args, row, i)
         t0 = time.perf_counter()
         model = identify(train, seed=args.seed, prior=aircraft.prior if aircraft else None, config=id_cfg)
-        row["project"] = _score(model, val, args.window_s) | {"seconds": time.perf_counter() - t0,
+        row["project"] = _score(model, val, args.window_s, args.residuals) | {"seconds": time.perf_counter() - t0,
                                                               "selection": _selection(model)}
-        if model.window_input_offsets:
+        if model.window_input_offsets or getattr(model, "structure", "hover") == "command_response":
             row["project_no_offsets"] = _score(model, val, args.window_s, window_offsets=False) | {"seconds": 0.0}
         if not args.no_reference:
             t0 = time.perf_counter()
             ref = fit_reference(train, starts=args.reference_starts, seed=args.seed, window_s=args.window_s)
-            row["reference"] = _score(ref, val, args.window_s) | {"seconds": time.perf_counter() - t0}
+            row["reference"] = _score(ref, val, args.window_s, args.residuals) | {"seconds": time.perf_counter() - t0}
         if args.linear:
             t0 = time.perf_counter()
             row["linear"] = linear_heldout(train, val, window_s=args.window_s) | {"seconds": time.perf_counter() - t0}
@@ -182,6 +189,9 @@ def _print_split(con: Any, row: dict[str, Any]) -> None:
         con.print(f"  project: its held-out check on the training part says it does not predict "
                   f"{', '.join(sel['not_predicted'])} (scored here all the same)")
     for k in kinds:
+        if "residuals" in row[k]:
+            _print_residuals(con, f"{row['split']}, {k}", row[k]["residuals"])
+    for k in kinds:
         for u in row[k]["unstable"]:
             con.print(f"  {k}: {u}")
         if row[k]["runaway"]:
@@ -208,6 +218,8 @@ def _summary(results: list[dict[str, Any]]) -> dict[str, Any]:
                 s["folds_min_claimed_channel"] = float(min(claimed))
             s["chosen"] = sorted({str(r[k].get("selection", {}).get("chosen")) for r in results
                                   if r[k].get("selection", {}).get("chosen")})
+            if all("residuals" in r[k] for r in folds):
+                s["folds_residuals"] = _residual_mean([r[k]["residuals"] for r in folds])
         first = [r for r in results if r["split"].startswith("first")]
         if first:
             s["train_first_mean"] = first[0][k]["mean"]
@@ -216,7 +228,33 @@ def _summary(results: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+#: the columns of a residual table (:mod:`benchkit.residuals`) and their headers
+RESIDUAL_COLUMNS = {"match": "match", "noise_floor": "noise floor", "drift": "drift %", "in_band": "in band %",
+                    "high": "high %", "noise": "noise %", "match_no_drift": "match w/o drift",
+                    "match_active": "match active", "match_calm": "match calm"}
+
+
+def _residual_mean(tables: list[dict[str, dict[str, float]]]) -> dict[str, dict[str, float]]:
+    """Per channel and figure, the mean over the folds that hold the channel."""
+    chans = [c for c in tables[0]] + [c for t in tables[1:] for c in t if c not in tables[0]]
+    return {c: {f: float(np.nanmean([t[c][f] for t in tables if c in t])) for f in RESIDUAL_COLUMNS} for c in chans}
+
+
+def _print_residuals(con: Any, title: str, table: dict[str, dict[str, float]]) -> None:
+    t = Table(title=f"{title}: where the prediction misses (residual energy shares; drift = a constant and a ramp "
+                    f"per window; in band = up to {BAND_HZ:g} Hz)")
+    t.add_column("channel")
+    for h in RESIDUAL_COLUMNS.values():
+        t.add_column(h, justify="right")
+    for c, r in table.items():
+        t.add_row(c, *[f"{r[f]:.1f}" for f in RESIDUAL_COLUMNS])
+    con.print(t)
+
+
 def _print_summary(con: Any, summary: dict[str, Any]) -> None:
+    for k, s in summary.items():
+        if "folds_residuals" in s:
+            _print_residuals(con, f"{k}, mean over the folds", s["folds_residuals"])
     for k, s in summary.items():
         parts = []
         if "folds_mean" in s:

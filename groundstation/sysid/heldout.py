@@ -86,7 +86,52 @@ def predict(model: HoverModel, prepared: Any, *, window_s: float = IdentifyConfi
     ``window_offsets``: estimate input offsets on each held-out window (None: as the model was fitted;
     False: nothing but the unmeasured initial states comes from a window's own outputs)."""
     if getattr(model, "structure", "hover") == "command_response" and model.command is not None:
-        return predict_command(CommandModel.from_json(model.command), prepared, window_s=window_s)
+        return predict_command(CommandModel.from_json(model.command), prepared, window_s=window_s,
+                               window_offsets=window_offsets is not False)
+    w = predicted_windows(model, prepared, window_s=window_s, use_model_trim=use_model_trim,
+                          window_offsets=window_offsets)
+    match: dict[str, float] = {}
+    ratio: dict[str, float] = {}
+    for j, ch in enumerate(OUTPUTS):
+        m = w.mask[:, :, j]  # measured samples only: holes of the link do not count
+        if not m.any():
+            continue
+        y = w.outputs[:, :, j][m]
+        den = float(np.linalg.norm(y))
+        if den <= 0:
+            continue
+        ratio[ch] = float(np.linalg.norm(w.predicted[:, :, j][m] - y)) / den
+        match[ch] = (1.0 - ratio[ch]) * 100.0
+    mean = float(np.mean(list(match.values()))) if match else float("nan")
+    return Prediction(match=match, mean_match=mean, windows=w.count, window_s=float(window_s),
+                      duration_s=float(w.count * w.length * w.dt_s), ratio=ratio)
+
+
+@dataclass(frozen=True, eq=False)
+class PredictedWindows:
+    """A hover model's held-out prediction before scoring: measured ``outputs`` and ``predicted`` ones
+    (W, L, 8) in :data:`OUTPUTS` order, ``mask`` (W, L, 8) the samples measured (scored), ``inputs``
+    (W, L, 4) as the model saw them, sample time ``dt_s``."""
+
+    outputs: np.ndarray
+    predicted: np.ndarray
+    mask: np.ndarray
+    inputs: np.ndarray
+    dt_s: float
+
+    @property
+    def count(self) -> int:
+        return int(self.outputs.shape[0])
+
+    @property
+    def length(self) -> int:
+        return int(self.outputs.shape[1])
+
+
+def predicted_windows(model: HoverModel, prepared: Any, *, window_s: float = IdentifyConfig.heldout_window_s,
+                      use_model_trim: bool = True, window_offsets: bool | None = None) -> PredictedWindows:
+    """The hover model's prediction of ``prepared`` on non-overlapping ``window_s`` windows started from
+    the measured states (what :func:`predict` scores; same arguments)."""
     win = make_windows(prepared.segments, prepared.dt_s, window_s)
     u = win.inputs + (input_offset(model, prepared)[None, None, :] if use_model_trim else 0.0)
     with threadpool_limits(1):
@@ -94,21 +139,7 @@ def predict(model: HoverModel, prepared: Any, *, window_s: float = IdentifyConfi
                               measured=win.measured,
                               window_offsets=model.window_input_offsets if window_offsets is None else window_offsets)
         yhat = sim.simulate(model.theta[None])[0]
-    match: dict[str, float] = {}
-    ratio: dict[str, float] = {}
-    for j, ch in enumerate(OUTPUTS):
-        m = sim.smask[:, :, j]  # measured samples only: holes of the link do not count
-        if not m.any():
-            continue
-        y = sim.outputs[:, :, j][m]
-        den = float(np.linalg.norm(y))
-        if den <= 0:
-            continue
-        ratio[ch] = float(np.linalg.norm(yhat[:, :, j][m] - y)) / den
-        match[ch] = (1.0 - ratio[ch]) * 100.0
-    mean = float(np.mean(list(match.values()))) if match else float("nan")
-    return Prediction(match=match, mean_match=mean, windows=win.count, window_s=float(window_s),
-                      duration_s=float(win.count * win.length * win.dt_s), ratio=ratio)
+    return PredictedWindows(sim.outputs, yhat, sim.smask, u, float(win.dt_s))
 
 
 @dataclass(frozen=True)

@@ -303,15 +303,18 @@ class _AxisCost:
         """Weighted residual at ``x`` as given (the windows' offsets still estimated): for the Jacobian."""
         return self._project(x, np.asarray(x, dtype=float)[self.lin])[2]
 
-    def predict(self, x: np.ndarray) -> np.ndarray:
-        """(W, L, n) response at ``x``, each window's offset estimated over it."""
+    def predict(self, x: np.ndarray, window_offsets: bool = True) -> np.ndarray:
+        """(W, L, n) response at ``x``, each window's offset estimated over it (``window_offsets``
+        False: the fitted ``b`` in every window, nothing but the initial states from a window's outputs)."""
         free, units = self.columns(x)
         g = np.asarray(x, dtype=float)[self.lin]
+        W = self.win.count
+        if not window_offsets:
+            return (free + units @ g).reshape(W, self.win.length, len(self.axis.states))
         _, d, _ = self._project(x, g)
         jb = [n for n in self.names if _is_linear(n)].index("b")
         gg = g.copy()
         gg[jb] = 0.0
-        W = self.win.count
         pred = (free + units @ gg).reshape(W, -1) + d[:, None] * units[:, jb].reshape(W, -1)
         return pred.reshape(W, self.win.length, len(self.axis.states))
 
@@ -500,10 +503,11 @@ def fit_axis(axis: _Axis, win: CommandWindows, *, x0: np.ndarray | None = None, 
     return x, std, float(r0 @ r0)
 
 
-def simulate_axis(axis: _Axis, x: np.ndarray, win: CommandWindows) -> np.ndarray:
+def simulate_axis(axis: _Axis, x: np.ndarray, win: CommandWindows, window_offsets: bool = True) -> np.ndarray:
     """(W, L, n_states) response of one axis from the measured states at each window's first sample and
-    each window's controller offset estimated over it (:class:`_AxisCost`)."""
-    return _AxisCost(axis, win).predict(x)
+    each window's controller offset estimated over it (:class:`_AxisCost`; ``window_offsets`` False:
+    the fitted one)."""
+    return _AxisCost(axis, win).predict(x, window_offsets)
 
 
 def identify_command(prepared: Any, kind: str = "rate_command", *, window_s: float = IdentifyConfig.command_window_s,
@@ -548,9 +552,10 @@ def identify_command(prepared: Any, kind: str = "rate_command", *, window_s: flo
                         float(1.0 / prepared.dt_s), {"window_s": window_s, "window_step_s": step_s, "notes": notes})
 
 
-def predict_command(model: CommandModel, prepared: Any, *, window_s: float = 5.0) -> Any:
+def predict_command(model: CommandModel, prepared: Any, *, window_s: float = 5.0, window_offsets: bool = True) -> Any:
     """Held-out prediction as :func:`groundstation.sysid.heldout.predict` (eq. 19 per channel over
-    ``window_s`` windows started from the measured states; inputs against the model's trim)."""
+    ``window_s`` windows started from the measured states; inputs against the model's trim);
+    ``window_offsets`` False: no controller offset estimated from a held-out window's outputs."""
     ppu = float(prepared.pwm_per_unit)
     off = np.array([(float(prepared.input_trim_pwm.get(k, 0.0)) - float(model.input_trim_pwm.get(k, prepared.input_trim_pwm.get(k, 0.0)))) / ppu
                     for k in INPUTS])
@@ -559,7 +564,7 @@ def predict_command(model: CommandModel, prepared: Any, *, window_s: float = 5.0
     den: dict[str, float] = {}
     for f in model.axes.values():
         ax = _axis_of(f)
-        yhat = simulate_axis(ax, _vector(f), win)
+        yhat = simulate_axis(ax, _vector(f), win, window_offsets)
         for j, ch in enumerate(ax.states):
             k = OUTPUTS.index(ch)
             m = win.mask[:, k]

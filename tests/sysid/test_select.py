@@ -104,7 +104,7 @@ def test_bench_heldout_reports_the_choice_the_reference_and_the_lowest_channel(t
     rc = main(["bench", "heldout", str(real_log("trex550/flight1.tlog")), "--aircraft", str(ac), "--folds", "0",
                "--reference-starts", "1", "--json", str(out), "--set", "maxiter=4", "--set", "search_restarts=1",
                "--set", "refine_max_nfev=8", "--set", "select_folds=3",
-               "--set", "window_input_offsets=true"])
+               "--set", "window_input_offsets=true", "--residuals"])
     assert rc == 0
     doc = json.loads(out.read_text())
     (split,) = doc["splits"]
@@ -117,8 +117,16 @@ def test_bench_heldout_reports_the_choice_the_reference_and_the_lowest_channel(t
     # with input offsets per window (the aircraft file's default is off) the same model is also scored without them
     assert set(split["project_no_offsets"]["match"]) == set(split["project"]["match"])
     assert split["project_no_offsets"]["mean"] != split["project"]["mean"]
+    # where each fit misses: per channel a noise floor above the match and band shares that add up
+    for k in ("project", "reference"):
+        res = split[k]["residuals"]
+        assert set(res) == set(split[k]["match"])
+        for c, r in res.items():
+            assert abs(r["match"] - split[k]["match"][c]) < 1e-6 and r["noise_floor"] > r["match"]
+            assert abs(r["drift"] + r["in_band"] + r["high"] - 100.0) < 1e-6
     printed = capsys.readouterr().out
     assert "configuration chosen by held-out prediction on the training part" in printed
+    assert "where the prediction misses" in printed
 
 
 def _rows(base, cand, base_runaway=None, cand_runaway=None):

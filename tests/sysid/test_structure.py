@@ -50,9 +50,15 @@ def _prepared(seed: int = 0, n: int = 6000, tau_s: float = 0.1) -> tuple[Prepare
     return PreparedData([seg], DT, trims, 500.0, {c: 0.0 for c in ("u", "v", "w", "p", "q", "r", "theta", "phi")}), truth
 
 
-def test_a_first_order_system_with_delay_is_recovered():
-    prep, truth = _prepared()
-    m = identify_command(prep, "rate_command")
+@pytest.fixture(scope="module")
+def pitch_model() -> CommandModel:
+    """The rate-command structure fitted to :func:`_prepared`'s default flight (shared: one fit)."""
+    return identify_command(_prepared()[0], "rate_command")
+
+
+def test_a_first_order_system_with_delay_is_recovered(pitch_model):
+    _, truth = _prepared()
+    m = pitch_model
     f = m.axes["pitch"]
     assert f.on_input == "lon" and set(f.inputs) == {"lon", "col"}   # lat and ped never move
     assert f.params["K_lon"] == pytest.approx(truth["K"], rel=0.02)
@@ -68,6 +74,23 @@ def test_a_first_order_system_with_delay_is_recovered():
     other, _ = _prepared(seed=1)
     p = predict_command(m, other)
     assert p.match["q"] > 90 and p.match["theta"] > 90
+    # no controller trim in the truth: nothing lost without each held-out window's own offset
+    honest = predict_command(m, other, window_offsets=False)
+    assert honest.match["q"] > 90 and honest.match["theta"] > 90
+
+
+def test_without_window_offsets_a_wandering_trim_is_not_taken_from_the_held_out_outputs(pitch_model):
+    """A stick held away from its logged value by a trim that changes every 5 s: each window's own
+    offset (estimated from its outputs) takes it up; the fitted one cannot, so that score is lower."""
+    m = pitch_model
+    other, _ = _prepared(seed=1)
+    seg = other.segments[0]
+    trim = np.repeat(np.random.default_rng(5).normal(0, 0.08, seg.n // 250 + 1), 250)[:seg.n]
+    drift = dataclasses.replace(other, segments=[dataclasses.replace(seg, inputs=seg.inputs - np.outer(trim, [0, 1, 0, 0]))])
+    own, honest = predict_command(m, drift), predict_command(m, drift, window_offsets=False)
+    assert own.match["theta"] > 90 > honest.match["theta"] + 10
+    hm = HoverModel(params={}, command=m.to_json(), structure="command_response")
+    assert predict(hm, drift, window_offsets=False).match == honest.match
 
 
 def test_a_command_logged_late_is_found_as_a_negative_delay_and_called_a_time_skew():
@@ -81,9 +104,8 @@ def test_a_command_logged_late_is_found_as_a_negative_delay_and_called_a_time_sk
     assert predict_command(m, other).match["q"] > 90
 
 
-def test_model_file_carries_the_section_and_heldout_prediction_uses_it():
-    prep, _ = _prepared()
-    cm = identify_command(prep, "rate_command")
+def test_model_file_carries_the_section_and_heldout_prediction_uses_it(pitch_model):
+    cm = pitch_model
     hm = HoverModel(params={n: 0.0 for n in __import__("groundstation.sysid.model", fromlist=["x"]).PARAM_NAMES},
                     command=cm.to_json(), structure="command_response")
     doc = hm.to_json()
