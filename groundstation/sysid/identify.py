@@ -57,7 +57,8 @@ from groundstation.parallel import Map, serial_map
 from groundstation.sysid.cost import WindowedCost, make_windows, subset_windows
 from groundstation.sysid.fit_section import ModelFit
 from groundstation.sysid.heldout import unstable_modes
-from groundstation.sysid.holes import restart_windows
+from groundstation.sysid.hole_inputs import estimate_hole_inputs
+from groundstation.sysid.holes import has_bridged_inputs, restart_windows
 from groundstation.sysid.model import (
     HOR_PARAMS,
     N_PARAMS,
@@ -626,11 +627,28 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
                              maxiter=maxiter, rng=rng)
         match, used = _in_sample_match(plan, cfg, run.theta, trim)
     model = _model(prepared, plan, cfg, run, match, used, algorithm=algorithm, seed=seed, refine=refine, prior=prior)
+    if refine and cfg.hole_input_passes > 0 and has_bridged_inputs(prepared.segments):
+        prepared, model = refit_hole_inputs(prepared, model, cfg, prior=prior, bounds=bounds, pmap=pmap)
     if refine and cfg.select_candidates.strip() and cfg.select_folds >= 2:
         model = select_config(prepared, model, cfg, prior=prior, bounds=bounds, pmap=pmap, fit=fit_candidate, refit=refit)
     if refine and cfg.input_kind != "blade":
         model = attach_command_structure(prepared, model, cfg, pmap=pmap, refit=refit)
     return model
+
+
+def refit_hole_inputs(prepared: Any, model: HoverModel, cfg: IdentifyConfig, *, prior: Any = None,
+                      bounds: dict | None = None, pmap: Map = serial_map) -> tuple[Any, HoverModel]:
+    """``cfg.hole_input_passes`` times: the inputs in the link's holes estimated with the model
+    (:func:`~groundstation.sysid.hole_inputs.estimate_hole_inputs`, always from the prepared data's
+    own bridges), then the model refined on them (:func:`fit_candidate`). Returns the data with the
+    last estimate and the model refined on it."""
+    kf = tuple(c.strip() for c in cfg.kinematic_forcing.split(",") if c.strip())
+    filled = prepared
+    for _ in range(cfg.hole_input_passes):
+        filled = estimate_hole_inputs(prepared, model, horizon_s=cfg.hole_input_horizon_s,
+                                      band_factor=cfg.hole_input_band, forcing_channels=kf)
+        model = fit_candidate(filled, model, cfg, prior=prior, bounds=bounds, pmap=pmap)
+    return filled, model
 
 
 def _subsystem_costs(plan: Any, cfg: Any, run: Any) -> Iterator[tuple[int, np.ndarray, Any]]:

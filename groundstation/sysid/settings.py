@@ -23,6 +23,16 @@ class IdentifyConfig:
     #: Off: at 10 % loss it helped on 50 Hz streams (8/8 key parameters on 6 of 8 flights, against 4) but
     #: did worse on fresh 25 Hz flights (19 key parameters within 10 % on 4 flights, against 25)
     restart_after_holes: bool = False
+    #: on a lossy link, the inputs inside the bridged holes are estimated from the outputs around them
+    #: with the identified model, and the model refitted on them (:mod:`groundstation.sysid.hole_inputs`),
+    #: this many times (0 = off: the holes keep the straight line); a flight without bridged inputs is
+    #: identified the same either way
+    hole_input_passes: int = 0
+    #: hole inputs: the correction's band, in multiples of the rotor's corner frequency (1/tau_s)/2 pi;
+    #: a hole of h s gets ceil(2 h band) half-sine shapes per input
+    hole_input_band: float = 1.0
+    #: hole inputs: outputs counted from this long before each hole to this long after it (s)
+    hole_input_horizon_s: float = 1.0
     search_stride: int = 3
     refine_starts: int = 9
     #: independent searches per subsystem, each screened and refined; the lowest refined cost wins.
