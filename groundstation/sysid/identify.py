@@ -57,7 +57,7 @@ from groundstation.parallel import Map, serial_map
 from groundstation.sysid.cost import WindowedCost, make_windows, subset_windows
 from groundstation.sysid.fit_section import ModelFit
 from groundstation.sysid.heldout import unstable_modes
-from groundstation.sysid.hole_inputs import estimate_hole_inputs
+from groundstation.sysid.hole_inputs import estimate_hole_inputs, window_holes
 from groundstation.sysid.holes import has_bridged_inputs, restart_windows
 from groundstation.sysid.model import (
     HOR_PARAMS,
@@ -195,6 +195,8 @@ class _Plan:
     prior: tuple[np.ndarray, np.ndarray] | None
     kf: list[str]
     pmap: Callable[[Callable[[Any], Any], Any], list[Any]] = field(default=serial_map)
+    #: where the link's holes lie in ``win`` when their inputs are estimated (for the standard errors)
+    holes: Any = None
 
 
 def _check(cfg: IdentifyConfig, algorithm: str, prepared: Any) -> None:
@@ -252,8 +254,10 @@ def _plan(prepared: Any, cfg: IdentifyConfig, refine: bool, bounds: dict | None,
     pr = _prior_arrays(prior)
     if pr is not None and cfg.prior_scale != 1.0:
         pr = (pr[0], pr[1] * float(cfg.prior_scale))
+    holes = window_holes(prepared.segments, win, cfg.hole_input_band, _hole_subsystems(cfg)) \
+        if cfg.hole_input_passes > 0 and has_bridged_inputs(prepared.segments) else None
     return _Plan(win, win_s, forcing, forcing_s, free, reasons, bounds_array(bounds), pr,
-                 kf if refine else [], pmap)
+                 kf if refine else [], pmap, holes)
 
 
 def _costs(plan: _Plan, cfg: IdentifyConfig, sub: int, sub_free: np.ndarray, theta: np.ndarray,
@@ -269,8 +273,10 @@ def _costs(plan: _Plan, cfg: IdentifyConfig, sub: int, sub_free: np.ndarray, the
 def _refine_cost(plan: _Plan, cfg: IdentifyConfig, sub: int, sub_free: np.ndarray, theta: np.ndarray,
                  trim: bool) -> WindowedCost:
     """The refinement cost of one subsystem alone (a refit needs no search or screening cost)."""
-    return WindowedCost(plan.win, sub_free, theta, forcing=plan.forcing, **_offsets(cfg, trim),
+    cost = WindowedCost(plan.win, sub_free, theta, forcing=plan.forcing, **_offsets(cfg, trim),
                         estimate_all_initial=cfg.estimate_all_initial, subsystems=(sub,))
+    cost.input_holes = plan.holes   # type: ignore[attr-defined]
+    return cost
 
 
 def _offsets(cfg: IdentifyConfig, on: bool) -> dict[str, Any]:
@@ -646,9 +652,19 @@ def refit_hole_inputs(prepared: Any, model: HoverModel, cfg: IdentifyConfig, *, 
     filled = prepared
     for _ in range(cfg.hole_input_passes):
         filled = estimate_hole_inputs(prepared, model, horizon_s=cfg.hole_input_horizon_s,
-                                      band_factor=cfg.hole_input_band, forcing_channels=kf)
+                                      band_factor=cfg.hole_input_band, forcing_channels=kf,
+                                      subsystems=_hole_subsystems(cfg))
         model = fit_candidate(filled, model, cfg, prior=prior, bounds=bounds, pmap=pmap)
     return filled, model
+
+
+def _hole_subsystems(cfg: IdentifyConfig) -> tuple[int, ...]:
+    """The subsystems of ``identify.hole_input_subsystems`` (0 horizontal, 1 vertical)."""
+    names = [n.strip() for n in cfg.hole_input_subsystems.split(",") if n.strip()]
+    bad = [n for n in names if n not in ("horizontal", "vertical")]
+    if bad:
+        raise SysidError(f"identify.hole_input_subsystems: unknown {bad}; allowed horizontal, vertical")
+    return tuple(i for i, n in enumerate(("horizontal", "vertical")) if n in names)
 
 
 def _subsystem_costs(plan: Any, cfg: Any, run: Any) -> Iterator[tuple[int, np.ndarray, Any]]:
