@@ -84,12 +84,36 @@ def find_flights(series: dict[str, Series], *, in_air_height_m: float = 0.3) -> 
 
 def _in_air(series: dict[str, Series], lo: float, hi: float, height_m: float
             ) -> list[tuple[float, float]] | None:
+    """In-air intervals of the armed interval [lo, hi]: the FC's landed state where it reports one,
+    the height above the take-off ground elsewhere, None when neither is logged.
+
+    A landed-state stream can begin well after arming (its stream request lost on a radio link and
+    answered on a retry): the armed time before its first message is then judged by height, and an
+    interval in the air at that message joins the landed state's first one."""
     ess = series.get("EXTENDED_SYS_STATE")
     if ess is not None and len(ess):
         ls = ess["landed_state"]
         sel = (ess.t_fc_s >= lo) & (ess.t_fc_s <= hi)
         if np.any(sel & (ls > 0)):
-            return _hold_intervals(ess.t_fc_s, (ls >= 2) & (ls <= 4), lo, hi)
+            air = _hold_intervals(ess.t_fc_s, (ls >= 2) & (ls <= 4), lo, hi)
+            t = ess.t_fc_s[sel]
+            late = max(1.0, 3.0 * float(np.median(np.diff(t)))) if t.size > 1 else 1.0
+            if t[0] - lo <= late:
+                return air
+            head = _height_air(series, lo, hi, height_m, until=float(t[0])) or []
+            if head and air and head[-1][1] == air[0][0]:
+                return [*head[:-1], (head[-1][0], air[0][1]), *air[1:]]
+            return head + air
+    return _height_air(series, lo, hi, height_m)
+
+
+def _height_air(series: dict[str, Series], lo: float, hi: float, height_m: float, until: float | None = None,
+                dip_s: float = 1.0) -> list[tuple[float, float]] | None:
+    """Intervals of [lo, until or hi] more than ``height_m`` above the height of the first second of
+    [lo, hi], from LOCAL_POSITION_NED z or GLOBAL_POSITION_INT relative altitude; None without them.
+
+    Dips below the height shorter than ``dip_s`` (height noise at take-off and landing) do not split
+    an interval, as a land detector's own hysteresis would not."""
     for name, col, sign in (("LOCAL_POSITION_NED", "z_m", -1.0), ("GLOBAL_POSITION_INT", "relative_alt_m", 1.0)):
         s = series.get(name)
         if s is None or not len(s):
@@ -99,5 +123,11 @@ def _in_air(series: dict[str, Series], lo: float, hi: float, height_m: float
             continue
         t, h = s.t_fc_s[sel], sign * s[col][sel]
         h0 = float(np.median(h[t <= t[0] + 1.0]))
-        return _hold_intervals(t, h - h0 > height_m, lo, hi)
+        out: list[tuple[float, float]] = []
+        for a, b in _hold_intervals(t, h - h0 > height_m, lo, hi if until is None else until):
+            if out and a - out[-1][1] < dip_s:
+                out[-1] = (out[-1][0], b)
+            else:
+                out.append((a, b))
+        return out
     return None

@@ -104,9 +104,10 @@ def _default_campaign(paths: list[Path]) -> dict[str, float]:
     CPU (the whole process tree: this process, the fork server, every worker) per flight, the workers'
     start included (a user's run pays it)."""
     workers = runner.default_workers()
-    c0, t0, b0 = _tree_cpu_s(), time.perf_counter(), _machine_busy_s()
+    c0, t0, b0, m0 = _tree_cpu_s(), time.perf_counter(), _machine_busy_s(), time.monotonic()
     res = runner.run(_jobs(paths, Settings(config=ServiceConfig(), diagnose=True)), workers=workers)
     wall, cpu, busy = time.perf_counter() - t0, _tree_cpu_s() - c0, _machine_busy_s() - b0
+    m1 = time.monotonic()
     n = len(paths)
     errors = [r.get("error") for rows in res for r in rows if r.get("error")]
     others = max(0.0, busy - cpu) / max(wall, 1e-9)
@@ -115,6 +116,8 @@ def _default_campaign(paths: list[Path]) -> dict[str, float]:
           f"{os.cpu_count()} cores, other work {others:.2f} cores on average (wall is a measurement only when that "
           f"is near 0){'; errors: ' + '; '.join(map(str, errors)) if errors else ''}", flush=True)
     _print_flights([r for rows in res for r in rows], cpu)
+    if workers > 1:   # the pool's start (the fork server's imports) and its tail, where a core waits
+        print(f"    {_balance([rows[0] for rows in res if rows], m0, m1)}", flush=True)
     return {"workers": workers, "wall_s": wall, "cpu_s": cpu, "flights": n, "others_cores": others}
 
 
@@ -173,16 +176,18 @@ def _speedup(paths: list[Path], settings: Any) -> dict[str, dict[str, float]]:
 
 
 def _balance(rows: list[dict], t0_s: float, t1_s: float) -> str:
-    """Each worker's busy wall time and its idle time at the tail (from the campaign's clock
-    ``t0_s .. t1_s``, ``time.monotonic``, to each task's ``task_start_s``/``task_end_s``)."""
+    """Each worker's busy wall time, when its first task started and its idle time at the tail (from
+    the campaign's clock ``t0_s .. t1_s``, ``time.monotonic``, to each task's ``task_start_s``/``task_end_s``)."""
     busy: dict[int, list[float]] = {}
     for r in rows:
         if r.get("worker_pid") is not None:
-            b = busy.setdefault(int(r["worker_pid"]), [0.0, t0_s, 0])
+            b = busy.setdefault(int(r["worker_pid"]), [0.0, t0_s, 0, r["task_start_s"]])
             b[0] += r["task_end_s"] - r["task_start_s"]
             b[1] = max(b[1], r["task_end_s"])
             b[2] += 1
-    parts = [f"{n} tasks busy {w:.1f} s, idle {t1_s - end:.1f} s at the tail" for w, end, n in busy.values()]
+            b[3] = min(b[3], r["task_start_s"])
+    parts = [f"{n} tasks busy {w:.1f} s, the first from {first - t0_s:.1f} s, idle {t1_s - end:.1f} s at the tail"
+             for w, end, n, first in busy.values()]
     return f"per worker ({t1_s - t0_s:.1f} s campaign): " + "; ".join(parts)
 
 

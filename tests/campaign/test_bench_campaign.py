@@ -44,13 +44,13 @@ def test_balance_gives_each_workers_busy_and_tail_idle_time():
     from groundstation.bench.campaign import _balance
 
     rows = [{"worker_pid": 1, "task_start_s": 10.0, "task_end_s": 14.0},
-            {"worker_pid": 2, "task_start_s": 10.0, "task_end_s": 13.0},
+            {"worker_pid": 2, "task_start_s": 11.0, "task_end_s": 13.0},   # started late (the pool's start)
             {"worker_pid": 2, "task_start_s": 13.0, "task_end_s": 16.0},
             {"worker_pid": 1, "task_start_s": 14.0, "task_end_s": 15.0},
             {"error": "x.tlog: ValueError: bad"}]   # an error row before the timing: not counted
     out = _balance(rows, 10.0, 16.5)
-    assert out == ("per worker (6.5 s campaign): 2 tasks busy 5.0 s, idle 1.5 s at the tail; "
-                   "2 tasks busy 6.0 s, idle 0.5 s at the tail")
+    assert out == ("per worker (6.5 s campaign): 2 tasks busy 5.0 s, the first from 0.0 s, idle 1.5 s at the tail; "
+                   "2 tasks busy 5.0 s, the first from 1.0 s, idle 0.5 s at the tail")
 
 
 def test_default_campaign_prints_each_flights_wall_and_cpu_and_the_rest(capsys):

@@ -16,13 +16,13 @@ def lossy(tmp_path_factory):
 
     d = tmp_path_factory.mktemp("lossy")
     rates = {"ATTITUDE": 25, "SERVO_OUTPUT_RAW": 25, "LOCAL_POSITION_NED": 25}
-    write_tlog(d / "f.tlog", seed=5, flight_duration_s=60.0, rates_hz=rates, packet_loss=0.10, loss_burst=8.0)
+    truth = write_tlog(d / "f.tlog", seed=5, flight_duration_s=60.0, rates_hz=rates, packet_loss=0.10, loss_burst=8.0)
     write_tlog(d / "c.tlog", seed=5, flight_duration_s=60.0, rates_hz=rates, packet_loss=0.0)
-    return load_log(d / "f.tlog"), load_log(d / "c.tlog")
+    return load_log(d / "f.tlog"), load_log(d / "c.tlog"), truth["parameters"]
 
 
 def test_holes_are_bridged_and_marked(lossy):
-    log, clean = lossy
+    log, clean, _ = lossy
     p = prepare([log])
     lq = p.link_quality
     assert 6.0 < lq["loss_pct"] < 15.0 and lq["in_air_holes"] > 10
@@ -194,7 +194,7 @@ def test_identification_windows_restart_after_each_bridged_hole(lossy):
     from groundstation.sysid.cost import make_windows
     from groundstation.sysid.holes import restart_windows
 
-    log, clean = lossy
+    log, clean, _ = lossy
     c = prepare([clean])
     a, b = restart_windows(c.segments, c.dt_s, 3.0), make_windows(c.segments, c.dt_s, 3.0)
     assert b.measured is None and a.measured is None
@@ -218,3 +218,84 @@ def test_identification_windows_restart_after_each_bridged_hole(lossy):
         assert counted[i].max() <= 1
         assert counted[i].sum() >= 0.97 * s.measured_mask().all(axis=1).sum() - 5
     assert win.count > through.count
+
+
+def _holed(seg, rng, share=0.1):
+    """``seg`` (a prepared segment) with random holes: the inputs a straight line over each (3-12 samples),
+    the outputs there not measured."""
+    from dataclasses import replace
+
+    br = np.zeros(seg.n, bool)
+    for a in rng.choice(np.arange(2, seg.n - 16), max(1, int(share * seg.n / 8)), replace=False):
+        br[a:a + int(rng.integers(3, 13))] = True
+    br[0] = br[-1] = False
+    u = seg.inputs.copy()
+    d = np.diff(np.r_[0, br.astype(int), 0])
+    for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=True):
+        s = np.arange(1, b - a + 1) / (b - a + 1)
+        u[a:b] = u[a - 1] * (1 - s)[:, None] + u[b] * s[:, None]
+    return replace(seg, inputs=u, measured=np.repeat(~br[:, None], 8, axis=1), inputs_bridged=br)
+
+
+def test_inputs_in_holes_estimated_from_the_outputs_come_closer_than_the_line(lossy):
+    """Given the true model, the inputs estimated in holes from the outputs around them are nearer the
+    inputs the holes hid than the straight line (lat and lon: the horizontal outputs see them best);
+    nothing outside the holes moves, and what is bridged stays marked."""
+    from dataclasses import replace
+
+    from groundstation.sysid.hole_inputs import estimate_hole_inputs, hole_runs
+    from groundstation.sysid.model import HoverModel
+
+    _, clean, truth = lossy
+    c = prepare([clean])
+    rng = np.random.default_rng(3)
+    p = replace(c, segments=[_holed(s, rng) for s in c.segments])
+    model = HoverModel(params=dict(truth), input_trim_pwm=dict(p.input_trim_pwm), pwm_per_unit=p.pwm_per_unit)
+    f = estimate_hole_inputs(p, model)
+    line_err, est_err, holes = [], [], 0
+    for s0, s, fs in zip(c.segments, p.segments, f.segments, strict=True):
+        br = s.inputs_bridged
+        holes += len(hole_runs(br))
+        np.testing.assert_array_equal(fs.inputs[~br], s.inputs[~br])
+        assert fs.inputs_bridged is br and fs.measured is s.measured
+        line_err.append((s.inputs - s0.inputs)[br])
+        est_err.append((fs.inputs - s0.inputs)[br])
+    le, ee = np.concatenate(line_err), np.concatenate(est_err)
+    rms_line, rms_est = np.sqrt((le ** 2).mean(axis=0)), np.sqrt((ee ** 2).mean(axis=0))
+    assert holes > 20
+    # lat 0.37 and lon 0.91 of the line's error on this flight
+    assert rms_est[0] < 0.5 * rms_line[0] and rms_est[1] < rms_line[1], (rms_est, rms_line)
+    assert f.link_quality["inputs_in_holes"]["estimated_holes"] == holes
+    # a flight without bridged inputs comes back as it is
+    assert all(a is b for a, b in zip(estimate_hole_inputs(c, model).segments, c.segments, strict=True))
+
+
+def test_standard_errors_widen_by_what_the_estimated_hole_inputs_take(lossy):
+    """With the inputs in holes estimated from the same outputs, the standard errors come from the
+    Jacobian with the hole-input coefficients projected out: never narrower, wider where the holes are."""
+    from dataclasses import replace
+
+    from groundstation.sysid.cost import WindowedCost, make_windows
+    from groundstation.sysid.hole_inputs import window_holes
+    from groundstation.sysid.model import HOR_PARAMS, PARAM_INDEX, bounds_array, theta_from_dict
+    from groundstation.sysid.refine import jac_final
+
+    _, clean, truth = lossy
+    c = prepare([clean])
+    p = replace(c, segments=[_holed(s, np.random.default_rng(3)) for s in c.segments])
+    win = make_windows(p.segments, p.dt_s, 3.0)
+    holes = window_holes(p.segments, win, subsystems=(0,))
+    assert holes is not None and np.unique(holes.window).size > 5
+    assert window_holes(c.segments, make_windows(c.segments, c.dt_s, 3.0)) is None
+    free = np.zeros(31, bool)
+    free[[PARAM_INDEX[n] for n in HOR_PARAMS]] = True
+    theta = theta_from_dict(truth)
+    cost = WindowedCost(win, free, theta, estimate_all_initial=True, subsystems=(0,))
+    b = bounds_array()[free]
+    x, sigma = theta[free], np.full(8, 0.01)
+    J = jac_final(cost, x, sigma, b[:, 1] - b[:, 0], b[:, 1])
+    Jm = holes.marginal_jacobian(cost, x, sigma, J)
+    ratio = np.sqrt(np.diag(np.linalg.pinv(Jm.T @ Jm)) / np.diag(np.linalg.pinv(J.T @ J)))
+    assert np.all(ratio > 0.999) and ratio.max() > 1.02, ratio
+    # the vertical subsystem's inputs were not estimated: its Jacobian stays as it is
+    assert holes.marginal_jacobian(WindowedCost(win, free, theta, subsystems=(1,)), x, sigma, J) is J

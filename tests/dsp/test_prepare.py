@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
+from firmware_interface.flights import find_flights
+from firmware_interface.samples import Series
 from groundstation.dsp.prepare import PrepConfig, prepare, prepared_from_arrays
 from groundstation.dsp.split import by_flight, kfold
 
@@ -82,6 +86,26 @@ def test_in_air_from_altitude_without_landed_state():
     p = prepare([make_log(60.0, landed_state=False)])
     # altitude above 0.5 m from 2.25 s on (climb of 2 m/s from 2 s)
     assert 3.0 < p.segments[0].t_s[0] < 4.0
+
+
+def test_a_landed_state_stream_that_starts_late_leaves_the_armed_time_before_it_to_height():
+    """The landed-state stream's request was answered only at 40 s (lost on a radio link, retried):
+    before its first message the aircraft is judged by height, and the flight is one in-air interval
+    from the climb through 0.3 m (2.15 s, within a position sample) to the landed state's "on ground" at 58 s."""
+    log = make_log(60.0)
+    ess = log.series["EXTENDED_SYS_STATE"]
+    late = ess.t_fc_s >= 40.0
+    log.series["EXTENDED_SYS_STATE"] = Series(ess.t_fc_s[late], ess.t_host_s[late],
+                                              {k: v[late] for k, v in ess.columns.items()})
+    (fl,) = find_flights(log.series)
+    assert len(fl.in_air_intervals_fc_s) == 1
+    a, b = fl.in_air_intervals_fc_s[0]
+    assert a == pytest.approx(2.15, abs=0.1) and b == pytest.approx(58.0)
+    p = prepare([dataclasses.replace(log, flights=[fl])])
+    assert p.segments[0].t_s[0] < 4.0 and p.segments[-1].t_s[-1] > 55.0
+    # the same log with the stream from the start keeps the landed state's own take-off (3 s)
+    (fl0,) = find_flights(make_log(60.0).series)
+    assert fl0.in_air_intervals_fc_s == ((3.0, 58.0),)
 
 
 @pytest.mark.parametrize(

@@ -181,7 +181,6 @@ def test_numerical_packages_are_pure(package):
 #: Third-party modules, by top-level name (or dotted prefix): heavy at import, needed by a few paths only.
 LAZY_THIRD_PARTY = {
     "matplotlib": "plots only (about 0.5 s of CPU to import)",
-    "PIL": "the PNG writer of the identification's figures (drawn on matplotlib's Agg renderer), plots only",
     "rerun": "the Rerun sink and its figures only (about 0.6 s)",
     "zenoh": "the zenoh sink and its benchmarks only",
     "pyarrow": "the campaign store's Parquet files only",
@@ -189,9 +188,9 @@ LAZY_THIRD_PARTY = {
     "distributed": "campaigns on a Dask cluster only (about 0.5 s)",
     "psutil": "optional (the bench extra): machine-wide CPU accounting of bench campaign",
     "scipy.signal": "about 0.9 s: only tapers other than Hann and the report's spectrum figure",
-    "scipy.optimize": "about 0.25 s: the time-domain identification uses none of scipy; the least-squares fits "
-                      "(frequency domain, reference, command-response structure) load it",
-    "scipy.linalg": "the command-response structure's matrix exponential only (identify uses none of scipy)",
+    "scipy.optimize": "about 0.3 s: differential evolution (the identification's second search) and the "
+                      "least-squares fits (frequency domain, reference, command-response structure) load it",
+    "scipy.linalg": "the command-response structure's matrix exponential only",
     "pyulog": "PX4 .ulg logs only (0.1 s at every start otherwise)",
     "resource": "Unix only (the import fails elsewhere)",
 }

@@ -39,12 +39,6 @@ NOT_SETTINGS = {
     "report._r.nd": "digits written to the report",
     "report.frequency_rows.limit": "rows of the report's frequency table",
     "plots.plot_fit.max_windows": "windows drawn",
-    "plots._limits.margin": "blank margin around the data in a figure (matplotlib's 5 %)",
-    "plots.path.alpha": "opacity of a drawn line or area",
-    "plots.rect.lw_pt": "frame line width (points)",
-    "plots.text.size_pt": "font size (points)",
-    "plots.text.rotation": "text angle",
-    "plots.legend.size_pt": "font size (points)",
     # numerical guards and tolerances, physical constants
     "locate.merge_intervals.gap_s": "rounding guard when merging touching intervals",
     "heldout.unstable_modes.min_real_1_s": "rounding guard: an eigenvalue on the imaginary axis is not unstable",
