@@ -19,7 +19,15 @@ least squares from the measured outputs around it (the errors-in-variables treat
   (weighted by each channel's noise: the model file's ``noise_sigma``), with a weak prior that
   keeps a coefficient the outputs do not determine near the line (zero mean, the input's own
   variance on the segment);
-* holes are visited in time order, each with the others' inputs as estimated so far, ``sweeps`` times.
+* holes are visited in time order, each with the others' inputs as estimated so far, ``sweeps`` times;
+* only the inputs of ``subsystems`` are estimated (0 horizontal: lat, lon; 1 vertical: col, ped), the
+  others keep the line.
+
+Standard errors: the inputs in the holes were estimated from the same outputs as the parameters, so
+the parameters' uncertainty includes theirs. :class:`WindowHoles` gives the refinement's standard
+errors the Jacobian of the residuals with the hole-input coefficients projected out (their own
+responses, through each window's initial-state least squares, with the same prior): the parameters
+get only the information the outputs hold beyond what the estimated inputs explain.
 
 The input samples in holes stay marked as bridged (``inputs_bridged``) and the output samples there
 stay uncounted: only the values the windows are driven with change. Pure numpy; which model to use and
@@ -28,15 +36,15 @@ when to refit is :mod:`groundstation.sysid.identify`'s.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
-from groundstation.sysid.model import build_matrices, discretize
-from groundstation.sysid.simulate import kinematic_forcing
+from groundstation.sysid.model import PARAM_INDEX, build_matrices, discretize
+from groundstation.sysid.simulate import WindowSimulator, kinematic_forcing
 
-__all__ = ["basis_count", "estimate_hole_inputs", "hole_runs"]
+__all__ = ["WindowHoles", "basis_count", "estimate_hole_inputs", "hole_runs", "window_holes"]
 
 # (states, inputs, (state, output column) measured, (state, forcing column)) per subsystem, as the simulator's
 _SUBS = ((8, (0, 1), ((0, 0), (1, 1), (5, 3), (4, 4), (2, 6), (3, 7)), ((0, 0), (1, 1))),
@@ -162,7 +170,8 @@ def _channel_weights(model: Any, seg: Any) -> np.ndarray:
 
 
 def estimate_hole_inputs(prepared: Any, model: Any, *, horizon_s: float = 1.0, band_factor: float = 3.0,
-                         sweeps: int = 2, forcing_channels: tuple[str, ...] = ()) -> Any:
+                         sweeps: int = 2, forcing_channels: tuple[str, ...] = (),
+                         subsystems: tuple[int, ...] = (0, 1)) -> Any:
     """``prepared`` with the inputs in its bridged holes estimated with ``model`` (see the module
     docstring); segments without bridged inputs are returned as they are. ``forcing_channels``: the
     velocity channels whose measured kinematic terms drive the model (``identify.kinematic_forcing``)."""
@@ -196,7 +205,7 @@ def estimate_hole_inputs(prepared: Any, model: Any, *, horizon_s: float = 1.0, b
                 k = basis_count(b - a, dt, band_hz)
                 if b - a not in var:
                     var[b - a] = line_error_var(u, br, b - a)
-                for sub in (0, 1):
+                for sub in subsystems:
                     ins = list(_SUBS[sub][1])
                     o_idx = [o for _, o in _SUBS[sub][2]]
                     dc = _solve_hole(u, seg.outputs, meas, forcing, a, b, systems[sub], sub, w_ch[o_idx], k,
@@ -214,3 +223,88 @@ def _input_offset(model: Any, prepared: Any) -> np.ndarray:
     ppu = float(prepared.pwm_per_unit)
     return np.array([(float(v) - float(model.input_trim_pwm.get(k, v))) / ppu
                      for k, v in prepared.input_trim_pwm.items()])
+
+
+@dataclass(frozen=True, eq=False)
+class WindowHoles:
+    """The bridged holes of the identification windows: hole ``h`` lies in window ``window[h]`` from
+    sample ``a[h]`` to ``b[h]`` (window-relative; a hole cut by the window's edge reaches beyond it),
+    with ``var[h]`` (4,) the prior variance of its coefficients per input (:func:`line_error_var`)."""
+
+    window: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    var: np.ndarray
+    band_factor: float = 1.0
+    subsystems: tuple[int, ...] = (0, 1)
+
+    def columns(self, theta: np.ndarray, inputs: tuple[int, ...], L: int, dt_s: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(window (q,), input sequences (q, L, 4), prior precision (q,)) of every coefficient."""
+        band = self.band_factor * abs(float(theta[PARAM_INDEX["inv_tau_s"]])) / (2.0 * np.pi)
+        win, seqs, prec = [], [], []
+        for w, a, b, var in zip(self.window, self.a, self.b, self.var, strict=True):
+            k = basis_count(int(b - a), dt_s, band)
+            lo, hi = max(0, int(a)), min(L, int(b))
+            part = _basis(int(b - a), k)[lo - a:hi - a]
+            for i in inputs:
+                for j in range(k):
+                    u = np.zeros((L, 4))
+                    u[lo:hi, i] = part[:, j]
+                    win.append(w)
+                    seqs.append(u)
+                    prec.append(1.0 / max(float(var[i]), 1e-12))
+        return np.array(win, dtype=int), np.array(seqs).reshape(-1, L, 4), np.array(prec)
+
+    def marginal_jacobian(self, cost: Any, x: np.ndarray, sigma: np.ndarray, J: np.ndarray) -> np.ndarray:
+        """``J`` (W L n_used, D), the Jacobian of ``cost``'s weighted residuals at ``x`` (channel scales
+        ``sigma`` (8,)), with the hole-input coefficients projected out window by window:
+        ``J - Jc (Jc^T Jc + P)^-1 Jc^T J`` (``Jc`` their residual responses, ``P`` their prior precision)."""
+        sim, win = cost.sim, cost.windows
+        theta = cost.full(np.asarray(x, dtype=float)[None])[0]
+        inputs = tuple(i for sub in sim.subsystems if sub in self.subsystems for i in _SUBS[sub][1])
+        if not inputs:
+            return J
+        w_idx, U, prec = self.columns(theta, inputs, sim.L, sim.dt_s)
+        if w_idx.size == 0:
+            return J
+        meas = None if win.measured is None else win.measured[w_idx]
+        kw = dict(estimate_all_initial=sim.estimate_all_initial, subsystems=sim.subsystems, measured=meas)
+        e1 = WindowSimulator(U, win.outputs[w_idx], sim.dt_s, win.available[w_idx], **kw).errors(theta[None])[0]
+        e0 = WindowSimulator(np.zeros_like(U), win.outputs[w_idx], sim.dt_s, win.available[w_idx], **kw).errors(theta[None])[0]
+        Jc = ((e1 - e0) / np.asarray(sigma, dtype=float)[None, None, :])[..., cost.used].reshape(w_idx.size, -1)
+        out = np.array(J, dtype=float).reshape(sim.W, -1, J.shape[1])
+        for w in np.unique(w_idx):
+            sel = w_idx == w
+            C = Jc[sel].T                                                 # (L n_used, q)
+            M = C.T @ C + np.diag(prec[sel])
+            out[w] -= C @ np.linalg.solve(M, C.T @ out[w])
+        return out.reshape(J.shape)
+
+
+def window_holes(segments: list, win: Any, band_factor: float = 1.0,
+                 subsystems: tuple[int, ...] = (0, 1)) -> WindowHoles | None:
+    """Where the bridged holes of ``segments`` lie in the windows ``win``
+    (:class:`~groundstation.sysid.cost.Windows` cut from them); None without any."""
+    L = win.length
+    rows: list[tuple[int, int, int, np.ndarray]] = []
+    cache: dict[int, tuple[list[tuple[int, int]], dict[int, np.ndarray]]] = {}
+    for w in range(win.count):
+        si = int(win.segment[w])
+        seg = segments[si]
+        br = getattr(seg, "inputs_bridged", None)
+        if br is None:
+            continue
+        if si not in cache:
+            cache[si] = (hole_runs(br), {})
+        runs, var = cache[si]
+        s = int(np.searchsorted(seg.t_s, win.t0_s[w] - 0.25 * win.dt_s))
+        for a, b in runs:
+            if b > s and a < s + L:
+                if b - a not in var:
+                    var[b - a] = line_error_var(seg.inputs, np.asarray(br, dtype=bool), b - a)
+                rows.append((w, a - s, b - s, var[b - a]))
+    if not rows:
+        return None
+    w_, a_, b_, v_ = zip(*rows, strict=True)
+    return WindowHoles(np.array(w_), np.array(a_), np.array(b_), np.array(v_), float(band_factor), tuple(subsystems))

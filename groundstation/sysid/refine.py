@@ -209,6 +209,9 @@ def standard_errors(cost: WindowedCost, x: np.ndarray, sigma: np.ndarray, bounds
     with its channel scales ``sigma`` (see the module docstring; posterior ones with ``prior_std``)."""
     b = np.asarray(bounds, dtype=float)
     J = jac_final(cost, x, sigma, b[:, 1] - b[:, 0], b[:, 1])
+    holes = getattr(cost, "input_holes", None)   # inputs estimated in the link's holes: their share projected out
+    if holes is not None:
+        J = holes.marginal_jacobian(cost, x, sigma, J)
     r = cost.residuals(x[None], sigma)[0]
     counted = _counted(cost)
     if prior_std is None:

@@ -268,3 +268,34 @@ def test_inputs_in_holes_estimated_from_the_outputs_come_closer_than_the_line(lo
     assert f.link_quality["inputs_in_holes"]["estimated_holes"] == holes
     # a flight without bridged inputs comes back as it is
     assert all(a is b for a, b in zip(estimate_hole_inputs(c, model).segments, c.segments, strict=True))
+
+
+def test_standard_errors_widen_by_what_the_estimated_hole_inputs_take(lossy):
+    """With the inputs in holes estimated from the same outputs, the standard errors come from the
+    Jacobian with the hole-input coefficients projected out: never narrower, wider where the holes are."""
+    from dataclasses import replace
+
+    from groundstation.sysid.cost import WindowedCost, make_windows
+    from groundstation.sysid.hole_inputs import window_holes
+    from groundstation.sysid.model import HOR_PARAMS, PARAM_INDEX, bounds_array, theta_from_dict
+    from groundstation.sysid.refine import jac_final
+
+    _, clean, truth = lossy
+    c = prepare([clean])
+    p = replace(c, segments=[_holed(s, np.random.default_rng(3)) for s in c.segments])
+    win = make_windows(p.segments, p.dt_s, 3.0)
+    holes = window_holes(p.segments, win, subsystems=(0,))
+    assert holes is not None and np.unique(holes.window).size > 5
+    assert window_holes(c.segments, make_windows(c.segments, c.dt_s, 3.0)) is None
+    free = np.zeros(31, bool)
+    free[[PARAM_INDEX[n] for n in HOR_PARAMS]] = True
+    theta = theta_from_dict(truth)
+    cost = WindowedCost(win, free, theta, estimate_all_initial=True, subsystems=(0,))
+    b = bounds_array()[free]
+    x, sigma = theta[free], np.full(8, 0.01)
+    J = jac_final(cost, x, sigma, b[:, 1] - b[:, 0], b[:, 1])
+    Jm = holes.marginal_jacobian(cost, x, sigma, J)
+    ratio = np.sqrt(np.diag(np.linalg.pinv(Jm.T @ Jm)) / np.diag(np.linalg.pinv(J.T @ J)))
+    assert np.all(ratio > 0.999) and ratio.max() > 1.02, ratio
+    # the vertical subsystem's inputs were not estimated: its Jacobian stays as it is
+    assert holes.marginal_jacobian(WindowedCost(win, free, theta, subsystems=(1,)), x, sigma, J) is J
