@@ -46,8 +46,9 @@ PRELOAD = ("numpy", "scipy.optimize", "threadpoolctl", "pymavlink.dialects.v20.a
            "groundstation.dsp.split", "groundstation.dsp.velocity_check", "groundstation.sysid.select",
            "groundstation.sysid.heldout", "groundstation.gap.diagnose")
 #: what ``identify``'s workers need (no diagnosis; the plots, which its workers draw): its fork
-#: server imports in about 1 s of CPU, while the first search runs, what :data:`PRELOAD` imports in 1.5 s
-IDENTIFY_PRELOAD = ("numpy", "scipy.optimize", "threadpoolctl", "pymavlink.dialects.v20.ardupilotmega",
+#: server imports in about 1 s of CPU, while the first search runs, what :data:`PRELOAD` imports in 1.5 s;
+#: not scipy.optimize (0.3 s): its differential evolution runs in the command's own process, with the searches
+IDENTIFY_PRELOAD = ("numpy", "threadpoolctl", "pymavlink.dialects.v20.ardupilotmega",
                     "firmware_interface.readers", "groundstation.pipeline", "groundstation.dsp.split",
                     "groundstation.dsp.velocity_check", "groundstation.sysid.identify", "groundstation.sysid.select",
                     "groundstation.sysid.heldout", "matplotlib.figure", "matplotlib.backends.backend_agg",

@@ -116,21 +116,10 @@ def _run(args: argparse.Namespace, pmap) -> int:
     con = Console(stderr=True, quiet=args.quiet)
     want_series = not args.no_plot or args.rrd is not None
     steps = ("identify", "heldout") + (("validate",) if want_series else ())
-    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
-                  TimeElapsedColumn(), console=con, transient=True) as prog:
-        task = prog.add_task("identify", total=1.0, info="")
-
-        def on(ev) -> None:
-            if ev.step == "identify" and ev.state == "running":
-                info = ev.info
-                frac = info["nit"] / max(info["maxiter"], 1)
-                prog.update(task, completed=min(frac, 1.0), description=info["stage"],
-                            info=f"F={info['fun']:.4g} evals={info['nfev']}")
-            elif ev.step == "heldout" and ev.state == "start":
-                con.print(f"held-out check: {cfg.identification.heldout_folds} contiguous folds ...")
-
-        res = analyse(args.logs, aircraft, cfg, steps=steps,
-                      segments=args.segments, progress=on, pmap=pmap)
+    if args.quiet:   # no progress bar to draw (its refresh thread and updates cost CPU even when silent)
+        res = analyse(args.logs, aircraft, cfg, steps=steps, segments=args.segments, pmap=pmap)
+    else:
+        res = _analyse_with_progress(args, aircraft, cfg, steps, con, pmap)
     model = res.model
     write_json(args.out, model.to_json())
     if want_series:
@@ -152,6 +141,24 @@ def _run(args: argparse.Namespace, pmap) -> int:
     if not args.quiet:
         print_model(model, con)
     return 0
+
+
+def _analyse_with_progress(args: argparse.Namespace, aircraft, cfg, steps: tuple[str, ...], con: Console, pmap):
+    """:func:`groundstation.analysis.analyse` with a rich progress bar on ``con``."""
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
+                  TimeElapsedColumn(), console=con, transient=True) as prog:
+        task = prog.add_task("identify", total=1.0, info="")
+
+        def on(ev) -> None:
+            if ev.step == "identify" and ev.state == "running":
+                info = ev.info
+                frac = info["nit"] / max(info["maxiter"], 1)
+                prog.update(task, completed=min(frac, 1.0), description=info["stage"],
+                            info=f"F={info['fun']:.4g} evals={info['nfev']}")
+            elif ev.step == "heldout" and ev.state == "start":
+                con.print(f"held-out check: {cfg.identification.heldout_folds} contiguous folds ...")
+
+        return analyse(args.logs, aircraft, cfg, steps=steps, segments=args.segments, progress=on, pmap=pmap)
 
 
 def held_out(model, prepared, cfg, aircraft, k: int, con=None, pmap=None) -> None:

@@ -257,38 +257,48 @@ def conditioned_context(a: attribute.Candidate, ctx: hypotheses.Context, segs: l
                          ) -> hypotheses.Context | None:
     """A context whose base model already contains effect ``a`` (None when it cannot be put in)."""
     ev, h = ctx.ev, a.hyp
-
-    def on(segs_x: list[SegmentArrays], theta: np.ndarray) -> hypotheses.Context:
-        ev_x = Evaluator(segs_x, ev.dt_s, theta, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds,
-                         ridge=ev.ridge, start_s=ev.start_s)
-        return hypotheses.Context(ev_x, segs_x, cfg=ctx.cfg)
-
-    if h.effect in hypotheses.INPUT_EFFECTS:
-        return on(hypotheses.apply_input_effect(h, segs, ev.dt_s), h.extra.get("theta_refit", ev.theta0))
     if h.effect in ("ground_effect", "quadratic_drag") and h.extra.get("X") is not None:
         return hypotheses.Context(ev, segs, given=h.extra["X"], cfg=ctx.cfg)
-    if h.effect == "gyro_bias" and h.output:
-        c = OUTPUTS.index(h.output)
-        b = float(h.estimate.get("bias_rad_s", 0.0))
-        segs_b = []
-        for s in segs:
-            y, yr = s.outputs.copy(), s.outputs_raw.copy()
+    segs_a = applied(h, segs, ev.dt_s)
+    if segs_a is None:
+        return None  # rotor vibration (raw residual only), air mass (its own protocol, see encompass)
+    theta = h.extra.get("theta_refit", ev.theta0) if h.effect in hypotheses.INPUT_EFFECTS else ev.theta0
+    return _context_on(ctx, segs_a, theta)
+
+
+def _context_on(ctx: hypotheses.Context, segs: list[SegmentArrays], theta: np.ndarray) -> hypotheses.Context:
+    """A context like ``ctx`` on other segments and base parameters."""
+    ev = ctx.ev
+    ev_x = Evaluator(segs, ev.dt_s, theta, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds,
+                     ridge=ev.ridge, start_s=ev.start_s)
+    out = hypotheses.Context(ev_x, segs, cfg=ctx.cfg)
+    out.pwm_per_unit = ctx.pwm_per_unit
+    return out
+
+
+def applied(h: hypotheses.Hypothesis, segs: list[SegmentArrays], dt_s: float) -> list[SegmentArrays] | None:
+    """The segments with effect ``h`` put into the data the model is fitted to: an input effect on its
+    input, a gyro bias taken off its rate, a velocity latency taken off the velocities; None for an
+    effect that enters otherwise (forcing columns, the air mass, a spectral line)."""
+    if h.effect in hypotheses.INPUT_EFFECTS:
+        return hypotheses.apply_input_effect(h, segs, dt_s)
+    if h.effect not in ("gyro_bias", "velocity_latency") or (h.effect == "gyro_bias" and not h.output):
+        return None
+    out = []
+    for s in segs:
+        y, yr = s.outputs.copy(), s.outputs_raw.copy()
+        if h.effect == "gyro_bias":
+            c = OUTPUTS.index(str(h.output))
+            b = float(h.estimate.get("bias_rad_s", 0.0))
             y[:, c] -= b
             yr[:, c] -= b
-            segs_b.append(SegmentArrays(t_s=s.t_s, inputs=s.inputs, outputs=y, outputs_raw=yr, alt_m=s.alt_m,
-                                        flight=s.flight, measured=s.measured))
-        return on(segs_b, ev.theta0)
-    if h.effect == "velocity_latency":
-        d = float(h.estimate.get("latency_s", 0.0)) / ev.dt_s
-        segs_v = []
-        for s in segs:
-            y, yr = s.outputs.copy(), s.outputs_raw.copy()
+        else:
+            d = float(h.estimate.get("latency_s", 0.0)) / dt_s
             y[:, :3] = hypotheses.shift(y[:, :3], -d)
             yr[:, :3] = hypotheses.shift(yr[:, :3], -d)
-            segs_v.append(SegmentArrays(t_s=s.t_s, inputs=s.inputs, outputs=y, outputs_raw=yr, alt_m=s.alt_m,
-                                        flight=s.flight, measured=s.measured))
-        return on(segs_v, ev.theta0)
-    return None  # rotor vibration (raw residual only), air mass (its own protocol, see encompass)
+        out.append(SegmentArrays(t_s=s.t_s, inputs=s.inputs, outputs=y, outputs_raw=yr, alt_m=s.alt_m,
+                                 flight=s.flight, measured=s.measured))
+    return out
 
 
 def rescan(b: attribute.Candidate, ctx: hypotheses.Context, channels: list[int] | None = None
@@ -372,15 +382,24 @@ def conditional_names(ranked: list[attribute.Candidate], cands: list[attribute.C
         cctx.change.update(change)
         cctx.blocks.update(blocks)
     entries = []
+    ref = joint_reference(top, ctx, segs, cfg)
     for b, (hb, _, _) in zip(todo, scans, strict=True):
         res = _conditional_score(b, hb, cctx, rng, cfg, floor)
         if res is None:
             continue
         hb, s, etn = res
-        # what it removes once the first is in (the shares of the named effects: no double count)
         given_base = hb.extra.get("base_sse", cctx.base_sse) if hb.effect == "wind_gust" else cctx.base_sse
+        if ref is not None and hb.effect != "wind_gust" and s.score_pct > 0:
+            joint = joint_score(top, b, hb, ctx, segs, ref, in_channels, rng, cfg, floor)
+            if joint is not None:
+                hb, s, etn = joint
+                given_base = ref.base_sse
+        # what it removes once the first is in (the shares of the named effects: no double count)
+        change = hb.extra.get("change_given", cctx.change.get(hb.effect))
+        blocks = hb.extra.get("blocks_given", (cctx.base_blocks, cctx.blocks.get(hb.effect)))
         for ex in (b.hyp.extra, hb.extra):
-            ex["sse_given"], ex["base_given"] = hb.sse, given_base
+            ex["sse_given"], ex["base_given"], ex["change_given"] = hb.sse, given_base, change
+            ex["blocks_given"] = blocks
             if hb.effect == "wind_gust":
                 ex["share_ref"] = given_base
         b.hyp.extra[f"p_given_{top.hyp.effect}"] = s.p_value
@@ -393,8 +412,13 @@ def conditional_names(ranked: list[attribute.Candidate], cands: list[attribute.C
     tried = []
     for b, hb, s, etn, plausible in entries:
         ok = bool(s.p_value < crit2 and gain_ok(s, cfg) and plausible)
+        b.hyp.extra["level_given"] = hb.extra["level_given"] = crit2
+        joint = hb.extra.get("joint_first")
+        how = (f"once the {top.hyp.effect} is in the model" if joint is None else
+               f"in a joint fit with the {top.hyp.effect} (base re-identified"
+               + (f" with both, the {top.hyp.effect} re-estimated: {joint})" if joint else " around it)"))
         given = (f"adds {s.score_pct:+.1f}% held-out (p={s.p_value:.2g} against {crit2:.2g}, gap on its channels "
-                 f"{s.shrink_pct:+.1f}%, {etn:.1f}x the noise) once the {top.hyp.effect} is in the model")
+                 f"{s.shrink_pct:+.1f}%, {etn:.1f}x the noise) {how}")
         if b.significant and not ok:
             b.significant = False
             b.evidence += f"; not named: {given}"
@@ -405,6 +429,66 @@ def conditional_names(ranked: list[attribute.Candidate], cands: list[attribute.C
         elif not b.significant:
             tried.append((b, hb, s, ok, given))
     _name_second(top, tried, cands, cctx, ctx)
+
+
+def joint_reference(top: attribute.Candidate, ctx: hypotheses.Context, segs: list[SegmentArrays],
+                    cfg: DiagnoseConfig) -> hypotheses.Context | None:
+    """The model a second effect is tested against: the first effect alone, the base re-identified
+    around it (Levenberg-Marquardt from the first effect's own re-fit, as many iterations as the joint
+    fit gets, so that a second effect is not credited with the convergence of the first's fit). None
+    when the first effect cannot be put into the data (forcing columns, air mass, spectral line)."""
+    ev = ctx.ev
+    segs_a = applied(top.hyp, segs, ev.dt_s)
+    if segs_a is None:
+        return None
+    ev_a = Evaluator(segs_a, ev.dt_s, np.asarray(top.hyp.extra.get("theta_refit", ev.theta0)), ev.available,
+                     window_s=ev.L * ev.dt_s, folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s)
+    ev_a.refine(cfg.refit_iterations, cfg.refine_ridge)
+    return _context_on(ctx, segs_a, ev_a.theta0)
+
+
+def joint_score(top: attribute.Candidate, b: attribute.Candidate, hb: hypotheses.Hypothesis,
+                ctx: hypotheses.Context, segs: list[SegmentArrays], ref: hypotheses.Context,
+                in_channels: list[int], rng: np.random.Generator, cfg: DiagnoseConfig, floor: np.ndarray | None
+                ) -> tuple[hypotheses.Hypothesis, attribute.Score, float] | None:
+    """Second effect ``b`` (its conditional scan ``hb``) tested in a joint fit with the first effect.
+
+    Both effects are put into the data and the base is re-identified with both (Levenberg-Marquardt,
+    from the first effect's re-fit); the first effect is scanned again there with the second in (its
+    estimate free: a first effect fitted alone absorbs part of the second), and the second is scanned
+    again with that first effect in. Its held-out cost is scored against :func:`joint_reference` (the
+    first alone, re-identified the same way) by the paired tests of the conditional step on the
+    held-out blocks, whose spread is measured on the data. An effect entering as forcing columns is
+    scanned on the reference's base. None when the scan cannot run."""
+    ev = ctx.ev
+    segs_b = applied(hb, segs, ev.dt_s)
+    first = None
+    if segs_b is None:
+        ctx_j = _context_on(ref, ref.segments, ref.ev.theta0)
+    else:
+        segs_ab = applied(top.hyp, segs_b, ev.dt_s)
+        assert segs_ab is not None  # the reference exists: the first effect can be put into the data
+        ev_ab = Evaluator(segs_ab, ev.dt_s, np.asarray(top.hyp.extra.get("theta_refit", ev.theta0)), ev.available,
+                          window_s=ev.L * ev.dt_s, folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s)
+        ev_ab.refine(cfg.refit_iterations, cfg.refine_ridge)
+        ha = rescan(top, _context_on(ctx, segs_b, ev_ab.theta0))
+        ha = ha if ha is not None and ha.testable and ha.sse is not None else top.hyp
+        first = dict(ha.estimate)
+        segs_a2 = applied(ha, segs, ev.dt_s)
+        ctx_j = _context_on(ctx, segs_ab if segs_a2 is None else segs_a2, ev_ab.theta0)
+    h2 = rescan(b, ctx_j, in_channels if b.hyp.effect in hypotheses.INPUT_EFFECTS else None)
+    if h2 is None or h2.sse is None or not h2.testable:
+        return None
+    h2.extra = {**{k: v for k, v in hb.extra.items() if k not in h2.extra}, **h2.extra,
+                "joint_first": first if first is not None else {}, "change_given": ctx_j.change.get(h2.effect),
+                "blocks_given": (ref.base_blocks, ctx_j.blocks.get(h2.effect))}
+    base = ref.base_sse
+    s = attribute.score(base, h2.sse, ref.ev.energy, h2.channels, rng, n_boot=min(cfg.n_boot, cfg.score_n_boot),
+                        test_n_boot=cfg.n_boot)
+    blocks = ctx_j.blocks.get(h2.effect)
+    s.p_value = attribute.conditional_p(base.sum(1), h2.sse.sum(1), rng, cfg.n_boot, cfg.window_alpha,
+                                        ref.base_blocks if blocks is not None else None, blocks)
+    return h2, s, structure.effect_to_noise(base, h2.sse, ref.ev.energy, floor)
 
 
 def second_level(crit: float, n_remaining: int, cfg: DiagnoseConfig) -> float:

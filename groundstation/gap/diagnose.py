@@ -921,12 +921,12 @@ def _confirm_beside_first(kept: list[attribute.Candidate], rem: dict[int, np.nda
                           base_sse: np.ndarray, noise_sse: np.ndarray, avail: np.ndarray, rng: np.random.Generator,
                           cfg: DiagnoseConfig, crit: float, line_test: Any = None
                           ) -> tuple[list[attribute.Candidate], list[attribute.Candidate]]:
-    """Effects named beside the first, confirmed with the held-out *windows* as the unit.
+    """Effects named beside the first, confirmed with the dependence of their evidence measured.
 
-    Each must remove, once the first effect is in, a part of the held-out gap above the noise that is
-    positive window by window beyond chance (one-sided Wilcoxon signed-rank test over the windows'
-    removals, in noise units, at the per-test level ``crit`` the effects were first named at), with a
-    share whose 5-95 % interval (bootstrap over windows) lies above zero.
+    Each must remove, once the first effect is in, held-out cost beyond chance by
+    :func:`_beside_first_p` (the conditional test's paired tests over the held-out blocks, each
+    counted as ``1 / design effect`` of an independent one; beside an air mass the windows'
+    signed ranks), with a share whose 5-95 % interval (bootstrap over windows) lies above zero.
 
     Why: the first effect named is often an approximation of the aircraft's physics (a first-order
     servo lag read as a delay, backlash as a deadband, turbulence as a smooth air mass), and what it
@@ -934,9 +934,9 @@ def _confirm_beside_first(kept: list[attribute.Candidate], rem: dict[int, np.nda
     model misses. A second catalogue effect can soak up a sliver of that remainder and pass the
     conditional test, whose ~0.5 s blocks are counted as independent pieces of evidence; the
     remainder is not noise, so neighbouring blocks of a window agree and the evidence is overcounted.
-    The 3-s held-out windows are the unit the residual's dependence stays inside: a real second
-    effect removes cost window after window (or in a few windows by a large margin, where its input
-    was swept), a sliver of a remainder does not. A spectral line (a fingerprint of the raw residual,
+    The design effect measured on the blocks' differences says by how much: a sliver moving whole
+    windows together keeps about one unit per window, a real effect at the sharpest inputs (a few
+    blocks of the few windows where its stick was swept) keeps most of its blocks. A spectral line (a fingerprint of the raw residual,
     which the smoothed held-out gap barely shows) is confirmed instead by ``line_test``: the line must
     still be in the raw residual of the model with the first effect in (:func:`_line_given_first`).
     Effects failing are not named: they stay among the scored candidates with the reason. Returns
@@ -958,29 +958,48 @@ def _confirm_beside_first(kept: list[attribute.Candidate], rem: dict[int, np.nda
         sh = shares.compute_shares([(_effect_label(c), rem[id(c)])], base_sse, noise_sse, avail, rng,
                                    cfg.share_n_boot, cfg.share_min_gap_ratio)
         pe = sh.per_effect[0] if sh.per_effect else None
-        num = shares.window_removal(rem[id(c)], base_sse, noise_sse, avail)
-        try:
-            p = float(stats.wilcoxon(num, alternative="greater").pvalue) if np.any(num != 0) else 1.0
-        except ValueError:
-            p = 1.0
+        p, level, test = _beside_first_p(c, rem[id(c)], base_sse, noise_sse, avail, crit)
         c.hyp.extra["p_windows_beside_first"] = p
         why = []
         if pe is None or not pe["interval_pct"][0] > 0:
             iv = "no gap above noise to share" if pe is None else \
                 f"{pe['share_pct']:.1f} % of the gap above noise, interval {pe['interval_pct'][0]:.1f} to {pe['interval_pct'][1]:.1f} %"
             why.append(f"its share once the {kept[0].hyp.effect} is in does not exclude zero ({iv})")
-        if not p < crit:
-            why.append(f"what it removes once the {kept[0].hyp.effect} is in is not positive window by window "
-                       f"(Wilcoxon signed-rank over {num.size} held-out windows, p={p:.2g} against {crit:.2g})")
+        if not p < level:
+            why.append(f"what it removes once the {kept[0].hyp.effect} is in is not positive beyond chance "
+                       f"({test}, p={p:.2g} against {level:.2g})")
         if why:
             c.significant = False
             c.evidence += f"; not named beside the {kept[0].hyp.effect}: " + "; ".join(why)
             out.append(c)
         else:
-            c.evidence += (f"; confirmed beside the {kept[0].hyp.effect} window by window "
-                           f"(Wilcoxon p={p:.2g}, share {pe['share_pct']:.1f} %)" if pe else "")
+            c.evidence += (f"; confirmed beside the {kept[0].hyp.effect} ({test}, p={p:.2g}, "
+                           f"share {pe['share_pct']:.1f} %)" if pe else "")
             named.append(c)
     return named, out
+
+
+def _beside_first_p(c: attribute.Candidate, removed: np.ndarray, base_sse: np.ndarray, noise_sse: np.ndarray,
+                    avail: np.ndarray, crit: float) -> tuple[float, float, str]:
+    """The confirmation test of a second effect: (p, its level, what it is).
+
+    With the held-out blocks of its conditional test: the same paired tests over the ~0.5 s blocks,
+    each block counted as ``1 / design effect`` of an independent one, the design effect measured on
+    the blocks' own differences (:func:`attribute.clustered_paired_p`), at the level it was named at
+    (Holm's second step). Without blocks (beside an air mass): a one-sided Wilcoxon signed-rank test
+    over the held-out windows' removals in noise units, at ``crit``."""
+    bb, ab = c.hyp.extra.get("blocks_given") or (None, None)
+    if bb is not None and ab is not None:
+        deff = attribute.design_effect(np.asarray(bb) - np.asarray(ab))
+        return (attribute.clustered_paired_p(bb, ab), float(c.hyp.extra.get("level_given", crit)),
+                f"paired tests over {np.size(bb)} held-out blocks counted as {np.size(bb) / deff:.0f} "
+                f"independent ones (design effect {deff:.1f})")
+    num = shares.window_removal(removed, base_sse, noise_sse, avail)
+    try:
+        p = float(stats.wilcoxon(num, alternative="greater").pvalue) if np.any(num != 0) else 1.0
+    except ValueError:
+        p = 1.0
+    return p, crit, f"Wilcoxon signed-rank over {num.size} held-out windows"
 
 
 def _line_given_first(c: attribute.Candidate, first: attribute.Candidate, *, base: Base, loc: Located,

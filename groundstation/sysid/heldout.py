@@ -87,7 +87,7 @@ def predict(model: HoverModel, prepared: Any, *, window_s: float = IdentifyConfi
     False: nothing but the unmeasured initial states comes from a window's own outputs)."""
     if getattr(model, "structure", "hover") == "command_response" and model.command is not None:
         return predict_command(CommandModel.from_json(model.command), prepared, window_s=window_s,
-                               window_offsets=window_offsets is not False)
+                               window_offsets=window_offsets)
     w = predicted_windows(model, prepared, window_s=window_s, use_model_trim=use_model_trim,
                           window_offsets=window_offsets)
     match: dict[str, float] = {}

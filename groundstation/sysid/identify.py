@@ -16,7 +16,9 @@
    cost separates exactly and each search is in fewer dimensions;
 4. ``search_restarts`` independent searches per subsystem (after the first with
    ``restart_algorithm``, DE by default), each screened and refined; the lowest refined cost wins
-   (the search cost does not tell a wrong basin from the right one); the searches draw the random
+   (the search cost does not tell a wrong basin from the right one); a search that screened down to
+   an earlier search's start (``refine_start_min_dist``, the scores within their sampling spread)
+   shares that start's refinement instead of repeating it; the searches draw the random
    numbers, the screening and refinements none, so with worker processes a subsystem is screened and
    refined on them while this process searches the next one (the same model);
    refine with least squares from the best solution (:mod:`groundstation.sysid.refine`) and
@@ -321,10 +323,10 @@ def _search_once(alg: str, it: int, costs: tuple, plan: _Plan, cfg: IdentifyConf
 
 
 def _screen(starts: list[np.ndarray], opt: Any, label: str, costs: tuple, plan: _Plan, cfg: IdentifyConfig,
-            sub_free: np.ndarray, callback: Callable | None, sub_name: str) -> np.ndarray:
+            sub_free: np.ndarray, callback: Callable | None, sub_name: str) -> tuple[np.ndarray, float]:
     """Successive-halving screening of a search's ``starts`` on the search windows: short refinements of
     many, longer ones of the best few; returns the winner, the start of the full refinement
-    (:func:`_full_refine`). Draws no random numbers."""
+    (:func:`_full_refine`), and its screened score (nan for a single start). Draws no random numbers."""
     cost, cost_s, _ = costs
     bfree = plan.bounds[sub_free]
     prior = None if plan.prior is None else (plan.prior[0][sub_free], plan.prior[1][sub_free])
@@ -342,7 +344,31 @@ def _screen(starts: list[np.ndarray], opt: Any, label: str, costs: tuple, plan: 
         screen_f = scored[0][0]
         nfev_round *= 2
     _progress(callback, f"screened {sub_name}{label}", screen_f, cost_s.nfev + cost.nfev)
-    return starts[0]
+    return starts[0], screen_f
+
+
+def _relative_spread(cost: WindowedCost) -> float:
+    """``sqrt(2 / N)``: the relative sampling spread of a sum of N squared residuals, N the cost's residual
+    samples (coloured residuals carry fewer independent samples and spread more: this is the strict side)."""
+    w = cost.windows
+    n = w.measured[..., cost.used].sum() if w.measured is not None else w.available[:, cost.used].sum() * w.length
+    return float(np.sqrt(2.0 / max(int(n), 1)))
+
+
+def _same_winners(winners: list[tuple[np.ndarray, float]], span: np.ndarray, min_dist: float,
+                  spread: float) -> list[int]:
+    """For each search's screened winner (start, score), the first earlier winner it repeats, else itself.
+
+    A later search that screened down to the same start is not refined again: the same start by
+    ``refine_start_min_dist`` (RMS over the parameters of the difference as a fraction of each search
+    range, as the starts of one search), with screened scores within their sampling spread of each other
+    (a wrong basin shows as a score far beyond it, and is refined)."""
+    rep: list[int] = []
+    for i, (x, f) in enumerate(winners):
+        near = [j for j in set(rep) if np.linalg.norm((x - winners[j][0]) / span) / np.sqrt(x.size) < min_dist
+                and abs(f - winners[j][1]) <= spread * min(abs(f), abs(winners[j][1]))]
+        rep.append(min(near) if near else i)
+    return rep
 
 
 def _full_refine(cost: WindowedCost, bfree: np.ndarray, cfg: IdentifyConfig,
@@ -389,9 +415,9 @@ class _SubSearch:
     name: str
     free: np.ndarray
     costs: tuple
-    #: per search: (F, its best point without refinement, OptimizeResult, algorithm, the screening's winner:
-    #: a call that returns it, with refinement)
-    found: list[tuple[float, np.ndarray, Any, str, Callable[[], np.ndarray] | None]]
+    #: per search: (F, its best point without refinement, OptimizeResult, algorithm, the screening's winner
+    #: and its screened score: a call that returns them, with refinement)
+    found: list[tuple[float, np.ndarray, Any, str, Callable[[], tuple[np.ndarray, float]] | None]]
 
 
 #: ``later(fn)``: a call that returns ``fn()``, which runs on a background thread (with worker processes)
@@ -444,13 +470,19 @@ def _refine_subsystem(s: _SubSearch, plan: _Plan, cfg: IdentifyConfig,
     cost = s.costs[0]
     pr = None if plan.prior is None else (plan.prior[0][s.free], plan.prior[1][s.free])
     extra = _extra_start_points(plan, cfg, s.free)
-    x0s = [screened() for *_, screened in s.found if screened is not None] + [x0 for _, x0 in extra]
+    winners = [screened() for *_, screened in s.found if screened is not None]
+    bfree = plan.bounds[s.free]
+    rep = _same_winners(winners, bfree[:, 1] - bfree[:, 0], cfg.refine_start_min_dist, _relative_spread(s.costs[1]))
+    own = sorted(set(rep))
+    x0s = [winners[i][0] for i in own] + [x0 for _, x0 in extra]
     _progress(callback, f"refine {s.name} ({len(x0s)} start{'s' if len(x0s) > 1 else ''})",
               float(s.found[0][2].fun), sum(c.nfev for c in s.costs))
     nfev0 = cost.nfev
-    refs = plan.pmap(partial(_full_refine, cost, plan.bounds[s.free], cfg, pr), x0s)
+    refs = plan.pmap(partial(_full_refine, cost, bfree, cfg, pr), x0s)
     if cost.nfev == nfev0:    # refined in worker processes, on copies of the cost
         cost.nfev += sum(int(r.nfev) for r in refs)
+    found_refs = [refs[own.index(k)] for k in rep]   # a repeated winner shares its first refinement (never wins)
+    refs = found_refs + refs[len(own):]
     best: tuple[float, np.ndarray, Any, Any, str] | None = None
     sig_ref = None   # with a prior, restarts are compared by the MAP objective at the first one's scales
     for (_, _, opt, alg, _), r in zip(s.found, refs[:len(s.found)], strict=True):

@@ -164,7 +164,9 @@ class IdentifyConfig:
     #: ... beyond this many times 1 / sqrt(effective samples) (the chance level)
     feedback_z: float = 3.0
     #: two refinement starts taken from the search's best points are at least this far apart (the RMS
-    #: over the parameters of their difference as a fraction of each parameter's search range)
+    #: over the parameters of their difference as a fraction of each parameter's search range); a later
+    #: search whose screened winner is this close to an earlier one's, with screened scores within their
+    #: sampling spread, shares that one's full refinement
     refine_start_min_dist: float = 0.2
     #: what the inputs are (the aircraft file's ``[inputs] kind``): "blade" (the eq.-8 hover model only),
     #: "rate_command" / "attitude_command" (also the stabilised aircraft's command-response structure,

@@ -213,8 +213,8 @@ class _AxisCost:
     in every evaluation (Golub & Pereyra's variable projection), so the search is over 2-4 numbers.
     Channel weights: 1 / signal norm (the residual sum is the sum of squared eq.-19 mismatch ratios)."""
 
-    def __init__(self, axis: _Axis, win: CommandWindows) -> None:
-        self.axis, self.win = axis, win
+    def __init__(self, axis: _Axis, win: CommandWindows, window_offsets: bool = True) -> None:
+        self.axis, self.win, self.window_offsets = axis, win, window_offsets
         self.names = axis.param_names
         self.lin = np.array([_is_linear(n) for n in self.names])
         self.idx = [OUTPUTS.index(s) for s in axis.states]
@@ -268,13 +268,19 @@ class _AxisCost:
 
         ``b`` is each window's own: the controller's integrator (its trim), an unmeasured state
         estimated over the window like the hover model's flapping states; the other gains are solved
-        (``g_given`` None) or taken as given."""
+        (``g_given`` None) or taken as given. Without ``window_offsets`` ``b`` is one gain like the others."""
         free, units = self.columns(x)
         W = self.win.count
         w = self.w.reshape(W, -1)
         R0 = (self.y - free).reshape(W, -1) * w
         M = units.reshape(W, -1, units.shape[1]) * w[..., None]
         jb = [n for n in self.names if _is_linear(n)].index("b")
+        if not self.window_offsets:
+            if g_given is None:
+                g, *_ = np.linalg.lstsq(M.reshape(-1, M.shape[2]), R0.reshape(-1), rcond=None)
+            else:
+                g = np.asarray(g_given, dtype=float)
+            return g, np.full(W, g[jb]), M.reshape(-1, M.shape[2]) @ g - R0.reshape(-1)
         sb = M[..., jb]
         ss = np.einsum("wk,wk->w", sb, sb)
         inv = np.where(ss > 1e-12, 1.0 / np.maximum(ss, 1e-300), 0.0)
@@ -309,7 +315,7 @@ class _AxisCost:
         free, units = self.columns(x)
         g = np.asarray(x, dtype=float)[self.lin]
         W = self.win.count
-        if not window_offsets:
+        if not (window_offsets and self.window_offsets):
             return (free + units @ g).reshape(W, self.win.length, len(self.axis.states))
         _, d, _ = self._project(x, g)
         jb = [n for n in self.names if _is_linear(n)].index("b")
@@ -462,11 +468,11 @@ def _vector(f: AxisFit) -> np.ndarray:
 
 
 def fit_axis(axis: _Axis, win: CommandWindows, *, x0: np.ndarray | None = None, maxiter: int = IdentifyConfig.command_maxiter,
-             rng: Any = 0) -> tuple[np.ndarray, np.ndarray, float]:
+             rng: Any = 0, window_offsets: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
     """(x, std, cost) of one axis: the nonlinear parameters over a grid of delays, then every one of
     them free (:func:`groundstation.sysid.optimizers.minimize_grid_lsq`), the linear ones solved inside;
-    standard errors from the Jacobian of every parameter at the end."""
-    cost = _AxisCost(axis, win)
+    standard errors from the Jacobian of every parameter at the end. ``window_offsets``: ``b`` per window."""
+    cost = _AxisCost(axis, win, window_offsets)
     b = axis.bounds()
     nl = ~cost.lin
     start = _start(axis) if x0 is None else np.clip(x0, b[:, 0], b[:, 1])
@@ -507,12 +513,15 @@ def simulate_axis(axis: _Axis, x: np.ndarray, win: CommandWindows, window_offset
     """(W, L, n_states) response of one axis from the measured states at each window's first sample and
     each window's controller offset estimated over it (:class:`_AxisCost`; ``window_offsets`` False:
     the fitted one)."""
-    return _AxisCost(axis, win).predict(x, window_offsets)
+    return _AxisCost(axis, win, window_offsets).predict(x, window_offsets)
 
 
 def identify_command(prepared: Any, kind: str = "rate_command", *, window_s: float = IdentifyConfig.command_window_s,
-                     step_s: float = IdentifyConfig.command_step_s, maxiter: int = IdentifyConfig.command_maxiter, rng: Any = 0) -> CommandModel:
-    """The LOES of ``prepared`` (see the module docstring); SysidError when no axis can be fitted."""
+                     step_s: float = IdentifyConfig.command_step_s, maxiter: int = IdentifyConfig.command_maxiter, rng: Any = 0,
+                     window_offsets: bool = True) -> CommandModel:
+    """The LOES of ``prepared`` (see the module docstring); SysidError when no axis can be fitted.
+    ``window_offsets`` False: one ``b`` per axis for the whole flight (nothing estimated from a window's
+    outputs but its initial states), and the model predicts without them (``fit["window_offsets"]``)."""
     if kind not in COMMAND_KINDS:
         raise SysidError(f"inputs.kind = {kind!r}: a command structure is one of {', '.join(COMMAND_KINDS)}")
     win = command_windows(prepared.segments, prepared.dt_s, window_s, step_s)
@@ -528,7 +537,7 @@ def identify_command(prepared: Any, kind: str = "rate_command", *, window_s: flo
         order = 2 if kind == "attitude_command" and name in ("roll", "pitch") else 1
         ins = tuple(c for c in INPUTS if active[c])
         ax = _Axis(name, order, ins, vel is not None and measured[vel])
-        x, std, _ = fit_axis(ax, win, maxiter=maxiter, rng=rng)
+        x, std, _ = fit_axis(ax, win, maxiter=maxiter, rng=rng, window_offsets=window_offsets)
         # keep the inputs the data support (estimate beyond COUPLING_T standard errors); refit without the others
         def t_of(c: str, ax: _Axis = ax, x: np.ndarray = x, std: np.ndarray = std) -> float:
             i = ax.param_names.index(f"K_{c}")
@@ -537,7 +546,7 @@ def identify_command(prepared: Any, kind: str = "rate_command", *, window_s: flo
         if weak:
             ax2 = _Axis(name, order, tuple(c for c in ins if c not in weak), ax.with_velocity)
             x0 = np.array([x[ax.param_names.index(n)] for n in ax2.param_names])
-            x, std, _ = fit_axis(ax2, win, x0=x0, maxiter=maxiter, rng=rng)
+            x, std, _ = fit_axis(ax2, win, x0=x0, maxiter=maxiter, rng=rng, window_offsets=window_offsets)
             ax = ax2
         contrib = {c: abs(x[ax.param_names.index(f"K_{c}")]) * spread[c] for c in ax.inputs}
         on = max(contrib, key=lambda c: contrib[c]) if contrib else ""
@@ -549,13 +558,17 @@ def identify_command(prepared: Any, kind: str = "rate_command", *, window_s: flo
     if not axes:
         raise SysidError("command-response structure: no body rate measured")
     return CommandModel(kind, axes, dict(prepared.input_trim_pwm), float(prepared.pwm_per_unit),
-                        float(1.0 / prepared.dt_s), {"window_s": window_s, "window_step_s": step_s, "notes": notes})
+                        float(1.0 / prepared.dt_s), {"window_s": window_s, "window_step_s": step_s, "notes": notes,
+                                                     "window_offsets": bool(window_offsets)})
 
 
-def predict_command(model: CommandModel, prepared: Any, *, window_s: float = 5.0, window_offsets: bool = True) -> Any:
+def predict_command(model: CommandModel, prepared: Any, *, window_s: float = 5.0, window_offsets: bool | None = None) -> Any:
     """Held-out prediction as :func:`groundstation.sysid.heldout.predict` (eq. 19 per channel over
     ``window_s`` windows started from the measured states; inputs against the model's trim);
-    ``window_offsets`` False: no controller offset estimated from a held-out window's outputs."""
+    ``window_offsets`` False: no controller offset estimated from a held-out window's outputs (None:
+    as the model was fitted)."""
+    if window_offsets is None:
+        window_offsets = bool(model.fit.get("window_offsets", True))
     ppu = float(prepared.pwm_per_unit)
     off = np.array([(float(prepared.input_trim_pwm.get(k, 0.0)) - float(model.input_trim_pwm.get(k, prepared.input_trim_pwm.get(k, 0.0)))) / ppu
                     for k in INPUTS])

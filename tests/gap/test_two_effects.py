@@ -63,3 +63,38 @@ def test_an_effect_named_second_never_outranks_the_first():
 
     first, second, off = cand("input_delay", 19.4), cand("deadband", 20.2, "input_delay"), cand("rate_limit", 30, None, False)
     assert [c.hyp.effect for c in rank_named([second, off, first])] == ["input_delay", "deadband"]
+
+
+def test_a_second_effect_at_the_sharpest_inputs_is_confirmed_by_its_blocks_counted_as_fewer():
+    # a servo rate limit acts in a few blocks of the few windows where its stick was swept: the
+    # windows' ranks miss it, the held-out blocks (counted as fewer by their measured design
+    # effect) find it; a sliver of the first effect's remainder that moves whole windows together
+    # passes the plain block tests but not the clustered ones
+    import numpy as np
+
+    from groundstation.gap.attribute import Candidate, Score, paired_p
+    from groundstation.gap.diagnose import _beside_first_p
+    from groundstation.gap.hypotheses import Hypothesis
+
+    W, m = 54, 6  # held-out windows of ~0.5 s blocks
+    r = np.random.default_rng(0)
+    base = 10.0 + r.standard_normal((W, m))
+    d = 0.02 * r.standard_normal((W, m))
+    for w in r.choice(W, 10, replace=False):  # ten sweep windows, three blocks of each
+        d[w, r.choice(m, 3, replace=False)] += 1.0 + 0.5 * r.random(3)
+
+    def confirm(blocks, removed):
+        c = Candidate(Hypothesis("rate_limit", input="col", extra=blocks), Score(1.0, 0.0, 1.0, 0.9, 1.0, (0.0, 2.0), {}),
+                      True, "")
+        noise = np.ones((W, 8))
+        return _beside_first_p(c, removed, noise + 1.0, noise, np.ones(8, bool), crit=0.001)
+
+    removed = np.zeros((W, 8))
+    removed[:, 2] = d.sum(axis=1)
+    p_win, level_win, test_win = confirm({}, removed)  # beside an air mass: no blocks, the windows decide
+    assert "Wilcoxon" in test_win and level_win == 0.001 and p_win > 0.01
+    p, level, test = confirm({"blocks_given": (base, base - d), "level_given": 0.002}, removed)
+    assert "design effect" in test and level == 0.002 and p < level
+    sliver = 0.15 + 0.6 * r.standard_normal((W, 1)) + 0.2 * r.standard_normal((W, m))
+    assert paired_p(base.ravel(), (base - sliver).ravel()) < 0.002
+    assert confirm({"blocks_given": (base, base - sliver), "level_given": 0.002}, removed)[0] > 0.002

@@ -253,3 +253,41 @@ def test_search_restarts_keep_the_lowest_refined_cost(flights):
     assert one.fit.search_algorithm_by_subsystem == {"horizontal": "cabc", "vertical": "cabc"}
     with pytest.raises(ValueError, match="restart_algorithm"):
         identify(train, seed=2, maxiter=3, config=IdentifyConfig(search_restarts=2, restart_algorithm="pso"))
+
+
+def test_a_search_that_screened_down_to_an_earlier_searchs_start_is_not_refined_again():
+    """Searches whose screened winners are the same start (by the starts' own distance) with scores within
+    their sampling spread share one full refinement; a score beyond the spread (a wrong basin shows as
+    one), a far start or a single start's undefined score keeps its own."""
+    from groundstation.sysid.identify import _same_winners
+
+    span = np.full(4, 2.0)
+    x = np.array([0.1, -0.3, 0.5, 0.2])
+    near = x + np.array([0.02, -0.02, 0.0, 0.01])
+    far = x + np.array([0.0, 0.0, 1.5, 0.0])   # one parameter across its range: RMS 0.375
+    assert _same_winners([(x, 1.0), (x.copy(), 1.0)], span, 0.2, 0.01) == [0, 0]
+    assert _same_winners([(x, 1.0), (near, 1.005)], span, 0.2, 0.01) == [0, 0]
+    assert _same_winners([(x, 1.0), (near, 1.02)], span, 0.2, 0.01) == [0, 1]
+    assert _same_winners([(x, 1.0), (far, 1.0)], span, 0.2, 0.01) == [0, 1]
+    assert _same_winners([(x, float("nan")), (x, float("nan"))], span, 0.2, 0.01) == [0, 1]
+    assert _same_winners([(x, 1.0), (far, 1.0), (near, 1.0)], span, 0.2, 0.01) == [0, 1, 0]
+
+
+def test_the_sampling_spread_counts_the_costs_residual_samples(flights):
+    """sqrt(2 / N), N the used channels' samples of every window; samples lost in link holes do not count."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from groundstation.sysid.cost import make_windows
+    from groundstation.sysid.identify import _relative_spread
+
+    _, train, _ = flights
+    w = make_windows(train.segments, train.dt_s, 3.0)
+    used = np.zeros(8, dtype=bool)
+    used[[3, 4]] = True
+    n = int(w.available[:, used].sum()) * w.length
+    assert n > 1000 and _relative_spread(SimpleNamespace(windows=w, used=used)) == pytest.approx(np.sqrt(2.0 / n))
+    measured = np.ones(w.outputs.shape, dtype=bool)
+    measured[: w.count // 2] = False
+    holes = SimpleNamespace(windows=replace(w, measured=measured), used=used)
+    assert _relative_spread(holes) == pytest.approx(np.sqrt(2.0 / int(measured[..., used].sum())))

@@ -93,6 +93,17 @@ def test_without_window_offsets_a_wandering_trim_is_not_taken_from_the_held_out_
     assert predict(hm, drift, window_offsets=False).match == honest.match
 
 
+def test_fitted_with_one_offset_per_flight_the_structure_is_recovered_and_predicts_without_window_offsets():
+    prep, truth = _prepared(n=3000)
+    m = identify_command(prep, "rate_command", window_offsets=False)
+    f = m.axes["pitch"]
+    assert f.params["K_lon"] == pytest.approx(truth["K"], rel=0.02) and f.params["T"] == pytest.approx(truth["T"], rel=0.05)
+    assert abs(f.params["b"]) < 0.01 and m.fit["window_offsets"] is False
+    other, _ = _prepared(seed=1, n=3000)
+    assert predict_command(m, other).match == predict_command(m, other, window_offsets=False).match
+    assert predict_command(m, other).match["q"] > 90
+
+
 def test_a_command_logged_late_is_found_as_a_negative_delay_and_called_a_time_skew():
     prep, truth = _prepared(n=3000, tau_s=-0.12)
     m = identify_command(prep, "rate_command")
