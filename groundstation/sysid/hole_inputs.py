@@ -16,7 +16,7 @@ least squares from the measured outputs around it (the errors-in-variables treat
 * per hole and subsystem (lat and lon drive the horizontal states, col and ped the vertical ones)
   the coefficients are solved together with the state at the start of a stretch from
   ``horizon_s`` before the hole to ``horizon_s`` after it and one constant offset per input over
-  that stretch (where the model's trim is off there; the offset is not applied to the inputs), over the output
+  that stretch (the model's trim may be off there; the offset is not applied to the inputs), over the output
   samples measured there (weighted by each channel's noise: the model file's ``noise_sigma``);
 * a prior keeps what the outputs do not determine near the line: each coefficient has zero mean and
   the variance of a straight line's error over holes of that length, measured on the segment's own
