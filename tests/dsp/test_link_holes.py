@@ -314,3 +314,21 @@ def test_hole_inputs_are_estimated_only_on_streams_at_the_grid_rate(lossy):
     assert estimates_hole_inputs(p, IdentifyConfig(hole_input_max_stride=2.5))
     assert not estimates_hole_inputs(p, IdentifyConfig(hole_input_max_stride=2.5, hole_input_passes=0))
     assert not estimates_hole_inputs(prepare([clean]), IdentifyConfig(hole_input_max_stride=2.5))
+
+
+def test_a_model_that_runs_away_keeps_the_lines(lossy):
+    """A model whose responses overflow over the estimation stretch leaves the straight lines as they are."""
+    from dataclasses import replace
+
+    from groundstation.sysid.hole_inputs import estimate_hole_inputs
+    from groundstation.sysid.model import HoverModel
+
+    _, clean, truth = lossy
+    c = prepare([clean])
+    p = replace(c, segments=[_holed(s, np.random.default_rng(3)) for s in c.segments])
+    wild = HoverModel(params={**truth, "M_q": 400.0, "L_p": 400.0}, input_trim_pwm=dict(p.input_trim_pwm),
+                      pwm_per_unit=p.pwm_per_unit)
+    with np.errstate(all="ignore"):
+        f = estimate_hole_inputs(p, wild, subsystems=(0,))
+    for s, fs in zip(p.segments, f.segments, strict=True):
+        np.testing.assert_array_equal(fs.inputs, s.inputs)
