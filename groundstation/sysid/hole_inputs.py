@@ -15,10 +15,12 @@ least squares from the measured outputs around it (the errors-in-variables treat
   nor does the fit need it;
 * per hole and subsystem (lat and lon drive the horizontal states, col and ped the vertical ones)
   the coefficients are solved together with the state at the start of a stretch from
-  ``horizon_s`` before the hole to ``horizon_s`` after it, over the output samples measured there
-  (weighted by each channel's noise: the model file's ``noise_sigma``), with a weak prior that
-  keeps a coefficient the outputs do not determine near the line (zero mean, the input's own
-  variance on the segment);
+  ``horizon_s`` before the hole to ``horizon_s`` after it and one constant offset per input over
+  that stretch (the model's trim may be off there; the offset is not applied to the inputs), over the output
+  samples measured there (weighted by each channel's noise: the model file's ``noise_sigma``);
+* a prior keeps what the outputs do not determine near the line: each coefficient has zero mean and
+  the variance of a straight line's error over holes of that length, measured on the segment's own
+  stretches without holes (:func:`line_error_var`);
 * holes are visited in time order, each with the others' inputs as estimated so far, ``sweeps`` times;
 * only the inputs of ``subsystems`` are estimated (0 horizontal: lat, lon; 1 vertical: col, ped), the
   others keep the line.

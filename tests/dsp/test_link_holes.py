@@ -299,3 +299,18 @@ def test_standard_errors_widen_by_what_the_estimated_hole_inputs_take(lossy):
     assert np.all(ratio > 0.999) and ratio.max() > 1.02, ratio
     # the vertical subsystem's inputs were not estimated: its Jacobian stays as it is
     assert holes.marginal_jacobian(WindowedCost(win, free, theta, subsystems=(1,)), x, sigma, J) is J
+
+
+def test_hole_inputs_are_estimated_only_on_streams_at_the_grid_rate(lossy):
+    """25 Hz input streams on the 50 Hz grid keep their straight lines (there the estimate did not
+    help); allowing a stride of 2 grid steps estimates them; a flight without holes never does."""
+    from groundstation.sysid.identify import estimates_hole_inputs
+    from groundstation.sysid.settings import IdentifyConfig
+
+    log, clean, _ = lossy
+    p = prepare([log])
+    assert p.native_stride(("lat", "lon")).min() > 1.5
+    assert not estimates_hole_inputs(p, IdentifyConfig())
+    assert estimates_hole_inputs(p, IdentifyConfig(hole_input_max_stride=2.5))
+    assert not estimates_hole_inputs(p, IdentifyConfig(hole_input_max_stride=2.5, hole_input_passes=0))
+    assert not estimates_hole_inputs(prepare([clean]), IdentifyConfig(hole_input_max_stride=2.5))
