@@ -332,3 +332,27 @@ def test_a_model_that_runs_away_keeps_the_lines(lossy):
         f = estimate_hole_inputs(p, wild, subsystems=(0,))
     for s, fs in zip(p.segments, f.segments, strict=True):
         np.testing.assert_array_equal(fs.inputs, s.inputs)
+
+
+def test_identify_refits_on_the_estimated_hole_inputs(lossy):
+    """One pass of the refit: the model is refined on the estimated inputs, says so in its link report,
+    and keeps finite standard errors for the parameters the flight determines."""
+    from dataclasses import replace
+
+    from groundstation.sysid.identify import refit_hole_inputs
+    from groundstation.sysid.model import HoverModel
+    from groundstation.sysid.settings import IdentifyConfig
+
+    _, clean, truth = lossy
+    c = prepare([clean])
+    p = replace(c, segments=[_holed(s, np.random.default_rng(3)) for s in c.segments])
+    m0 = HoverModel(params=dict(truth), input_trim_pwm=dict(p.input_trim_pwm), pwm_per_unit=p.pwm_per_unit)
+    # this flight streams at 25 Hz: allow it, so that the refit's standard errors project the holes out too
+    filled, m = refit_hole_inputs(p, m0, IdentifyConfig(hole_input_passes=1, hole_input_max_stride=2.5))
+    assert filled.link_quality["inputs_in_holes"]["estimated_holes"] > 20
+    assert m.source["link_quality"]["inputs_in_holes"] == filled.link_quality["inputs_in_holes"]
+    assert not np.array_equal(filled.segments[0].inputs[:, :2], p.segments[0].inputs[:, :2])
+    np.testing.assert_array_equal(filled.segments[0].inputs[:, 2:], p.segments[0].inputs[:, 2:])  # col, ped: lines
+    for k in ("M_a", "L_b", "A_lat", "B_lon"):
+        assert m.parameter_std[k] is not None and np.isfinite(m.parameter_std[k])
+        assert abs(m.params[k] - truth[k]) < 0.3 * abs(truth[k])
