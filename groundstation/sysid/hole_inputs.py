@@ -15,10 +15,12 @@ least squares from the measured outputs around it (the errors-in-variables treat
   nor does the fit need it;
 * per hole and subsystem (lat and lon drive the horizontal states, col and ped the vertical ones)
   the coefficients are solved together with the state at the start of a stretch from
-  ``horizon_s`` before the hole to ``horizon_s`` after it, over the output samples measured there
-  (weighted by each channel's noise: the model file's ``noise_sigma``), with a weak prior that
-  keeps a coefficient the outputs do not determine near the line (zero mean, the input's own
-  variance on the segment);
+  ``horizon_s`` before the hole to ``horizon_s`` after it and one constant offset per input over
+  that stretch (the model's trim may be off there; the offset is not applied to the inputs), over the output
+  samples measured there (weighted by each channel's noise: the model file's ``noise_sigma``);
+* a prior keeps what the outputs do not determine near the line: each coefficient has zero mean and
+  the variance of a straight line's error over holes of that length, measured on the segment's own
+  stretches without holes (:func:`line_error_var`);
 * holes are visited in time order, each with the others' inputs as estimated so far, ``sweeps`` times;
 * only the inputs of ``subsystems`` are estimated (0 horizontal: lat, lon; 1 vertical: col, ped), the
   others keep the line.
@@ -102,7 +104,8 @@ def _solve_hole(seg_u: np.ndarray, y: np.ndarray, meas: np.ndarray, forcing: np.
                 sys: tuple[np.ndarray, np.ndarray], sub: int, w_ch: np.ndarray, k: int, prior_var: np.ndarray,
                 pad: int) -> np.ndarray | None:
     """Correction (b - a, inputs of ``sub``) to the inputs of the hole ``[a, b)`` (see the module
-    docstring); None when no output is measured after the hole."""
+    docstring); None (the line stays) when no output is measured after the hole or the model's
+    responses over the stretch are not finite."""
     n_states, inputs, meas_map, forced = _SUBS[sub]
     Ad, Bd = sys
     s0, e = max(0, a - pad), min(seg_u.shape[0], b + pad)
@@ -134,7 +137,13 @@ def _solve_hole(seg_u: np.ndarray, y: np.ndarray, meas: np.ndarray, forcing: np.
     G[n_states:, n_states:] += np.diag(prior)
     d = np.diag(G)
     G[np.arange(d.size), np.arange(d.size)] += 1e-9 * max(float(d.max()), 1e-300)
-    c = np.linalg.solve(G, A.T @ r)[n_states:n_states + mi * k].reshape(mi, k)
+    rhs = A.T @ r
+    if not (np.isfinite(G).all() and np.isfinite(rhs).all()):
+        return None                                          # a model that runs away over the stretch: keep the line
+    try:
+        c = np.linalg.solve(G, rhs)[n_states:n_states + mi * k].reshape(mi, k)
+    except np.linalg.LinAlgError:
+        return None
     return shapes @ c.T
 
 
@@ -273,6 +282,8 @@ class WindowHoles:
         e1 = WindowSimulator(U, win.outputs[w_idx], sim.dt_s, win.available[w_idx], **kw).errors(theta[None])[0]
         e0 = WindowSimulator(np.zeros_like(U), win.outputs[w_idx], sim.dt_s, win.available[w_idx], **kw).errors(theta[None])[0]
         Jc = ((e1 - e0) / np.asarray(sigma, dtype=float)[None, None, :])[..., cost.used].reshape(w_idx.size, -1)
+        if not np.isfinite(Jc).all():
+            return J
         out = np.array(J, dtype=float).reshape(sim.W, -1, J.shape[1])
         for w in np.unique(w_idx):
             sel = w_idx == w

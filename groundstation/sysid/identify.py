@@ -255,7 +255,7 @@ def _plan(prepared: Any, cfg: IdentifyConfig, refine: bool, bounds: dict | None,
     if pr is not None and cfg.prior_scale != 1.0:
         pr = (pr[0], pr[1] * float(cfg.prior_scale))
     holes = window_holes(prepared.segments, win, cfg.hole_input_band, _hole_subsystems(cfg)) \
-        if cfg.hole_input_passes > 0 and has_bridged_inputs(prepared.segments) else None
+        if estimates_hole_inputs(prepared, cfg) else None
     return _Plan(win, win_s, forcing, forcing_s, free, reasons, bounds_array(bounds), pr,
                  kf if refine else [], pmap, holes)
 
@@ -633,13 +633,22 @@ def identify(prepared: Any, *, algorithm: str = "cabc", seed: int = 0, refine: b
                              maxiter=maxiter, rng=rng)
         match, used = _in_sample_match(plan, cfg, run.theta, trim)
     model = _model(prepared, plan, cfg, run, match, used, algorithm=algorithm, seed=seed, refine=refine, prior=prior)
-    if refine and cfg.hole_input_passes > 0 and has_bridged_inputs(prepared.segments):
+    if refine and estimates_hole_inputs(prepared, cfg):
         prepared, model = refit_hole_inputs(prepared, model, cfg, prior=prior, bounds=bounds, pmap=pmap)
     if refine and cfg.select_candidates.strip() and cfg.select_folds >= 2:
         model = select_config(prepared, model, cfg, prior=prior, bounds=bounds, pmap=pmap, fit=fit_candidate, refit=refit)
     if refine and cfg.input_kind != "blade":
         model = attach_command_structure(prepared, model, cfg, pmap=pmap, refit=refit)
     return model
+
+
+def estimates_hole_inputs(prepared: Any, cfg: IdentifyConfig) -> bool:
+    """Whether the identification estimates the inputs in the link's holes: passes asked for, bridged
+    inputs, and lat and lon streamed at least every ``hole_input_max_stride`` grid steps."""
+    if cfg.hole_input_passes <= 0 or not has_bridged_inputs(prepared.segments):
+        return False
+    stride = prepared.native_stride(("lat", "lon")) if hasattr(prepared, "native_stride") else np.ones(2)
+    return bool(np.all(stride <= cfg.hole_input_max_stride))
 
 
 def refit_hole_inputs(prepared: Any, model: HoverModel, cfg: IdentifyConfig, *, prior: Any = None,

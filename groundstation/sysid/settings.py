@@ -26,8 +26,9 @@ class IdentifyConfig:
     #: on a lossy link, the inputs inside the bridged holes are estimated from the outputs around them
     #: with the identified model, and the model refitted on them (:mod:`groundstation.sysid.hole_inputs`),
     #: this many times (0 = off: the holes keep the straight line); a flight without bridged inputs is
-    #: identified the same either way. At 10 % bursty loss (seeds 1-8) it kept all 8 key parameters
-    #: within 10 % on 7 of 8 flights of 50 Hz streams (4 with the lines) and 5 of 8 of 25 Hz (4)
+    #: identified the same either way. At 10 % bursty loss on 50 Hz streams it kept all 8 key parameters
+    #: within 10 % on 7 of 8 flights (seeds 1-8; 4 with the lines) and 4 of 4 fresh ones (2); see
+    #: ``hole_input_max_stride`` for slower streams
     hole_input_passes: int = 3
     #: hole inputs: the correction's band, in multiples of the rotor's corner frequency (1/tau_s)/2 pi;
     #: a hole of h s gets ceil(2 h band) half-sine shapes per input
@@ -37,6 +38,11 @@ class IdentifyConfig:
     #: hole inputs: the subsystems whose inputs are estimated ("horizontal": lat, lon; "vertical": col,
     #: ped; comma-separated); the others keep the straight line
     hole_input_subsystems: str = "horizontal"
+    #: hole inputs: estimated only when the inputs (lat, lon) arrive at least every this many grid steps
+    #: (median). A slower stream is a straight line between every two samples on the grid anyway; on
+    #: 25 Hz streams the estimate changed the key parameters up and down (84 within 10 % on 12 flights
+    #: at 10 % loss, against 83 with the lines) and made the standard errors less honest
+    hole_input_max_stride: float = 1.5
     search_stride: int = 3
     refine_starts: int = 9
     #: independent searches per subsystem, each screened and refined; the lowest refined cost wins.
@@ -86,12 +92,15 @@ class IdentifyConfig:
     refine_max_nfev: int = 60
     estimate_all_initial: bool = True
     varpro: bool = True
-    #: the vertical/yaw searches' iterations over the horizontal ones'. 1: the same number. Twice as
-    #: many (the earlier default) cost 0.8 s of CPU per simulated flight and changed no model: the
+    #: the vertical/yaw searches' iterations over the horizontal ones'. 0.5: half as many. Twice as
+    #: many (an earlier default) cost 0.8 s of CPU per simulated flight and changed no model: the
     #: same refined cost and parameters within 0.001 % on five simulated trex600 and two R-50
     #: flights, and the same model of the real TREX 550 log (seeds 0 and 1); the refinement starts
     #: from the screened best points, and the few vertical parameters are found by either search.
-    vertical_iter_factor: float = 1.0
+    #: Half as many as the horizontal ones (1 before) saves about 0.2 s of CPU per flight and gives the
+    #: same models (parameters within 3e-7 relative, key ones within 1e-9, the same held-out verdicts)
+    #: on three simulated trex600 and two R-50 flights and on the TREX 550 log (identification seeds 0-2)
+    vertical_iter_factor: float = 0.5
     estimate_trim: bool = True
     #: velocity channels (of u, v, w) whose measured kinematic/gravity terms enter as known forcing in the
     #: refinement (``kinematic_forcing`` of simulate); "" = none. Default w: on the trex600 sim flight the

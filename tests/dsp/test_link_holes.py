@@ -299,3 +299,60 @@ def test_standard_errors_widen_by_what_the_estimated_hole_inputs_take(lossy):
     assert np.all(ratio > 0.999) and ratio.max() > 1.02, ratio
     # the vertical subsystem's inputs were not estimated: its Jacobian stays as it is
     assert holes.marginal_jacobian(WindowedCost(win, free, theta, subsystems=(1,)), x, sigma, J) is J
+
+
+def test_hole_inputs_are_estimated_only_on_streams_at_the_grid_rate(lossy):
+    """25 Hz input streams on the 50 Hz grid keep their straight lines (there the estimate did not
+    help); allowing a stride of 2 grid steps estimates them; a flight without holes never does."""
+    from groundstation.sysid.identify import estimates_hole_inputs
+    from groundstation.sysid.settings import IdentifyConfig
+
+    log, clean, _ = lossy
+    p = prepare([log])
+    assert p.native_stride(("lat", "lon")).min() > 1.5
+    assert not estimates_hole_inputs(p, IdentifyConfig())
+    assert estimates_hole_inputs(p, IdentifyConfig(hole_input_max_stride=2.5))
+    assert not estimates_hole_inputs(p, IdentifyConfig(hole_input_max_stride=2.5, hole_input_passes=0))
+    assert not estimates_hole_inputs(prepare([clean]), IdentifyConfig(hole_input_max_stride=2.5))
+
+
+def test_a_model_that_runs_away_keeps_the_lines(lossy):
+    """A model whose responses overflow over the estimation stretch leaves the straight lines as they are."""
+    from dataclasses import replace
+
+    from groundstation.sysid.hole_inputs import estimate_hole_inputs
+    from groundstation.sysid.model import HoverModel
+
+    _, clean, truth = lossy
+    c = prepare([clean])
+    p = replace(c, segments=[_holed(s, np.random.default_rng(3)) for s in c.segments])
+    wild = HoverModel(params={**truth, "M_q": 400.0, "L_p": 400.0}, input_trim_pwm=dict(p.input_trim_pwm),
+                      pwm_per_unit=p.pwm_per_unit)
+    with np.errstate(all="ignore"):
+        f = estimate_hole_inputs(p, wild, subsystems=(0,))
+    for s, fs in zip(p.segments, f.segments, strict=True):
+        np.testing.assert_array_equal(fs.inputs, s.inputs)
+
+
+def test_identify_refits_on_the_estimated_hole_inputs(lossy):
+    """One pass of the refit: the model is refined on the estimated inputs, says so in its link report,
+    and keeps finite standard errors for the parameters the flight determines."""
+    from dataclasses import replace
+
+    from groundstation.sysid.identify import refit_hole_inputs
+    from groundstation.sysid.model import HoverModel
+    from groundstation.sysid.settings import IdentifyConfig
+
+    _, clean, truth = lossy
+    c = prepare([clean])
+    p = replace(c, segments=[_holed(s, np.random.default_rng(3)) for s in c.segments])
+    m0 = HoverModel(params=dict(truth), input_trim_pwm=dict(p.input_trim_pwm), pwm_per_unit=p.pwm_per_unit)
+    # this flight streams at 25 Hz: allow it, so that the refit's standard errors project the holes out too
+    filled, m = refit_hole_inputs(p, m0, IdentifyConfig(hole_input_passes=1, hole_input_max_stride=2.5))
+    assert filled.link_quality["inputs_in_holes"]["estimated_holes"] > 20
+    assert m.source["link_quality"]["inputs_in_holes"] == filled.link_quality["inputs_in_holes"]
+    assert not np.array_equal(filled.segments[0].inputs[:, :2], p.segments[0].inputs[:, :2])
+    np.testing.assert_array_equal(filled.segments[0].inputs[:, 2:], p.segments[0].inputs[:, 2:])  # col, ped: lines
+    for k in ("M_a", "L_b", "A_lat", "B_lon"):
+        assert m.parameter_std[k] is not None and np.isfinite(m.parameter_std[k])
+        assert abs(m.params[k] - truth[k]) < 0.3 * abs(truth[k])
