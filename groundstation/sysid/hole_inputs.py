@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from groundstation.sysid.model import PARAM_INDEX, build_matrices, discretize
+from groundstation.sysid.settings import IdentifyConfig
 from groundstation.sysid.simulate import WindowSimulator, kinematic_forcing
 
 __all__ = ["WindowHoles", "basis_count", "estimate_hole_inputs", "hole_runs", "window_holes"]
@@ -178,8 +179,8 @@ def _channel_weights(model: Any, seg: Any) -> np.ndarray:
     return w
 
 
-def estimate_hole_inputs(prepared: Any, model: Any, *, horizon_s: float = 1.0, band_factor: float = 3.0,
-                         sweeps: int = 2, forcing_channels: tuple[str, ...] = (),
+def estimate_hole_inputs(prepared: Any, model: Any, *, horizon_s: float = IdentifyConfig.hole_input_horizon_s,
+                         band_factor: float = IdentifyConfig.hole_input_band, sweeps: int = 2, forcing_channels: tuple[str, ...] = (),
                          subsystems: tuple[int, ...] = (0, 1)) -> Any:
     """``prepared`` with the inputs in its bridged holes estimated with ``model`` (see the module
     docstring); segments without bridged inputs are returned as they are. ``forcing_channels``: the
@@ -293,7 +294,7 @@ class WindowHoles:
         return out.reshape(J.shape)
 
 
-def window_holes(segments: list, win: Any, band_factor: float = 1.0,
+def window_holes(segments: list, win: Any, band_factor: float = IdentifyConfig.hole_input_band,
                  subsystems: tuple[int, ...] = (0, 1)) -> WindowHoles | None:
     """Where the bridged holes of ``segments`` lie in the windows ``win``
     (:class:`~groundstation.sysid.cost.Windows` cut from them); None without any."""

@@ -55,6 +55,9 @@ NOT_SETTINGS = {
     "optimizers.logistic_step.mu": "the logistic map's chaotic parameter (the paper's method: 4)",
     "optimizers.logistic_step.eps": "keeps the logistic map off its fixed points",
     "optimizers._avoid_bad.eps": "keeps the logistic map off its fixed points",
+    "hole_inputs.estimate_hole_inputs.sweeps": "Gauss-Seidel sweeps over a window's holes, each hole with "
+                                               "the others as estimated so far; the passes that matter are "
+                                               "[identify] hole_input_passes",
     "structure.predict_command.window_s": "its callers pass the window ([identify] heldout_window_s, "
                                           "[diagnose] controller_window_s)",
 }
