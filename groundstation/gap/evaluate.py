@@ -224,9 +224,8 @@ class Evaluator:
             if a is None:
                 h.update(b"none")
             else:
-                a = np.ascontiguousarray(a)
                 h.update(str((a.dtype, a.shape)).encode())
-                h.update(a.view(np.uint8).ravel() if a.size else b"")
+                h.update(a.tobytes())
         return h.digest()
 
     def _base_state(self) -> None:
