@@ -118,6 +118,38 @@ def test_worker_map_workers_are_forked_from_the_shared_fork_server():
     assert parents == {server}
 
 
+def _has_module(name: str) -> bool:
+    import sys
+
+    return name in sys.modules
+
+
+def test_identify_workers_are_forked_from_the_command_itself_after_its_imports():
+    """``worker_map(..., fork_here=True)`` (identify's): the workers are this process's children and
+    start with the modules it imported for them; with another thread running it keeps the fork server."""
+    import os
+    import sys
+    import threading
+
+    preload = ("numpy", "colorsys")
+    sys.modules.pop("colorsys", None)
+    with worker_map(2, preload, fork_here=True) as pmap:
+        assert "colorsys" in sys.modules                  # imported here, before the fork
+        assert set(pmap(_parent_pid, range(4))) == {os.getpid()}
+        assert pmap(_has_module, ["colorsys", "colorsys"]) == [True, True]
+    if sys.platform != "linux":
+        return
+    stop = threading.Event()
+    t = threading.Thread(target=stop.wait)
+    t.start()
+    try:
+        with worker_map(2, preload, fork_here=True) as pmap:
+            assert os.getpid() not in set(pmap(_parent_pid, range(4)))   # from the fork server
+    finally:
+        stop.set()
+        t.join()
+
+
 _FAULTS = """
 import resource, sys
 import numpy as np

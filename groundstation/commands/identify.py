@@ -103,7 +103,7 @@ SEGMENTS_HELP = ("which data to use: 'flights' (every in-air interval, default) 
 
 
 def run(args: argparse.Namespace) -> int:
-    with about_logs(args.logs), worker_map(args.jobs, IDENTIFY_PRELOAD) as pmap:
+    with about_logs(args.logs), worker_map(args.jobs, IDENTIFY_PRELOAD, fork_here=True) as pmap:
         return _run(args, pmap)
 
 

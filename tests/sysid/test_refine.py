@@ -82,6 +82,26 @@ def test_stage_timer_charges_the_innermost_stage_and_restores_the_functions(monk
     assert table["mapping"][1] == 1 and table["mapping"][0] > 0
 
 
+_ORPHAN = """
+import subprocess, sys
+busy = "import time\\nwhile time.process_time() < 0.4: pass"
+subprocess.Popen([sys.executable, "-c", busy])   # not waited for: an orphan once this process exits
+"""
+
+
+def test_command_cpu_counts_the_processes_the_command_leaves_behind():
+    """``bench identify --profile``'s whole-command CPU: a process the command started and did not wait
+    for (as a fork server's workers) still counts, on Linux, where it is adopted and reaped."""
+    import sys
+
+    from groundstation.bench.identify import command_cpu
+
+    wall, cpu, rc = command_cpu([sys.executable, "-c", _ORPHAN])
+    assert rc == 0 and wall > 0
+    if sys.platform == "linux":
+        assert cpu >= 0.4
+
+
 def test_lagged_products_by_fft_are_the_sum_over_lags():
     """The colour-corrected sandwich's lagged Jacobian products, all lags at once by FFT, against the
     plain sum over lags (windows of a length that is no power of two; coloured columns)."""
