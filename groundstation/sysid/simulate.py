@@ -774,7 +774,11 @@ def objective(yhat: np.ndarray, y: np.ndarray, available: np.ndarray | None = No
 
 def objective_from_sse(sim: WindowSimulator, theta: np.ndarray) -> np.ndarray:
     """Eq. (11) for C candidates without assembling yhat; shape (C,)."""
-    sse = sim.sse(theta)
+    return objective_of_sse(sim, sim.sse(theta))
+
+
+def objective_of_sse(sim: WindowSimulator, sse: np.ndarray) -> np.ndarray:
+    """Eq. (11) of C candidates from their per-channel sums of squared errors (C, 8) (:meth:`WindowSimulator.sse`)."""
     used = sim.mask.any(axis=0)
     F = (np.sqrt(sse) / sim.scales[None, :])[:, used].sum(axis=1)
     return np.where(np.isfinite(F), F, 1e12)
