@@ -13,7 +13,9 @@ cost over many windows) crosses to each worker once per call, not once per item.
 Every local worker (``worker_map``'s, the campaign's process pool and its local Dask cluster) is
 forked from one fork server per calling process that has imported the analysis once
 (:data:`PRELOAD`, :func:`fork_context`): a worker starts without importing anything and its first
-task costs what any other does. Workers and the serial path alike run numerical work with one
+task costs what any other does. ``identify``'s workers are forked from the command's own process
+instead (``worker_map(..., fork_here=True)``, :func:`fork_here_context`), which has imported most of
+it already: no second interpreter imports the analysis again. Workers and the serial path alike run numerical work with one
 BLAS thread (the workers are the parallelism) and with freed memory kept for reuse
 (:func:`keep_freed_memory`).
 """
@@ -26,6 +28,8 @@ import importlib
 import math
 import multiprocessing
 import os
+import sys
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
@@ -45,14 +49,17 @@ PRELOAD = ("numpy", "scipy.optimize", "threadpoolctl", "pymavlink.dialects.v20.a
            "firmware_interface.readers", "groundstation.campaign.job", "groundstation.pipeline",
            "groundstation.dsp.split", "groundstation.dsp.velocity_check", "groundstation.sysid.select",
            "groundstation.sysid.heldout", "groundstation.gap.diagnose")
-#: what ``identify``'s workers need (no diagnosis; the plots, which its workers draw): its fork
-#: server imports in about 1 s of CPU, while the first search runs, what :data:`PRELOAD` imports in 1.5 s;
-#: not scipy.optimize (0.3 s): its differential evolution runs in the command's own process, with the searches
-IDENTIFY_PRELOAD = ("numpy", "threadpoolctl", "pymavlink.dialects.v20.ardupilotmega",
-                    "firmware_interface.readers", "groundstation.pipeline", "groundstation.dsp.split",
-                    "groundstation.dsp.velocity_check", "groundstation.sysid.identify", "groundstation.sysid.select",
-                    "groundstation.sysid.heldout", "matplotlib.figure", "matplotlib.backends.backend_agg",
-                    "groundstation.sysid.plots")
+#: what ``identify``'s workers need without the figures (``--no-plot``; no diagnosis), imported by the
+#: command before it forks them (:func:`fork_here_context`; a fork server would import them in about
+#: 1 s of CPU, what :data:`PRELOAD` imports in 1.5 s); not scipy.optimize (0.3 s): its differential
+#: evolution runs in the command's own process, with the searches
+IDENTIFY_NO_PLOT_PRELOAD = ("numpy", "threadpoolctl", "pymavlink.dialects.v20.ardupilotmega",
+                            "firmware_interface.readers", "groundstation.pipeline", "groundstation.dsp.split",
+                            "groundstation.dsp.velocity_check", "groundstation.sysid.identify",
+                            "groundstation.sysid.select", "groundstation.sysid.heldout")
+#: the same with matplotlib (0.3 s), for the figures ``identify``'s workers draw
+IDENTIFY_PRELOAD = IDENTIFY_NO_PLOT_PRELOAD + ("matplotlib.figure", "matplotlib.backends.backend_agg",
+                                               "groundstation.sysid.plots")
 
 # glibc mallopt parameters (malloc.h)
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
@@ -139,12 +146,28 @@ def fork_context(extra: tuple[str, ...] = (), *, preload: tuple[str, ...] = PREL
     return ctx
 
 
+def fork_here_context(preload: tuple[str, ...]) -> Any | None:
+    """The ``fork`` context for workers forked from this process once it has imported ``preload``:
+    they start with every module and setting this process has, and nothing is imported twice (a
+    fork server is a second interpreter importing the same modules: about 1 s of CPU for
+    :data:`IDENTIFY_PRELOAD`). None where that is not safe: off Linux (macOS frameworks do not
+    survive a fork), or while another thread runs here (the child would inherit the locks it holds)."""
+    if sys.platform != "linux" or threading.active_count() > 1:
+        return None
+    warm(preload)
+    return multiprocessing.get_context("fork")
+
+
 @contextmanager
-def worker_map(jobs: int | None, preload: tuple[str, ...] = PRELOAD) -> Iterator[Map]:
+def worker_map(jobs: int | None, preload: tuple[str, ...] = PRELOAD, *, fork_here: bool = False) -> Iterator[Map]:
     """A map over ``jobs`` worker processes (None: :func:`default_jobs`); 1 is the serial map (in
     this process, which then keeps freed memory like a worker). The fork server (importing
     ``preload``) starts at once but in the background; the workers start with the first map of
     more than one item, so a command that fails early, or maps nothing, starts none.
+
+    ``fork_here=True``: the workers are forked from this process at once, after it has imported
+    ``preload`` (:func:`fork_here_context`; the fork server where that is not safe), before any other
+    thread starts (a progress bar's, a background job's).
 
     This process, too, runs with one BLAS thread while the map is open: the products are small
     enough that a second BLAS thread saves little wall time and costs CPU (measured on ``diagnose``
@@ -158,9 +181,12 @@ def worker_map(jobs: int | None, preload: tuple[str, ...] = PRELOAD) -> Iterator
         with threadpool_limits(1):
             yield serial_map
         return
-    ctx = fork_context(preload=preload, wait=False)
+    here = fork_here_context(preload) if fork_here else None
+    ctx = here or fork_context(preload=preload, wait=False)
     with threadpool_limits(1), ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=init_worker,
                                                    initargs=(preload,)) as ex:
+        if here is not None:
+            ex.submit(os.getpid)   # with ``fork`` the pool forks all its workers on the first submit: now
 
         def pmap(fn: Callable[[Any], Any], items: Iterable[Any]) -> list[Any]:
             xs = list(items)

@@ -7,6 +7,8 @@ Held-out prediction on a real flight, the figure that says whether a model predi
 * for each split, (a) the project's identification (``identify`` with the aircraft file's prior)
   and (b) the plain output-error reference (multi-start least squares of the same structure, no
   prior, :mod:`benchkit.reference`): the floor to beat;
+* the project minus the reference per split, with a bootstrap interval over the held-out windows and
+  the difference without the one window that counts most (:mod:`benchkit.paired`);
 * ``--input-shift-s`` advances the logged inputs of every split (a time skew between the logged
   channels, :mod:`groundstation.dsp.timeskew`); ``auto`` measures it per split on the training part
   (:func:`benchkit.reference.shift_profile`), and the held-out part gets the same shift;
@@ -37,6 +39,7 @@ from rich.console import Console
 from rich.table import Table
 
 from benchkit.linear import linear_heldout
+from benchkit.paired import paired_difference
 from benchkit.reference import fit_reference, shift_profile
 from benchkit.residuals import BAND_HZ, residual_table
 from groundstation.config import ServiceConfig
@@ -151,6 +154,9 @@ def run(args: argparse.Namespace) -> int:
             t0 = time.perf_counter()
             ref = fit_reference(train, starts=args.reference_starts, seed=args.seed, window_s=args.window_s)
             row["reference"] = _score(ref, val, args.window_s, args.residuals) | {"seconds": time.perf_counter() - t0}
+            if getattr(model, "structure", "hover") != "command_response":
+                row["versus_reference"] = paired_difference(predicted_windows(model, val, window_s=args.window_s),
+                                                            predicted_windows(ref, val, window_s=args.window_s))
         if args.linear:
             t0 = time.perf_counter()
             row["linear"] = linear_heldout(train, val, window_s=args.window_s) | {"seconds": time.perf_counter() - t0}
@@ -188,6 +194,8 @@ def _print_split(con: Any, row: dict[str, Any]) -> None:
     if sel.get("not_predicted"):
         con.print(f"  project: its held-out check on the training part says it does not predict "
                   f"{', '.join(sel['not_predicted'])} (scored here all the same)")
+    if "versus_reference" in row:
+        _print_versus(con, row["versus_reference"])
     for k in kinds:
         if "residuals" in row[k]:
             _print_residuals(con, f"{row['split']}, {k}", row[k]["residuals"])
@@ -196,6 +204,18 @@ def _print_split(con: Any, row: dict[str, Any]) -> None:
             con.print(f"  {k}: {u}")
         if row[k]["runaway"]:
             con.print(f"  {k}: prediction runs away on {', '.join(row[k]['runaway'])}")
+
+
+def _print_versus(con: Any, v: dict[str, Any]) -> None:
+    con.print(f"  project - reference: {v['difference']:+.1f} points ({v['level']:.0%} bootstrap interval over the "
+              f"{v['windows']} held-out windows {v['lo']:+.1f} to {v['hi']:+.1f}; without window {v['window']} "
+              f"{v['without_window']:+.1f})")
+
+
+def _versus_summary(folds: list[dict[str, Any]]) -> dict[str, Any]:
+    """How many folds the project predicts worse than the reference, and how many beyond the windows' spread."""
+    vs = [r["versus_reference"] for r in folds if "versus_reference" in r]
+    return {"folds": len(vs), "below": sum(v["difference"] < 0 for v in vs), "below_beyond_spread": sum(v["hi"] < 0 for v in vs)}
 
 
 def _summary(results: list[dict[str, Any]]) -> dict[str, Any]:
@@ -225,6 +245,8 @@ def _summary(results: list[dict[str, Any]]) -> dict[str, Any]:
             s["train_first_mean"] = first[0][k]["mean"]
         s["unstable_splits"] = sum(bool(r[k]["unstable"]) for r in results)
         out[k] = s
+    if any("versus_reference" in r for r in folds):
+        out["versus_reference"] = _versus_summary(folds)
     return out
 
 
@@ -252,6 +274,8 @@ def _print_residuals(con: Any, title: str, table: dict[str, dict[str, float]]) -
 
 
 def _print_summary(con: Any, summary: dict[str, Any]) -> None:
+    summary = dict(summary)
+    vs = summary.pop("versus_reference", None)
     for k, s in summary.items():
         if "folds_residuals" in s:
             _print_residuals(con, f"{k}, mean over the folds", s["folds_residuals"])
@@ -270,6 +294,9 @@ def _print_summary(con: Any, summary: dict[str, Any]) -> None:
             parts.append(f"train-first split {s['train_first_mean']:.1f} %")
         parts.append(f"splits with an unstable mode: {s['unstable_splits']}")
         con.print(f"[bold]{k}[/]: " + "; ".join(parts))
+    if vs:
+        con.print(f"project below the reference on {vs['below']} of {vs['folds']} folds, beyond the bootstrap "
+                  f"interval over the fold's windows on {vs['below_beyond_spread']}")
     if any(k.endswith("_no_offsets") for k in summary):
         con.print("(_no_offsets: the same predictor with nothing estimated from a held-out window's own outputs "
                   "but its unmeasured initial states: no input offsets per window, no offset or trend of the linear one)")

@@ -18,10 +18,13 @@ through the ordinary .tlog reader) when available, else from the linear model it
 from __future__ import annotations
 
 import argparse
+import ctypes
 import functools
 import importlib
 import json
 import os
+import resource
+import subprocess
 import sys
 import tempfile
 import time
@@ -71,6 +74,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "command, one process) on the simulated training flight, or on --log")
     parser.add_argument("--log", type=Path, default=None, help="--profile: this flight log instead of a simulated one")
     parser.add_argument("--aircraft", type=Path, default=None, help="--profile: aircraft file for --log")
+    parser.add_argument("--whole-runs", type=int, default=1,
+                        help="--profile: also run the whole command this many times in fresh processes, "
+                             "with --jobs 1 and with its default workers in turn, and print the median CPU of "
+                             "every process each run started (0 = skip)")
 
 
 def _flights(args, tmp: Path) -> tuple[Any, Any, dict[str, float], str]:
@@ -376,14 +383,62 @@ def profile_identify(log: Path, out: Path, *, aircraft: Path | None = None, extr
     return st, time.perf_counter() - t0, time.process_time() - c0
 
 
+def _adopt_orphans() -> bool:
+    """Make this process the reaper of its orphaned descendants (Linux ``PR_SET_CHILD_SUBREAPER``):
+    a fork server and the processes it forked then come back to this process when the command that
+    started them exits, and their CPU counts in this process's ``RUSAGE_CHILDREN`` once reaped."""
+    if sys.platform != "linux":
+        return False
+    return ctypes.CDLL(None, use_errno=True).prctl(36, 1, 0, 0, 0) == 0   # PR_SET_CHILD_SUBREAPER
+
+
+def command_cpu(argv: list[str], *, reap_timeout_s: float = 30.0) -> tuple[float, float, int]:
+    """Run ``argv`` in a fresh process; returns its wall seconds, the CPU seconds (user+sys) of it and
+    of every process it started however deep (worker processes, a fork server and its workers,
+    reaped here as orphans: :func:`_adopt_orphans`; without that, off Linux, only the processes its
+    own process waited for), and its exit code. Unlike ``/usr/bin/time`` it counts a fork server's
+    workers, and unlike the machine-wide CPU it holds on a busy machine."""
+    _adopt_orphans()
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    rc = subprocess.run(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=False).returncode
+    wall = time.perf_counter() - t0
+    deadline = time.monotonic() + reap_timeout_s
+    while time.monotonic() < deadline:   # the orphans exit once the command's pipes to them close
+        try:
+            pid, _ = os.waitpid(-1, os.WNOHANG)
+        except ChildProcessError:
+            break
+        if pid == 0:
+            time.sleep(0.01)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), rc
+
+
+def whole_command(log: Path, out: Path, runs: int, aircraft: Path | None = None) -> dict[str, list[tuple[float, float]]]:
+    """``groundstation identify LOG --out OUT --quiet`` with ``--jobs 1`` and with its default workers,
+    in turn, ``runs`` times each: (wall, CPU of every process) per run (:func:`command_cpu`)."""
+    base = [sys.executable, "-m", "groundstation", "identify", str(log), "--out", str(out), "--quiet"]
+    base += [] if aircraft is None else ["--aircraft", str(aircraft)]
+    res: dict[str, list[tuple[float, float]]] = {"--jobs 1": [], "default": []}
+    for _ in range(runs):
+        for label, extra in (("--jobs 1", ["--jobs", "1"]), ("default", [])):
+            wall, cpu, rc = command_cpu(base + extra)
+            if rc != 0:
+                raise RuntimeError(f"{' '.join(base + extra)}: exit code {rc}")
+            res[label].append((wall, cpu))
+    return res
+
+
 def _run_profile(args: argparse.Namespace, con: Any) -> int:
-    """``--profile``: the stage table of one identify command."""
+    """``--profile``: the stage table of one identify command, and the whole command's CPU."""
     with tempfile.TemporaryDirectory() as td:
         log = args.log
         if log is None:
             log = Path(td) / "flight.tlog"
             write_tlog(log, seed=args.sim_seed, flights=1, effects=(), aircraft=None, flight_duration_s=args.duration_s)
         st, wall, cpu = profile_identify(log, args.out_dir / "profile_model.json", aircraft=args.aircraft)
+        whole = whole_command(log, args.out_dir / "whole_model.json", args.whole_runs, args.aircraft)
     load = os.getloadavg()
     t = Table(title=f"groundstation identify {log.name if args.log else f'(simulated {args.duration_s:g} s flight)'}"
                     f" --jobs 1: CPU per stage")
@@ -394,7 +449,13 @@ def _run_profile(args: argparse.Namespace, con: Any) -> int:
     con.print(t)
     con.print(f"total {cpu:.2f} s CPU (this process), {wall:.2f} s wall; load average {load[0]:.2f} {load[1]:.2f} "
               f"{load[2]:.2f} on {os.cpu_count()} cores (wall is only a measurement on an otherwise idle machine)")
+    for label, rows in whole.items():
+        if rows:
+            c, w = np.median([r[1] for r in rows]), np.median([r[0] for r in rows])
+            con.print(f"whole command {label}, fresh process, median of {len(rows)}: {c:.2f} s CPU of every process "
+                      f"it started (CPU {', '.join(f'{r[1]:.2f}' for r in rows)}), {w:.2f} s wall")
     (args.out_dir / "profile.json").write_text(json.dumps(
         {"log": str(args.log or f"simulated {args.duration_s} s seed {args.sim_seed}"), "cpu_s": cpu, "wall_s": wall,
-         "load_average": load, "stages_cpu_s": {n: s for n, s, _ in st.table()}}, indent=1))
+         "load_average": load, "stages_cpu_s": {n: s for n, s, _ in st.table()},
+         "whole_command": {k: [{"wall_s": w, "cpu_s": c} for w, c in v] for k, v in whole.items()}}, indent=1))
     return 0

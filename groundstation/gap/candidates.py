@@ -68,11 +68,11 @@ def refit_input_effect(c: attribute.Candidate, ctx: hypotheses.Context, segs: li
     h = c.hyp
     segs_a = hypotheses.apply_input_effect(h, segs, ev.dt_s)
     ev_a = Evaluator(segs_a, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s,
-                     folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s)
+                     folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s, memo=ev.memo)
     ev_a.refine(cfg.refit_iterations, cfg.refine_ridge)
     h.extra["theta_refit"] = ev_a.theta0
     ev_r = Evaluator(segs, ev.dt_s, ev_a.theta0, ev.available, window_s=ev.L * ev.dt_s,
-                     folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s)
+                     folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s, memo=ev.memo)
     ctx_r = hypotheses.Context(ev_r, segs, cfg=cfg)
     h2 = hypotheses.rescan_input_effect(ctx_r, h)
     assert h2.sse is not None
@@ -270,7 +270,7 @@ def _context_on(ctx: hypotheses.Context, segs: list[SegmentArrays], theta: np.nd
     """A context like ``ctx`` on other segments and base parameters."""
     ev = ctx.ev
     ev_x = Evaluator(segs, ev.dt_s, theta, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds,
-                     ridge=ev.ridge, start_s=ev.start_s)
+                     ridge=ev.ridge, start_s=ev.start_s, memo=ev.memo)
     out = hypotheses.Context(ev_x, segs, cfg=ctx.cfg)
     out.pwm_per_unit = ctx.pwm_per_unit
     return out
@@ -442,7 +442,8 @@ def joint_reference(top: attribute.Candidate, ctx: hypotheses.Context, segs: lis
     if segs_a is None:
         return None
     ev_a = Evaluator(segs_a, ev.dt_s, np.asarray(top.hyp.extra.get("theta_refit", ev.theta0)), ev.available,
-                     window_s=ev.L * ev.dt_s, folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s)
+                     window_s=ev.L * ev.dt_s, folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s,
+                     memo=ev.memo)
     ev_a.refine(cfg.refit_iterations, cfg.refine_ridge)
     return _context_on(ctx, segs_a, ev_a.theta0)
 

@@ -55,7 +55,7 @@ from groundstation.gap import (
     structure,
 )
 from groundstation.gap.config import DiagnoseConfig
-from groundstation.gap.evaluate import Evaluator, SegmentArrays
+from groundstation.gap.evaluate import Evaluator, JacobianMemo, SegmentArrays
 from groundstation.gap.report import _effect_entry, build_report
 from groundstation.parallel import Map, serial_map
 from groundstation.sysid.identify import IdentifyConfig, identify
@@ -244,6 +244,8 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
     arrays = {"t_s": ev.T, "Y": ev.Y, "Yraw": ev.Yraw, "yhat": loc.yhat_ho, "mask": ev.mask, "flag": loc.flag,
               "spectra": att.spectra, "band": loc.band, "candidates": att.candidates, "evaluator": ev,
               "ctx": att.ctx}
+    if ev.memo is not None:
+        ev.memo.clear()  # the Jacobians shared between the stages: not kept with the report
     return Diagnosis(report=report, arrays=arrays)
 
 
@@ -382,7 +384,7 @@ def base_stage(model: HoverModel | None, prepared: Any, cfg: DiagnoseConfig, see
         notes.append("base model identified on the same data; hold-out by k-fold re-fit over windows")
     theta_given = model.theta
     ev = Evaluator(segs, dt, theta_given, avail, window_s=cfg.window_s, folds=cfg.folds, ridge=cfg.ridge,
-                   start_s=cfg.window_start_s)
+                   start_s=cfg.window_start_s, memo=JacobianMemo())
     if ev.W < cfg.min_windows:
         raise GapError(f"diagnose.window_s = {cfg.window_s:g}: too little in-air data, {ev.W} windows "
                        f"(diagnose.min_windows = {cfg.min_windows})")

@@ -18,6 +18,8 @@ Pure numpy; no IO.
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -74,6 +76,41 @@ def cut(arrays: list[np.ndarray], starts: list[tuple[int, int]], length: int) ->
     return np.stack([arrays[si][i0:i0 + length] for si, i0 in starts])
 
 
+class JacobianMemo:
+    """The last ``size`` base states of a family of evaluators (the residual ``r0``, the column norms, the
+    column-normalised Jacobian and its normal matrices), by everything :meth:`Evaluator.set_theta` reads:
+    the parameters, the windowed inputs and outputs, weights, masks and nuisance columns. Evaluators built
+    from one another for the same data and parameters (a re-fit's end point, then a context built on it)
+    then form the Jacobian once; a state is the same arrays, never recomputed differently. Bounded, and
+    :meth:`clear` drops the states when the diagnosis is done; a copy in another process starts empty."""
+
+    def __init__(self, size: int = 2):
+        self.size = int(size)
+        self._states: OrderedDict[bytes, tuple[np.ndarray, ...]] = OrderedDict()
+
+    def get(self, key: bytes) -> tuple[np.ndarray, ...] | None:
+        state = self._states.get(key)
+        if state is not None:
+            self._states.move_to_end(key)
+        return state
+
+    def put(self, key: bytes, state: tuple[np.ndarray, ...]) -> None:
+        self._states[key] = state
+        self._states.move_to_end(key)
+        while len(self._states) > self.size:
+            self._states.popitem(last=False)
+
+    def clear(self) -> None:
+        self._states.clear()
+
+    def __getstate__(self) -> dict:
+        # a copy sent to a worker process starts empty: the states are large and only save work here
+        return {"size": self.size}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["size"])  # type: ignore[misc]
+
+
 class Evaluator:
     """Windows of a flight, the base model, its Jacobian and k-fold held-out scoring.
 
@@ -84,13 +121,15 @@ class Evaluator:
     theta0 : array (31,), base parameters
     available : array (8,) bool, measured output channels
     window_s, folds, start_s : windowing (s), number of folds, ignored start of each window (s)
+    memo : JacobianMemo or None, base states shared with the evaluators built from this one (None: none)
     """
 
     def __init__(self, segments: list[SegmentArrays], dt_s: float, theta0: np.ndarray,
                  available: np.ndarray, *, window_s: float = DiagnoseConfig.window_s,
                  folds: int = DiagnoseConfig.folds, start_s: float = DiagnoseConfig.window_start_s,
-                 ridge: float = DiagnoseConfig.ridge):
+                 ridge: float = DiagnoseConfig.ridge, memo: JacobianMemo | None = None):
         self.segments = segments
+        self.memo = memo
         self.dt_s = float(dt_s)
         self.theta0 = np.asarray(theta0, float).copy()
         self.ridge = float(ridge)
@@ -165,8 +204,32 @@ class Evaluator:
         return r * self.wmask
 
     def set_theta(self, theta: np.ndarray) -> None:
-        """Set the base parameters; recompute base residual and Jacobian (batched finite differences)."""
+        """Set the base parameters; recompute base residual and Jacobian (batched finite differences),
+        or take them from :attr:`memo` when an evaluator of the family had this state."""
         self.theta0 = np.asarray(theta, float).copy()
+        key = self._state_key() if self.memo is not None else b""
+        state = self.memo.get(key) if self.memo is not None else None
+        if state is not None:
+            self.r0, self.col, self.Jn, self.JtJ = state
+            return
+        self._base_state()
+        if self.memo is not None:
+            self.memo.put(key, (self.r0, self.col, self.Jn, self.JtJ))
+
+    def _state_key(self) -> bytes:
+        """Digest of everything the base state depends on (see :class:`JacobianMemo`)."""
+        h = hashlib.blake2b(digest_size=20)
+        h.update(np.array([self.dt_s, self.start, self.W, self.L], float).tobytes())
+        for a in (self.theta0, self.U, self.Y, self.w8, self.wmask, self.available, self.nuisance, self.nuisance_prec):
+            if a is None:
+                h.update(b"none")
+            else:
+                h.update(str((a.dtype, a.shape)).encode())
+                h.update(a.tobytes())
+        return h.digest()
+
+    def _base_state(self) -> None:
+        """The base residual ``r0`` and the Jacobian at ``theta0`` (batched finite differences)."""
         h = 1e-4 * np.maximum(np.abs(self.theta0), 1e-2)
         nuisance_blocks = self._nuisance_blocks()
         if nuisance_blocks is None:  # columns fitted across both subsystems: one joint batch

@@ -47,6 +47,18 @@ def test_a_parameter_held_by_its_bound_stays_on_it():
     assert min(abs(res.x[i] - b[i, 0]), abs(res.x[i] - b[i, 1])) < 1e-9 * abs(b[i, 1] - b[i, 0]) + 1e-12
 
 
+def test_the_refined_cost_and_scales_are_those_of_the_solution():
+    """``fun`` and ``sigma`` come from one simulation at the solution: the eq. 11 cost exactly as the
+    cost function gives it there, and the residual RMS per channel."""
+    cost, th, free = _cost()
+    b = bounds_array()[free]
+    res = refine(cost, np.clip(th[free] * 1.2, b[:, 0], b[:, 1]), b, passes=2, max_nfev=20, with_std=False)
+    assert res.fun == float(cost(res.x[None])[0])
+    e = cost.residuals(res.x[None], np.ones(8))[0]
+    used = np.flatnonzero(cost.used)
+    np.testing.assert_allclose(res.sigma[used], np.sqrt((e ** 2).mean(axis=(0, 1))), rtol=1e-12)
+
+
 def test_a_fold_refit_tolerance_stops_a_start_near_the_optimum_only():
     cost, th, free = _cost()
     b = bounds_array()[free]
@@ -80,6 +92,26 @@ def test_stage_timer_charges_the_innermost_stage_and_restores_the_functions(monk
     assert parallel.serial_map is original and ident.serial_map is original
     table = {name: (cpu, calls) for name, cpu, calls in st.table()}
     assert table["mapping"][1] == 1 and table["mapping"][0] > 0
+
+
+_ORPHAN = """
+import subprocess, sys
+busy = "import time\\nwhile time.process_time() < 0.4: pass"
+subprocess.Popen([sys.executable, "-c", busy])   # not waited for: an orphan once this process exits
+"""
+
+
+def test_command_cpu_counts_the_processes_the_command_leaves_behind():
+    """``bench identify --profile``'s whole-command CPU: a process the command started and did not wait
+    for (as a fork server's workers) still counts, on Linux, where it is adopted and reaped."""
+    import sys
+
+    from groundstation.bench.identify import command_cpu
+
+    wall, cpu, rc = command_cpu([sys.executable, "-c", _ORPHAN])
+    assert rc == 0 and wall > 0
+    if sys.platform == "linux":
+        assert cpu >= 0.4
 
 
 def test_lagged_products_by_fft_are_the_sum_over_lags():

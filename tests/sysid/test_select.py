@@ -114,6 +114,10 @@ def test_bench_heldout_reports_the_choice_the_reference_and_the_lowest_channel(t
     assert 0 < sel["inv_tau_s"] and isinstance(sel["pinned"], list)
     for k in ("project", "reference"):
         assert abs(doc["summary"][k]["train_first_mean"] - split[k]["mean"]) < 1e-9
+    # the project against the reference on the same held-out windows, with the windows' spread
+    vs = split["versus_reference"]
+    assert vs["difference"] == pytest.approx(split["project"]["mean"] - split["reference"]["mean"], abs=1e-6)
+    assert vs["lo"] <= vs["difference"] <= vs["hi"] and 1 <= vs["window"] <= vs["windows"]
     # with input offsets per window (the aircraft file's default is off) the same model is also scored without them
     assert set(split["project_no_offsets"]["match"]) == set(split["project"]["match"])
     assert split["project_no_offsets"]["mean"] != split["project"]["mean"]
@@ -127,6 +131,7 @@ def test_bench_heldout_reports_the_choice_the_reference_and_the_lowest_channel(t
     printed = capsys.readouterr().out
     assert "configuration chosen by held-out prediction on the training part" in printed
     assert "where the prediction misses" in printed
+    assert "project - reference:" in printed
 
 
 def _rows(base, cand, base_runaway=None, cand_runaway=None):
