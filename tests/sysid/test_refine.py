@@ -103,7 +103,8 @@ subprocess.Popen([sys.executable, "-c", busy])   # not waited for: an orphan onc
 
 def test_command_cpu_counts_the_processes_the_command_leaves_behind():
     """``bench identify --profile``'s whole-command CPU: a process the command started and did not wait
-    for (as a fork server's workers) still counts, on Linux, where it is adopted and reaped."""
+    for (as a fork server's workers) still counts, on Linux, where it is adopted and reaped; this
+    process's own children (a fork server of earlier tests) neither count nor hold it up."""
     import sys
 
     from groundstation.bench.identify import command_cpu
