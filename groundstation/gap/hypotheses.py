@@ -213,13 +213,15 @@ class Context:
         """What the re-fit's training cost of a variant of input ``c`` needs from the variant's change
         ``d`` (W, L) of that input alone (windows without holes): with ``R`` the masked :meth:`response`,
         the variant's residual is ``r0 - d R``, so its squared norm per window is
-        ``|r0|^2 - 2 d.g + d Q d`` and its product with the Jacobian ``Jn^T r0 - H^T d``.
-        Returns ``Q`` (L, L) = R R^T, ``g`` (W, L) = R r0 and ``H`` (W, L, 31) = R Jn per window."""
+        ``|r0|^2 - 2 d.g + d Q d`` and its product with the Jacobian ``Jn^T r0 - Ht d``.
+        Returns ``Q`` (L, L) = R R^T, ``g`` (W, L) = R r0 and ``Ht`` (W, 31, L) = (R Jn)^T per window."""
         _, r0 = self._base_residual()
         if c not in self._quadratic:
             ev = self.ev
             R = self.response(c) * np.repeat(ev.wmask[:, 0], 8)[None, :]
-            self._quadratic[c] = (R @ R.T, r0.reshape(ev.W, -1) @ R.T, np.matmul(R, ev.Jn))
+            # every window's Jacobian in one product (a stack of small ones is several times slower)
+            Ht = (np.swapaxes(ev.Jn, 1, 2).reshape(-1, R.shape[1]) @ R.T).reshape(ev.W, -1, ev.L)
+            self._quadratic[c] = (R @ R.T, r0.reshape(ev.W, -1) @ R.T, Ht)
         return self._quadratic[c]
 
     def input_train(self, groups: Sequence[tuple[int, np.ndarray]]) -> np.ndarray:
@@ -234,11 +236,12 @@ class Context:
         mtr0 = np.matmul(np.swapaxes(ev.Jn, 1, 2), rf0[..., None])[..., 0]  # (W, 31)
         rr, mtr = [], []
         for c, u in groups:
-            Q, g, H = self.quadratic(c)
+            Q, g, Ht = self.quadratic(c)
             d = u - U[None, :, :, c]  # (Vc, W, L)
             dQ = (d.reshape(-1, ev.L) @ Q).reshape(d.shape)
             rr.append(rr0 - 2 * (d * g).sum(axis=2) + (dQ * d).sum(axis=2))  # (Vc, W)
-            mtr.append(mtr0 - np.matmul(np.swapaxes(d, 0, 1), H).swapaxes(0, 1))  # (Vc, W, 31)
+            Hd = np.matmul(Ht, np.ascontiguousarray(np.moveaxis(d, 0, 2)))  # (W, 31, Vc)
+            mtr.append(mtr0 - np.moveaxis(Hd, 2, 0))  # (Vc, W, 31)
         rr_all, m_all = np.concatenate(rr), np.concatenate(mtr)
         train = np.empty((rr_all.shape[0], ev.folds))
         for f in range(ev.folds):
