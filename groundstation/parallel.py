@@ -49,15 +49,17 @@ PRELOAD = ("numpy", "scipy.optimize", "threadpoolctl", "pymavlink.dialects.v20.a
            "firmware_interface.readers", "groundstation.campaign.job", "groundstation.pipeline",
            "groundstation.dsp.split", "groundstation.dsp.velocity_check", "groundstation.sysid.select",
            "groundstation.sysid.heldout", "groundstation.gap.diagnose")
-#: what ``identify``'s workers need (no diagnosis; the plots, which its workers draw), imported by the
-#: command before it forks them (:func:`fork_here_context`; a fork server would import it in about 1 s
-#: of CPU, what :data:`PRELOAD` imports in 1.5 s); not scipy.optimize (0.3 s): its differential
+#: what ``identify``'s workers need without the figures (``--no-plot``; no diagnosis), imported by the
+#: command before it forks them (:func:`fork_here_context`; a fork server would import them in about
+#: 1 s of CPU, what :data:`PRELOAD` imports in 1.5 s); not scipy.optimize (0.3 s): its differential
 #: evolution runs in the command's own process, with the searches
-IDENTIFY_PRELOAD = ("numpy", "threadpoolctl", "pymavlink.dialects.v20.ardupilotmega",
-                    "firmware_interface.readers", "groundstation.pipeline", "groundstation.dsp.split",
-                    "groundstation.dsp.velocity_check", "groundstation.sysid.identify", "groundstation.sysid.select",
-                    "groundstation.sysid.heldout", "matplotlib.figure", "matplotlib.backends.backend_agg",
-                    "groundstation.sysid.plots")
+IDENTIFY_NO_PLOT_PRELOAD = ("numpy", "threadpoolctl", "pymavlink.dialects.v20.ardupilotmega",
+                            "firmware_interface.readers", "groundstation.pipeline", "groundstation.dsp.split",
+                            "groundstation.dsp.velocity_check", "groundstation.sysid.identify",
+                            "groundstation.sysid.select", "groundstation.sysid.heldout")
+#: the same with matplotlib (0.3 s), for the figures ``identify``'s workers draw
+IDENTIFY_PRELOAD = IDENTIFY_NO_PLOT_PRELOAD + ("matplotlib.figure", "matplotlib.backends.backend_agg",
+                                               "groundstation.sysid.plots")
 
 # glibc mallopt parameters (malloc.h)
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3

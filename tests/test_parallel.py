@@ -40,14 +40,32 @@ def test_worker_map_keeps_order_and_rejects_zero_jobs():
         pass
 
 
+_IDENTIFY_NO_PLOT = """
+import sys
+from groundstation.cli import main
+assert main(sys.argv[1:]) == 0
+print("matplotlib" in sys.modules)
+"""
+
+
 def test_identify_with_jobs_gives_the_serial_model(two_flights, capsys):
+    """The same model with worker processes; without figures (``--no-plot``) the command does not
+    import matplotlib for its workers (a fresh process, where nothing else has imported it)."""
+    import subprocess
+    import sys
+
     d, paths = two_flights
     docs = []
     for jobs in (1, 2):
         out = d / f"model_j{jobs}.json"
-        rc = main(["identify", *map(str, paths), "--out", str(out), "--no-plot", "--quiet", "--maxiter", "8",
-                   "--folds", "2", "--jobs", str(jobs)])
-        assert rc == 0, capsys.readouterr().err
+        argv = ["identify", *map(str, paths), "--out", str(out), "--no-plot", "--quiet", "--maxiter", "8",
+                "--folds", "2", "--jobs", str(jobs)]
+        if jobs == 1:
+            assert main(argv) == 0, capsys.readouterr().err
+        else:
+            run = subprocess.run([sys.executable, "-c", _IDENTIFY_NO_PLOT, *argv], capture_output=True, text=True)
+            assert run.returncode == 0, run.stderr
+            assert run.stdout.split()[-1] == "False"
         docs.append(json.loads(out.read_text()))
     serial, pooled = docs
     assert pooled["parameters"] == serial["parameters"]

@@ -7,6 +7,8 @@ Held-out prediction on a real flight, the figure that says whether a model predi
 * for each split, (a) the project's identification (``identify`` with the aircraft file's prior)
   and (b) the plain output-error reference (multi-start least squares of the same structure, no
   prior, :mod:`benchkit.reference`): the floor to beat;
+* the project minus the reference per split, with a bootstrap interval over the held-out windows and
+  the difference without the one window that counts most (:mod:`benchkit.paired`);
 * ``--input-shift-s`` advances the logged inputs of every split (a time skew between the logged
   channels, :mod:`groundstation.dsp.timeskew`); ``auto`` measures it per split on the training part
   (:func:`benchkit.reference.shift_profile`), and the held-out part gets the same shift;

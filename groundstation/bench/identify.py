@@ -18,12 +18,10 @@ through the ordinary .tlog reader) when available, else from the linear model it
 from __future__ import annotations
 
 import argparse
-import ctypes
 import functools
 import importlib
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -383,36 +381,41 @@ def profile_identify(log: Path, out: Path, *, aircraft: Path | None = None, extr
     return st, time.perf_counter() - t0, time.process_time() - c0
 
 
-def _adopt_orphans() -> bool:
-    """Make this process the reaper of its orphaned descendants (Linux ``PR_SET_CHILD_SUBREAPER``):
-    a fork server and the processes it forked then come back to this process when the command that
-    started them exits, and their CPU counts in this process's ``RUSAGE_CHILDREN`` once reaped."""
-    if sys.platform != "linux":
-        return False
-    return ctypes.CDLL(None, use_errno=True).prctl(36, 1, 0, 0, 0) == 0   # PR_SET_CHILD_SUBREAPER
+#: run in a fresh process by :func:`command_cpu` (argv: the command as JSON, the reaping timeout):
+#: it becomes the reaper of its orphaned descendants (Linux ``PR_SET_CHILD_SUBREAPER``), so a fork
+#: server and the processes it forked come back to it when the command that started them exits, and
+#: their CPU counts in its ``RUSAGE_CHILDREN`` once reaped; its only children are the command's
+_MEASURE = """
+import ctypes, json, os, resource, subprocess, sys, time
+argv, timeout_s = json.loads(sys.argv[1]), float(sys.argv[2])
+if sys.platform == "linux":
+    ctypes.CDLL(None).prctl(36, 1, 0, 0, 0)
+t0 = time.perf_counter()
+rc = subprocess.run(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=False).returncode
+wall = time.perf_counter() - t0
+deadline = time.monotonic() + timeout_s
+while time.monotonic() < deadline:   # the orphans exit once the command's pipes to them close
+    try:
+        pid, _ = os.waitpid(-1, os.WNOHANG)
+    except ChildProcessError:
+        break
+    if pid == 0:
+        time.sleep(0.01)
+ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+print(json.dumps([wall, ru.ru_utime + ru.ru_stime, rc]))
+"""
 
 
 def command_cpu(argv: list[str], *, reap_timeout_s: float = 30.0) -> tuple[float, float, int]:
     """Run ``argv`` in a fresh process; returns its wall seconds, the CPU seconds (user+sys) of it and
-    of every process it started however deep (worker processes, a fork server and its workers,
-    reaped here as orphans: :func:`_adopt_orphans`; without that, off Linux, only the processes its
-    own process waited for), and its exit code. Unlike ``/usr/bin/time`` it counts a fork server's
-    workers, and unlike the machine-wide CPU it holds on a busy machine."""
-    _adopt_orphans()
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
-    rc = subprocess.run(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=False).returncode
-    wall = time.perf_counter() - t0
-    deadline = time.monotonic() + reap_timeout_s
-    while time.monotonic() < deadline:   # the orphans exit once the command's pipes to them close
-        try:
-            pid, _ = os.waitpid(-1, os.WNOHANG)
-        except ChildProcessError:
-            break
-        if pid == 0:
-            time.sleep(0.01)
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), rc
+    of every process it started however deep (worker processes, a fork server and its workers; off
+    Linux only those its own process waited for), and its exit code: :data:`_MEASURE`. Unlike
+    ``/usr/bin/time`` it counts a fork server's workers, and unlike the machine-wide CPU it holds
+    on a busy machine."""
+    out = subprocess.run([sys.executable, "-c", _MEASURE, json.dumps(argv), str(reap_timeout_s)],
+                         capture_output=True, text=True, check=True).stdout
+    wall, cpu, rc = json.loads(out.splitlines()[-1])
+    return float(wall), float(cpu), int(rc)
 
 
 def whole_command(log: Path, out: Path, runs: int, aircraft: Path | None = None) -> dict[str, list[tuple[float, float]]]:

@@ -28,7 +28,7 @@ from groundstation.commands.model_summary import (  # noqa: F401 - importable fr
 )
 from groundstation.commands.validate import write_rrd
 from groundstation.config import load_config
-from groundstation.parallel import IDENTIFY_PRELOAD, worker_map
+from groundstation.parallel import IDENTIFY_NO_PLOT_PRELOAD, IDENTIFY_PRELOAD, worker_map
 from groundstation.pipeline import about_logs, load_aircraft, load_logs, with_aircraft
 from groundstation.sysid.plots import draw
 
@@ -103,7 +103,8 @@ SEGMENTS_HELP = ("which data to use: 'flights' (every in-air interval, default) 
 
 
 def run(args: argparse.Namespace) -> int:
-    with about_logs(args.logs), worker_map(args.jobs, IDENTIFY_PRELOAD, fork_here=True) as pmap:
+    preload = IDENTIFY_NO_PLOT_PRELOAD if args.no_plot else IDENTIFY_PRELOAD
+    with about_logs(args.logs), worker_map(args.jobs, preload, fork_here=True) as pmap:
         return _run(args, pmap)
 
 

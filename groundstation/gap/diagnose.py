@@ -434,10 +434,9 @@ def locate_stage(base: Base, prepared: Any, cfg: DiagnoseConfig) -> Located:
     worst = [OUTPUTS[c] for c in order[:2] if avail[c]]
     excess = np.maximum(energy_w - nominal, 0.0)
     flagged_share = float(excess[flag].sum() / excess.sum()) if excess.sum() > 0 else 0.0
-    n_above = np.sum(np.nan_to_num(np.where(out_excited, gap_ratio, 0.0)) > cfg.gap_ratio_significant)
     return Located(nf=nf, out_excited=out_excited, in_excited=in_excited, yhat_ho=ev.Y - e, chan=chan,
                    energy_w=energy_w, flag=flag, nominal=nominal, windows_s=windows_s, band=band, cond=cond,
-                   gap_ratio=gap_ratio, worst=worst, gap_significant=bool(n_above >= cfg.gap_channels_min),
+                   gap_ratio=gap_ratio, worst=worst, gap_significant=_gap_significant(gap_ratio, out_excited, cfg),
                    flagged_share=flagged_share,
                    out_stride=None if out_stride is None else np.asarray(out_stride, float))
 
@@ -849,8 +848,18 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
     # gap to share: a gap within a few times the noise (not significant, section 1) is a small
     # difference of two large numbers, and the noise floor itself is an estimate
     explained = sh_rule.interval_pct[1] if sh_rule.interval_pct is not None else sh_rule.explained_pct
+    # "unexplained" is a significant departure no named effect is: the excess over the white noise
+    # also holds the model's own small misfit, there on a flight without any effect (the model is
+    # linear, the aircraft is not). So where the named effects fall short of the share over all
+    # channels, the departure is judged channel by channel as the gap's significance is: named when
+    # fewer than ``gap_channels_min`` channels above ``gap_ratio_significant`` x their noise are left
+    # without most of their excess clearly explained. Not when an effect changes through the flight:
+    # that change is a departure the data show, left in the rest
+    open_ch = _departures_left(sh_rule, loc, cfg) if kept and loc.gap_significant else []
+    rest_small = (bool(kept) and not changing and loc.gap_significant and explained is not None
+                  and explained < cfg.explained_share_min_pct and len(open_ch) < cfg.gap_channels_min)
     named_ok = bool(kept) and (not loc.gap_significant or explained is None
-                               or explained >= cfg.explained_share_min_pct)
+                               or explained >= cfg.explained_share_min_pct or rest_small)
     verdict, unexplained = dec.verdict, dec.unexplained
     partial = []
     if ranked and not named_ok:
@@ -876,7 +885,9 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
     over_time = shares.gap_over_time(ev, base_sse, noise_sse, removed, cols)
     changes = [{"effect": c.hyp.effect, "channel": c.hyp.input or c.hyp.output, **cons[id(c)]} for c in changing]
     rest = _rest_of_gap(sh, loc, over_time, unexplained)
-    headline = _headline(kept, partial, sh if kept else sh_all, changes, rest, cfg, loc.gap_significant)
+    if rest_small:
+        rest["departures_left"] = {ch: round(float(loc.gap_ratio[OUTPUTS.index(ch)]), 2) for ch in open_ch}
+    headline = _headline(kept, partial, sh if kept else sh_all, changes, rest, cfg, loc.gap_significant, rest_small)
     if unexplained is not None:
         unexplained = dict(unexplained)
         unexplained["what_it_looks_like"] = list(unexplained.get("what_it_looks_like", []))
@@ -897,8 +908,10 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
         "rule": (f"effects are named unless together they remove less than {cfg.explained_share_min_pct:g} % of the "
                  f"held-out gap above the noise floor with the whole 5-95 % interval (bootstrap over held-out "
                  f"windows) below it, on a significant gap (at least {cfg.gap_channels_min} excited channels above "
-                 f"{cfg.gap_ratio_significant:g}x their noise); and each holds through the flight (the halves' "
-                 f"estimates agree)"),
+                 f"{cfg.gap_ratio_significant:g}x their noise), unless fewer than {cfg.gap_channels_min} of those "
+                 f"channels are left without most of their excess clearly explained (interval wholly above "
+                 f"{cfg.explained_share_min_pct:g} %); and each holds through the flight (the halves' estimates "
+                 f"agree)"),
         "rest": rest,
         "headline": headline,
     }
@@ -1032,6 +1045,28 @@ def _line_given_first(c: attribute.Candidate, first: attribute.Candidate, *, bas
                    f"(the first effect's misfit stood out there)")
 
 
+def _departures_left(sh: shares.Shares, loc: Located, cfg: DiagnoseConfig) -> list[str]:
+    """The excited channels whose held-out gap is significant (above ``gap_ratio_significant`` x their
+    noise) and whose excess the named effects do not clearly explain for the most part (the channel's
+    share interval not wholly above ``explained_share_min_pct``)."""
+    out = []
+    for c in range(8):
+        if not loc.out_excited[c] or not np.nan_to_num(loc.gap_ratio[c]) > cfg.gap_ratio_significant:
+            continue
+        v = sh.per_channel.get(OUTPUTS[c], {})
+        iv = v.get("interval_pct")
+        lo = iv[0] if iv is not None else v.get("explained_pct")
+        if lo is None or lo < cfg.explained_share_min_pct:
+            out.append(OUTPUTS[c])
+    return out
+
+
+def _gap_significant(gap_ratio: np.ndarray, excited: np.ndarray, cfg: DiagnoseConfig) -> bool:
+    """The locate stage's rule: at least ``gap_channels_min`` excited channels above ``gap_ratio_significant``."""
+    r = np.nan_to_num(np.where(excited, gap_ratio, 0.0))
+    return bool(np.sum(r > cfg.gap_ratio_significant) >= cfg.gap_channels_min)
+
+
 def _rest_of_gap(sh: shares.Shares, loc: Located, over_time: dict, unexplained: dict | None) -> dict[str, Any]:
     """Where the part of the gap the named effects leave lies: channels, band, time and condition."""
     chans = {k: v for k, v in sh.per_channel.items() if v.get("excess_share_pct")}
@@ -1051,7 +1086,8 @@ def _rest_of_gap(sh: shares.Shares, loc: Located, over_time: dict, unexplained: 
 
 
 def _headline(kept: list[attribute.Candidate], partial: list[attribute.Candidate], sh: shares.Shares,
-              changes: list[dict], rest: dict[str, Any], cfg: DiagnoseConfig, significant: bool = True) -> str:
+              changes: list[dict], rest: dict[str, Any], cfg: DiagnoseConfig, significant: bool = True,
+              rest_small: bool = False) -> str:
     """One sentence a user reads first: how much of the gap above noise the named effects explain."""
     if sh.explained_pct is None:
         if kept:
@@ -1076,6 +1112,12 @@ def _headline(kept: list[attribute.Candidate], partial: list[attribute.Candidate
         small = ("" if significant else
                  f" (the gap is small: fewer than {cfg.gap_channels_min} channels above {cfg.gap_ratio_significant:g}x "
                  f"their noise, so the share is indicative and the effect is named on its own tests)")
+        if rest_small:
+            left = rest.get("departures_left", {})
+            where = ("no channel above " if not left else
+                     "only " + ", ".join(f"{k} ({v:g}x noise)" for k, v in left.items()) + " of the channels above ")
+            return (f"{x:.0f} % of the gap above noise is explained by {names} ({iv}); the rest is no significant "
+                    f"departure: {where}{cfg.gap_ratio_significant:g}x their noise is not mostly explained by it")
         return (f"{x:.0f} % of the gap above noise is explained by {names} ({iv}); "
                 f"{100 - x:.0f} % is not" + (tail if 100 - x >= 20 and significant else "") + small)
     if partial:

@@ -148,22 +148,37 @@ def _solve_hole(seg_u: np.ndarray, y: np.ndarray, meas: np.ndarray, forcing: np.
     return shapes @ c.T
 
 
-def line_error_var(u: np.ndarray, bridged: np.ndarray, n_hole: int) -> np.ndarray:
+def line_error_var(u: np.ndarray, bridged: np.ndarray, n_hole: int, default: Any = "ones") -> Any:
     """(inputs,) mean square error of a straight line over ``n_hole`` samples, measured on the stretches of
     ``u (n, inputs)`` without a bridged sample (every start, the line between the samples on either side);
-    ones when the segment has no such stretch."""
+    ones (or ``default``, when given) when the segment has no such stretch."""
     n = u.shape[0]
     span = n_hole + 1
+    none = np.ones(u.shape[1]) if isinstance(default, str) else default
     if n <= span:
-        return np.ones(u.shape[1])
+        return none
     br = np.concatenate([[0], np.cumsum(np.asarray(bridged, dtype=int))])
     starts = np.flatnonzero(br[span + 1:] - br[:n - span] == 0)          # u[i .. i + span] all measured
     if starts.size == 0:
-        return np.ones(u.shape[1])
+        return none
     s = np.arange(1, span) / span
     mid = u[starts[:, None] + np.arange(1, span)[None, :]]               # (S, n_hole, inputs)
     line = u[starts][:, None] * (1 - s)[None, :, None] + u[starts + span][:, None] * s[None, :, None]
     return np.mean((mid - line) ** 2, axis=(0, 1))
+
+
+def _prior_var(cache: dict, u: np.ndarray, bridged: np.ndarray, a: int, b: int, local_n: int) -> np.ndarray:
+    """(inputs,) prior variance of the coefficients of the hole ``[a, b)``: :func:`line_error_var` over
+    the segment (``local_n`` 0), else over ``local_n`` samples either side of the hole (the segment's
+    when that stretch has none without a bridged sample); cached in ``cache``."""
+    key = (b - a, a if local_n else 0)
+    if key not in cache:
+        v = None
+        if local_n:
+            lo, hi = max(0, a - local_n), min(bridged.size, b + local_n)
+            v = line_error_var(u[lo:hi], bridged[lo:hi], b - a, default=None)
+        cache[key] = line_error_var(u, bridged, b - a) if v is None else v
+    return cache[key]
 
 
 def _channel_weights(model: Any, seg: Any) -> np.ndarray:
@@ -181,7 +196,7 @@ def _channel_weights(model: Any, seg: Any) -> np.ndarray:
 
 def estimate_hole_inputs(prepared: Any, model: Any, *, horizon_s: float = IdentifyConfig.hole_input_horizon_s,
                          band_factor: float = IdentifyConfig.hole_input_band, sweeps: int = 2, forcing_channels: tuple[str, ...] = (),
-                         subsystems: tuple[int, ...] = (0, 1)) -> Any:
+                         subsystems: tuple[int, ...] = (0, 1), prior_s: float = IdentifyConfig.hole_input_prior_s) -> Any:
     """``prepared`` with the inputs in its bridged holes estimated with ``model`` (see the module
     docstring); segments without bridged inputs are returned as they are. ``forcing_channels``: the
     velocity channels whose measured kinematic terms drive the model (``identify.kinematic_forcing``)."""
@@ -191,6 +206,7 @@ def estimate_hole_inputs(prepared: Any, model: Any, *, horizon_s: float = Identi
     offset = _input_offset(model, prepared)
     systems = {sub: _system(theta, sub, dt, bool(forcing_channels)) for sub in (0, 1)}
     pad = max(1, int(round(horizon_s / dt)))
+    local_n = int(round(prior_s / dt))
     trim = np.array([float(prepared.output_trim.get(c, 0.0)) for c in OUTPUTS])
     segs = []
     holes = 0
@@ -209,17 +225,16 @@ def estimate_hole_inputs(prepared: Any, model: Any, *, horizon_s: float = Identi
         holes += len(runs)
         meas = seg.measured_mask()
         w_ch = _channel_weights(model, seg)
-        var: dict[int, np.ndarray] = {}
+        var: dict[tuple[int, int], np.ndarray] = {}
         for _ in range(max(1, sweeps)):
             for a, b in runs:
                 k = basis_count(b - a, dt, band_hz)
-                if b - a not in var:
-                    var[b - a] = line_error_var(u, br, b - a)
+                v = _prior_var(var, seg.inputs, br, a, b, local_n)
                 for sub in subsystems:
                     ins = list(_SUBS[sub][1])
                     o_idx = [o for _, o in _SUBS[sub][2]]
                     dc = _solve_hole(u, seg.outputs, meas, forcing, a, b, systems[sub], sub, w_ch[o_idx], k,
-                                     var[b - a][ins], pad)
+                                     v[ins], pad)
                     if dc is not None:
                         u[a:b, ins] += dc
         segs.append(replace(seg, inputs=u - offset[None, :]))
@@ -237,9 +252,11 @@ def _input_offset(model: Any, prepared: Any) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class WindowHoles:
-    """The bridged holes of the identification windows: hole ``h`` lies in window ``window[h]`` from
-    sample ``a[h]`` to ``b[h]`` (window-relative; a hole cut by the window's edge reaches beyond it),
-    with ``var[h]`` (4,) the prior variance of its coefficients per input (:func:`line_error_var`)."""
+    """The bridged holes of the identification windows: row ``h`` is the part of hole ``hole[h]`` in
+    window ``window[h]``, from sample ``a[h]`` to ``b[h]`` (window-relative; a hole cut by the window's
+    edge reaches beyond it), with ``var[h]`` (4,) the prior variance of its coefficients per input
+    (:func:`line_error_var`); ``runs[i]`` is hole ``i`` as ``(segment, a, b)`` in its segment. A hole
+    in two windows (cut by their edge, or where windows overlap) has one set of coefficients."""
 
     window: np.ndarray
     a: np.ndarray
@@ -247,13 +264,20 @@ class WindowHoles:
     var: np.ndarray
     band_factor: float = 1.0
     subsystems: tuple[int, ...] = (0, 1)
+    hole: np.ndarray | None = None
+    runs: tuple[tuple[int, int, int], ...] = ()
 
     def columns(self, theta: np.ndarray, inputs: tuple[int, ...], L: int, dt_s: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(window (q,), input sequences (q, L, 4), prior precision (q,)) of every coefficient."""
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(window (q,), input sequences (q, L, 4), prior precision (G,), coefficient (q,)) of every
+        row's part of every coefficient; coefficients are numbered ``0 .. G - 1`` in the order of
+        :meth:`coefficients`."""
         band = self.band_factor * abs(float(theta[PARAM_INDEX["inv_tau_s"]])) / (2.0 * np.pi)
-        win, seqs, prec = [], [], []
-        for w, a, b, var in zip(self.window, self.a, self.b, self.var, strict=True):
+        keys = self.coefficients(theta, inputs, dt_s)
+        index = {key: g for g, key in enumerate(keys)}
+        hole = np.arange(self.window.size) if self.hole is None else self.hole
+        win, seqs, coef = [], [], []
+        for w, a, b, hid in zip(self.window, self.a, self.b, hole, strict=True):
             k = basis_count(int(b - a), dt_s, band)
             lo, hi = max(0, int(a)), min(L, int(b))
             part = _basis(int(b - a), k)[lo - a:hi - a]
@@ -263,44 +287,126 @@ class WindowHoles:
                     u[lo:hi, i] = part[:, j]
                     win.append(w)
                     seqs.append(u)
-                    prec.append(1.0 / max(float(var[i]), 1e-12))
-        return np.array(win, dtype=int), np.array(seqs).reshape(-1, L, 4), np.array(prec)
+                    coef.append(index[(int(hid), i, j)])
+        prec = np.array([1.0 / max(float(self._var_of(h)[i]), 1e-12) for h, i, _ in keys])
+        return (np.array(win, dtype=int), np.array(seqs).reshape(-1, L, 4), prec, np.array(coef, dtype=int))
+
+    def coefficients(self, theta: np.ndarray, inputs: tuple[int, ...], dt_s: float) -> list[tuple[int, int, int]]:
+        """(hole, input, shape) of every coefficient, holes in order of first appearance."""
+        band = self.band_factor * abs(float(theta[PARAM_INDEX["inv_tau_s"]])) / (2.0 * np.pi)
+        hole = np.arange(self.window.size) if self.hole is None else self.hole
+        keys: list[tuple[int, int, int]] = []
+        seen: set[int] = set()
+        for a, b, hid in zip(self.a, self.b, hole, strict=True):
+            if int(hid) in seen:
+                continue
+            seen.add(int(hid))
+            keys += [(int(hid), i, j) for i in inputs for j in range(basis_count(int(b - a), dt_s, band))]
+        return keys
+
+    def _var_of(self, hid: int) -> np.ndarray:
+        hole = np.arange(self.window.size) if self.hole is None else self.hole
+        return self.var[int(np.flatnonzero(hole == hid)[0])]
+
+    def _inputs(self, cost: Any) -> tuple[int, ...]:
+        return tuple(i for sub in cost.sim.subsystems if sub in self.subsystems for i in _SUBS[sub][1])
+
+    def responses(self, cost: Any, x: np.ndarray, sigma: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list] | None:
+        """(window (q,), coefficient (q,), weighted residual responses (q, L n_used), prior precision
+        (G,), coefficient keys) of the hole-input coefficients in ``cost``'s windows at ``x``: each row
+        the response of its window's part of one coefficient, through the window's initial-state least
+        squares (exact: the outputs are linear in the inputs); None without any, or when the responses
+        are not finite (a model that runs away)."""
+        sim, win = cost.sim, cost.windows
+        theta = cost.full(np.asarray(x, dtype=float)[None])[0]
+        inputs = self._inputs(cost)
+        if not inputs:
+            return None
+        w_idx, U, prec, coef = self.columns(theta, inputs, sim.L, sim.dt_s)
+        if w_idx.size == 0:
+            return None
+        meas = None if win.measured is None else win.measured[w_idx]
+        kw = dict(estimate_all_initial=sim.estimate_all_initial, subsystems=sim.subsystems, measured=meas,
+                  scales=sim.scales, window_offsets=sim.window_offsets)
+        y, av = win.outputs[w_idx], win.available[w_idx]
+        e1 = WindowSimulator(U, y, sim.dt_s, av, **kw).errors(theta[None])[0]
+        e0 = WindowSimulator(np.zeros_like(U), y, sim.dt_s, av, **kw).errors(theta[None])[0]
+        Jc = ((e1 - e0) / np.asarray(sigma, dtype=float)[None, None, :])[..., cost.used].reshape(w_idx.size, -1)
+        if not np.isfinite(Jc).all():
+            return None
+        return w_idx, coef, Jc, prec, self.coefficients(theta, inputs, sim.dt_s)
+
+    @staticmethod
+    def _normal(w_idx: np.ndarray, coef: np.ndarray, Jc: np.ndarray, prec: np.ndarray,
+                per_window: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(Jc^T Jc + P (G, G), Jc^T V (G, ...))`` with ``V`` the window blocks ``per_window`` (W, L n_used, ...)."""
+        G = prec.size
+        N = np.diag(prec).astype(float)
+        rhs = np.zeros((G,) + per_window.shape[2:])
+        for w in np.unique(w_idx):
+            sel = np.flatnonzero(w_idx == w)
+            C = Jc[sel]
+            np.add.at(N, (coef[sel][:, None], coef[sel][None, :]), C @ C.T)
+            np.add.at(rhs, coef[sel], np.tensordot(C, per_window[w], axes=(1, 0)))
+        return N, rhs
+
+    def solve(self, cost: Any, x: np.ndarray, sigma: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
+        """The hole-input coefficients that minimise ``cost``'s weighted output error at ``x`` (channel
+        scales ``sigma`` (8,)) plus the prior ``c^T P c``, the inputs of ``cost``'s windows being the
+        straight lines: one linear solve. Returns ``{(hole, input): (k,) coefficients}`` (empty when
+        there is nothing to solve)."""
+        got = self.responses(cost, x, sigma)
+        if got is None:
+            return {}
+        w_idx, coef, Jc, prec, keys = got
+        r = cost.residuals(np.asarray(x, dtype=float)[None], sigma)[0].reshape(cost.sim.W, -1)
+        N, g = self._normal(w_idx, coef, Jc, prec, r)
+        try:
+            c = -np.linalg.solve(N, g)
+        except np.linalg.LinAlgError:
+            return {}
+        out: dict[tuple[int, int], list[float]] = {}
+        for (h, i, _), v in zip(keys, c, strict=True):
+            out.setdefault((h, i), []).append(float(v))
+        return {key: np.array(v) for key, v in out.items()}
+
+    def fill(self, segments: list, coeffs: dict[tuple[int, int], np.ndarray]) -> list:
+        """``segments`` with each hole's inputs the straight line plus its shapes times ``coeffs``
+        (:meth:`solve`); segments without a solved hole are returned as they are."""
+        new = {}
+        for (h, i), c in coeffs.items():
+            si, a, b = self.runs[h]
+            if si not in new:
+                new[si] = np.array(segments[si].inputs, dtype=float)
+            new[si][a:b, i] += _basis(b - a, c.size) @ c
+        return [replace(s, inputs=new[j]) if j in new else s for j, s in enumerate(segments)]
 
     def marginal_jacobian(self, cost: Any, x: np.ndarray, sigma: np.ndarray, J: np.ndarray) -> np.ndarray:
         """``J`` (W L n_used, D), the Jacobian of ``cost``'s weighted residuals at ``x`` (channel scales
-        ``sigma`` (8,)), with the hole-input coefficients projected out window by window:
+        ``sigma`` (8,)), with the hole-input coefficients projected out:
         ``J - Jc (Jc^T Jc + P)^-1 Jc^T J`` (``Jc`` their residual responses, ``P`` their prior precision)."""
-        sim, win = cost.sim, cost.windows
-        theta = cost.full(np.asarray(x, dtype=float)[None])[0]
-        inputs = tuple(i for sub in sim.subsystems if sub in self.subsystems for i in _SUBS[sub][1])
-        if not inputs:
+        got = self.responses(cost, x, sigma)
+        if got is None:
             return J
-        w_idx, U, prec = self.columns(theta, inputs, sim.L, sim.dt_s)
-        if w_idx.size == 0:
-            return J
-        meas = None if win.measured is None else win.measured[w_idx]
-        kw = dict(estimate_all_initial=sim.estimate_all_initial, subsystems=sim.subsystems, measured=meas)
-        e1 = WindowSimulator(U, win.outputs[w_idx], sim.dt_s, win.available[w_idx], **kw).errors(theta[None])[0]
-        e0 = WindowSimulator(np.zeros_like(U), win.outputs[w_idx], sim.dt_s, win.available[w_idx], **kw).errors(theta[None])[0]
-        Jc = ((e1 - e0) / np.asarray(sigma, dtype=float)[None, None, :])[..., cost.used].reshape(w_idx.size, -1)
-        if not np.isfinite(Jc).all():
-            return J
-        out = np.array(J, dtype=float).reshape(sim.W, -1, J.shape[1])
-        for w in np.unique(w_idx):
-            sel = w_idx == w
-            C = Jc[sel].T                                                 # (L n_used, q)
-            M = C.T @ C + np.diag(prec[sel])
-            out[w] -= C @ np.linalg.solve(M, C.T @ out[w])
+        w_idx, coef, Jc, prec, _ = got
+        out = np.array(J, dtype=float).reshape(cost.sim.W, -1, J.shape[1])
+        N, JcJ = self._normal(w_idx, coef, Jc, prec, out)
+        D = np.linalg.solve(N, JcJ)                                      # (G, D)
+        for q in range(w_idx.size):
+            out[w_idx[q]] -= np.outer(Jc[q], D[coef[q]])
         return out.reshape(J.shape)
 
 
 def window_holes(segments: list, win: Any, band_factor: float = IdentifyConfig.hole_input_band,
-                 subsystems: tuple[int, ...] = (0, 1)) -> WindowHoles | None:
+                 subsystems: tuple[int, ...] = (0, 1), local_s: float = IdentifyConfig.hole_input_prior_s) -> WindowHoles | None:
     """Where the bridged holes of ``segments`` lie in the windows ``win``
     (:class:`~groundstation.sysid.cost.Windows` cut from them); None without any."""
     L = win.length
-    rows: list[tuple[int, int, int, np.ndarray]] = []
-    cache: dict[int, tuple[list[tuple[int, int]], dict[int, np.ndarray]]] = {}
+    local_n = int(round(local_s / win.dt_s))
+    rows: list[tuple[int, int, int, np.ndarray, int]] = []
+    cache: dict[int, tuple[list[tuple[int, int]], dict[tuple[int, int], np.ndarray]]] = {}
+    ids: dict[tuple[int, int, int], int] = {}
     for w in range(win.count):
         si = int(win.segment[w])
         seg = segments[si]
@@ -313,10 +419,10 @@ def window_holes(segments: list, win: Any, band_factor: float = IdentifyConfig.h
         s = int(np.searchsorted(seg.t_s, win.t0_s[w] - 0.25 * win.dt_s))
         for a, b in runs:
             if b > s and a < s + L:
-                if b - a not in var:
-                    var[b - a] = line_error_var(seg.inputs, np.asarray(br, dtype=bool), b - a)
-                rows.append((w, a - s, b - s, var[b - a]))
+                hid = ids.setdefault((si, a, b), len(ids))
+                rows.append((w, a - s, b - s, _prior_var(var, seg.inputs, np.asarray(br, dtype=bool), a, b, local_n), hid))
     if not rows:
         return None
-    w_, a_, b_, v_ = zip(*rows, strict=True)
-    return WindowHoles(np.array(w_), np.array(a_), np.array(b_), np.array(v_), float(band_factor), tuple(subsystems))
+    w_, a_, b_, v_, h_ = zip(*rows, strict=True)
+    return WindowHoles(np.array(w_), np.array(a_), np.array(b_), np.array(v_), float(band_factor), tuple(subsystems),
+                       np.array(h_), tuple(ids))

@@ -45,7 +45,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Any
 
@@ -70,6 +70,7 @@ from groundstation.sysid.model import (
     bounds_array,
 )
 from groundstation.sysid.optimizers import ALGORITHMS
+from groundstation.sysid.refine import _sigma as noise_scales
 from groundstation.sysid.refine import map_objective, with_standard_errors
 from groundstation.sysid.refine import refine as refine_ls
 from groundstation.sysid.select import best_refinement, select_config
@@ -254,7 +255,7 @@ def _plan(prepared: Any, cfg: IdentifyConfig, refine: bool, bounds: dict | None,
     pr = _prior_arrays(prior)
     if pr is not None and cfg.prior_scale != 1.0:
         pr = (pr[0], pr[1] * float(cfg.prior_scale))
-    holes = window_holes(prepared.segments, win, cfg.hole_input_band, _hole_subsystems(cfg)) \
+    holes = window_holes(prepared.segments, win, cfg.hole_input_band, _hole_subsystems(cfg), cfg.hole_input_prior_s) \
         if estimates_hole_inputs(prepared, cfg) else None
     return _Plan(win, win_s, forcing, forcing_s, free, reasons, bounds_array(bounds), pr,
                  kf if refine else [], pmap, holes)
@@ -653,18 +654,52 @@ def estimates_hole_inputs(prepared: Any, cfg: IdentifyConfig) -> bool:
 
 def refit_hole_inputs(prepared: Any, model: HoverModel, cfg: IdentifyConfig, *, prior: Any = None,
                       bounds: dict | None = None, pmap: Map = serial_map) -> tuple[Any, HoverModel]:
-    """``cfg.hole_input_passes`` times: the inputs in the link's holes estimated with the model
-    (:func:`~groundstation.sysid.hole_inputs.estimate_hole_inputs`, always from the prepared data's
-    own bridges), then the model refined on them (:func:`fit_candidate`). Returns the data with the
-    last estimate and the model refined on it."""
-    kf = tuple(c.strip() for c in cfg.kinematic_forcing.split(",") if c.strip())
+    """``cfg.hole_input_passes`` times: the inputs in the link's holes estimated with the model, always
+    from the prepared data's own bridges (:func:`solve_hole_inputs`), then the model refined on them
+    (:func:`fit_candidate`). Returns the data with the last estimate and the model refined on it."""
     filled = prepared
     for _ in range(cfg.hole_input_passes):
-        filled = estimate_hole_inputs(prepared, model, horizon_s=cfg.hole_input_horizon_s,
-                                      band_factor=cfg.hole_input_band, forcing_channels=kf,
-                                      subsystems=_hole_subsystems(cfg))
+        filled = solve_hole_inputs(prepared, model, cfg, bounds=bounds, prior=prior)
         model = fit_candidate(filled, model, cfg, prior=prior, bounds=bounds, pmap=pmap)
     return filled, model
+
+
+def solve_hole_inputs(prepared: Any, model: HoverModel, cfg: IdentifyConfig, *, bounds: dict | None = None,
+                      prior: Any = None) -> Any:
+    """``prepared`` with the inputs in its bridged holes estimated with ``model``: by default
+    (``hole_input_solve = "windows"``) the coefficients that minimise the refinement's own cost at the
+    model's parameters and noise scales (:meth:`~groundstation.sysid.hole_inputs.WindowHoles.solve`),
+    so that refit and estimate alternate on one cost and meet at its joint minimum; "stretch":
+    :func:`~groundstation.sysid.hole_inputs.estimate_hole_inputs`."""
+    subs = _hole_subsystems(cfg)
+    if cfg.hole_input_solve == "stretch":
+        kf = tuple(c.strip() for c in cfg.kinematic_forcing.split(",") if c.strip())
+        return estimate_hole_inputs(prepared, model, horizon_s=cfg.hole_input_horizon_s,
+                                    band_factor=cfg.hole_input_band, forcing_channels=kf, subsystems=subs,
+                                    prior_s=cfg.hole_input_prior_s)
+    if cfg.hole_input_solve != "windows":
+        raise SysidError(f"identify.hole_input_solve: {cfg.hole_input_solve!r}; allowed windows, stretch")
+    plan = _plan(prepared, cfg, True, bounds, prior, search=False)
+    if plan.holes is None:
+        return prepared
+    theta = model.theta
+    ns = dict(getattr(model.fit, "noise_sigma", {}) or {})
+    coeffs: dict = {}
+    for sub, sub_params in ((0, HOR_PARAMS), (1, VER_PARAMS)):
+        if sub not in subs:
+            continue
+        sub_free = np.zeros(N_PARAMS, dtype=bool)
+        sub_free[[PARAM_INDEX[p] for p in sub_params]] = True
+        cost = _refine_cost(plan, cfg, sub, sub_free, theta, cfg.input_offsets)
+        if cost.used.any():   # the model's noise scales, else the residual's on these windows
+            x = theta[sub_free]
+            sigma = np.array([float(ns.get(c, s)) for c, s in zip(OUTPUTS, noise_scales(cost, x), strict=True)])
+            coeffs.update(plan.holes.solve(cost, x, sigma))
+    lq = dict(getattr(prepared, "link_quality", {}) or {})
+    band = cfg.hole_input_band * abs(float(model.params["inv_tau_s"])) / (2.0 * np.pi)
+    lq["inputs_in_holes"] = {"estimated_holes": len({h for h, _ in coeffs}), "band_hz": round(band, 3),
+                             "solve": "windows"}
+    return replace(prepared, segments=plan.holes.fill(prepared.segments, coeffs), link_quality=lq)
 
 
 def _hole_subsystems(cfg: IdentifyConfig) -> tuple[int, ...]:

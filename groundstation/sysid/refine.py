@@ -24,6 +24,7 @@ import numpy as np
 from groundstation.sysid.cost import WindowedCost
 from groundstation.sysid.optimizers import OptimizeResult
 from groundstation.sysid.settings import IdentifyConfig
+from groundstation.sysid.simulate import objective_of_sse
 
 #: residual bytes simulated per batch of perturbed candidates in the finite-difference Jacobians.
 #: Small on purpose: the simulation's temporaries are a few times this, and temporaries of tens of
@@ -87,14 +88,15 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
 
         res = levenberg_marquardt(cost, x, lo, hi, sig, max_nfev=max_nfev, prior=prior, ftol=ftol)
         x = res.x
-        sigma = _sigma(cost, x, weighting)
+        sse = _sse(cost, x)
+        sigma = _sigma(cost, x, weighting, sse)
     assert res is not None
     J = None
     std = np.full(x.size, np.nan)
     share = np.zeros(x.size)
     if with_std:
         J, std, share = standard_errors(cost, x, sigma, b, ps)
-    F = float(cost(x[None])[0])
+    F = float(objective_of_sse(cost.sim, sse[None])[0])   # eq. 11 from the scales' simulation: no second one
     map_cost = float(res.cost)
     nit = int(res.nfev)
     return OptimizeResult(x=x, fun=F, sigma=sigma, std=std, nfev=cost.nfev - nfev0, jac=J, success=bool(res.success),
@@ -282,11 +284,16 @@ def posterior_std(cov_data: np.ndarray, prior_std: np.ndarray) -> tuple[np.ndarr
     return std, share
 
 
-def _sigma(cost: WindowedCost, x: np.ndarray, weighting: str = "noise") -> np.ndarray:
+def _sse(cost: WindowedCost, x: np.ndarray) -> np.ndarray:
+    """Per-channel sum of squared output errors (8,) at ``x`` (one simulation)."""
+    return cost.sim.sse(cost.full(x[None]))[0]
+
+
+def _sigma(cost: WindowedCost, x: np.ndarray, weighting: str = "noise", sse: np.ndarray | None = None) -> np.ndarray:
     """Per-channel residual scale (8,); unused channels 1. "noise": the RMS of the output error over
     used samples; "signal": the channel's signal spread (eq. 11) times one common factor that makes
-    the weighted residual RMS one."""
-    sse = cost.sim.sse(cost.full(x[None]))[0]
+    the weighted residual RMS one. ``sse``: :func:`_sse` at ``x`` when already simulated."""
+    sse = _sse(cost, x) if sse is None else sse
     n = cost.sim.smask.sum(axis=(0, 1))
     ok = n > 0
     if weighting == "signal":

@@ -152,6 +152,9 @@ class WindowSimulator:
     window_offsets : solve one constant offset per input in each window, with the window's unmeasured
         initial states (a stabiliser's integrator trim, or a stick held away from its logged value, that
         changes from window to window); excludes ``estimate_trim``
+    scales : (8,) channel scales of the initial-state least squares' weights (default: the outputs' own,
+        :func:`channel_scales`), e.g. another simulator's, so that responses computed on a few of its
+        windows are weighted as there
     estimate_trim : also solve, per subsystem, one constant offset per input shared by all windows
         (the model sees ``u - delta``): the input trim, which the in-air median only approximates,
         is a nuisance of the perturbation model like the initial states (see :meth:`solve_trim`)
@@ -175,7 +178,7 @@ class WindowSimulator:
                  linear: dict[int, tuple[tuple[int, int], ...]] | None = None,
                  lifted_block: tuple[int, int] = (5, 5), estimate_trim: bool = False,
                  forcing: np.ndarray | None = None, measured: np.ndarray | None = None,
-                 window_offsets: bool = False) -> None:
+                 window_offsets: bool = False, scales: np.ndarray | None = None) -> None:
         u = np.asarray(inputs, dtype=float)
         y = np.asarray(outputs, dtype=float)
         if u.ndim != 3 or u.shape[2] != 4 or y.ndim != 3 or y.shape[2] != 8 or u.shape[:2] != y.shape[:2]:
@@ -198,7 +201,8 @@ class WindowSimulator:
         if self.holes:
             assert measured is not None
             self.smask &= np.asarray(measured, dtype=bool)
-        self.scales = channel_scales(self.outputs, self.mask, self.smask if self.holes else None)
+        self.scales = channel_scales(self.outputs, self.mask, self.smask if self.holes else None) if scales is None \
+            else np.asarray(scales, dtype=float)
         self.weights = self.mask / self.scales[None, :] ** 2  # (W, 8) LS weights, same as eq. 11 normalisation
         self.estimate_all_initial = estimate_all_initial
         self.ridge = ridge
@@ -770,7 +774,11 @@ def objective(yhat: np.ndarray, y: np.ndarray, available: np.ndarray | None = No
 
 def objective_from_sse(sim: WindowSimulator, theta: np.ndarray) -> np.ndarray:
     """Eq. (11) for C candidates without assembling yhat; shape (C,)."""
-    sse = sim.sse(theta)
+    return objective_of_sse(sim, sim.sse(theta))
+
+
+def objective_of_sse(sim: WindowSimulator, sse: np.ndarray) -> np.ndarray:
+    """Eq. (11) of C candidates from their per-channel sums of squared errors (C, 8) (:meth:`WindowSimulator.sse`)."""
     used = sim.mask.any(axis=0)
     F = (np.sqrt(sse) / sim.scales[None, :])[:, used].sum(axis=1)
     return np.where(np.isfinite(F), F, 1e12)

@@ -357,3 +357,50 @@ def test_identify_refits_on_the_estimated_hole_inputs(lossy):
     for k in ("M_a", "L_b", "A_lat", "B_lon"):
         assert m.parameter_std[k] is not None and np.isfinite(m.parameter_std[k])
         assert abs(m.params[k] - truth[k]) < 0.3 * abs(truth[k])
+
+
+def test_the_window_solve_minimises_the_refinement_cost_over_the_hole_inputs(lossy):
+    """``hole_input_solve = "windows"``: the hole inputs that minimise the refinement's own cost plus the
+    prior at the model, all holes at once; a hole cut by a window's edge has one set of coefficients."""
+    from dataclasses import replace
+
+    from groundstation.sysid.cost import WindowedCost, make_windows
+    from groundstation.sysid.hole_inputs import window_holes
+    from groundstation.sysid.model import HOR_PARAMS, PARAM_INDEX, theta_from_dict
+
+    _, clean, truth = lossy
+    c = prepare([clean])
+    p = replace(c, segments=[_holed(s, np.random.default_rng(3)) for s in c.segments])
+    win = make_windows(p.segments, p.dt_s, 3.0)
+    holes = window_holes(p.segments, win, subsystems=(0,))
+    assert holes is not None and holes.hole is not None
+    shared = [h for h in np.unique(holes.hole) if (holes.hole == h).sum() > 1]
+    assert shared, "no hole cut by a window edge in this flight"
+    free = np.zeros(31, bool)
+    free[[PARAM_INDEX[n] for n in HOR_PARAMS]] = True
+    theta = theta_from_dict(truth)
+    cost = WindowedCost(win, free, theta, estimate_all_initial=True, subsystems=(0,))
+    x, sigma = theta[free], np.array([0.05, 0.05, 1.0, 0.01, 0.01, 1.0, 0.005, 0.005])
+    coeffs = holes.solve(cost, x, sigma)
+    assert {h for h, _ in coeffs} == set(np.unique(holes.hole).tolist()) and {i for _, i in coeffs} == {0, 1}
+    keys = holes.coefficients(theta, (0, 1), p.dt_s)
+    prec = holes.columns(theta, (0, 1), win.length, p.dt_s)[2]
+
+    def objective(cf):
+        f = replace(p, segments=holes.fill(p.segments, cf))
+        wf = make_windows(f.segments, f.dt_s, 3.0)
+        r = WindowedCost(wf, free, theta, estimate_all_initial=True, subsystems=(0,)).residuals(x[None], sigma)
+        cv = np.concatenate([cf[(h, i)][j:j + 1] for h, i, j in keys])
+        return float((r ** 2).sum() + cv @ (prec * cv))
+
+    best = objective(coeffs)
+    assert best < objective({k: 0 * v for k, v in coeffs.items()})
+    rng = np.random.default_rng(1)
+    for _ in range(3):   # any other coefficients cost more
+        other = {k: v + 0.2 * np.abs(v).max() * rng.standard_normal(v.size) for k, v in coeffs.items()}
+        assert objective(other) > best
+    # the filled inputs differ from the lines only inside the holes, and only lat and lon
+    f = replace(p, segments=holes.fill(p.segments, coeffs))
+    for s, fs in zip(p.segments, f.segments, strict=True):
+        np.testing.assert_array_equal(fs.inputs[~s.inputs_bridged], s.inputs[~s.inputs_bridged])
+        np.testing.assert_array_equal(fs.inputs[:, 2:], s.inputs[:, 2:])

@@ -47,6 +47,18 @@ def test_a_parameter_held_by_its_bound_stays_on_it():
     assert min(abs(res.x[i] - b[i, 0]), abs(res.x[i] - b[i, 1])) < 1e-9 * abs(b[i, 1] - b[i, 0]) + 1e-12
 
 
+def test_the_refined_cost_and_scales_are_those_of_the_solution():
+    """``fun`` and ``sigma`` come from one simulation at the solution: the eq. 11 cost exactly as the
+    cost function gives it there, and the residual RMS per channel."""
+    cost, th, free = _cost()
+    b = bounds_array()[free]
+    res = refine(cost, np.clip(th[free] * 1.2, b[:, 0], b[:, 1]), b, passes=2, max_nfev=20, with_std=False)
+    assert res.fun == float(cost(res.x[None])[0])
+    e = cost.residuals(res.x[None], np.ones(8))[0]
+    used = np.flatnonzero(cost.used)
+    np.testing.assert_allclose(res.sigma[used], np.sqrt((e ** 2).mean(axis=(0, 1))), rtol=1e-12)
+
+
 def test_a_fold_refit_tolerance_stops_a_start_near_the_optimum_only():
     cost, th, free = _cost()
     b = bounds_array()[free]
@@ -91,7 +103,8 @@ subprocess.Popen([sys.executable, "-c", busy])   # not waited for: an orphan onc
 
 def test_command_cpu_counts_the_processes_the_command_leaves_behind():
     """``bench identify --profile``'s whole-command CPU: a process the command started and did not wait
-    for (as a fork server's workers) still counts, on Linux, where it is adopted and reaped."""
+    for (as a fork server's workers) still counts, on Linux, where it is adopted and reaped; this
+    process's own children (a fork server of earlier tests) neither count nor hold it up."""
     import sys
 
     from groundstation.bench.identify import command_cpu
