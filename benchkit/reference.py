@@ -59,9 +59,10 @@ def fit_reference(prepared: Any, *, starts: int = 4, seed: int = 0, window_s: fl
 def _cut(seg: Any, a_s: float, b_s: float) -> Any:
     """``seg`` restricted to the times a_s..b_s."""
     k = (seg.t_s >= a_s - 1e-9) & (seg.t_s <= b_s + 1e-9)
-    m = seg.measured
+    m, br, st = seg.measured, seg.inputs_bridged, seg.settling
     return replace(seg, t_s=seg.t_s[k], inputs=seg.inputs[k], outputs=seg.outputs[k], outputs_raw=seg.outputs_raw[k],
-                   alt_m=seg.alt_m[k], measured=None if m is None else m[k])
+                   alt_m=seg.alt_m[k], measured=None if m is None else m[k],
+                   inputs_bridged=None if br is None else br[k], settling=None if st is None else st[k])
 
 
 def shift_profile(prepared: Any, *, grid_s: tuple[float, ...] = tuple(np.round(np.arange(-0.08, 0.201, 0.04), 3)),

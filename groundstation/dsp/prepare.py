@@ -167,6 +167,9 @@ class Segment:
         measured: a cost must not count it); None = every sample of the available channels measured
     inputs_bridged : (n,) bool or None; True where the inputs are a straight line over a hole of the
         link; None = no input sample bridged
+    settling : (n, 8) bool or None; True where a sample was measured but is left out of ``measured``
+        while the rotor settles after a bridged input (``settle_after_bridge_tau``): an analysis that
+        estimates the inputs inside the holes may count it again; None = no such sample
     """
 
     t_s: np.ndarray
@@ -179,6 +182,7 @@ class Segment:
     source: str
     measured: np.ndarray | None = None
     inputs_bridged: np.ndarray | None = None
+    settling: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -254,6 +258,7 @@ class _Raw:
     native_s: np.ndarray  # (12,) median source sample interval of lat lon col ped u v w p q r theta phi
     measured: np.ndarray  # (n, 8) output sample measured (not bridged over a hole)
     bridged: np.ndarray  # (n,) input sample bridged over a hole
+    settling: np.ndarray  # (n, 8) measured, but left out while the rotor settles after a bridged input
 
 
 def _series_gap(cfg: PrepConfig, t_src: np.ndarray) -> float:
@@ -507,7 +512,8 @@ def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str], holes: list[float
             meas[:, 0:2] = (vel_meas[:, :2].all(axis=1) & att_m)[:, None]
             meas[:, 2] = vel_meas.all(axis=1) & att_m
             bridged = ~np.asarray(pwm_meas.all(axis=1), dtype=bool)
-            meas &= ~_settling(bridged, cfg)[:, None]
+            settling = meas & _settling(bridged, cfg)[:, None]
+            meas &= ~settling
             alt_t, alt = _altitude(log, float(fl.start_fc_s), float(fl.end_fc_s))
             if alt_t is not None:
                 alt_g, _ = interpolate_onto(alt_t, alt, t, _bridge(cfg, alt_t))
@@ -517,7 +523,7 @@ def _raw_segments(log: Any, cfg: PrepConfig, notes: list[str], holes: list[float
                 outputs, avail = _segment_outputs(at[sl], vel[sl], lab, cfg)
                 out.append(_Raw(t_s=t[sl], pwm=pwm[sl], outputs=outputs, alt_m=alt_g[sl], available=avail,
                                 flight=int(fl.index), source=src, native_s=native_s, measured=meas[sl],
-                                bridged=bridged[sl]))
+                                bridged=bridged[sl], settling=settling[sl]))
     if n_air == 0 and ground:
         raise DspError(f"{src}: the aircraft never left the ground, nothing to identify: in-air time from "
                          f"height alone, but no rotor vibration and no body motion: {'; '.join(ground)}")
@@ -710,7 +716,8 @@ def prepare(logs: list[Any], config: PrepConfig | None = None) -> PreparedData:
         segs.append(Segment(t_s=r.t_s, inputs=inputs, outputs=sm, outputs_raw=raw_out, alt_m=r.alt_m,
                             available=r.available.copy(), flight=r.flight, source=r.source,
                             measured=r.measured.copy() if unmeasured.any() else None,
-                            inputs_bridged=r.bridged.copy() if r.bridged.any() else None))
+                            inputs_bridged=r.bridged.copy() if r.bridged.any() else None,
+                            settling=r.settling.copy() if r.settling.any() else None))
     if cfg.velocity_check:
         segs = _drop_inconsistent_velocities(segs, 1.0 / cfg.rate_hz, notes)
     lq = link_quality(logs, raws, holes, cfg)

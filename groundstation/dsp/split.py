@@ -29,9 +29,10 @@ from groundstation.errors import DspError
 def _slice(seg: Segment, a: int, b: int) -> Segment:
     m = getattr(seg, "measured", None)
     br = getattr(seg, "inputs_bridged", None)
+    st = getattr(seg, "settling", None)
     return replace(seg, t_s=seg.t_s[a:b], inputs=seg.inputs[a:b], outputs=seg.outputs[a:b],
                    outputs_raw=seg.outputs_raw[a:b], alt_m=seg.alt_m[a:b], measured=None if m is None else m[a:b],
-                   inputs_bridged=None if br is None else br[a:b])
+                   inputs_bridged=None if br is None else br[a:b], settling=None if st is None else st[a:b])
 
 
 def block_labels(n: int, block_n: int, k: int) -> np.ndarray:

@@ -43,8 +43,10 @@ def _shift_segment(seg: Any, shift_s: float) -> Any | None:
     m = seg.measured
     br = getattr(seg, "inputs_bridged", None)   # where the inputs were bridged moves with them
     br = None if br is None else np.interp(tt[keep], t, br.astype(float)) > 0.0
+    st = getattr(seg, "settling", None)
     return replace(seg, t_s=t[keep], inputs=u, outputs=seg.outputs[keep], outputs_raw=seg.outputs_raw[keep],
-                   alt_m=seg.alt_m[keep], measured=None if m is None else m[keep], inputs_bridged=br)
+                   alt_m=seg.alt_m[keep], measured=None if m is None else m[keep], inputs_bridged=br,
+                   settling=None if st is None else st[keep])
 
 
 def shift_inputs(prepared: Any, shift_s: float) -> Any:

@@ -656,12 +656,30 @@ def refit_hole_inputs(prepared: Any, model: HoverModel, cfg: IdentifyConfig, *, 
                       bounds: dict | None = None, pmap: Map = serial_map) -> tuple[Any, HoverModel]:
     """``cfg.hole_input_passes`` times: the inputs in the link's holes estimated with the model, always
     from the prepared data's own bridges (:func:`solve_hole_inputs`), then the model refined on them
-    (:func:`fit_candidate`). Returns the data with the last estimate and the model refined on it."""
-    filled = prepared
+    (:func:`fit_candidate`); with ``hole_input_count_settling`` both count the outputs right after the
+    holes (:func:`count_settling`). Returns the data with the last estimate and the model refined on it."""
+    base = count_settling(prepared) if cfg.hole_input_count_settling else prepared
+    filled = base
     for _ in range(cfg.hole_input_passes):
-        filled = solve_hole_inputs(prepared, model, cfg, bounds=bounds, prior=prior)
+        filled = solve_hole_inputs(base, model, cfg, bounds=bounds, prior=prior)
         model = fit_candidate(filled, model, cfg, prior=prior, bounds=bounds, pmap=pmap)
     return filled, model
+
+
+def count_settling(prepared: Any) -> Any:
+    """``prepared`` with the output samples that data preparation left out while the rotor settles after
+    a bridged input (``settle_after_bridge_tau``: the straight line's error still moves the rotor there)
+    counted again: once the inputs in the holes are estimated, they are the outputs that show what the
+    inputs did."""
+    segs = []
+    for s in prepared.segments:
+        st = getattr(s, "settling", None)
+        if st is None or s.measured is None:
+            segs.append(s)
+            continue
+        m = s.measured | st
+        segs.append(replace(s, measured=None if m[:, s.available].all() else m, settling=None))
+    return replace(prepared, segments=segs)
 
 
 def solve_hole_inputs(prepared: Any, model: HoverModel, cfg: IdentifyConfig, *, bounds: dict | None = None,

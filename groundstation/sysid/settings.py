@@ -40,6 +40,10 @@ class IdentifyConfig:
     #: cost. "windows" estimated the inputs worse (each window's states restart, so a hole late in a window
     #: is seen by few outputs) and kept 8/8 key parameters on 5 of 8 flights at 10 % loss, against 7
     hole_input_solve: str = "stretch"
+    #: hole inputs: the estimate and the refits count the outputs right after each hole, which data
+    #: preparation leaves out while the rotor settles after a straight line (``[prepare]
+    #: settle_after_bridge_tau``): with the inputs estimated, they show what the inputs did
+    hole_input_count_settling: bool = True
     #: hole inputs: the prior variance of each hole's coefficients is the straight line's error over holes
     #: of its length measured on the inputs within this long either side of it (s; 0: over its whole
     #: segment), so that it follows how busy the inputs are there. 1 s against 0 at 10 % loss (seeds

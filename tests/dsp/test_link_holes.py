@@ -404,3 +404,26 @@ def test_the_window_solve_minimises_the_refinement_cost_over_the_hole_inputs(los
     for s, fs in zip(p.segments, f.segments, strict=True):
         np.testing.assert_array_equal(fs.inputs[~s.inputs_bridged], s.inputs[~s.inputs_bridged])
         np.testing.assert_array_equal(fs.inputs[:, 2:], s.inputs[:, 2:])
+
+
+def test_outputs_left_out_while_the_rotor_settles_count_again_with_estimated_inputs(lossy):
+    """Data preparation leaves out the outputs right after a bridged input (the line's error still moves
+    the rotor) and says which; with the hole inputs estimated, identification counts them again."""
+    from groundstation.sysid.identify import count_settling
+
+    log, clean, _ = lossy
+    p = prepare([log])
+    seg = max(p.segments, key=lambda s: s.n)
+    assert seg.settling is not None and seg.settling.any()
+    assert not (seg.measured & seg.settling).any()                  # left out of the cost
+    after = np.zeros(seg.n, bool)
+    after[1:] = seg.inputs_bridged[:-1]
+    assert seg.settling[after & ~seg.inputs_bridged].any()            # right after a bridged stretch
+    c = count_settling(p)
+    cs = max(c.segments, key=lambda s: s.n)
+    np.testing.assert_array_equal(cs.measured, seg.measured | seg.settling)
+    assert cs.settling is None and cs.inputs_bridged is seg.inputs_bridged
+    # without a settling sample (a clean flight, or settle_after_bridge_tau = 0) nothing changes
+    q = prepare([clean])
+    assert all(a is b for a, b in zip(count_settling(q).segments, q.segments, strict=True))
+    assert all(s.settling is None for s in prepare([log], PrepConfig(settle_after_bridge_tau=0.0)).segments)
