@@ -146,6 +146,7 @@ class Context:
         # residual at theta0, the weighted response of the fitted simulation per input channel
         self._linear: tuple[bytes, np.ndarray, np.ndarray] | None = None
         self._response: dict[int, np.ndarray] = {}
+        self._quadratic: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def variants_residual(self, U_list: list[np.ndarray] | None = None,
                           Y_list: list[np.ndarray] | None = None) -> np.ndarray:
@@ -168,6 +169,7 @@ class Context:
             yh = lsim(ev.theta0, U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available, start=ev.start)[0]
             self._linear = (key, U, ev.residual(yh))
             self._response = {}
+            self._quadratic = {}
         return self._linear[1], self._linear[2]
 
     def response(self, c: int) -> np.ndarray:
@@ -207,6 +209,76 @@ class Context:
             v0 = v1
         return out
 
+    def quadratic(self, c: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What the re-fit's training cost of a variant of input ``c`` needs from the variant's change
+        ``d`` (W, L) of that input alone (windows without holes): with ``R`` the masked :meth:`response`,
+        the variant's residual is ``r0 - d R``, so its squared norm per window is
+        ``|r0|^2 - 2 d.g + d Q d`` and its product with the Jacobian ``Jn^T r0 - Ht d``.
+        Returns ``Q`` (L, L) = R R^T, ``g`` (W, L) = R r0 and ``Ht`` (W, 31, L) = (R Jn)^T per window."""
+        _, r0 = self._base_residual()
+        if c not in self._quadratic:
+            ev = self.ev
+            R = self.response(c) * np.repeat(ev.wmask[:, 0], 8)[None, :]
+            # every window's Jacobian in one product (a stack of small ones is several times slower)
+            Ht = (np.swapaxes(ev.Jn, 1, 2).reshape(-1, R.shape[1]) @ R.T).reshape(ev.W, -1, ev.L)
+            self._quadratic[c] = (R @ R.T, r0.reshape(ev.W, -1) @ R.T, Ht)
+        return self._quadratic[c]
+
+    def input_train(self, groups: Sequence[tuple[int, np.ndarray]]) -> np.ndarray:
+        """The training cost (V, folds) of every fold's re-fit of V variants of single inputs (``groups``
+        as :meth:`input_variants` takes them), the numbers :meth:`Evaluator.heldout_many` gives for
+        their residuals to round-off, from :meth:`quadratic` (no variant's residual formed). Windows
+        without holes only (``ev.wmask`` per sample)."""
+        ev = self.ev
+        U, r0 = self._base_residual()
+        rf0 = r0.reshape(ev.W, -1)
+        rr0 = (rf0 ** 2).sum(axis=1)
+        mtr0 = np.matmul(np.swapaxes(ev.Jn, 1, 2), rf0[..., None])[..., 0]  # (W, 31)
+        rr, mtr = [], []
+        for c, u in groups:
+            Q, g, Ht = self.quadratic(c)
+            d = u - U[None, :, :, c]  # (Vc, W, L)
+            dQ = (d.reshape(-1, ev.L) @ Q).reshape(d.shape)
+            rr.append(rr0 - 2 * (d * g).sum(axis=2) + (dQ * d).sum(axis=2))  # (Vc, W)
+            Hd = np.matmul(Ht, np.ascontiguousarray(np.moveaxis(d, 0, 2)))  # (W, 31, Vc)
+            mtr.append(mtr0 - np.moveaxis(Hd, 2, 0))  # (Vc, W, 31)
+        rr_all, m_all = np.concatenate(rr), np.concatenate(mtr)
+        train = np.empty((rr_all.shape[0], ev.folds))
+        for f in range(ev.folds):
+            tr = ev.fold != f
+            G = ev.JtJ[tr].sum(0)
+            b = m_all[:, tr].sum(axis=1).T  # (31, V)
+            dd = np.linalg.solve(G + ev.ridge * np.trace(G) / G.shape[0] * np.eye(G.shape[0]), b)
+            train[:, f] = rr_all[:, tr].sum(axis=1) - 2 * (dd * b).sum(0) + (dd * (G @ dd)).sum(0)
+        return train
+
+    def nested_inputs(self, effect: str, groups: Sequence[tuple[int, np.ndarray]]) -> tuple[np.ndarray, int, np.ndarray]:
+        """:meth:`nested` over the variants of single inputs ``groups`` (as :meth:`input_variants` takes
+        them): every variant's training costs from :meth:`input_train`, and the residuals and held-out
+        costs of the variants the selection picks only. The same selection as stacking every variant's
+        residual (training costs to round-off). Returns the nested held-out cost (W, 8), the index of the
+        variant with the lowest total training cost and its residual (W, L, 8)."""
+        ev = self.ev
+        V = sum(u.shape[0] for _, u in groups)
+        if self.given is not None or ev.wmask.ndim != 2 or V < 2:
+            rs = self.input_variants(groups)
+            sse, best, _ = self.nested(effect, [({}, r, None) for r in rs], rs)
+            return sse, best, rs[best].copy()
+        T = self.input_train(groups)
+        keep = sorted({int(np.argmin(T[:, f])) for f in range(ev.folds)} | {int(np.argmin(T.sum(axis=1))), V - 1})
+        sub, v0 = [], 0
+        for c, u in groups:
+            mine = [k - v0 for k in keep if v0 <= k < v0 + u.shape[0]]
+            if mine:
+                sub.append((c, u[mine]))
+            v0 += u.shape[0]
+        rs = self.input_variants(sub)
+        s_k, _, b_k = ev.heldout_many(rs)
+        ev.last_blocks = b_k[-1].copy()
+        at = {k: i for i, k in enumerate(keep)}
+        sse, best = self._select(effect, T, lambda v: (s_k[at[v]], b_k[at[v]], rs[at[v]], None))
+        return sse, best, rs[at[best]].copy()
+
     def nested(self, effect: str, variants: Sequence[tuple[dict[str, Any], np.ndarray, np.ndarray | None]],
                rs: np.ndarray | None = None) -> tuple[np.ndarray, int, list[np.ndarray]]:
         """Nested selection over variants (label, r (W,L,8), X or None); ``rs`` (V, W, L, 8): the
@@ -234,28 +306,34 @@ class Context:
                 coefs.append(c[:, :k_own])
                 blks.append(ev.last_blocks.copy())
             T = np.array(trains)  # (V, folds)
+        out, best = self._select(effect, T, lambda v: (sses[v], blks[v], variants[v][1],
+                                                       None if variants[v][2] is None else (variants[v][2], coefs[v])))
+        return out, best, coefs
+
+    def _select(self, effect: str, T: np.ndarray, of: Any) -> tuple[np.ndarray, int]:
+        """The nested selection from the training costs ``T`` (V, folds): per fold the variant with the
+        lowest, scored on that fold; ``of(v)``: variant v's held-out cost (W, 8), blocks (W, n_blocks),
+        residual (W, L, 8) and (X, per-fold coefficients) or None. Records its blocks and prediction
+        change; returns the nested held-out cost (W, 8) and the variant with the lowest total."""
+        ev = self.ev
         out = np.empty((ev.W, 8))
         out_b = np.empty((ev.W, ev.n_blocks))
-        for f in range(ev.folds):
-            v = int(np.argmin(T[:, f]))
-            te = ev.fold == f
-            out[te] = sses[v][te]
-            out_b[te] = blks[v][te]
-        self.blocks[effect] = out_b
-        best = int(np.argmin(T.sum(axis=1)))
         # how much the selected variant changes each window's prediction (at theta0): windows it
         # leaves untouched carry no evidence either way
         change = np.zeros(ev.W)
         for f in range(ev.folds):
             v = int(np.argmin(T[:, f]))
             te = ev.fold == f
-            _, r_b, X_b = variants[v]
+            sse_v, blk_v, r_b, lin = of(v)
+            out[te] = sse_v[te]
+            out_b[te] = blk_v[te]
             d = r_b[te] - ev.r0[te]
-            if X_b is not None:
-                d = d - np.einsum("wlck,k->wlc", X_b[te], coefs[v][f])
+            if lin is not None:
+                d = d - np.einsum("wlck,k->wlc", lin[0][te], lin[1][f])
             change[te] = (d ** 2).sum(axis=(1, 2))
+        self.blocks[effect] = out_b
         self.change[effect] = change
-        return out, best, coefs
+        return out, int(np.argmin(T.sum(axis=1)))
 
 
 def _mask_w(ev: Evaluator, yh: np.ndarray) -> np.ndarray:
@@ -277,13 +355,11 @@ def scan_input_delay(ctx: Context, channels: list[int]) -> Hypothesis:
         groups.append((c, np.stack([ev.cut([shift(s.inputs[:, c], d_s / ev.dt_s) for s in segs])
                                     for d_s in DELAY_GRID_S])))
         labels += [{"channel": c, "delay_s": d_s} for d_s in DELAY_GRID_S]
-    rs = ctx.input_variants(groups)
-    variants = [(lab, r, None) for lab, r in zip(labels, rs, strict=True)]
-    sse, best, _ = ctx.nested("input_delay", variants, rs)
+    sse, best, r_best = ctx.nested_inputs("input_delay", groups)
     lab = labels[best]
     return Hypothesis("input_delay", input=INPUTS[lab["channel"]], estimate={"delay_s": lab["delay_s"]},
                       sse=sse, channels=(3, 4, 5, 6, 7),
-                      extra={"variants": len(variants), "label": lab, "r_best": rs[best].copy()})
+                      extra={"variants": len(labels), "label": lab, "r_best": r_best})
 
 
 def slew_grid(du: np.ndarray) -> np.ndarray:
@@ -303,14 +379,12 @@ def scan_rate_limit(ctx: Context, channels: list[int]) -> Hypothesis:
         groups.append((c, np.moveaxis(ev.cut([rate_limit(s.inputs[:, c], steps) for s in segs]), 2, 0)))
         labels += [{"channel": c, "rate_per_s": float(st / ev.dt_s), "quantile": float(np.mean(du <= st))}
                    for st in steps]
-    rs = ctx.input_variants(groups)
-    variants = [(lab, r, None) for lab, r in zip(labels, rs, strict=True)]
-    sse, best, _ = ctx.nested("rate_limit", variants, rs)
+    sse, best, r_best = ctx.nested_inputs("rate_limit", groups)
     lab = labels[best]
     return Hypothesis("rate_limit", input=INPUTS[lab["channel"]],
                       estimate={"rate_limit_per_s": lab["rate_per_s"],
                                 "rate_limit_pwm_us_per_s": lab["rate_per_s"] * ctx_pwm(ctx)},
-                      sse=sse, channels=(3, 4, 5, 6, 7), extra={"label": lab, "r_best": rs[best].copy()})
+                      sse=sse, channels=(3, 4, 5, 6, 7), extra={"label": lab, "r_best": r_best})
 
 
 def ctx_pwm(ctx: Context) -> float:
@@ -330,9 +404,7 @@ def scan_deadband(ctx: Context, channels: list[int]) -> Hypothesis:
                                       for kind, off in [("deadzone", f) for f in DEADBAND_CENTRE] + [("backlash", 0.0)]]
         groups.append((c, np.stack([ev.cut([deadband_input(s.inputs[:, c], lab) for s in segs]) for lab in labs])))
         labels += labs
-    rs = ctx.input_variants(groups)
-    variants = [(lab, r, None) for lab, r in zip(labels, rs, strict=True)]
-    sse, best, _ = ctx.nested("deadband", variants, rs)
+    sse, best, r_best = ctx.nested_inputs("deadband", groups)
     lab = labels[best]
     # resolution of the recorded input: MAVLink servo/RC values are whole microseconds, so a
     # "deadband" of a few quanta is indistinguishable from quantisation
@@ -340,7 +412,7 @@ def scan_deadband(ctx: Context, channels: list[int]) -> Hypothesis:
     return Hypothesis("deadband", input=INPUTS[lab["channel"]],
                       estimate={"deadband": lab["width"], "deadband_pwm_us": lab["width"] * ctx_pwm(ctx)},
                       sse=sse, channels=(3, 4, 5, 6, 7),
-                      extra={"kind": lab["kind"], "quantum": quantum, "label": lab, "r_best": rs[best].copy()})
+                      extra={"kind": lab["kind"], "quantum": quantum, "label": lab, "r_best": r_best})
 
 
 INPUT_EFFECTS = ("input_delay", "rate_limit", "deadband")

@@ -205,3 +205,29 @@ def test_drag_evidence_reads_as_a_sentence_with_units():
     text = evidence(h, s, {}, [])
     assert text.startswith("-|v|v drag terms drag_u 0.0013 /m, drag_v 0.00032 /m; held-out cost")
     assert "{" not in text
+
+
+def test_input_scans_select_from_training_costs_without_forming_every_variant(flight_factory, paper_theta):
+    """The training costs of input variants from each window's quadratic form equal those of their
+    formed residuals (to round-off), and the nested selection over them gives the same held-out
+    cost, choice, residual, blocks and prediction change as stacking every variant."""
+    from groundstation.gap.diagnose import segments_from_prepared
+    from groundstation.gap.evaluate import Evaluator
+    from groundstation.gap.hypotheses import Context
+
+    prep = flight_factory(T_s=30.0, seed=5, effect=("deadband", 1, 0.02))
+    segs, avail = segments_from_prepared(prep)
+    ev = Evaluator(segs, prep.dt_s, paper_theta * 1.02, avail, window_s=3.0, folds=3)
+    groups = [(c, np.stack([ev.cut([deadzone(s.inputs[:, c], b) for s in segs]) for b in (0.0, 0.005, 0.01, 0.02, 0.03)]))
+              for c in (0, 1)]
+    fast, full = Context(ev, segs), Context(ev, segs)
+    rs = full.input_variants(groups)
+    _, T_formed, _ = ev.heldout_many(rs)
+    np.testing.assert_allclose(fast.input_train(groups), T_formed, rtol=1e-10)
+    sse, best, r_best = fast.nested_inputs("deadband", groups)
+    sse_all, best_all, _ = full.nested("deadband", [({}, r, None) for r in rs], rs)
+    assert best == best_all == 8  # lon, the band flown
+    np.testing.assert_allclose(sse, sse_all, rtol=1e-10)
+    np.testing.assert_array_equal(r_best, rs[best])
+    np.testing.assert_allclose(fast.blocks["deadband"], full.blocks["deadband"], rtol=1e-10)
+    np.testing.assert_allclose(fast.change["deadband"], full.change["deadband"], rtol=1e-10)
