@@ -204,3 +204,10 @@ class WindowedCost:
         th = self.full(x)
         self.nfev += th.shape[0]
         return self.sim.residuals_native(th, sigma)
+
+    def native_errors_and_sse(self, x: np.ndarray) -> tuple[dict[int, np.ndarray], np.ndarray]:
+        """The simulator's :meth:`~groundstation.sysid.simulate.WindowSimulator.native_errors_and_sse` of
+        C candidates: what :meth:`residuals_native` weights, and the per-channel sums of squared errors."""
+        th = self.full(x)
+        self.nfev += th.shape[0]
+        return self.sim.native_errors_and_sse(th)

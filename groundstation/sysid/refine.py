@@ -78,7 +78,10 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
     span = hi - lo
     x = np.clip(np.asarray(x0, dtype=float), lo + 1e-9 * span, hi - 1e-9 * span)
     nfev0 = cost.nfev
-    sigma = _sigma(cost, x, weighting)
+    # one simulation gives each pass's start both its channel scales and its residuals
+    errors, sse = cost.native_errors_and_sse(x[None])
+    sse = sse[0]
+    sigma = _sigma(cost, x, weighting, sse)
     pm, ps = (None, None) if prior is None else (np.asarray(prior[0], dtype=float), np.asarray(prior[1], dtype=float))
     res = None
     for _ in range(passes):
@@ -86,9 +89,8 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
         if prior is not None and prior_colour:
             sig = sigma * np.sqrt(residual_tau(cost.residuals(x[None], sigma)[0], cost.used))
 
-        res = levenberg_marquardt(cost, x, lo, hi, sig, max_nfev=max_nfev, prior=prior, ftol=ftol)
-        x = res.x
-        sse = _sse(cost, x)
+        res = levenberg_marquardt(cost, x, lo, hi, sig, max_nfev=max_nfev, prior=prior, ftol=ftol, start=(errors, sse))
+        x, errors, sse = res.x, res.errors, res.sse
         sigma = _sigma(cost, x, weighting, sse)
     assert res is not None
     J = None
@@ -107,7 +109,8 @@ def refine(cost: WindowedCost, x0: np.ndarray, bounds: np.ndarray, *, passes: in
 def levenberg_marquardt(cost: WindowedCost, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, sig: np.ndarray, *,
                         max_nfev: int = IdentifyConfig.refine_max_nfev,
                         prior: tuple[np.ndarray, np.ndarray] | None = None,
-                        ftol: float = 1e-10, xtol: float = 1e-10, gtol: float = 1e-10) -> OptimizeResult:
+                        ftol: float = 1e-10, xtol: float = 1e-10, gtol: float = 1e-10,
+                        start: tuple[dict[int, np.ndarray], np.ndarray] | None = None) -> OptimizeResult:
     """Bounded Levenberg-Marquardt on the normal equations (as SIDPAC's ``oe.m``): minimises
     ``0.5 ||r(x)||^2`` with ``r`` the residuals ``(yhat - y) / sig_ch`` (plus the prior rows
     ``(x - nominal) / std``) from ``x0`` inside ``[lo, hi]``.
@@ -120,7 +123,10 @@ def levenberg_marquardt(cost: WindowedCost, x0: np.ndarray, lo: np.ndarray, hi: 
     for the step. ``max_nfev`` counts trial points (function evaluations, as scipy's
     ``least_squares``); stops when the relative decrease of the cost is below ``ftol``, the step
     below ``xtol`` relative to ``x`` or the scaled gradient below ``gtol``.
-    Returns an OptimizeResult with ``x``, ``cost`` (``0.5 ||r||^2``), ``nfev``, ``njev``, ``success``.
+    ``start``: the unweighted output errors and per-channel sums of squared errors (8,) at ``x0``
+    (:meth:`WindowedCost.native_errors_and_sse`), when already simulated.
+    Returns an OptimizeResult with ``x``, ``cost`` (``0.5 ||r||^2``), ``nfev``, ``njev``, ``success``, and
+    from the simulation of ``x``: ``errors`` (as ``start``) and ``sse`` (8,) (as :func:`_sse`).
     """
     span = hi - lo
     x = np.clip(np.asarray(x0, dtype=float), lo, hi)
@@ -132,7 +138,9 @@ def levenberg_marquardt(cost: WindowedCost, x0: np.ndarray, lo: np.ndarray, hi: 
         d = xx - pm
         return 0.5 * (float(r @ r) + float(d @ (pinfo * d)))
 
-    r = cost.residuals_native(x[None], sig)[0]
+    errors, sse = start if start is not None else cost.native_errors_and_sse(x[None])
+    sse = np.asarray(sse).reshape(-1)
+    r = cost.sim.weigh_native(errors, sig)[0]
     f = objective(r, x)
     nfev, njev, mu, nu = 1, 0, 1e-3, 2.0
     message, success = "maximum number of function evaluations reached", False
@@ -166,12 +174,13 @@ def levenberg_marquardt(cost: WindowedCost, x0: np.ndarray, lo: np.ndarray, hi: 
         if not np.any(step) or np.linalg.norm(step) <= xtol * (xtol + np.linalg.norm(x)):
             message, success = "step below xtol", True
             break
-        rn = cost.residuals_native(xn[None], sig)[0]
+        en, ssen = cost.native_errors_and_sse(xn[None])
+        rn = cost.sim.weigh_native(en, sig)[0]
         nfev += 1
         fn = objective(rn, xn)
         rho = (f - fn) / pred if pred > 0 else -1.0
         if np.isfinite(fn) and fn < f:
-            x, r, df, f = xn, rn, f - fn, fn
+            x, r, df, f, errors, sse = xn, rn, f - fn, fn, en, ssen[0]
             need_jac = True
             mu *= max(1.0 / 3.0, 1.0 - (2.0 * min(rho, 1.0) - 1.0) ** 3)
             nu = 2.0
@@ -184,7 +193,7 @@ def levenberg_marquardt(cost: WindowedCost, x0: np.ndarray, lo: np.ndarray, hi: 
             if mu > 1e16:
                 message, success = "no decrease in any step", True
                 break
-    return OptimizeResult(x=x, cost=f, nfev=nfev, njev=njev, success=success, message=message)
+    return OptimizeResult(x=x, cost=f, nfev=nfev, njev=njev, success=success, message=message, errors=errors, sse=sse)
 
 
 def _normal_equations(cost: WindowedCost, x: np.ndarray, h: np.ndarray, sigma: np.ndarray,

@@ -379,13 +379,19 @@ class WindowSimulator:
         H = np.matmul(np.swapaxes(Phi, -1, -2), Phi)  # (C, nch, n+nt, n+nt), the same for every window
         # candidates in chunks of ~2 MB of output: the chunk stays in cache from product to reduction
         cc = max(1, min(C, int(self.chunk_bytes // (8 * nch * b * nb * W))))
-        res = np.empty(((C, nch, Lp, W) if explicit == "native" else (C, W, L, nch)) if explicit else (C, nch))
+        native = explicit in ("native", "native+sse")
+        res = np.empty(((C, nch, Lp, W) if native else (C, W, L, nch)) if explicit else (C, nch))
+        sse = np.empty((C, nch)) if explicit == "native+sse" else None
         z = np.empty((C, W, n))
         beta = np.zeros((C, nt))
         for c0 in range(0, C, cc):
             c1 = min(C, c0 + cc)
-            z[c0:c1], beta[c0:c1], res[c0:c1] = self._lifted_chunk(pre, M[c0:c1], X[c0:c1], Phi[c0:c1], H[c0:c1],
-                                                                  explicit, n)
+            z[c0:c1], beta[c0:c1], out = self._lifted_chunk(pre, M[c0:c1], X[c0:c1], Phi[c0:c1], H[c0:c1], explicit, n)
+            if sse is None:
+                res[c0:c1] = out
+            else:
+                res[c0:c1], sse[c0:c1] = out
+        res = res if sse is None else (res, sse)
         return res, pre["xm"][None] + z, -beta  # input offsets: the model sees u - delta, e = ... - F delta
 
     def _lifted_chunk(self, pre: dict, M: np.ndarray, X: np.ndarray, Phi: np.ndarray, H: np.ndarray, explicit: bool | str,
@@ -451,6 +457,13 @@ class WindowSimulator:
             beta = np.zeros((k, nt))
         v = z if not nt else np.concatenate(
             [z, offsets if self.window_offsets else np.broadcast_to(beta[:, None, :], (k, W, nt))], axis=-1)  # (k, W, na)
+        if explicit == "native+sse":   # the errors and, from the same simulation, what the sse mode returns
+            e = np.matmul(Phi, np.swapaxes(v, 1, 2)[:, None])
+            e -= R4
+            if pre["hole_lift"] is None:
+                return z, beta, (e, self._quadratic_sse(pre, Phi, v, R4, H, g))
+            eh = e * pre["hole_lift"][None]
+            return z, beta, (e, np.einsum("chkw,chkw->ch", eh, eh))
         if explicit or pre["hole_lift"] is not None:
             e = np.matmul(Phi, np.swapaxes(v, 1, 2)[:, None])  # (k, nch, Lp, W)
             e -= R4
@@ -460,6 +473,14 @@ class WindowSimulator:
             if explicit == "native":
                 return z, beta, e
             return z, beta, e.reshape(k, nch, b, nb, W).transpose(0, 4, 3, 2, 1).reshape(k, W, Lp, nch)[:, :, :L]
+        return z, beta, self._quadratic_sse(pre, Phi, v, R4, H, g)
+
+    @staticmethod
+    def _quadratic_sse(pre: dict, Phi: np.ndarray, v: np.ndarray, R4: np.ndarray, H: np.ndarray,
+                       g: np.ndarray) -> np.ndarray:
+        """Per-channel sums of squared errors (k, nch) of one chunk from the quadratic form
+        ``||r||^2 - 2 v.g + v^T H v`` (no error array), recomputed explicitly for any candidate where
+        that form loses more than ~8 digits."""
         rr = np.einsum("chkw,chkw->chw", R4, R4)
         vHv = np.einsum("chwn,cwn->chw", np.matmul(v[:, None], H), v)
         vg = np.einsum("chwn,cwn->chw", g, v)
@@ -477,7 +498,7 @@ class WindowSimulator:
             if not pre["full_mask"]:
                 e *= pre["mask_hw"][:, None, :]
             sse[c] = np.einsum("hkw,hkw->h", e, e)
-        return z, beta, sse
+        return sse
 
     def _markov_vp(self, sub: _Sub, pre: dict, Ad: np.ndarray, Bd: np.ndarray, Gam: np.ndarray):
         """:meth:`_lifted_vp` by Markov parameters (:func:`~groundstation.sysid.markov.markov_sse`); the
@@ -617,8 +638,8 @@ class WindowSimulator:
         """Per subsystem ``(i, (e, x0[, beta]))``; e (C, W, L*nch) output errors, or with ``sse`` and no
         projected B entries the per-channel sums of squared errors (C, nch) in place of e; with
         ``native`` the output errors in the simulation's own layout (C, nch, Lp, W) (see
-        :meth:`residuals_native`)."""
-        mode: bool | str = "native" if native else not sse
+        :meth:`residuals_native`); with both, both: ``((e native, sse), x0, ...)``, for the lifted path only."""
+        mode: bool | str = ("native+sse" if sse else "native") if native else not sse
         th = np.atleast_2d(np.asarray(theta, dtype=float))
         Ah, Bh, Av, Bv = build_matrices(th)
         out = []
@@ -694,21 +715,40 @@ class WindowSimulator:
         :meth:`errors`' (window, sample, channel): no transpose and no 8-channel array. Unused samples
         (unavailable channel, padding of the last lifted block, holes of the link) are zero. For what does not depend on
         the order of the rows (``J^T J``, ``J^T r``, ``||r||``: the refinement's normal equations)."""
+        return self.weigh_native({i: e for i, (e, *_rest) in self._run(theta, native=True)}, sigma, in_place=True)
+
+    def weigh_native(self, errors: dict[int, np.ndarray], sigma: np.ndarray, *, in_place: bool = False) -> np.ndarray:
+        """:meth:`residuals_native` of output errors already simulated in the native layout (per subsystem,
+        as :meth:`native_errors_and_sse` gives them): the same numbers, weighted by ``sigma`` (8,).
+        ``in_place``: overwrite ``errors`` (else they stay as they are, to be weighted again)."""
         s = np.asarray(sigma, dtype=float)
-        res = self._run(theta, native=True)
-        C = res[0][1][0].shape[0]
         parts = []
-        for i, (e, *_rest) in res:
+        for i, e in errors.items():
             pre = self._prep[i]
             w = pre["mask_hw"] / s[pre["o_idx"]][:, None]  # (nch, W): mask and channel weight
-            e *= w[None, :, None, :]
+            if in_place:
+                e *= w[None, :, None, :]
+            else:
+                e = e * w[None, :, None, :]
             if pre["hole_lift"] is not None:  # holes of the link: unmeasured samples are not residuals
                 e *= pre["hole_lift"][None]
-            parts.append(e.reshape(C, -1))
+            parts.append(e.reshape(e.shape[0], -1))
         out = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
         if not np.isfinite(out).all():
             out = np.where(np.isfinite(out), out, 1e6)
         return out
+
+    def native_errors_and_sse(self, theta: np.ndarray) -> tuple[dict[int, np.ndarray], np.ndarray]:
+        """(output errors in the native layout per subsystem, unweighted, for :meth:`weigh_native`; what
+        :meth:`sse` returns) of the candidates ``theta``, from ONE simulation where every subsystem is
+        simulated by the lifted path (else two): the same numbers as the two calls."""
+        if any(self._prep[i]["lin"] for i in self.subsystems):
+            return {i: e for i, (e, *_rest) in self._run(theta, native=True)}, self.sse(theta)
+        res = self._run(theta, native=True, sse=True)
+        out = np.zeros((res[0][1][0][0].shape[0], 8))
+        for i, ((_, sse), *_rest) in res:
+            out[:, self._prep[i]["o_idx"]] = sse
+        return {i: e for i, ((e, _), *_rest) in res}, np.where(np.isfinite(out), out, 1e300)
 
     def errors(self, theta: np.ndarray) -> np.ndarray:
         """Output errors ``yhat - y`` (C, W, L, 8), zero where a channel is unused."""

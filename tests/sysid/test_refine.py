@@ -59,6 +59,27 @@ def test_the_refined_cost_and_scales_are_those_of_the_solution():
     np.testing.assert_allclose(res.sigma[used], np.sqrt((e ** 2).mean(axis=(0, 1))), rtol=1e-12)
 
 
+def test_a_refinement_simulates_each_of_its_points_once():
+    """The start's channel scales and residuals, each pass's next start and the solution's scales come
+    from the simulations the refinement counts as evaluations: no single point is simulated twice."""
+    cost, th, free = _cost()
+    b = bounds_array()[free]
+    run, singles = cost.sim._run, []
+
+    def counting_run(theta, **kw):
+        if np.atleast_2d(theta).shape[0] == 1:
+            singles.append(np.array(theta, dtype=float).tobytes())
+        return run(theta, **kw)
+
+    cost.sim._run = counting_run
+    nfev0 = cost.nfev
+    res = refine(cost, np.clip(th[free] * 1.2, b[:, 0], b[:, 1]), b, passes=2, max_nfev=20, with_std=False)
+    assert len(singles) == len(set(singles))
+    jacobians = (cost.nfev - nfev0 - len(singles)) / free.sum()
+    assert jacobians >= 2 and jacobians == int(jacobians)   # every other evaluation is in a Jacobian's batch
+    assert res.fun == float(cost(res.x[None])[0])
+
+
 def test_a_fold_refit_tolerance_stops_a_start_near_the_optimum_only():
     cost, th, free = _cost()
     b = bounds_array()[free]

@@ -334,6 +334,29 @@ def test_native_residuals_are_the_residuals_in_another_order(windows, trim):
         assert np.allclose((b ** 2).sum(axis=1), (a ** 2).sum(axis=1), rtol=1e-12)
 
 
+@pytest.mark.parametrize("trim,holes", [(False, False), (True, False), (True, True)])
+def test_one_simulation_gives_the_native_residuals_and_the_sse_bit_for_bit(windows, trim, holes):
+    """The refinement takes a point's channel scales (its SSE) and its residuals from one simulation:
+    exactly the numbers of the two separate calls, the residuals weighted again with other scales too."""
+    from groundstation.sysid.cost import WindowedCost, Windows
+
+    th, u, y, _, _, dt = windows
+    rng = np.random.default_rng(7)
+    measured = None
+    if holes:
+        measured = np.ones(y.shape, dtype=bool)
+        measured[1, 20:31] = False
+    win = Windows(u, y + rng.normal(0, 0.01, y.shape), np.ones((6, 8), dtype=bool), np.zeros(6, dtype=int),
+                  np.arange(6.0), dt, measured)
+    cost = WindowedCost(win, np.ones(31, dtype=bool), th, estimate_trim=trim)
+    assert cost.sim.holes == holes
+    X = th[None] * (1 + 0.02 * rng.normal(size=(2, 31)))
+    errors, sse = cost.native_errors_and_sse(X)
+    assert np.array_equal(sse, cost.sim.sse(cost.full(X)))
+    for sig in (np.linspace(0.5, 2.0, 8), np.linspace(2.0, 0.5, 8)):
+        assert np.array_equal(cost.sim.weigh_native(errors, sig), cost.residuals_native(X, sig))
+
+
 def test_the_markov_cost_of_a_runaway_candidate_is_the_simulated_one(windows):
     """Candidates whose free response runs away over a window (a search's trial steps on a real flight
     without its aircraft file) get the lifted simulation's SSE, not a product form that has lost its
