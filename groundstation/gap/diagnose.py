@@ -1117,7 +1117,8 @@ def _headline(kept: list[attribute.Candidate], partial: list[attribute.Candidate
             where = ("no channel above " if not left else
                      "only " + ", ".join(f"{k} ({v:g}x noise)" for k, v in left.items()) + " of the channels above ")
             return (f"{x:.0f} % of the gap above noise is explained by {names} ({iv}); the rest is no significant "
-                    f"departure: {where}{cfg.gap_ratio_significant:g}x their noise is not mostly explained by it")
+                    f"departure: {where}{cfg.gap_ratio_significant:g}x their noise is not mostly explained by "
+                    + ("it" if len(kept) == 1 else "them"))
         return (f"{x:.0f} % of the gap above noise is explained by {names} ({iv}); "
                 f"{100 - x:.0f} % is not" + (tail if 100 - x >= 20 and significant else "") + small)
     if partial:

@@ -671,15 +671,20 @@ def count_settling(prepared: Any) -> Any:
     a bridged input (``settle_after_bridge_tau``: the straight line's error still moves the rotor there)
     counted again: once the inputs in the holes are estimated, they are the outputs that show what the
     inputs did."""
-    segs = []
+    segs, counted = [], 0
     for s in prepared.segments:
         st = getattr(s, "settling", None)
         if st is None or s.measured is None:
             segs.append(s)
             continue
         m = s.measured | st
+        counted += int(st[:, s.available].sum())
         segs.append(replace(s, measured=None if m[:, s.available].all() else m, settling=None))
-    return replace(prepared, segments=segs)
+    if not counted:
+        return prepared
+    lq = dict(getattr(prepared, "link_quality", {}) or {})
+    lq["settling_samples_counted"] = counted      # output samples (channel by channel) counted again
+    return replace(prepared, segments=segs, link_quality=lq)
 
 
 def solve_hole_inputs(prepared: Any, model: HoverModel, cfg: IdentifyConfig, *, bounds: dict | None = None,

@@ -423,6 +423,8 @@ def test_outputs_left_out_while_the_rotor_settles_count_again_with_estimated_inp
     cs = max(c.segments, key=lambda s: s.n)
     np.testing.assert_array_equal(cs.measured, seg.measured | seg.settling)
     assert cs.settling is None and cs.inputs_bridged is seg.inputs_bridged
+    assert c.link_quality["settling_samples_counted"] == sum(int(s.settling[:, s.available].sum())
+                                                             for s in p.segments if s.settling is not None)
     # without a settling sample (a clean flight, or settle_after_bridge_tau = 0) nothing changes
     q = prepare([clean])
     assert all(a is b for a, b in zip(count_settling(q).segments, q.segments, strict=True))

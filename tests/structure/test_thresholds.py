@@ -25,6 +25,7 @@ NOT_SETTINGS = {
     "structure.identify_command.rng": "seed",
     # indices, shapes, memory and presentation
     "evaluate.heldout_many.chunk_bytes": "memory per block of the computation, not a result",
+    "evaluate.__init__.size": "base states a Jacobian memo keeps (memory, not a result)",
     "linsim.simulate.start": "first sample index",
     "fingerprints.kinematic_rate_offsets.start": "samples a finite difference loses at a window's edge",
     "fingerprints._line_stats.half": "periodogram bins of a line's local background (the estimator's shape)",
