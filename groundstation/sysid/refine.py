@@ -208,9 +208,9 @@ def _normal_equations(cost: WindowedCost, x: np.ndarray, h: np.ndarray, sigma: n
     for d0 in range(0, D, step):
         d1 = min(D, d0 + step)
         Rp = cost.residuals_native(x[None] + np.diag(h)[d0:d1], sigma)
-        Rp -= r0[None]
-        Rp /= h[d0:d1, None]
-        J[d0:d1] = Rp
+        Jc = J[d0:d1]
+        np.subtract(Rp, r0[None], out=Jc)   # straight into the kept array: no copy of the batch
+        Jc /= h[d0:d1, None]
     return J @ J.T, J @ r0
 
 
