@@ -391,8 +391,8 @@ class WindowSimulator:
                 res[c0:c1] = out
             else:
                 res[c0:c1], sse[c0:c1] = out
-        res = res if sse is None else (res, sse)
-        return res, pre["xm"][None] + z, -beta  # input offsets: the model sees u - delta, e = ... - F delta
+        # input offsets: the model sees u - delta, e = ... - F delta
+        return (res if sse is None else (res, sse)), pre["xm"][None] + z, -beta
 
     def _lifted_chunk(self, pre: dict, M: np.ndarray, X: np.ndarray, Phi: np.ndarray, H: np.ndarray, explicit: bool | str,
                       n: int):
