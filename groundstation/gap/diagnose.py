@@ -168,6 +168,8 @@ class Located:
     gap_significant: bool
     flagged_share: float  # share of the excess residual energy in flagged windows
     out_stride: np.ndarray | None  # (8,) grid steps between samples of each output's own stream
+    lines: list[fingerprints.Line] = field(default_factory=list)  # rotor lines of the raw residual
+    spectra: dict = field(default_factory=dict)  # their spectra (spectral_lines)
 
 
 @dataclass(frozen=True)
@@ -403,10 +405,14 @@ def locate_stage(base: Base, prepared: Any, cfg: DiagnoseConfig) -> Located:
     stride = getattr(prepared, "native_stride", None)
     out_stride = stride(OUTPUTS) if stride is not None else None
     in_stride = stride(INPUTS) if stride is not None else None
-    # noise from measured samples only: a straight line bridged across a hole of the link has none
+    # noise from measured samples only: a straight line bridged across a hole of the link has none;
+    # and without the rotor lines, which are signal (a vibration), not sensor noise
     offs = _grid_offsets(segs, dt)
-    nf = noise.noise_floor([s.raw_measured() for s in segs], [s.measured_only(s.outputs) for s in segs], out_stride,
-                           cfg.noise_calibration_seed, offs)
+    lines, spectra = _rotor_lines(base, out_stride, cfg)
+    chunk = int(round(cfg.window_s / dt))
+    nf = noise.noise_floor([fingerprints.without_lines(s.raw_measured(), dt, lines, chunk) for s in segs],
+                           [fingerprints.without_lines(s.measured_only(s.outputs), dt, lines, chunk) for s in segs],
+                           out_stride, cfg.noise_calibration_seed, offs)
     out_excited = avail & (nf["signal_std"] > cfg.excitation_snr * nf["sigma_smoothed"])
     u_all = np.concatenate([s.inputs for s in segs])
     u_noise = noise.raw_noise_std([s.measured_only(s.inputs) for s in segs], in_stride, cfg.noise_calibration_seed,
@@ -438,7 +444,22 @@ def locate_stage(base: Base, prepared: Any, cfg: DiagnoseConfig) -> Located:
                    energy_w=energy_w, flag=flag, nominal=nominal, windows_s=windows_s, band=band, cond=cond,
                    gap_ratio=gap_ratio, worst=worst, gap_significant=_gap_significant(gap_ratio, out_excited, cfg),
                    flagged_share=flagged_share,
-                   out_stride=None if out_stride is None else np.asarray(out_stride, float))
+                   out_stride=None if out_stride is None else np.asarray(out_stride, float), lines=lines, spectra=spectra)
+
+
+def _rotor_lines(base: Base, out_stride: Any, cfg: DiagnoseConfig) -> tuple[list[fingerprints.Line], dict]:
+    """Narrow lines in the base model's raw residual (:func:`groundstation.gap.fingerprints.spectral_lines`),
+    looked for in the body rates and attitude only: the velocities come from a slower position estimate
+    resampled to the grid, whose interpolation images are not vibration. A line above the Nyquist
+    frequency of the stream a channel was sent at is an interpolation image and is dropped."""
+    ev, dt = base.ev, base.dt_s
+    resid_raw = (ev.Yraw - ev.simulate(ev.theta0)[0])[:, ev.start:]
+    line_ch = base.avail & (np.arange(8) >= 3)
+    lines, spectra = fingerprints.spectral_lines(resid_raw, ev.U[:, ev.start:], dt, line_ch, alpha=cfg.alpha,
+                                                 response=_response(ev.theta0, dt),
+                                                 reach_factor=cfg.line_stick_reach_factor)
+    stride = None if out_stride is None else np.asarray(out_stride, float)
+    return fingerprints.resolvable_lines(lines, stride, dt), spectra
 
 
 _INPUT_SCANS = ("input_delay", "rate_limit", "deadband")
@@ -481,14 +502,7 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
     # model-free fingerprints
     yfit = ev.simulate(ev.theta0)[0]
     resid_raw = (ev.Yraw - yfit)[:, ev.start:]
-    # lines are looked for in the body rates and attitude only: the velocities come from a slower
-    # position estimate resampled to the grid, whose interpolation images are not vibration
-    line_ch = avail & (np.arange(8) >= 3)
-    lines, spectra = fingerprints.spectral_lines(resid_raw, ev.U[:, ev.start:], dt, line_ch, alpha=cfg.alpha,
-                                                 response=_response(ev.theta0, dt),
-                                                 reach_factor=cfg.line_stick_reach_factor)
-    # a line above the Nyquist frequency of the stream a channel was sent at is an interpolation image
-    lines = fingerprints.resolvable_lines(lines, loc.out_stride, dt)
+    lines, spectra = loc.lines, loc.spectra
     kin = fingerprints.kinematic_rate_offsets(ev.Y, dt, avail, trims=_trims(prepared))
 
     for h in hyps:

@@ -208,6 +208,31 @@ def sinusoid_fit(x: np.ndarray, dt_s: float, f_hz: float) -> np.ndarray:
     return fit
 
 
+def without_lines(x: np.ndarray, dt_s: float, lines: list[Line], chunk: int) -> np.ndarray:
+    """``x`` (n, 8) of one segment with each line's sinusoid removed from its channels, fitted by least
+    squares per ``chunk`` samples (amplitude and phase may drift; NaN samples are left out of the fit).
+
+    A line is a deterministic signal, not sensor noise: second differences read a line near the
+    Nyquist frequency as white noise of about its amplitude (1.6 times its rms), which puts the
+    noise floor above the gap the line itself makes."""
+    out = np.array(x, dtype=float, copy=True)
+    n = out.shape[0]
+    for a in range(0, n, max(chunk, 1)):
+        b = min(n, a + chunk)
+        t = np.arange(b - a) * dt_s
+        for ln in lines:
+            w = 2 * np.pi * ln.frequency_hz * t
+            B = np.stack([np.cos(w), np.sin(w), np.ones(b - a)], axis=1)
+            for c in {OUTPUTS.index(ch) for ch in ln.channels}:
+                y = out[a:b, c]
+                ok = np.isfinite(y)
+                if ok.sum() < 8:
+                    continue
+                coef, *_ = np.linalg.lstsq(B[ok], y[ok], rcond=None)
+                out[a:b, c] = y - B[:, :2] @ coef[:2]
+    return out
+
+
 def sinusoid_amplitude(x: np.ndarray, dt_s: float, f_hz: float) -> float:
     """RMS-over-windows amplitude of the per-window sinusoid at f_hz in x (W, L)."""
     fit = sinusoid_fit(x, dt_s, f_hz)
