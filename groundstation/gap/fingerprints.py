@@ -213,7 +213,7 @@ def without_lines(x: np.ndarray, dt_s: float, lines: list[Line], chunk: int) -> 
     squares per ``chunk`` samples (amplitude and phase may drift; NaN samples are left out of the fit).
 
     A line is a deterministic signal, not sensor noise: second differences read a line near the
-    Nyquist frequency as white noise of about its amplitude (1.6 times its rms), which puts the
+    Nyquist frequency as white noise of 1.7 times its amplitude (robust median statistics), which puts the
     noise floor above the gap the line itself makes."""
     out = np.array(x, dtype=float, copy=True)
     n = out.shape[0]
