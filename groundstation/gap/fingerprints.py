@@ -210,26 +210,29 @@ def sinusoid_fit(x: np.ndarray, dt_s: float, f_hz: float) -> np.ndarray:
 
 def without_lines(x: np.ndarray, dt_s: float, lines: list[Line], chunk: int) -> np.ndarray:
     """``x`` (n, 8) of one segment with each line's sinusoid removed from its channels, fitted by least
-    squares per ``chunk`` samples (amplitude and phase may drift; NaN samples are left out of the fit).
+    squares per ``chunk`` samples (amplitude and phase may drift) on the second differences, where the
+    noise is measured: the flight's own slow motion is not there to leak into the fit (NaN samples
+    are left out).
 
     A line is a deterministic signal, not sensor noise: second differences read a line near the
     Nyquist frequency as white noise of 1.7 times its amplitude (robust median statistics), which puts the
     noise floor above the gap the line itself makes."""
     out = np.array(x, dtype=float, copy=True)
+    if not lines:
+        return out
     n = out.shape[0]
     for a in range(0, n, max(chunk, 1)):
         b = min(n, a + chunk)
-        t = np.arange(b - a) * dt_s
-        for ln in lines:
-            w = 2 * np.pi * ln.frequency_hz * t
-            B = np.stack([np.cos(w), np.sin(w), np.ones(b - a)], axis=1)
-            for c in {OUTPUTS.index(ch) for ch in ln.channels}:
-                y = out[a:b, c]
-                ok = np.isfinite(y)
-                if ok.sum() < 8:
-                    continue
-                coef, *_ = np.linalg.lstsq(B[ok], y[ok], rcond=None)
-                out[a:b, c] = y - B[:, :2] @ coef[:2]
+        w = 2 * np.pi * np.arange(b - a)[:, None] * dt_s * np.array([ln.frequency_hz for ln in lines])[None, :]
+        for c in {OUTPUTS.index(ch) for ln in lines for ch in ln.channels}:
+            on = [k for k, ln in enumerate(lines) if OUTPUTS[c] in ln.channels]
+            B = np.concatenate([np.cos(w[:, on]), np.sin(w[:, on])], axis=1)
+            d2y, d2B = np.diff(out[a:b, c], 2), np.diff(B, 2, axis=0)
+            ok = np.isfinite(d2y)
+            if ok.sum() < 4 * B.shape[1]:
+                continue
+            coef, *_ = np.linalg.lstsq(d2B[ok], d2y[ok], rcond=None)
+            out[a:b, c] -= B @ coef
     return out
 
 
