@@ -90,3 +90,20 @@ def test_a_rotor_line_is_signal_not_noise_once_removed_by_its_frequency():
     assert raw_noise_std([clean])[3] == pytest.approx(sigma, rel=0.1)
     assert np.isnan(clean[100:140, 3]).all() and np.array_equal(clean[:, 4], raw[:, 4])  # other channels untouched
     assert raw_noise_std([without_lines(raw, dt, [], 150)])[3] == seen[3]
+
+
+def test_a_line_is_fitted_out_without_the_flights_own_motion_leaking_into_the_fit():
+    # pitch ramps of 0.25 rad, a 15 Hz line at 1.5x the angle noise: fitted on the raw series a ramp
+    # projects onto the line's sinusoid by more than the noise and the floor stays high; fitted on
+    # the second differences (where the noise is measured, and a ramp is not) it is the noise
+    from groundstation.gap.fingerprints import Line, without_lines
+
+    rng = np.random.default_rng(4)
+    dt, n, sigma = 0.02, 9000, 0.001
+    t = np.arange(n) * dt
+    raw = np.zeros((n, 8))
+    raw[:, 6] = 0.5 * (2 * np.abs((t / 7.3) % 1 - 0.5) - 0.5) + 0.0015 * np.sin(2 * np.pi * 15.44 * t)
+    raw[:, 6] += sigma * rng.standard_normal(n)
+    assert raw_noise_std([raw])[6] > 1.5 * sigma
+    clean = without_lines(raw, dt, [Line(15.44, ["theta"], 5.0, -30.0)], 150)
+    assert raw_noise_std([clean])[6] == pytest.approx(sigma, rel=0.1)
