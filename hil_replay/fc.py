@@ -116,9 +116,10 @@ class FcConfig:
     LOG_REQUEST_DATA at once, as ArduPilot's handler sends before returning;
     ``log_stop_after_packets`` makes the FC stop answering log requests after sending that many
     LOG_DATA packets (a fault to inject). ``crc_blind_rate`` is the probability per LOG_DATA packet
-    of line noise its CRC-16 cannot see: four bits flipped in its data in the pattern of the CRC's
+    of line noise its CRC-16 cannot see: bits flipped in its data in a seeded multiple of the CRC's
     own polynomial (x^16 + x^12 + x^5 + 1), so the packet arrives valid with a wrong block, as a
-    rare 4-bit error does on a noisy line (a fault to inject; seeded apart from ``corrupt_rate``).
+    rare error of four or more bits does on a noisy line (a fault to inject; seeded apart from
+    ``corrupt_rate``; two such packets almost never carry the same error).
     """
 
     sysid: int = 1
@@ -392,16 +393,22 @@ class FcProtocol:
         self.stats.sent_by_type[kind] = self.stats.sent_by_type.get(kind, 0) + 1
 
     def _crc_blind(self, buf: bytes, data_bytes: int) -> bytes:
-        """Flip four bits of a LOG_DATA packet's data (``data_bytes`` of it from payload offset 7) at a
-        seeded place in the pattern x^k * (x^16 + x^12 + x^5 + 1): its CRC-16 still checks."""
+        """Flip bits of a LOG_DATA packet's data (``data_bytes`` of it from payload offset 7) in the
+        pattern x^k * r(x) * (x^16 + x^12 + x^5 + 1), r and k seeded: its CRC-16 still checks."""
         b = bytearray(buf)
         data_bytes = min(data_bytes, b[1] - 7)  # MAVLink 2 drops the payload's trailing zeros
-        if data_bytes < 3:
+        if data_bytes < 5:
             return buf
-        first = 8 * (10 + 7)  # MAVLink 2 header, then LOG_DATA's ofs, id, count; bits LSB first
-        k = first + self._rng_blind.randrange(8 * data_bytes - 16)
-        for d in (0, 4, 11, 16):
-            b[(k + d) // 8] ^= 1 << ((k + d) % 8)
+        r = self._rng_blind.randrange(1, 1 << 16)
+        pattern = 0
+        for i in range(16):  # r times the polynomial, bits in wire order (LSB first: 0, 4, 11, 16)
+            if r >> i & 1:
+                pattern ^= 0x10811 << i
+        first = 8 * (10 + 7)  # MAVLink 2 header, then LOG_DATA's ofs, id, count
+        k = first + self._rng_blind.randrange(8 * data_bytes - 32)
+        for d in range(32):
+            if pattern >> d & 1:
+                b[(k + d) // 8] ^= 1 << ((k + d) % 8)
         self.stats.packets_crc_blind += 1
         return bytes(b)
 
