@@ -271,14 +271,6 @@ def test_a_block_whose_corruption_the_crc_misses_is_not_delivered():
     assert done.check.corrupted_frames == h.session.stats.bad_crc > 0
 
 
-@pytest.fixture(scope="module")
-def df_log() -> bytes:
-    """20 kB of the simulated FC's own dataflash log."""
-    from benchkit.onboard_logs import simulated_dataflash
-
-    return simulated_dataflash(20_000, 0)
-
-
 def _serve_wrong_block(fc: FcProtocol, ofs: int, flip_at: int, times: int) -> list[int]:
     """The FC's first ``times`` LOG_DATA for ``ofs`` carry a wrong byte at ``flip_at`` in a valid frame
     (pymavlink packs it and computes the CRC over the wrong payload); returns a count of them."""
