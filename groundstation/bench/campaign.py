@@ -111,14 +111,17 @@ def _default_campaign(paths: list[Path]) -> dict[str, float]:
     n = len(paths)
     errors = [r.get("error") for rows in res for r in rows if r.get("error")]
     others = max(0.0, busy - cpu) / max(wall, 1e-9)
+    cores = os.cpu_count() or 1
     print(f"  {workers} worker process(es) (every core): {wall:.1f} s wall, {cpu:.1f} s CPU for {n} flights = "
-          f"{wall / n:.1f} s wall and {cpu / n:.1f} s CPU per flight; load average {os.getloadavg()[0]:.1f} on "
+          f"{wall / n:.1f} s wall and {cpu / n:.1f} s CPU per flight; core use {cpu / (wall * cores):.0%} "
+          f"(CPU / (wall x {cores} cores)); load average {os.getloadavg()[0]:.1f} on "
           f"{os.cpu_count()} cores, other work {others:.2f} cores on average (wall is a measurement only when that "
           f"is near 0){'; errors: ' + '; '.join(map(str, errors)) if errors else ''}", flush=True)
     _print_flights([r for rows in res for r in rows], cpu)
     if workers > 1:   # the pool's start (the fork server's imports) and its tail, where a core waits
         print(f"    {_balance([rows[0] for rows in res if rows], m0, m1)}", flush=True)
-    return {"workers": workers, "wall_s": wall, "cpu_s": cpu, "flights": n, "others_cores": others}
+    return {"workers": workers, "wall_s": wall, "cpu_s": cpu, "flights": n, "others_cores": others,
+            "core_use": cpu / (wall * cores)}
 
 
 def _print_flights(rows: list[dict], tree_cpu_s: float) -> None:
