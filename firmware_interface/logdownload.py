@@ -33,7 +33,8 @@ How a log comes down:
   (:meth:`LogDownloader.link_noise`) during the download (or always, ``confirm = "always"``) every
   block is read a second time and kept only when two copies agree; copies that disagree are read
   again and the first value seen twice is kept (a block whose ``max_copies`` copies all differ is kept
-  unverified). A block received twice on any link must agree too. The log's record chain (dataflash
+  unverified). A valid LOG_DATA no FC sends (off the 90-byte grid, more than 90 bytes) counts as
+  such a corrupted frame. A block received twice on any link must agree too. The log's record chain (dataflash
   or ULog, :mod:`firmware_interface.logcheck`) is walked when every block is in: the blocks where it
   breaks are read again, and a break whose blocks two copies confirm is the FC's own. The outcome
   says how it was verified and what was read again, and why (:class:`DownloadCheck`);
@@ -386,8 +387,11 @@ class LogDownloader(_Requests):
             self.state = "stream"
         self._last_rx = now
         ofs, count = int(msg.ofs), int(msg.count)
-        if ofs % BLOCK_BYTES or count <= 0 or ofs >= self.size:
-            if self.state == "stream" and (count == 0 or ofs >= self.size):
+        if ofs % BLOCK_BYTES or count > BLOCK_BYTES:
+            self.link_noise(1, now)  # no FC sends this (we ask for whole blocks): an error the CRC missed
+            return
+        if count <= 0 or ofs >= self.size:
+            if self.state == "stream":
                 self._enter_fill(now)  # end of file reached
             return
         k = ofs // BLOCK_BYTES
