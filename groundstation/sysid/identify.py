@@ -338,8 +338,7 @@ def _screen(starts: list[np.ndarray], opt: Any, label: str, costs: tuple, plan: 
         nfev0 = cost_s.nfev
         rs = plan.pmap(partial(_screen_refine, cost_s, bfree, nfev_round, prior, cfg.channel_weighting,
                                cfg.prior_weighting == "effective"), starts)
-        if cost_s.nfev == nfev0:    # refined in worker processes, on copies of the cost
-            cost_s.nfev += sum(int(r.nfev) for r in rs)
+        cost_s.nfev = nfev0 + sum(int(r.nfev) for r in rs)   # also those refined on copies, in worker processes
         scored = sorted(((_score(cost_s, r, rs[0].sig_eff, prior), r.x) for r in rs), key=lambda t: t[0])
         starts = [sx for _, sx in scored[: max(1, len(scored) // 3)]]
         screen_f = scored[0][0]
@@ -480,8 +479,7 @@ def _refine_subsystem(s: _SubSearch, plan: _Plan, cfg: IdentifyConfig,
               float(s.found[0][2].fun), sum(c.nfev for c in s.costs))
     nfev0 = cost.nfev
     refs = plan.pmap(partial(_full_refine, cost, bfree, cfg, pr), x0s)
-    if cost.nfev == nfev0:    # refined in worker processes, on copies of the cost
-        cost.nfev += sum(int(r.nfev) for r in refs)
+    cost.nfev = nfev0 + sum(int(r.nfev) for r in refs)   # also those refined on copies, in worker processes
     found_refs = [refs[own.index(k)] for k in rep]   # a repeated winner shares its first refinement (never wins)
     refs = found_refs + refs[len(own):]
     best: tuple[float, np.ndarray, Any, Any, str] | None = None
