@@ -15,7 +15,8 @@ forked from one fork server per calling process that has imported the analysis o
 (:data:`PRELOAD`, :func:`fork_context`): a worker starts without importing anything and its first
 task costs what any other does. ``identify``'s workers are forked from the command's own process
 instead (``worker_map(..., fork_here=True)``, :func:`fork_here_context`), which has imported most of
-it already: no second interpreter imports the analysis again. Workers and the serial path alike run numerical work with one
+it already: no second interpreter imports the analysis again; its ``--jobs`` counts the command's own
+process, which searches while its workers screen (``caller_works=True``). Workers and the serial path alike run numerical work with one
 BLAS thread (the workers are the parallelism) and with freed memory kept for reuse
 (:func:`keep_freed_memory`).
 """

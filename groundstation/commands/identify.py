@@ -137,7 +137,7 @@ def _run(args: argparse.Namespace, pmap) -> int:
             if curves:
                 figures.append(("plot_convergence", (curves, args.out.with_name(args.out.stem + "_convergence.png")),
                                 {"title": "search convergence per subsystem: fitness 1/(1+F) vs evaluations"}))
-            pmap(draw, figures)   # on the workers (whose fork server imported matplotlib early): side by side
+            pmap(draw, figures)   # side by side: on a worker and in this process (both imported matplotlib)
         if args.rrd is not None:
             write_rrd(series, channels, args.rrd, "groundstation-identify")
     if not args.quiet:
