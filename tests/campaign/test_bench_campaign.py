@@ -4,7 +4,7 @@ projection of a pool's wall time from its tasks' CPU seconds."""
 import subprocess
 import sys
 
-from groundstation.bench.campaign import _makespan, _print_flights, _tree_cpu_s
+from groundstation.bench.campaign import _makespan, _packing, _print_flights, _tree_cpu_s
 
 
 def test_tree_cpu_counts_a_finished_child_process():
@@ -19,6 +19,10 @@ def test_makespan_hands_each_task_to_the_first_free_worker():
     assert _makespan([4.0, 3.0, 3.0, 4.0], 2) == 8.0  # 4, then 4 | 3, then 3: in submission order
     assert _makespan([5.0, 1.0, 1.0, 1.0], 2) == 5.0
     assert _makespan([1.0, 2.0, 3.0], 1) == 6.0
+    # the busiest worker has 4 + 4, the other 3 + 3: a core idles 2 s at the tail of an idle machine
+    assert _packing([4.0, 3.0, 3.0, 4.0], 2) == (
+        "the flights' CPU handed to 2 workers in submission order: 8.0 s on the busiest against 7.0 s shared "
+        "evenly (on an idle machine 2.0 core-seconds idle at the tail; the wall is the busiest share plus the start)")
 
 
 def test_trend_verdict_names_the_flagged_flight_and_skips_too_short_campaigns(capsys):
