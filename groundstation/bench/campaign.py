@@ -135,8 +135,10 @@ def _print_flights(rows: list[dict], tree_cpu_s: float) -> None:
         task_cpu = float(r.get("cpu_s") or 0.0)
         in_tasks += task_cpu
         wall = (r["task_end_s"] - r["task_start_s"]) if r.get("task_end_s") is not None else float("nan")
-        print(f"    {r['log_name']}#{int(r.get('flight_index') or 0)}: {wall:.1f} s wall, {task_cpu:.1f} s CPU in its "
-              f"worker, verdict {r.get('verdict')}", flush=True)
+        steps = ", ".join(f"{k} {float(r[f'{k}_s']):.1f}" for k in ("read", "identify", "diagnose")
+                          if r.get(f"{k}_s") is not None)
+        print(f"    {r['log_name']}#{int(r.get('flight_index') or 0)}: {wall:.1f} s wall{f' ({steps})' if steps else ''}, "
+              f"{task_cpu:.1f} s CPU in its worker, verdict {r.get('verdict')}", flush=True)
     print(f"    outside the flights' tasks (workers' start, fork server, cross-flight fits): "
           f"{tree_cpu_s - in_tasks:.1f} s CPU", flush=True)
 

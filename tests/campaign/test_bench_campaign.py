@@ -61,8 +61,9 @@ def test_default_campaign_prints_each_flights_wall_and_cpu_and_the_rest(capsys):
     rows = [{"log_name": "a.tlog", "flight_index": 0, "cpu_s": 9.5, "task_start_s": 10.0, "task_end_s": 20.5,
              "verdict": "none"},
             {"log_name": "b.tlog", "flight_index": 1, "cpu_s": 8.0, "task_start_s": 11.0, "task_end_s": 19.0,
-             "verdict": "deadband"}]
+             "verdict": "deadband", "read_s": 0.3, "identify_s": 5.7, "diagnose_s": 2.0}]
     _print_flights(rows, 20.0)
     out = capsys.readouterr().out
-    assert "a.tlog#0: 10.5 s wall, 9.5 s CPU" in out and "b.tlog#1: 8.0 s wall, 8.0 s CPU" in out
+    assert "a.tlog#0: 10.5 s wall, 9.5 s CPU" in out
+    assert "b.tlog#1: 8.0 s wall (read 0.3, identify 5.7, diagnose 2.0), 8.0 s CPU" in out
     assert "verdict deadband" in out and "2.5 s CPU" in out   # 20 s of the tree less the flights' 17.5 s
