@@ -33,7 +33,8 @@ How a log comes down:
   (:meth:`LogDownloader.link_noise`) during the download (or always, ``confirm = "always"``) every
   block is read a second time and kept only when two copies agree; copies that disagree are read
   again and the first value seen twice is kept (a block whose ``max_copies`` copies all differ is kept
-  unverified). A block received twice on any link must agree too. The log's record chain (dataflash
+  unverified). A valid LOG_DATA no FC sends (off the 90-byte grid, more than 90 bytes) counts as
+  such a corrupted frame. A block received twice on any link must agree too. The log's record chain (dataflash
   or ULog, :mod:`firmware_interface.logcheck`) is walked when every block is in: the blocks where it
   breaks are read again, and a break whose blocks two copies confirm is the FC's own. The outcome
   says how it was verified and what was read again, and why (:class:`DownloadCheck`);
@@ -65,6 +66,8 @@ MISSING, ONE_COPY, CONFIRMED, SUSPECT, UNRESOLVED = 0, 1, 2, 3, 4
 _NEEDED = bytes(1 if v in (MISSING, SUSPECT) else 0 for v in range(256))   # have -> must be read (again)
 _ONE_TO_SUSPECT = bytes(SUSPECT if v == ONE_COPY else v for v in range(256))
 _RESUMED = bytes(v if v <= SUSPECT else SUSPECT for v in range(256))       # unknown / unresolved: read again
+_REASONS = {"confirm": "for a second copy", "disagreed": "whose copies disagreed",
+            "structure": "where the records broke"}
 _ARMED_REASON = "the FC is armed: ArduPilot serves no logs while armed (land and disarm, then retry)"
 
 
@@ -147,7 +150,7 @@ class DownloadCheck:
 
     def summary(self) -> str:
         """One line: how it was verified, what was read again and why."""
-        again = ", ".join(f"{n} {why}" for why, n in self.reread_blocks if n) or "none"
+        again = ", ".join(f"{n} {_REASONS[why]}" for why, n in self.reread_blocks if n) or "none"
         head = "verified" if self.verified else (
             f"NOT verified: the copies of {len(self.unresolved_offsets)} block(s) never agreed "
             f"(bytes at {', '.join(map(str, self.unresolved_offsets[:5]))})")
@@ -386,8 +389,11 @@ class LogDownloader(_Requests):
             self.state = "stream"
         self._last_rx = now
         ofs, count = int(msg.ofs), int(msg.count)
-        if ofs % BLOCK_BYTES or count <= 0 or ofs >= self.size:
-            if self.state == "stream" and (count == 0 or ofs >= self.size):
+        if ofs % BLOCK_BYTES or count > BLOCK_BYTES:
+            self.link_noise(1, now)  # no FC sends this (we ask for whole blocks): an error the CRC missed
+            return
+        if count <= 0 or ofs >= self.size:
+            if self.state == "stream":
                 self._enter_fill(now)  # end of file reached
             return
         k = ofs // BLOCK_BYTES

@@ -93,7 +93,7 @@ class OnboardLogs:
         self.session = session
         self.log = log
         self.dl_config = DownloadConfig(give_up_s=config.give_up_s, list_timeout_s=config.list_timeout_s,
-                                        list_retries=config.list_retries)
+                                        list_retries=config.list_retries, confirm=config.confirm)
         self._decoder = mavlink2.MAVLink(None, 255, 190)
         self._decoder.robust_parsing = True
         self._fc: tuple[int, int] | None = None

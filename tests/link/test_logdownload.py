@@ -271,14 +271,6 @@ def test_a_block_whose_corruption_the_crc_misses_is_not_delivered():
     assert done.check.corrupted_frames == h.session.stats.bad_crc > 0
 
 
-@pytest.fixture(scope="module")
-def df_log() -> bytes:
-    """20 kB of the simulated FC's own dataflash log."""
-    from benchkit.onboard_logs import simulated_dataflash
-
-    return simulated_dataflash(20_000, 0)
-
-
 def _serve_wrong_block(fc: FcProtocol, ofs: int, flip_at: int, times: int) -> list[int]:
     """The FC's first ``times`` LOG_DATA for ``ofs`` carry a wrong byte at ``flip_at`` in a valid frame
     (pymavlink packs it and computes the CRC over the wrong payload); returns a count of them."""
@@ -363,3 +355,12 @@ def test_single_copies_from_a_noisy_link_are_kept_to_confirm_and_confirmed_on_re
     done = h2.events[-1]
     assert isinstance(done, DownloadComplete) and done.data == data and not dl2.noisy
     assert dict(done.check.reread_blocks)["confirm"] == 0 and done.check.confirmed_blocks >= have.count(3)
+
+
+def test_a_valid_frame_no_fc_sends_counts_as_corruption_the_crc_missed():
+    data = _blob(9_000, 10)
+    dl = LogDownloader(_entry(data), (1, 1))
+    dl.start(0.0)
+    mav = mavlink2.MAVLink(None, 1, 1)
+    dl.receive_message(mav.log_data_encode(1, 45, 90, data[45:135]), 0.1)  # not on a block boundary
+    assert dl.noisy and dl.corrupted_frames == 1 and dl.received_blocks == 0
