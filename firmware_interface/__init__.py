@@ -20,9 +20,11 @@ Public API (import from the modules):
   :mod:`~firmware_interface.ulog` (pyulog) and :mod:`~firmware_interface.dfcolumns` (DFReader's index,
   decoded a record type at a time) behind it.
 * :mod:`~firmware_interface.logdownload` — sans-IO onboard-log download: ``LogLister``,
-  ``LogDownloader`` (received-block bitmap, bounded gap re-requests, resume); pure.
+  ``LogDownloader`` (block map, bounded gap re-requests, resume, second copies on a corrupting link,
+  ``DownloadCheck``); pure. :mod:`~firmware_interface.logcheck` — ``record_breaks(data)``: where a
+  dataflash or ULog record chain breaks.
 * :mod:`~firmware_interface.logtransfer` — ``LogTransfer(opener)``: list and download over a live link;
-  ``write_verified``, ``save_partial``, ``load_partial``.
+  ``write_verified``, ``unverified_path``, ``save_partial``, ``load_partial``.
 * :mod:`~firmware_interface.tlogread` — ``scan_tlog(bytes, TlogScan())``: tolerant record scanner.
 * :mod:`~firmware_interface.samples` — the event dataclasses and ``LogData``;
   :mod:`~firmware_interface.errors` — ``FirmwareInterfaceError``, the base of ``LinkError`` (ValueError)

@@ -28,6 +28,16 @@ How a log comes down:
   the last) — so the last few per cent cost a few round trips, not a timeout each;
 * a lost link pauses the download; when it is back the stream restarts at the first missing byte
   (nothing received is asked for again as a stream's start);
+* nothing reaches the log on its CRC-16 alone when the link shows it corrupts frames: MAVLink's
+  CRC-16 misses some errors of four or more flipped bits, so once the driver reports a corrupted frame
+  (:meth:`LogDownloader.link_noise`) during the download (or always, ``confirm = "always"``) every
+  block is read a second time and kept only when two copies agree; copies that disagree are read
+  again and the first value seen twice is kept (a block whose ``max_copies`` copies all differ is kept
+  unverified). A valid LOG_DATA no FC sends (off the 90-byte grid, more than 90 bytes) counts as
+  such a corrupted frame. A block received twice on any link must agree too. The log's record chain (dataflash
+  or ULog, :mod:`firmware_interface.logcheck`) is walked when every block is in: the blocks where it
+  breaks are read again, and a break whose blocks two copies confirm is the FC's own. The outcome
+  says how it was verified and what was read again, and why (:class:`DownloadCheck`);
 * LOG_REQUEST_END is sent when the download completes, fails or is aborted (always once);
   LOG_ERASE is never sent (nor is it on the allowlist);
 * ArduPilot ignores every log message while the vehicle is armed: an armed FC fails the download
@@ -45,10 +55,19 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-__all__ = ["BLOCK_BYTES", "DownloadComplete", "DownloadConfig", "DownloadFailed", "DownloadProgress",
-           "LogDownloader", "LogEntry", "LogListed", "LogLister", "LogRequestFailed"]
+from firmware_interface.logcheck import log_kind, record_breaks
+
+__all__ = ["BLOCK_BYTES", "DownloadCheck", "DownloadComplete", "DownloadConfig", "DownloadFailed",
+           "DownloadProgress", "LogDownloader", "LogEntry", "LogListed", "LogLister", "LogRequestFailed"]
 
 BLOCK_BYTES = 90  # LOG_DATA payload
+# what is known of each block (the ``have`` map, also kept in a part file's block map)
+MISSING, ONE_COPY, CONFIRMED, SUSPECT, UNRESOLVED = 0, 1, 2, 3, 4
+_NEEDED = bytes(1 if v in (MISSING, SUSPECT) else 0 for v in range(256))   # have -> must be read (again)
+_ONE_TO_SUSPECT = bytes(SUSPECT if v == ONE_COPY else v for v in range(256))
+_RESUMED = bytes(v if v <= SUSPECT else SUSPECT for v in range(256))       # unknown / unresolved: read again
+_REASONS = {"confirm": "for a second copy", "disagreed": "whose copies disagreed",
+            "structure": "where the records broke"}
 _ARMED_REASON = "the FC is armed: ArduPilot serves no logs while armed (land and disarm, then retry)"
 
 
@@ -67,8 +86,12 @@ class DownloadConfig:
     fill_run_bytes: int = 10 * BLOCK_BYTES
     stream_run_bytes: int = 64 * BLOCK_BYTES
     progress_interval_s: float = 0.1
+    confirm: str = "noisy"   # "noisy": a second copy of every block once the link corrupts a frame; "always"
+    max_copies: int = 6      # copies of one block read before it is kept unverified
 
     def __post_init__(self) -> None:
+        if self.confirm not in ("noisy", "always") or self.max_copies < 3:
+            raise ValueError(f"confirm: {self.confirm!r} not 'noisy' or 'always', or max_copies < 3")
         if self.max_in_flight < 1 or not self.max_requests_per_s > 0:
             raise ValueError("max_in_flight must be >= 1 and max_requests_per_s > 0")
         if self.fill_run_bytes < BLOCK_BYTES or self.fill_run_bytes % BLOCK_BYTES:
@@ -97,10 +120,41 @@ class LogRequestFailed:
 
 @dataclass(frozen=True)
 class DownloadProgress:
+    """Bytes received; while ``confirming``, bytes whose second copy agrees (or that need none)."""
+
     log_id: int
     received_bytes: int
     size_bytes: int
     t_host_s: float
+    confirming: bool = False
+
+
+@dataclass(frozen=True)
+class DownloadCheck:
+    """How a downloaded log was verified end to end, beyond each packet's CRC-16.
+
+    ``verified`` is False only when some block's copies never agreed (``unresolved_offsets``).
+    ``reread_blocks`` counts the blocks read again, by why: ``"confirm"`` (the link corrupted
+    frames: a second copy of every block), ``"disagreed"`` (two copies differed), ``"structure"``
+    (the record chain broke there). ``fc_breaks`` are offsets where the chain breaks in blocks two
+    copies confirm: the log is like that on the FC."""
+
+    verified: bool
+    how: str
+    corrupted_frames: int
+    confirmed_blocks: int
+    reread_blocks: tuple[tuple[str, int], ...]
+    structure: str
+    fc_breaks: tuple[int, ...]
+    unresolved_offsets: tuple[int, ...]
+
+    def summary(self) -> str:
+        """One line: how it was verified, what was read again and why."""
+        again = ", ".join(f"{n} {_REASONS[why]}" for why, n in self.reread_blocks if n) or "none"
+        head = "verified" if self.verified else (
+            f"NOT verified: the copies of {len(self.unresolved_offsets)} block(s) never agreed "
+            f"(bytes at {', '.join(map(str, self.unresolved_offsets[:5]))})")
+        return f"{head}: {self.how}; {self.structure}; blocks read again: {again}"
 
 
 @dataclass(frozen=True)
@@ -110,6 +164,7 @@ class DownloadComplete:
     t_host_s: float
     requests: int
     duplicate_blocks: int
+    check: DownloadCheck
 
 
 @dataclass(frozen=True)
@@ -207,11 +262,19 @@ class LogDownloader(_Requests):
         self.size = int(entry.size_bytes)
         self.n_blocks = -(-self.size // BLOCK_BYTES)
         self.data = bytearray(self.size)
-        self.have = bytearray(self.n_blocks)  # 1 = block received
+        self.have = bytearray(self.n_blocks)  # MISSING, ONE_COPY, CONFIRMED, SUSPECT, UNRESOLVED per block
         if data is not None and have is not None and len(data) == self.size and len(have) == self.n_blocks:
             self.data[:] = data
-            self.have[:] = have
-        self.received_blocks = sum(self.have)
+            self.have[:] = bytes(have).translate(_RESUMED)
+        self.received_blocks = self.n_blocks - self.have.count(MISSING)
+        self._need = bytearray(1 if v == MISSING else 0 for v in self.have)   # 1 = to be read (again)
+        self._needed = self._need.count(1)
+        self._copies: dict[int, list[bytes]] = {}   # block -> the differing copies seen
+        self.corrupted_frames = 0
+        self.noisy = False
+        self.confirming = False
+        self._reread = {"confirm": 0, "disagreed": 0, "structure": 0}
+        self._fc_breaks: tuple[int, ...] = ()
         self.requests = 0
         self.duplicate_blocks = 0
         self.state = "idle"  # idle, stream, fill, paused, done
@@ -235,19 +298,30 @@ class LogDownloader(_Requests):
         return self.received_blocks * BLOCK_BYTES
 
     @property
+    def settled_bytes(self) -> int:
+        """Bytes of the blocks that need no (further) read."""
+        return min(self.size, (self.n_blocks - self._needed) * BLOCK_BYTES)
+
+    @property
     def complete(self) -> bool:
-        return self.received_blocks == self.n_blocks
+        return self._needed == 0
+
+    def partial(self) -> tuple[bytes, bytes]:
+        """(data, block map) to keep for a resume: a single copy from a link that corrupted frames
+        is kept as one to confirm."""
+        have = bytes(self.have).translate(_ONE_TO_SUSPECT) if self._must_confirm() else bytes(self.have)
+        return bytes(self.data), have
 
     def _first_missing(self, start: int = 0) -> int:
-        k = self.have.find(0, start)
+        k = self._need.find(1, start)
         return self.n_blocks if k < 0 else k
 
     def missing_runs(self, limit: int) -> list[tuple[int, int]]:
-        """Up to ``limit`` (first block, n blocks) runs of missing blocks, whole (not split)."""
+        """Up to ``limit`` (first block, n blocks) runs of blocks to read (again), whole (not split)."""
         out: list[tuple[int, int]] = []
         k = self._first_missing()
         while k < self.n_blocks and len(out) < limit:
-            end = self.have.find(1, k)
+            end = self._need.find(0, k)
             end = self.n_blocks if end < 0 else end
             out.append((k, end - k))
             k = self._first_missing(end)
@@ -279,9 +353,15 @@ class LogDownloader(_Requests):
             self._fail(_ARMED_REASON, now)
             return
         if self.complete:
-            self._succeed(now)
+            self._settle(now)
             return
         self._stream(now)
+
+    def link_noise(self, frames: int, now: float) -> None:
+        """The driver saw ``frames`` more frames fail their CRC on the link during the download."""
+        if frames > 0 and self.state != "done":
+            self.corrupted_frames += frames
+            self.noisy = True
 
     def fc_armed(self, armed: bool, now: float) -> None:
         self._armed = bool(armed)
@@ -309,20 +389,25 @@ class LogDownloader(_Requests):
             self.state = "stream"
         self._last_rx = now
         ofs, count = int(msg.ofs), int(msg.count)
-        if ofs % BLOCK_BYTES or count <= 0 or ofs >= self.size:
-            if self.state == "stream" and (count == 0 or ofs >= self.size):
+        if ofs % BLOCK_BYTES or count > BLOCK_BYTES:
+            self.link_noise(1, now)  # no FC sends this (we ask for whole blocks): an error the CRC missed
+            return
+        if count <= 0 or ofs >= self.size:
+            if self.state == "stream":
                 self._enter_fill(now)  # end of file reached
             return
         k = ofs // BLOCK_BYTES
-        n = min(count, self.size - ofs)
-        if self.have[k]:
-            self.duplicate_blocks += 1
-        else:
-            self.data[ofs:ofs + n] = bytes(msg.data[:n])
-            self.have[k] = 1
+        block = bytes(msg.data[:min(count, self.size - ofs)])
+        if self.have[k] == MISSING:
+            self.data[ofs:ofs + len(block)] = block
+            self.have[k] = ONE_COPY
             self.received_blocks += 1
+            self._set_need(k, False)
+        else:
+            self.duplicate_blocks += 1
+            self._another_copy(k, block)
         if self.complete:
-            self._succeed(now)
+            self._settle(now)
             return
         if self.state == "stream" and k >= self._stream_end - 1:
             self._enter_fill(now)  # the stream's last block: what is still missing is a gap
@@ -330,6 +415,36 @@ class LogDownloader(_Requests):
             self._resolve(k)
             self._check_in_flight(now)
         self._progress(now)
+
+    def _set_need(self, k: int, need: bool) -> None:
+        if self._need[k] != need:
+            self._need[k] = need
+            self._needed += 1 if need else -1
+
+    def _another_copy(self, k: int, block: bytes) -> None:
+        """A further copy of block ``k``: two copies that agree confirm it; copies that differ are
+        read again until one value has come twice (that one is kept)."""
+        state = self.have[k]
+        ofs = k * BLOCK_BYTES
+        if state in (CONFIRMED, UNRESOLVED):
+            return
+        copies = self._copies.get(k)
+        if copies is None and bytes(self.data[ofs:ofs + len(block)]) == block:
+            self.have[k] = CONFIRMED
+            self._set_need(k, False)
+            return
+        if copies is None:
+            copies = self._copies[k] = [bytes(self.data[ofs:ofs + len(block)])]
+            self._reread["disagreed"] += 1
+        if block in copies:   # the first value seen twice
+            self.data[ofs:ofs + len(block)] = block
+            self.have[k] = CONFIRMED
+            del self._copies[k]
+            self._set_need(k, False)
+            return
+        copies.append(block)
+        self.have[k] = SUSPECT if len(copies) < self.config.max_copies else UNRESOLVED
+        self._set_need(k, self.have[k] == SUSPECT)
 
     def _resolve(self, k: int) -> None:
         """The FC answers requests in order: block ``k`` arriving means every gap request sent before
@@ -384,7 +499,7 @@ class LogDownloader(_Requests):
         cfg = self.config
         for key, sent in list(self._in_flight.items()):
             k, n = key
-            if all(self.have[k:k + n]) or now - sent > cfg.retry_s:
+            if not any(self._need[k:k + n]) or now - sent > cfg.retry_s:
                 del self._in_flight[key]
         if self._token_t > -math.inf:
             self._tokens = min(float(cfg.max_in_flight), self._tokens + (now - self._token_t) * cfg.max_requests_per_s)
@@ -427,14 +542,72 @@ class LogDownloader(_Requests):
     def _progress(self, now: float) -> None:
         if now >= self._next_progress:
             self._next_progress = now + self.config.progress_interval_s
-            self._events.append(DownloadProgress(self.entry.log_id, self.received_bytes, self.size, now))
+            got = self.settled_bytes if self.confirming else self.received_bytes
+            self._events.append(DownloadProgress(self.entry.log_id, got, self.size, now, self.confirming))
+
+    # ------------------------------------------------------------------ verification
+
+    def _must_confirm(self) -> bool:
+        return self.noisy or self.config.confirm == "always"
+
+    def _settle(self, now: float) -> None:
+        """Every block is in: ask for second copies (a link that corrupts frames) and for the blocks
+        where the record chain breaks; succeed when nothing is left to read."""
+        if self._must_confirm():
+            self._reread["confirm"] += self.have.count(ONE_COPY)
+            self.have[:] = bytes(self.have).translate(_ONE_TO_SUSPECT)
+        self._blame_breaks()
+        self._need[:] = bytes(self.have).translate(_NEEDED)
+        self._needed = self._need.count(1)
+        if not self._needed:
+            self._succeed(now)
+            return
+        self.confirming = True
+        self._progress(now)
+        self._enter_fill(now)
+
+    def _blame_breaks(self) -> None:
+        """Single copies where the record chain breaks are read again; breaks within confirmed
+        blocks only are the FC's own."""
+        fc_breaks = []
+        for start, end in record_breaks(self.data):
+            blocks = range(start // BLOCK_BYTES, min(self.n_blocks, -(-end // BLOCK_BYTES)))
+            single = [k for k in blocks if self.have[k] == ONE_COPY]
+            for k in single:
+                self.have[k] = SUSPECT
+            self._reread["structure"] += len(single)
+            if not single and not any(self.have[k] == SUSPECT for k in blocks):
+                fc_breaks.append(start)
+        self._fc_breaks = tuple(fc_breaks)
+
+    def _check(self) -> DownloadCheck:
+        unresolved = tuple(k * BLOCK_BYTES for k in range(self.n_blocks) if self.have[k] == UNRESOLVED)
+        confirmed = self.have.count(CONFIRMED)
+        single = self.have.count(ONE_COPY)
+        if not single:
+            how = "every block read twice, two copies agree"
+        else:
+            how = (f"{single} of {self.n_blocks} blocks on their CRC-16 alone (the link corrupted no frame)"
+                   + (f", {confirmed} read twice" if confirmed else ""))
+        if self.noisy:
+            how += f" ({self.corrupted_frames} corrupted frames on the link)"
+        kind = log_kind(self.data)
+        if kind == "unknown":
+            structure = "record structure not checked (neither dataflash nor ULog)"
+        elif self._fc_breaks:
+            structure = (f"{kind} records break at {len(self._fc_breaks)} place(s) that two copies confirm "
+                         f"(so on the FC; first at byte {self._fc_breaks[0]})")
+        else:
+            structure = f"{kind} records parse end to end"
+        return DownloadCheck(not unresolved, how, self.corrupted_frames, confirmed,
+                             tuple(self._reread.items()), structure, self._fc_breaks, unresolved)
 
     def _succeed(self, now: float) -> None:
         self.state = "done"
         self._end()
-        self._events.append(DownloadProgress(self.entry.log_id, self.size, self.size, now))
+        self._events.append(DownloadProgress(self.entry.log_id, self.size, self.size, now, self.confirming))
         self._events.append(DownloadComplete(self.entry.log_id, bytes(self.data), now, self.requests,
-                                             self.duplicate_blocks))
+                                             self.duplicate_blocks, self._check()))
 
     def _fail(self, reason: str, now: float) -> None:
         self.state = "done"

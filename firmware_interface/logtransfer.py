@@ -6,12 +6,14 @@
 session's read-only allowlist), waits for the FC's heartbeat, and then:
 
 * :meth:`LogTransfer.list_logs` -> the FC's :class:`~firmware_interface.logdownload.LogEntry` list;
-* :meth:`LogTransfer.download` -> the bytes of one log, with progress callbacks; on failure a
+* :meth:`LogTransfer.download` -> the bytes of one log, with progress callbacks (how they were
+  verified, beyond each packet's CRC, in :attr:`LogTransfer.check`); the session's failed-CRC count
+  is handed to the downloader, which then confirms every block with a second copy; on failure a
   :class:`DownloadError` (one line naming the log) that carries the partial data and its block
   bitmap, so :func:`save_partial` keeps it and a later call resumes from it.
 
 :func:`write_verified` writes a downloaded log atomically (temporary file, size check, a full
-dataflash/ULog parse, rename). LOG_REQUEST_END is sent whenever a download ends, also when it is
+dataflash/ULog parse, rename); a log whose check is not verified goes to ``log-N.unverified.bin``. LOG_REQUEST_END is sent whenever a download ends, also when it is
 cancelled. Leaves the progress display and file naming to the caller.
 """
 
@@ -29,6 +31,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from firmware_interface.errors import LinkError, LogError
 from firmware_interface.link import LinkRunner
 from firmware_interface.logdownload import (
+    DownloadCheck,
     DownloadComplete,
     DownloadConfig,
     DownloadFailed,
@@ -44,7 +47,7 @@ from firmware_interface.samples import Heartbeat, LinkLost, LinkRestored, RawPac
 from firmware_interface.session import MavlinkSession, SessionConfig
 from firmware_interface.transports import Link
 
-__all__ = ["DownloadError", "LogTransfer", "load_partial", "save_partial", "write_verified"]
+__all__ = ["DownloadError", "LogTransfer", "load_partial", "save_partial", "unverified_path", "write_verified"]
 
 _MAV_AUTOPILOT_INVALID = 8
 _LOG_TYPES = ("LOG_ENTRY", "LOG_DATA")
@@ -79,6 +82,9 @@ class LogTransfer:
         self.armed = False
         self._machine: Any = None
         self._wake = asyncio.Event()
+        self._bad_crc = 0
+        self.check: DownloadCheck | None = None   # the last completed download's
+        self.confirming = False                    # the running download reads second copies
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -115,6 +121,9 @@ class LogTransfer:
     def _on_events(self, events: list[Any]) -> None:
         now = self.clock()
         m = self._machine
+        bad, self._bad_crc = self.session.stats.bad_crc - self._bad_crc, self.session.stats.bad_crc
+        if bad > 0 and isinstance(m, LogDownloader):
+            m.link_noise(bad, now)
         for ev in events:
             t = type(ev)
             if t is RawPacket:
@@ -192,15 +201,19 @@ class LogTransfer:
         assert self._fc is not None
         data, have = partial if partial is not None else (None, None)
         dl = LogDownloader(entry, self._fc, self.config, data=data, have=have)
+        self._bad_crc = self.session.stats.bad_crc   # count from here
+        self.check = None
 
         def seen(ev: Any) -> None:
-            if isinstance(ev, DownloadProgress) and on_progress is not None:
-                on_progress(ev.received_bytes, ev.size_bytes)
+            if isinstance(ev, DownloadProgress):
+                self.confirming = ev.confirming
+                if on_progress is not None:
+                    on_progress(ev.received_bytes, ev.size_bytes)
 
         ev = await self._drive(dl, (DownloadComplete, DownloadFailed), seen)
         if isinstance(ev, DownloadFailed):
-            part = (bytes(dl.data), bytes(dl.have)) if dl.received_blocks else None
-            raise DownloadError(ev.reason, part)
+            raise DownloadError(ev.reason, dl.partial() if dl.received_blocks else None)
+        self.check = ev.check
         return bytes(ev.data)
 
 
@@ -233,12 +246,19 @@ def load_partial(path: Path, size_bytes: int) -> tuple[bytes, bytes] | None:
     return data, have
 
 
-def write_verified(path: Path, data: bytes, size_bytes: int) -> Path:
-    """Write ``data`` to ``path`` atomically after checking its size and parsing it to its end.
+def unverified_path(path: Path) -> Path:
+    """``log-1.bin`` -> ``log-1.unverified.bin``: where a log whose download could not be verified goes."""
+    return path.with_name(f"{path.stem}.unverified{path.suffix}")
+
+
+def write_verified(path: Path, data: bytes, size_bytes: int, check: DownloadCheck | None = None) -> Path:
+    """Write ``data`` to ``path`` atomically after checking its size and parsing it to its end;
+    returns the path written: :func:`unverified_path` when ``check`` says the download is not verified.
 
     Raises LogError (naming the file) when the size differs or the log does not parse whole; the
     bytes are then kept as ``path.part`` so nothing downloaded is lost.
     """
+    final = unverified_path(path) if check is not None and not check.verified else path
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".verify")
     tmp.write_bytes(data)
@@ -252,7 +272,7 @@ def write_verified(path: Path, data: bytes, size_bytes: int) -> Path:
     except LogError as exc:
         os.replace(tmp, _part_paths(path)[0])
         raise LogError(str(exc).replace(str(tmp), str(path))) from None
-    os.replace(tmp, path)
+    os.replace(tmp, final)
     for p in _part_paths(path):
         p.unlink(missing_ok=True)
-    return path
+    return final

@@ -134,6 +134,9 @@ class OnboardLogsSection:
     #: results stay published until the onboard log's are ready): "usb" only over a USB link ([link] kind),
     #: "always" also over a slow radio, "off" never
     analyse: str = "usb"
+    #: every block read a second time and kept when two copies agree: "noisy" once the link corrupts a
+    #: frame during the download, "always" on any link (twice the time)
+    confirm: str = "noisy"
 
 
 @dataclass(frozen=True)
@@ -214,6 +217,8 @@ def validate(cfg: ServiceConfig, where: str = "config") -> None:
         (cfg.link.kind in ("auto", "usb", "radio"), "link.kind", cfg.link.kind, "must be auto, usb or radio"),
         (cfg.onboard_logs.analyse in ("off", "usb", "always"), "onboard_logs.analyse", cfg.onboard_logs.analyse,
          "must be off, usb or always"),
+        (cfg.onboard_logs.confirm in ("noisy", "always"), "onboard_logs.confirm", cfg.onboard_logs.confirm,
+         "must be noisy or always"),
         (cfg.rerun.mode != "save" or bool(cfg.rerun.target), "rerun.target", cfg.rerun.target, "save needs a PATH.rrd"),
         (cfg.identification.scope in ("last", "all"), "identification.scope", cfg.identification.scope,
          "must be last or all"),

@@ -6,8 +6,11 @@ and downloaded over the service's own link and MAVLink session, with the sans-IO
 :class:`~firmware_interface.logdownload.LogDownloader`: the service hands this object its session
 events (:meth:`OnboardLogs.on_events`) and calls :meth:`OnboardLogs.tick` from its timer; requests
 leave through the session's read-only allowlist. Only while disarmed: arming stops the download (the
-FC would not answer anyway), keeps what arrived, and the next disarm resumes it. A finished log is
-written atomically and verified in a thread (:func:`firmware_interface.logtransfer.write_verified`).
+FC would not answer anyway), keeps what arrived, and the next disarm resumes it. The session's
+failed-CRC count goes to the downloader (a link that corrupts frames: every block confirmed by a
+second copy). A finished log is written atomically and verified in a thread
+(:func:`firmware_interface.logtransfer.write_verified`); one whose download could not be verified is
+written as ``log-N.unverified.bin`` and the log line says so.
 
 A flight whose telemetry lost too much (``suggest_above_loss_pct``) can have its log fetched for
 analysis (``[onboard_logs] analyse``, :func:`analyse_onboard`): the log listed after that flight's
@@ -90,7 +93,7 @@ class OnboardLogs:
         self.session = session
         self.log = log
         self.dl_config = DownloadConfig(give_up_s=config.give_up_s, list_timeout_s=config.list_timeout_s,
-                                        list_retries=config.list_retries)
+                                        list_retries=config.list_retries, confirm=config.confirm)
         self._decoder = mavlink2.MAVLink(None, 255, 190)
         self._decoder.robust_parsing = True
         self._fc: tuple[int, int] | None = None
@@ -105,6 +108,7 @@ class OnboardLogs:
         self.on_log = on_log
         self._flight: tuple[int, bool] | None = None    # (flight, analyse it) of the listing to come
         self._for_analysis: dict[int, int] = {}         # log id -> flight whose analysis waits for it
+        self._bad_crc = 0                               # the session's failed CRCs handed on so far
 
     @property
     def busy(self) -> bool:
@@ -118,6 +122,10 @@ class OnboardLogs:
 
     def on_events(self, events: list[Any], now: float) -> None:
         m = self._machine
+        bad_crc = int(getattr(getattr(self.session, "stats", None), "bad_crc", 0))
+        bad, self._bad_crc = bad_crc - self._bad_crc, bad_crc
+        if bad > 0 and isinstance(m, LogDownloader):
+            m.link_noise(bad, now)
         for ev in events:
             t = type(ev)
             if t is RawPacket:
@@ -172,7 +180,7 @@ class OnboardLogs:
         elif isinstance(ev, DownloadFailed):
             last = self._last
             if last is not None and last.received_blocks:
-                self._partial[ev.log_id] = (bytes(last.data), bytes(last.have))
+                self._partial[ev.log_id] = last.partial()
             flight_no = self._for_analysis.get(ev.log_id)
             stands = f"; flight {flight_no}'s telemetry analysis stands" if flight_no is not None else ""
             self.log(f"onboard {ev.reason} (kept; resumes after the next disarm){stands}")
@@ -192,7 +200,8 @@ class OnboardLogs:
 
     def _write(self, ev: DownloadComplete) -> None:
         path = self.out_dir / f"log-{ev.log_id}.bin"
-        fut = asyncio.get_running_loop().run_in_executor(None, write_verified, path, ev.data, len(ev.data))
+        fut = asyncio.get_running_loop().run_in_executor(None, write_verified, path, ev.data, len(ev.data),
+                                                         ev.check)
         self._writing.add(fut)
 
         def done(f: asyncio.Future[Any]) -> None:
@@ -200,11 +209,13 @@ class OnboardLogs:
             if exc is not None:
                 self.log(f"onboard log {ev.log_id}: {exc}")
             else:
-                self.downloaded.append(str(path))
-                self.log(f"onboard log {ev.log_id}: wrote {path}, verified")
+                written = f.result()
+                self.downloaded.append(str(written))
+                said = "wrote" if written == path else "saved as"
+                self.log(f"onboard log {ev.log_id}: {said} {written}, {ev.check.summary()}")
                 flight = self._for_analysis.pop(ev.log_id, None)
                 if flight is not None and self.on_log is not None:
-                    self.on_log(flight, str(path))     # before busy ends: the service's exit waits for its job
+                    self.on_log(flight, str(written))     # before busy ends: the service's exit waits for its job
             self._writing.discard(f)
 
         fut.add_done_callback(done)

@@ -115,7 +115,11 @@ class FcConfig:
     what ArduPilot reaches over USB) and ``log_burst_packets`` how many LOG_DATA packets answer a
     LOG_REQUEST_DATA at once, as ArduPilot's handler sends before returning;
     ``log_stop_after_packets`` makes the FC stop answering log requests after sending that many
-    LOG_DATA packets (a fault to inject).
+    LOG_DATA packets (a fault to inject). ``crc_blind_rate`` is the probability per LOG_DATA packet
+    of line noise its CRC-16 cannot see: bits flipped in its data in a seeded multiple of the CRC's
+    own polynomial (x^16 + x^12 + x^5 + 1), so the packet arrives valid with a wrong block, as a
+    rare error of four or more bits does on a noisy line (a fault to inject; seeded apart from
+    ``corrupt_rate``; two such packets almost never carry the same error).
     """
 
     sysid: int = 1
@@ -130,10 +134,13 @@ class FcConfig:
     log_bytes_per_s: float = 250_000.0
     log_burst_packets: int = 10
     log_stop_after_packets: int | None = None
+    crc_blind_rate: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.packet_loss < 1.0:
             raise ValueError(f"packet_loss: {self.packet_loss} not in [0, 1)")
+        if not 0.0 <= self.crc_blind_rate <= 1.0:
+            raise ValueError(f"crc_blind_rate: {self.crc_blind_rate} not in [0, 1]")
         if not 0.0 <= self.corrupt_rate < 1.0:
             raise ValueError(f"corrupt_rate: {self.corrupt_rate} not in [0, 1)")
         if not self.heartbeat_rate_hz > 0:
@@ -152,6 +159,7 @@ class FcStats:
     packets_unheard: int = 0       # written while no ground station had the port open
     packets_corrupted: int = 0     # sent with at least one flipped bit (corrupt_rate)
     corrupt_bytes: int = 0
+    packets_crc_blind: int = 0     # LOG_DATA sent with an error their CRC cannot see (crc_blind_rate)
     bytes_sent: int = 0
     gcs_messages: int = 0
     commands: int = 0
@@ -190,6 +198,7 @@ class FcProtocol:
         self._parser.robust_parsing = True
         self._rng = random.Random(self.config.seed)
         self._rng_corrupt = random.Random(self.config.seed + 0x5EED)
+        self._rng_blind = random.Random(self.config.seed + 0xB11D)
         self.intervals_s: dict[str, float] = {}       # active streams: name -> interval (FC clock)
         self._next_due: dict[str, float] = {}
         self._once: set[str] = set()                  # REQUEST_MESSAGE one-shots
@@ -276,7 +285,7 @@ class FcProtocol:
         while True:
             n = min(90, count - sent, max(0, len(data) - ofs - sent))
             chunk = data[ofs + sent:ofs + sent + n]
-            self._encode(self.mav.log_data_encode(lid, ofs + sent, n, chunk + bytes(90 - n)), out)
+            self._encode(self.mav.log_data_encode(lid, ofs + sent, n, chunk + bytes(90 - n)), out, data_bytes=n)
             self.stats.log_data_sent += 1
             sent += n
             if n == 0 or sent >= count:
@@ -369,9 +378,11 @@ class FcProtocol:
 
     # ------------------------------------------------------------------ FC -> ground station
 
-    def _encode(self, msg: Any, out: list[bytes]) -> None:
+    def _encode(self, msg: Any, out: list[bytes], data_bytes: int = 0) -> None:
         buf = msg.pack(self.mav)
         self.mav.seq = (self.mav.seq + 1) % 256
+        if data_bytes >= 3 and self.config.crc_blind_rate > 0 and self._rng_blind.random() < self.config.crc_blind_rate:
+            buf = self._crc_blind(buf, data_bytes)
         if self.config.packet_loss > 0 and self._rng.random() < self.config.packet_loss:
             self.stats.packets_lost += 1
             return
@@ -380,6 +391,26 @@ class FcProtocol:
         out.append(buf)
         kind = msg.get_type()
         self.stats.sent_by_type[kind] = self.stats.sent_by_type.get(kind, 0) + 1
+
+    def _crc_blind(self, buf: bytes, data_bytes: int) -> bytes:
+        """Flip bits of a LOG_DATA packet's data (``data_bytes`` of it from payload offset 7) in the
+        pattern x^k * r(x) * (x^16 + x^12 + x^5 + 1), r and k seeded: its CRC-16 still checks."""
+        b = bytearray(buf)
+        data_bytes = min(data_bytes, b[1] - 7)  # MAVLink 2 drops the payload's trailing zeros
+        if data_bytes < 5:
+            return buf
+        r = self._rng_blind.randrange(1, 1 << 16)
+        pattern = 0
+        for i in range(16):  # r times the polynomial, bits in wire order (LSB first: 0, 4, 11, 16)
+            if r >> i & 1:
+                pattern ^= 0x10811 << i
+        first = 8 * (10 + 7)  # MAVLink 2 header, then LOG_DATA's ofs, id, count
+        k = first + self._rng_blind.randrange(8 * data_bytes - 32)
+        for d in range(32):
+            if pattern >> d & 1:
+                b[(k + d) // 8] ^= 1 << ((k + d) % 8)
+        self.stats.packets_crc_blind += 1
+        return bytes(b)
 
     def _corrupt(self, buf: bytes) -> bytes:
         rate = self.config.corrupt_rate

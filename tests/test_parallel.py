@@ -168,6 +168,44 @@ def test_identify_workers_are_forked_from_the_command_itself_after_its_imports()
         t.join()
 
 
+def _collection_faults(_: int) -> tuple[int, int, int]:
+    """In a worker: the objects frozen, and the page faults of a full collection with them frozen and
+    then with them back in the collector's reach (the worker is left as it was)."""
+    import gc
+    import resource
+
+    def faults() -> int:
+        return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+
+    frozen = gc.get_freeze_count()
+    f0 = faults()
+    gc.collect()
+    f1 = faults()
+    gc.unfreeze()
+    gc.collect()
+    f2 = faults()
+    gc.freeze()
+    return frozen, f1 - f0, f2 - f1
+
+
+def test_forked_workers_collect_without_copying_the_commands_pages():
+    """The objects the command holds when it forks its workers are frozen (``gc.freeze``): a full
+    collection in a worker leaves the pages it shares with the command alone, where without the
+    freeze it copies thousands of them; the command unfreezes them once its workers are gone."""
+    import gc
+    import sys
+
+    if sys.platform != "linux":
+        pytest.skip("workers are forked from the command on Linux only")
+    before = gc.get_freeze_count()
+    with worker_map(2, ("numpy",), fork_here=True) as pmap:
+        frozen, with_freeze, without = pmap(_collection_faults, range(2))[0]
+        assert gc.get_freeze_count() > before
+    assert gc.get_freeze_count() == before
+    assert frozen > 10_000
+    assert without > 200 and with_freeze * 5 < without, (with_freeze, without)
+
+
 _FAULTS = """
 import resource, sys
 import numpy as np

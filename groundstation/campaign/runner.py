@@ -8,10 +8,13 @@ job distribution of our own: a ``concurrent.futures.ProcessPoolExecutor`` on one
 scheduler on a cluster. With ``scheduler="local"`` a ``distributed.LocalCluster`` on loopback with
 ``workers`` single-threaded worker processes is started and closed here.
 
-Local worker processes (the pool's and the local cluster's) are forked from one fork server that
-has imported the analysis once (:data:`groundstation.parallel.PRELOAD`, see :func:`start_fork_server`):
-a worker starts without importing anything, and its first flight costs what any other does, so a
-pool of N does the CPU work of one process. :func:`open_executor` keeps the workers for several runs
+The pool's workers are forked from the calling process once it has imported the analysis
+(:data:`groundstation.parallel.PRELOAD`; the command has imported nearly all of it already), before
+any other thread starts (:func:`groundstation.parallel.fork_here_context`): a worker starts without
+importing anything, its first flight costs what any other does, and no second interpreter imports
+the analysis again while the cores wait. Where that is not safe (another thread runs, not Linux) and
+for a local Dask cluster, the workers are forked from one fork server that has imported the analysis
+once (:func:`start_fork_server`). :func:`open_executor` keeps the workers for several runs
 (a bench starts and warms them once, outside its clock). With more than one worker the logs are
 submitted largest first (:func:`submission_order`), so that no worker is left with a long flight
 while the others have finished.
@@ -33,7 +36,7 @@ from threadpoolctl import threadpool_limits
 
 from groundstation.campaign.job import FlightJob, Handover, _one_line, analyse_handing_over, cross_fit
 from groundstation.parallel import PRELOAD as PRELOAD  # noqa: F401 - re-exported
-from groundstation.parallel import fork_context, init_worker
+from groundstation.parallel import fork_context, fork_here_context, frozen_for_fork, init_worker
 from groundstation.parallel import warm as warm
 
 OnResult = Callable[[FlightJob, list[dict[str, Any]]], None]
@@ -84,10 +87,16 @@ class _Serial:
 
 
 class _Pool:
-    def __init__(self, workers: int) -> None:
+    def __init__(self, workers: int, here: Any = None) -> None:
+        """``here``: the ``fork`` context of :func:`groundstation.parallel.fork_here_context` (None: the
+        fork server's)."""
         self.workers = workers
         self.pids: list[int] = []
-        self.ex = ProcessPoolExecutor(max_workers=workers, mp_context=start_fork_server(), initializer=init_worker)
+        self.forked_here = here is not None
+        self.ex = ProcessPoolExecutor(max_workers=workers, mp_context=here or start_fork_server(),
+                                      initializer=init_worker)
+        if here is not None:
+            self.ex.submit(os.getpid)   # a ``fork`` pool forks all its workers on its first submit: now
 
     def warm(self) -> None:
         """Every worker started, their process ids in ``self.pids`` (one task per worker, each holding
@@ -146,11 +155,24 @@ def open_executor(workers: int = 1, scheduler: str | None = None, local_processe
     elif workers == 1:
         yield _Serial()
     else:
-        pool = _Pool(workers)
-        try:
-            yield pool
-        finally:
-            pool.ex.shutdown()
+        here = fork_here_context(PRELOAD)
+        with frozen_for_fork(here is not None):   # the workers' collections leave the shared pages alone
+            pool = _Pool(workers, here)
+            try:
+                yield pool
+            finally:
+                pool.ex.shutdown()
+
+
+@contextmanager
+def open_for(jobs: Sequence[FlightJob], workers: int = 1, scheduler: str | None = None,
+             local_processes: bool = True) -> Iterator[Executor]:
+    """:func:`open_executor` for one run of ``jobs``: no more local workers than jobs (one job, or
+    none: this process). Open it before starting any thread (a progress bar's), so that the pool's
+    workers can be forked from this process."""
+    n = workers if scheduler else min(workers, max(len(jobs), 1))
+    with open_executor(n, scheduler, local_processes) as ex:
+        yield ex
 
 
 @contextmanager
@@ -207,10 +229,7 @@ def run(jobs: Sequence[FlightJob], *, workers: int = 1, scheduler: str | None = 
     """Analyse every job; returns the rows per job in job order (see module docstring). ``executor``:
     workers opened by :func:`open_executor` (then ``workers`` and ``scheduler`` are not used)."""
     if executor is None:
-        if workers > 1 and len(jobs) <= 1 and not scheduler:
-            workers = 1  # one log: no pool to start
-        with open_executor(min(workers, max(len(jobs), 1)) if not scheduler else workers, scheduler,
-                           local_processes) as ex:
+        with open_for(jobs, workers, scheduler, local_processes) as ex:
             return run(jobs, on_result=on_result, executor=ex)
     jobs = hand_over_plan(jobs)
     order = list(range(len(jobs))) if executor.workers == 1 else submission_order(jobs)

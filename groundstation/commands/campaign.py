@@ -104,8 +104,11 @@ def run(args: argparse.Namespace) -> int:
                   f"{'Dask ' + args.scheduler if args.scheduler else f'{workers} process(es)'}"
                   f"{'' if args.scheduler or args.jobs is not None else f' (every core of {os.cpu_count()}; --jobs to change)'}")
         t0 = time.perf_counter()
-        with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
-                      TimeElapsedColumn(), console=con, transient=True, disable=not args.progress) as prog:
+        # the workers first: forked from this process before the progress bar's thread starts
+        with runner.open_for(jobs, workers, args.scheduler) as ex, \
+                Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                         TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=con, transient=True,
+                         disable=not args.progress) as prog:
             task = prog.add_task("campaign", total=len(jobs), info="")
 
             def on_result(job, rows) -> None:
@@ -114,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
                 info = last["error"] or f"verdict {last.get('verdict')}, held-out {_fmt(last.get('heldout_match_pct'))} %"
                 prog.update(task, advance=1, info=f"{last['log_name']}: {info}"[:80])
 
-            runner.run(jobs, workers=workers, scheduler=args.scheduler, on_result=on_result)
+            runner.run(jobs, on_result=on_result, executor=ex)
         wall = time.perf_counter() - t0
         for e in store.errors(name):
             con.print(f"[red]error[/]: {e['error']}")

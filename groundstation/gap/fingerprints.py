@@ -4,6 +4,8 @@
   into the 50 Hz rates): the window-averaged periodogram of each channel against the median of its
   neighbouring bins, significant by the chi-square law of an average of ``W`` periodograms
   (Bonferroni over bins and channels), and not present in the input spectra.
+* :func:`line_power_per_window` — a line's power window by window (is it as strong in the second half
+  of the flight as in the first?).
 * :func:`kinematic_rate_offsets` — a constant offset between a measured body rate and the rate
   implied by the measured Euler angles (eq. 3 inverted:
   ``theta_dot = q cos(phi) - r sin(phi)``, ``phi_dot = p + (q sin(phi) + r cos(phi)) tan(theta)``),
@@ -240,6 +242,36 @@ def sinusoid_amplitude(x: np.ndarray, dt_s: float, f_hz: float) -> float:
     """RMS-over-windows amplitude of the per-window sinusoid at f_hz in x (W, L)."""
     fit = sinusoid_fit(x, dt_s, f_hz)
     return float(np.sqrt(2.0 * (fit ** 2).mean()))
+
+
+def line_power_per_window(resid: np.ndarray, dt_s: float, f_hz: float, tol_hz: float,
+                          channels: list[str]) -> np.ndarray:
+    """Each window's power of a line near ``f_hz``: the largest Hann-tapered Fourier power within
+    ``tol_hz`` of it (a wandering line moves between windows), each channel divided by its median over
+    the windows (no unit, every channel weighs the same), summed over ``channels``.
+
+    Parameters
+    ----------
+    resid : array (W, L, 8), raw output residuals per window
+    dt_s : float, sample period (s)
+    f_hz, tol_hz : float, the line's frequency and how far it may move (Hz)
+    channels : names of the output channels the line is in
+
+    Returns
+    -------
+    array (W,), the line's power per window relative to its median (1 for a steady line)
+    """
+    W, L, _ = resid.shape
+    t = np.arange(L) * dt_s
+    grid = f_hz + np.linspace(-tol_hz, tol_hz, 31)
+    grid = grid[grid > 0]
+    E = np.exp(-2j * np.pi * grid[:, None] * t[None, :]) * np.hanning(L)[None, :]
+    x = _detrend(resid)
+    out = np.zeros(W)
+    for c in channels:
+        pw = (np.abs(x[:, :, OUTPUTS.index(c)] @ E.T) ** 2).max(axis=1)
+        out += pw / max(float(np.median(pw)), 1e-300)
+    return out
 
 
 @dataclass

@@ -55,6 +55,11 @@ PARAMETER = {"input_delay": "delay_s", "rate_limit": "rate_limit_per_s", "deadba
              "quadratic_drag": None, "wind_gust": "air_velocity_rms_m_s", "rotor_vibration": "frequency_hz"}
 
 
+#: an amplitude (air velocity rms, a line's amplitude) differing between the halves beyond chance
+#: changes through the flight only when it differs by more than this factor
+CHANGE_FACTOR = 1.5
+
+
 # ----------------------------------------------------------------------------------------------
 # shares
 # ----------------------------------------------------------------------------------------------
@@ -454,7 +459,8 @@ def _round(v: Any) -> Any:
 
 def _gust_consistency(c: attribute.Candidate, ev: Evaluator, level: float, out: dict[str, Any]) -> dict[str, Any]:
     """An air mass holds when the fitted air velocity's rms per window is the same in both halves
-    (Welch t-test on the log of the per-window rms, level ``level``, and a factor above 1.5)."""
+    (Welch t-test on the log of the per-window rms, level ``level``, and a factor above
+    :data:`CHANGE_FACTOR`)."""
     air = c.hyp.extra.get("air_knots")
     if air is None:
         out["why"] = "no per-window air velocity to compare"
@@ -469,7 +475,7 @@ def _gust_consistency(c: attribute.Candidate, ev: Evaluator, level: float, out: 
     p = float(stats.ttest_ind(a, b, equal_var=False).pvalue)
     r1, r2 = float(np.exp(a.mean())), float(np.exp(b.mean()))
     out.update(first=round(r1, 4), second=round(r2, 4), p_values={"halves_differ": float(f"{p:.3g}")})
-    if p < level and max(r1, r2) / min(r1, r2) > 1.5:
+    if p < level and max(r1, r2) / min(r1, r2) > CHANGE_FACTOR:
         out["status"], out["why"] = "changes", f"air velocity rms {r1:.2f} m/s in the first half, {r2:.2f} m/s in the second"
     else:
         out["status"], out["why"] = "holds", f"air velocity rms {r1:.2f} and {r2:.2f} m/s in the two halves"
@@ -479,7 +485,10 @@ def _gust_consistency(c: attribute.Candidate, ev: Evaluator, level: float, out: 
 def _line_consistency(c: attribute.Candidate, ev: Evaluator, arrays: dict[str, Any] | None, level: float,
                       out: dict[str, Any]) -> dict[str, Any]:
     """A rotor line holds when each half's raw residual shows a line at its frequency (within two
-    bins of the averaged periodogram, or 0.3 Hz); not checked when a half does not resolve it."""
+    bins of the averaged periodogram, or 0.3 Hz) at the same strength; not checked when a half does
+    not resolve it. A rotor spinning through the whole flight shakes the aircraft as hard in the
+    second half as in the first; a line that grows or fades (a loop ringing as a delay grows) changes
+    (:func:`_line_strength`)."""
     if arrays is None or arrays.get("resid_raw") is None:
         out["why"] = "no raw residual to look at"
         return out
@@ -501,12 +510,36 @@ def _line_consistency(c: attribute.Candidate, ev: Evaluator, arrays: dict[str, A
         found.append(near[0] if near else None)
     out["first"], out["second"] = _round(found[0]), _round(found[1])
     if all(v is not None for v in found):
-        out["status"], out["why"] = "holds", f"the line is in both halves ({found[0]:.2f} and {found[1]:.2f} Hz)"
+        lines = c.hyp.extra.get("lines") or []
+        chans = lines[0].channels if lines else [OUTPUTS[k] for k in c.hyp.channels]
+        return _line_strength(resid, dt, f0, tol, chans, hv, level, found, out)
     else:
         # half the data at a stricter level: a line not found in a half is not resolved there,
         # which is not the same as absent (a real rotor line on a bench flight was missed in one half)
         half = "second" if found[0] is not None else "first"
         out["why"] = f"the line at {f0:.2f} Hz is not resolved in the {half} half"
+    return out
+
+
+def _line_strength(resid: np.ndarray, dt: float, f0: float, tol: float, chans: list[str], hv: np.ndarray,
+                   level: float, found: list, out: dict[str, Any]) -> dict[str, Any]:
+    """A line found in both halves changes when its per-window power differs between the halves
+    (Welch t-test on its log, level ``level``) by more than :data:`CHANGE_FACTOR` in amplitude: the
+    air mass's rule, on the line's own power referred to its median over the flight."""
+    pw = np.log(fingerprints.line_power_per_window(resid, dt, f0, tol, chans) + 1e-300)
+    a, b = pw[hv == 0], pw[hv == 1]
+    p = float(stats.ttest_ind(a, b, equal_var=False).pvalue)
+    ratio = float(np.exp(0.5 * (b.mean() - a.mean())))  # amplitude, second half over first
+    out["p_values"] = {"strength_differs": float(f"{p:.3g}")}
+    out["amplitude_ratio"] = round(ratio, 3)
+    if p < level and max(ratio, 1.0 / ratio) > CHANGE_FACTOR:
+        out["status"] = "changes"
+        out["why"] = (f"the line ({found[0]:.2f} and {found[1]:.2f} Hz) is {ratio:.2f}x as strong in the second half "
+                      f"as in the first (p={p:.2g}): a rotor shakes the aircraft alike all flight")
+    else:
+        out["status"] = "holds"
+        out["why"] = (f"the line is in both halves ({found[0]:.2f} and {found[1]:.2f} Hz), at {ratio:.2f}x the "
+                      f"first half's amplitude in the second")
     return out
 
 

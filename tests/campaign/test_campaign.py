@@ -107,10 +107,10 @@ def test_bad_scheduler_and_jobs_are_one_line(logs, tmp_path, capsys):
     assert "nothing: no such file or directory" in capsys.readouterr().err
 
 
-def test_pool_and_local_cluster_processes_share_one_fork_server_and_give_the_same_rows(logs):
-    """Workers of the pool and of a local Dask cluster (separate processes on loopback) are forked
-    from the fork server that imported the analysis; each log is analysed in a worker and gives the
-    serial rows."""
+def test_pool_workers_are_forked_here_and_pool_and_local_cluster_give_the_serial_rows(logs):
+    """The pool's workers are forked from this process once it has imported the analysis (a local Dask
+    cluster's, separate processes on loopback, from the fork server that imported it); each log is
+    analysed in a worker and gives the serial rows."""
     import os
 
     from groundstation.campaign import runner
@@ -126,8 +126,39 @@ def test_pool_and_local_cluster_processes_share_one_fork_server_and_give_the_sam
         parent = ex.ex.submit(os.getppid).result()  # type: ignore[attr-defined]
         pool = runner.run(jobs, executor=ex)
     assert len(pids) == 2 and os.getpid() not in pids
-    assert parent != os.getpid()  # forked by the fork server, not by this process
+    # forked here when no other thread ran at the fork (an earlier test's Dask threads may): else the fork server
+    assert (parent == os.getpid()) == ex.forked_here  # type: ignore[attr-defined]
     dask = runner.run(jobs, workers=2, scheduler="local")
     for a, b, c in zip(serial, pool, dask, strict=True):
         assert [r["model"] for r in a] == [r["model"] for r in b] == [r["model"] for r in c]
         assert all(r["cpu_s"] > 0 for r in b + c)
+
+
+_PROBE = """
+import sys
+from groundstation.campaign import runner
+from groundstation.cli import main
+
+opened = runner._Pool.__init__
+
+def init(self, *args):
+    opened(self, *args)
+    print("forked here", self.forked_here, self.workers, flush=True)
+
+runner._Pool.__init__ = init
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_the_campaign_command_forks_its_workers_from_itself_before_its_progress_bar_starts(logs, tmp_path):
+    """``groundstation campaign`` opens its pool before the progress bar's thread runs, so the workers are
+    forked from the command itself (no fork server importing the analysis a second time)."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _PROBE, "campaign", str(logs), "--db", str(tmp_path / "c.sqlite"),
+                          "--maxiter", "4", "--restarts", "1", "--no-diagnose", "--progress", "--quiet", "--jobs", "2"],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "forked here True 2" in out.stdout
+    assert [r["error"] for r in _rows(tmp_path / "c.sqlite")] == [None, None]

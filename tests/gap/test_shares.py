@@ -49,6 +49,19 @@ def test_a_gyro_bias_drifting_through_the_flight_is_not_named_as_a_constant_one(
     assert effect_values(r)["gyro_bias[q].bias_rad_s"] == pf["estimate"]["bias_rad_s"]
 
 
+def test_a_delay_growing_from_nothing_is_not_named_as_a_constant_one(flight_factory, paper_theta):
+    # lon delay growing from 0 at the start to 0.2 s at the end. The first half alone does not
+    # resolve an input effect that starts at nothing, so the halves cannot tell it from a constant
+    # one; the same effect ramping through the whole flight fits the held-out windows better
+    r = diagnose(_start(paper_theta), flight_factory(T_s=90.0, seed=11, effect=("growing_delay", 1, 10)), seed=0)
+    assert r["verdict"] == "unexplained" and r["effects"] == []
+    ch = r["through_flight"]["changes"]
+    drifting = [c for c in ch if c.get("drift", {}).get("drifts")]
+    assert drifting and drifting[0]["effect"] in ("input_delay", "rate_limit") and drifting[0]["channel"] == "lon"
+    assert drifting[0]["drift"]["p"] < 1e-3
+    assert "changes through the flight" in r["shares"]["headline"]
+
+
 def test_a_flight_too_short_to_split_says_so_and_checks_nothing(flight_factory, paper_theta):
     r = diagnose(_start(paper_theta), flight_factory(T_s=33.0, seed=12, effect=("gyro_bias", 4, 0.01)), seed=0)
     assert not r["through_flight"]["checked"]
@@ -93,3 +106,44 @@ def test_a_constant_deadband_on_a_short_flight_is_not_read_as_changing(tmp_path)
     # the test counts each half's correlated ~0.5 s blocks as fewer independent ones: the second half
     # (large lon swings, which a deadband barely changes) does not reject the first half's value
     assert db["consistency"]["p_values"]["second_rejects_other"] > 0.01
+
+
+def _line_flight(amplitude, W=40, L=150, dt=0.02, f_hz=7.3, seed=5):
+    """Raw residual windows (W, L, 8): white noise twice as strong in the second half (more
+    manoeuvring misfit), plus a line on p whose frequency wanders by +-0.15 Hz and whose amplitude per
+    window is ``amplitude(w)``."""
+    from types import SimpleNamespace
+
+    from groundstation.gap import attribute
+    from groundstation.gap.fingerprints import Line
+    from groundstation.gap.hypotheses import Hypothesis
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(L) * dt
+    resid = 0.01 * rng.standard_normal((W, L, 8))
+    resid[W // 2:] *= 2.0
+    for w in range(W):
+        f = f_hz + 0.15 * np.sin(2 * np.pi * w / 7.0)
+        resid[w, :, 3] += amplitude(w) * np.sin(2 * np.pi * f * t + rng.uniform(0, 2 * np.pi))
+    line = Line(f_hz, ["p"], 50.0, -40.0, {"p": 0.02})
+    hyp = Hypothesis("rotor_vibration", estimate={"frequency_hz": f_hz}, channels=(3,), extra={"lines": [line]})
+    cand = attribute.Candidate(hyp, attribute.Score(5.0, 1e-40, 1.0, 0.9, 10.0, (8.0, 12.0), {3: 10.0}), True, "")
+    arrays = {"resid_raw": resid, "U": 0.1 * rng.standard_normal((W, L, 4)), "response": None,
+              "line_channels": np.arange(8) >= 3, "stride": None}
+    return cand, SimpleNamespace(W=W, dt_s=dt), arrays
+
+
+def test_a_rotor_line_that_grows_through_the_flight_changes_and_a_steady_one_holds():
+    from groundstation.gap.shares import consistency
+
+    def check(amplitude):
+        cand, ev, arrays = _line_flight(amplitude)
+        return consistency(cand, ([], []), ev, np.zeros(1), 0.005, 0.5, 6, np.random.default_rng(0), 100, 0.1, arrays)
+
+    steady = check(lambda w: 0.02)  # the rotor shakes alike all flight, while the misfit doubles
+    assert steady["status"] == "holds", steady["why"]
+    assert 0.8 < steady["amplitude_ratio"] < 1.25
+    grows = check(lambda w: 0.01 + 0.03 * w / 40)  # a loop ringing harder as a delay grows
+    assert grows["status"] == "changes", grows["why"]
+    assert grows["amplitude_ratio"] > 1.5 and grows["p_values"]["strength_differs"] < 0.005
+    assert "as strong in the second half" in grows["why"]

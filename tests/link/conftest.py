@@ -29,6 +29,14 @@ class FakeFc:
         return self.pack(self.mav.command_ack_encode(command, result))
 
 
+@pytest.fixture(scope="session")
+def df_log() -> bytes:
+    """20 kB of the simulated FC's own dataflash log (its writer, simulator records at 200 Hz)."""
+    from benchkit.onboard_logs import simulated_dataflash
+
+    return simulated_dataflash(20_000, 0)
+
+
 @pytest.fixture
 def fc() -> FakeFc:
     return FakeFc()

@@ -1,7 +1,7 @@
 """Onboard log download from the simulated FC through a real pty (pyserial transport, real MAVLink bytes).
 
 The FC serves a dataflash log it wrote itself (from simulator frames at 200 Hz), with its seeded
-line noise and a cable pull in the middle; the ground station's bytes to the FC are teed and checked
+line noise (also errors the MAVLink CRC-16 cannot see) and a cable pull in the middle; the ground station's bytes to the FC are teed and checked
 against the read-only allowlist. Progress, not time, decides when to pull the cable.
 """
 
@@ -52,15 +52,25 @@ class _ArmedFrame:
 
 
 @pytest.fixture(scope="module")
-def flight_bin():
-    """A dataflash log written by the simulated FC's own writer: the first 12 s of a flight."""
+def written() -> dict[str, bytes]:
+    """Dataflash logs written by the simulated FC's own writer: the first 6 s of a flight (218 kB), and
+    its first 1 s (a log closed earlier)."""
     sess = SimulatedSession(seed=11, flight_duration_s=40.0)
     w = DataflashWriter(rotor_rpm(sess), chirp_plan(sess))
+    out = {}
     for frame in sess.frames(fast_gyro=True):
-        if frame.t_boot_s > 15.0:
+        if frame.t_boot_s > 1.0 and "tiny" not in out:
+            out["tiny"] = w.getvalue()
+        if frame.t_boot_s > 6.0:
             break
         w.add(frame)
-    return w.getvalue()
+    out["short"] = w.getvalue()
+    return out
+
+
+@pytest.fixture(scope="module")
+def flight_bin(written):
+    return written["short"]
 
 
 def _tee(fc: SimulatedFCThread, ended: threading.Event) -> list[bytes]:
@@ -88,7 +98,11 @@ def _kinds(chunks: list[bytes]) -> list:
 
 
 def test_byte_identical_through_pty_with_one_percent_corruption_and_an_unplug(flight_bin):
-    fc = SimulatedFCThread(session=Idle(), config=FcConfig(corrupt_rate=0.01, packet_loss=0.0, seed=5))
+    """1 % of bytes get a flipped bit (about 2 in 3 LOG_DATA packets fail their CRC), and 0.5 % of LOG_DATA
+    packets carry an error their CRC misses (a wrong block in a valid frame): every block is read twice
+    and kept when two copies agree, so the log arrives byte-identical whichever packets the noise hits."""
+    fc = SimulatedFCThread(session=Idle(), config=FcConfig(corrupt_rate=0.01, packet_loss=0.0, seed=5,
+                                                           crc_blind_rate=0.005))
     fc.fc.protocol.add_log(flight_bin)
     ended = threading.Event()
     to_fc = _tee(fc, ended)
@@ -104,14 +118,18 @@ def test_byte_identical_through_pty_with_one_percent_corruption_and_an_unplug(fl
                     pulled.set()
                     fc.unplug(1.0)
 
-            return entry, await tr.download(entry, on_progress=progress)
+            return entry, await tr.download(entry, on_progress=progress), tr.check
 
     with fc:
-        entry, data = asyncio.run(main())
+        entry, data, check = asyncio.run(main())
         assert ended.wait(10), "LOG_REQUEST_END reached the FC"
     assert entry.size_bytes == len(flight_bin)
     assert data == flight_bin
-    assert pulled.is_set() and fc.stats.packets_corrupted > 100  # both faults really happened
+    # the three faults really happened: noise, CRC-blind blocks (more than a few read as first copies), the pull
+    assert pulled.is_set() and fc.stats.packets_corrupted > 100 and fc.stats.packets_crc_blind > 10
+    reread = dict(check.reread_blocks)
+    assert check.verified and check.corrupted_frames > 100 and reread["disagreed"] > 0, check
+    assert check.structure == "dataflash records parse end to end"
     msgs = _kinds(to_fc)
     kinds = [m.get_type() for m in msgs]
     assert set(kinds) <= {"HEARTBEAT", "LOG_REQUEST_LIST", "LOG_REQUEST_DATA", "LOG_REQUEST_END"}, set(kinds)
@@ -134,6 +152,34 @@ def test_cli_get_writes_the_verified_log_and_list_shows_it(flight_bin, tmp_path,
     assert not list(tmp_path.glob("*.part*")) and not list(tmp_path.glob("*.verify"))
     log = load_log(path)
     assert log.has("IMU") and log.has("ROTOR")
+
+
+def test_a_block_the_fc_serves_differently_every_time_is_saved_unverified_and_said_so(written, tmp_path, capsys):
+    tiny = written["tiny"]
+    fc = SimulatedFCThread(session=Idle(), config=FcConfig(packet_loss=0.0))
+    fc.fc.protocol.add_log(tiny)
+    encode = fc.fc.protocol.mav.log_data_encode
+    served = [0]
+
+    def changing(lid, ofs, count, data):  # block 5 differs at each read, in a FMT record's padding
+        if ofs == 450:
+            served[0] += 1
+            data = data[:60] + bytes((served[0],)) + data[61:]
+        return encode(lid, ofs, count, data)
+
+    fc.fc.protocol.mav.log_data_encode = changing
+    url = f"serial://{fc.port_path}:921600"
+    with fc:
+        code = cli_main(["logs", "get", "1", "--out", str(tmp_path), "--link", url, "--no-progress",
+                         "--confirm", "always"])
+    out, err = capsys.readouterr()
+    path = tmp_path / "log-1.unverified.bin"
+    assert code == 3 and out == "" and len(err.strip().splitlines()) == 1, (out, err)
+    assert str(path) in err and "NOT verified" in err and "bytes at 450" in err
+    got = path.read_bytes()
+    assert served[0] == 6 and got[:450] == tiny[:450] and got[540:] == tiny[540:]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["log-1.unverified.bin"]
+    assert load_log(path).has("IMU")
 
 
 def test_armed_fc_refuses_and_the_tool_says_so_in_one_line(flight_bin, tmp_path, capsys):
