@@ -445,8 +445,8 @@ def clustered_cov(Jw: np.ndarray, rw: np.ndarray) -> np.ndarray:
     ``(I - J_w H^-1 J_w^T)^(-1/2) r_w``, which makes the sandwich unbiased for independent errors,
     ``H^-1 sum_w g~_w g~_w^T H^-1``. In D x D terms, ``g~_w = H^(1/2) (I - P_w)^(-1/2) H^(-1/2) g_w``
     with ``P_w = H^(-1/2) J_w^T J_w H^(-1/2)``. The plain form (``W / (W - 1) sum g_w g_w^T``) left
-    the 25-Hz radio flight's key-parameter errors at 1.24 of their standard errors over 8 flights
-    and 6 window layouts each.
+    the 25-Hz radio flight's key-parameter errors at 1.24 of their standard errors (rms over 8
+    flights, 6 window layouts each); with the correction 1.06.
 
     Parameters
     ----------
