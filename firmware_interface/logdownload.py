@@ -66,6 +66,8 @@ MISSING, ONE_COPY, CONFIRMED, SUSPECT, UNRESOLVED = 0, 1, 2, 3, 4
 _NEEDED = bytes(1 if v in (MISSING, SUSPECT) else 0 for v in range(256))   # have -> must be read (again)
 _ONE_TO_SUSPECT = bytes(SUSPECT if v == ONE_COPY else v for v in range(256))
 _RESUMED = bytes(v if v <= SUSPECT else SUSPECT for v in range(256))       # unknown / unresolved: read again
+_REASONS = {"confirm": "for a second copy", "disagreed": "whose copies disagreed",
+            "structure": "where the records broke"}
 _ARMED_REASON = "the FC is armed: ArduPilot serves no logs while armed (land and disarm, then retry)"
 
 
@@ -148,7 +150,7 @@ class DownloadCheck:
 
     def summary(self) -> str:
         """One line: how it was verified, what was read again and why."""
-        again = ", ".join(f"{n} {why}" for why, n in self.reread_blocks if n) or "none"
+        again = ", ".join(f"{n} {_REASONS[why]}" for why, n in self.reread_blocks if n) or "none"
         head = "verified" if self.verified else (
             f"NOT verified: the copies of {len(self.unresolved_offsets)} block(s) never agreed "
             f"(bytes at {', '.join(map(str, self.unresolved_offsets[:5]))})")

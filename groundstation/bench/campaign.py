@@ -104,8 +104,9 @@ def _default_campaign(paths: list[Path]) -> dict[str, float]:
     CPU (the whole process tree: this process, the fork server, every worker) per flight, the workers'
     start included (a user's run pays it)."""
     workers = runner.default_workers()
+    jobs = _jobs(paths, Settings(config=ServiceConfig(), diagnose=True))   # as the command, before its clock
     c0, t0, b0, m0 = _tree_cpu_s(), time.perf_counter(), _machine_busy_s(), time.monotonic()
-    res = runner.run(_jobs(paths, Settings(config=ServiceConfig(), diagnose=True)), workers=workers)
+    res = runner.run(jobs, workers=workers)
     wall, cpu, busy = time.perf_counter() - t0, _tree_cpu_s() - c0, _machine_busy_s() - b0
     m1 = time.monotonic()
     n = len(paths)
@@ -118,8 +119,10 @@ def _default_campaign(paths: list[Path]) -> dict[str, float]:
           f"{os.cpu_count()} cores, other work {others:.2f} cores on average (wall is a measurement only when that "
           f"is near 0){'; errors: ' + '; '.join(map(str, errors)) if errors else ''}", flush=True)
     _print_flights([r for rows in res for r in rows], cpu)
-    if workers > 1:   # the pool's start (the fork server's imports) and its tail, where a core waits
+    if workers > 1:   # the pool's start and its tail, where a core waits
         print(f"    {_balance([rows[0] for rows in res if rows], m0, m1)}", flush=True)
+        per_job = [sum(float(r.get("cpu_s") or 0.0) for r in res[i]) for i in runner.submission_order(jobs)]
+        print(f"    {_packing(per_job, workers)}", flush=True)
     return {"workers": workers, "wall_s": wall, "cpu_s": cpu, "flights": n, "others_cores": others,
             "core_use": cpu / (wall * cores)}
 
@@ -132,8 +135,10 @@ def _print_flights(rows: list[dict], tree_cpu_s: float) -> None:
         task_cpu = float(r.get("cpu_s") or 0.0)
         in_tasks += task_cpu
         wall = (r["task_end_s"] - r["task_start_s"]) if r.get("task_end_s") is not None else float("nan")
-        print(f"    {r['log_name']}#{int(r.get('flight_index') or 0)}: {wall:.1f} s wall, {task_cpu:.1f} s CPU in its "
-              f"worker, verdict {r.get('verdict')}", flush=True)
+        steps = ", ".join(f"{k} {float(r[f'{k}_s']):.1f}" for k in ("read", "identify", "diagnose")
+                          if r.get(f"{k}_s") is not None)
+        print(f"    {r['log_name']}#{int(r.get('flight_index') or 0)}: {wall:.1f} s wall{f' ({steps})' if steps else ''}, "
+              f"{task_cpu:.1f} s CPU in its worker, verdict {r.get('verdict')}", flush=True)
     print(f"    outside the flights' tasks (workers' start, fork server, cross-flight fits): "
           f"{tree_cpu_s - in_tasks:.1f} s CPU", flush=True)
 
@@ -192,6 +197,16 @@ def _balance(rows: list[dict], t0_s: float, t1_s: float) -> str:
     parts = [f"{n} tasks busy {w:.1f} s, the first from {first - t0_s:.1f} s, idle {t1_s - end:.1f} s at the tail"
              for w, end, n, first in busy.values()]
     return f"per worker ({t1_s - t0_s:.1f} s campaign): " + "; ".join(parts)
+
+
+def _packing(task_cpu_s: list[float], workers: int) -> str:
+    """What the flights' own CPU seconds (in submission order) make of the wall on an idle machine: the
+    busiest worker's share against an even split, and the core time left idle at the tail. Load on
+    the machine stretches the wall, not these."""
+    busy, even = _makespan(task_cpu_s, workers), sum(task_cpu_s) / max(workers, 1)
+    return (f"the flights' CPU handed to {workers} workers in submission order: {busy:.1f} s on the busiest "
+            f"against {even:.1f} s shared evenly (on an idle machine {workers * busy - sum(task_cpu_s):.1f} core-seconds idle "
+            f"at the tail; the wall is the busiest share plus the start)")
 
 
 def _makespan(task_cpu_s: list[float], workers: int) -> float:

@@ -196,6 +196,7 @@ def _flight_row(job: FlightJob, prepared: Any, flight: int, ref: Any) -> tuple[d
     if job.report_dir:
         row["report_page"], row["report_error"] = flight_page(job, prepared, flight, model, diag)
     row["seconds"] = round(time.perf_counter() - t0, 3)
+    row.update({f"{k}_s": res.seconds.get(k) for k in ("identify", "diagnose")})   # wall of each step
     return row, model
 
 
@@ -244,9 +245,11 @@ def analyse(job: FlightJob) -> list[dict[str, Any]]:
     """Rows (one per flight of the log) for the campaign table; errors as rows with ``error`` set.
 
     Besides the table's columns each row carries the job's ``cpu_s`` and ``page_faults`` (minor
-    faults; None off Unix), shared by its flights, and ``worker_pid``, ``task_start_s``,
-    ``task_end_s`` (``time.monotonic``, one clock for every process of a machine): what the work
-    cost and how it was spread over the workers (the store keeps none of these)."""
+    faults; None off Unix), shared by its flights, ``worker_pid``, ``task_start_s``,
+    ``task_end_s`` (``time.monotonic``, one clock for every process of a machine), ``read_s`` (the
+    job's reading and preparing of its log) and the flight's ``identify_s`` and ``diagnose_s`` (wall
+    seconds of each step): what the work cost and how it was spread over the workers (the store
+    keeps none of these)."""
     return analyse_handing_over(job)[0]
 
 
@@ -264,6 +267,7 @@ def analyse_handing_over(job: FlightJob) -> tuple[list[dict[str, Any]], Handover
         cfg = job.settings.service_config()
         with threadpool_limits(1):  # one core per job: the pool or the cluster provides the parallelism
             prepared = prepare_logs([job.log], cfg, aircraft=job.settings.aircraft)
+            read_s = round(time.perf_counter() - t0, 3)
             hand.prepared = prepared if job.hand_over else None
             if not prepared.segments:
                 raise ValueError(f"nothing to identify ({'; '.join(prepared.notes) or 'no in-air data'})")
@@ -281,7 +285,8 @@ def analyse_handing_over(job: FlightJob) -> tuple[list[dict[str, Any]], Handover
                     rows.append({**base, **row})
                 except Exception as exc:  # noqa: BLE001 - one flight's failure is its row
                     rows.append({**base, "flight_index": flight, "error": _one_line(job, exc)})
-            timing = {"worker_pid": os.getpid(), "task_start_s": start_s, "task_end_s": time.monotonic()}
+            timing = {"worker_pid": os.getpid(), "task_start_s": start_s, "task_end_s": time.monotonic(),
+                      "read_s": read_s}
             f1 = _minor_faults()
             for r in rows:  # the job's CPU (this process's, all threads) and faults, shared by its flights
                 r.update(cpu_s=round((time.process_time() - c0) / len(rows), 3), **timing,

@@ -4,7 +4,7 @@ projection of a pool's wall time from its tasks' CPU seconds."""
 import subprocess
 import sys
 
-from groundstation.bench.campaign import _makespan, _print_flights, _tree_cpu_s
+from groundstation.bench.campaign import _makespan, _packing, _print_flights, _tree_cpu_s
 
 
 def test_tree_cpu_counts_a_finished_child_process():
@@ -19,6 +19,10 @@ def test_makespan_hands_each_task_to_the_first_free_worker():
     assert _makespan([4.0, 3.0, 3.0, 4.0], 2) == 8.0  # 4, then 4 | 3, then 3: in submission order
     assert _makespan([5.0, 1.0, 1.0, 1.0], 2) == 5.0
     assert _makespan([1.0, 2.0, 3.0], 1) == 6.0
+    # the busiest worker has 4 + 4, the other 3 + 3: a core idles 2 s at the tail of an idle machine
+    assert _packing([4.0, 3.0, 3.0, 4.0], 2) == (
+        "the flights' CPU handed to 2 workers in submission order: 8.0 s on the busiest against 7.0 s shared "
+        "evenly (on an idle machine 2.0 core-seconds idle at the tail; the wall is the busiest share plus the start)")
 
 
 def test_trend_verdict_names_the_flagged_flight_and_skips_too_short_campaigns(capsys):
@@ -57,8 +61,9 @@ def test_default_campaign_prints_each_flights_wall_and_cpu_and_the_rest(capsys):
     rows = [{"log_name": "a.tlog", "flight_index": 0, "cpu_s": 9.5, "task_start_s": 10.0, "task_end_s": 20.5,
              "verdict": "none"},
             {"log_name": "b.tlog", "flight_index": 1, "cpu_s": 8.0, "task_start_s": 11.0, "task_end_s": 19.0,
-             "verdict": "deadband"}]
+             "verdict": "deadband", "read_s": 0.3, "identify_s": 5.7, "diagnose_s": 2.0}]
     _print_flights(rows, 20.0)
     out = capsys.readouterr().out
-    assert "a.tlog#0: 10.5 s wall, 9.5 s CPU" in out and "b.tlog#1: 8.0 s wall, 8.0 s CPU" in out
+    assert "a.tlog#0: 10.5 s wall, 9.5 s CPU" in out
+    assert "b.tlog#1: 8.0 s wall (read 0.3, identify 5.7, diagnose 2.0), 8.0 s CPU" in out
     assert "verdict deadband" in out and "2.5 s CPU" in out   # 20 s of the tree less the flights' 17.5 s

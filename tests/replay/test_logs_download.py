@@ -53,28 +53,23 @@ class _ArmedFrame:
 
 @pytest.fixture(scope="module")
 def written() -> dict[str, bytes]:
-    """Dataflash logs written by the simulated FC's own writer: the first 15 s of a flight, and its
-    first 6 s (a log closed earlier)."""
+    """Dataflash logs written by the simulated FC's own writer: the first 6 s of a flight (218 kB), and
+    its first 1 s (a log closed earlier)."""
     sess = SimulatedSession(seed=11, flight_duration_s=40.0)
     w = DataflashWriter(rotor_rpm(sess), chirp_plan(sess))
     out = {}
     for frame in sess.frames(fast_gyro=True):
-        if frame.t_boot_s > 6.0 and "short" not in out:
-            out["short"] = w.getvalue()
-        if frame.t_boot_s > 15.0:
+        if frame.t_boot_s > 1.0 and "tiny" not in out:
+            out["tiny"] = w.getvalue()
+        if frame.t_boot_s > 6.0:
             break
         w.add(frame)
-    out["full"] = w.getvalue()
+    out["short"] = w.getvalue()
     return out
 
 
 @pytest.fixture(scope="module")
 def flight_bin(written):
-    return written["full"]
-
-
-@pytest.fixture(scope="module")
-def short_bin(written):
     return written["short"]
 
 
@@ -102,13 +97,13 @@ def _kinds(chunks: list[bytes]) -> list:
     return [m for m in (parser.parse_buffer(b"".join(chunks)) or []) if m.get_type() != "BAD_DATA"]
 
 
-def test_byte_identical_through_pty_with_one_percent_corruption_and_an_unplug(short_bin):
+def test_byte_identical_through_pty_with_one_percent_corruption_and_an_unplug(flight_bin):
     """1 % of bytes get a flipped bit (about 2 in 3 LOG_DATA packets fail their CRC), and 0.5 % of LOG_DATA
     packets carry an error their CRC misses (a wrong block in a valid frame): every block is read twice
     and kept when two copies agree, so the log arrives byte-identical whichever packets the noise hits."""
     fc = SimulatedFCThread(session=Idle(), config=FcConfig(corrupt_rate=0.01, packet_loss=0.0, seed=5,
                                                            crc_blind_rate=0.005))
-    fc.fc.protocol.add_log(short_bin)
+    fc.fc.protocol.add_log(flight_bin)
     ended = threading.Event()
     to_fc = _tee(fc, ended)
     pulled = threading.Event()
@@ -128,8 +123,8 @@ def test_byte_identical_through_pty_with_one_percent_corruption_and_an_unplug(sh
     with fc:
         entry, data, check = asyncio.run(main())
         assert ended.wait(10), "LOG_REQUEST_END reached the FC"
-    assert entry.size_bytes == len(short_bin)
-    assert data == short_bin
+    assert entry.size_bytes == len(flight_bin)
+    assert data == flight_bin
     # the three faults really happened: noise, CRC-blind blocks (more than a few read as first copies), the pull
     assert pulled.is_set() and fc.stats.packets_corrupted > 100 and fc.stats.packets_crc_blind > 10
     reread = dict(check.reread_blocks)
@@ -159,9 +154,10 @@ def test_cli_get_writes_the_verified_log_and_list_shows_it(flight_bin, tmp_path,
     assert log.has("IMU") and log.has("ROTOR")
 
 
-def test_a_block_the_fc_serves_differently_every_time_is_saved_unverified_and_said_so(short_bin, tmp_path, capsys):
+def test_a_block_the_fc_serves_differently_every_time_is_saved_unverified_and_said_so(written, tmp_path, capsys):
+    tiny = written["tiny"]
     fc = SimulatedFCThread(session=Idle(), config=FcConfig(packet_loss=0.0))
-    fc.fc.protocol.add_log(short_bin)
+    fc.fc.protocol.add_log(tiny)
     encode = fc.fc.protocol.mav.log_data_encode
     served = [0]
 
@@ -181,7 +177,7 @@ def test_a_block_the_fc_serves_differently_every_time_is_saved_unverified_and_sa
     assert code == 3 and out == "" and len(err.strip().splitlines()) == 1, (out, err)
     assert str(path) in err and "NOT verified" in err and "bytes at 450" in err
     got = path.read_bytes()
-    assert served[0] == 6 and got[:450] == short_bin[:450] and got[540:] == short_bin[540:]
+    assert served[0] == 6 and got[:450] == tiny[:450] and got[540:] == tiny[540:]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["log-1.unverified.bin"]
     assert load_log(path).has("IMU")
 
