@@ -36,7 +36,7 @@ from threadpoolctl import threadpool_limits
 
 from groundstation.campaign.job import FlightJob, Handover, _one_line, analyse_handing_over, cross_fit
 from groundstation.parallel import PRELOAD as PRELOAD  # noqa: F401 - re-exported
-from groundstation.parallel import fork_context, fork_here_context, init_worker
+from groundstation.parallel import fork_context, fork_here_context, frozen_for_fork, init_worker
 from groundstation.parallel import warm as warm
 
 OnResult = Callable[[FlightJob, list[dict[str, Any]]], None]
@@ -87,10 +87,11 @@ class _Serial:
 
 
 class _Pool:
-    def __init__(self, workers: int) -> None:
+    def __init__(self, workers: int, here: Any = None) -> None:
+        """``here``: the ``fork`` context of :func:`groundstation.parallel.fork_here_context` (None: the
+        fork server's)."""
         self.workers = workers
         self.pids: list[int] = []
-        here = fork_here_context(PRELOAD)
         self.forked_here = here is not None
         self.ex = ProcessPoolExecutor(max_workers=workers, mp_context=here or start_fork_server(),
                                       initializer=init_worker)
@@ -154,11 +155,13 @@ def open_executor(workers: int = 1, scheduler: str | None = None, local_processe
     elif workers == 1:
         yield _Serial()
     else:
-        pool = _Pool(workers)
-        try:
-            yield pool
-        finally:
-            pool.ex.shutdown()
+        here = fork_here_context(PRELOAD)
+        with frozen_for_fork(here is not None):   # the workers' collections leave the shared pages alone
+            pool = _Pool(workers, here)
+            try:
+                yield pool
+            finally:
+                pool.ex.shutdown()
 
 
 @contextmanager

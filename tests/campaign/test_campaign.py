@@ -141,9 +141,9 @@ from groundstation.cli import main
 
 opened = runner._Pool.__init__
 
-def init(self, workers):
-    opened(self, workers)
-    print("forked here", self.forked_here, workers, flush=True)
+def init(self, *args):
+    opened(self, *args)
+    print("forked here", self.forked_here, self.workers, flush=True)
 
 runner._Pool.__init__ = init
 sys.exit(main(sys.argv[1:]))
