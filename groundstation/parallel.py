@@ -15,7 +15,8 @@ forked from one fork server per calling process that has imported the analysis o
 (:data:`PRELOAD`, :func:`fork_context`): a worker starts without importing anything and its first
 task costs what any other does. ``identify``'s workers are forked from the command's own process
 instead (``worker_map(..., fork_here=True)``, :func:`fork_here_context`), which has imported most of
-it already: no second interpreter imports the analysis again. Workers and the serial path alike run numerical work with one
+it already: no second interpreter imports the analysis again; its ``--jobs`` counts the command's own
+process, which searches while its workers screen (``caller_works=True``). Workers and the serial path alike run numerical work with one
 BLAS thread (the workers are the parallelism) and with freed memory kept for reuse
 (:func:`keep_freed_memory`).
 """
@@ -181,7 +182,8 @@ def frozen_for_fork(freeze: bool = True) -> Iterator[None]:
 
 
 @contextmanager
-def worker_map(jobs: int | None, preload: tuple[str, ...] = PRELOAD, *, fork_here: bool = False) -> Iterator[Map]:
+def worker_map(jobs: int | None, preload: tuple[str, ...] = PRELOAD, *, fork_here: bool = False,
+               caller_works: bool = False) -> Iterator[Map]:
     """A map over ``jobs`` worker processes (None: :func:`default_jobs`); 1 is the serial map (in
     this process, which then keeps freed memory like a worker). The fork server (importing
     ``preload``) starts at once but in the background; the workers start with the first map of
@@ -190,6 +192,11 @@ def worker_map(jobs: int | None, preload: tuple[str, ...] = PRELOAD, *, fork_her
     ``fork_here=True``: the workers are forked from this process at once, after it has imported
     ``preload`` (:func:`fork_here_context`; the fork server where that is not safe), before any other
     thread starts (a progress bar's, a background job's).
+
+    ``caller_works=True``: this process works alongside its workers (``identify`` searches in it while
+    they screen and refine), so ``jobs`` counts it: ``jobs - 1`` workers, one busy process per core
+    rather than one more than there are cores. A map called from the main thread, which would only
+    wait for it, runs its last share of the items here while the workers run the rest.
 
     This process, too, runs with one BLAS thread while the map is open: the products are small
     enough that a second BLAS thread saves little wall time and costs CPU (measured on ``diagnose``
@@ -205,8 +212,10 @@ def worker_map(jobs: int | None, preload: tuple[str, ...] = PRELOAD, *, fork_her
         return
     here = fork_here_context(preload) if fork_here else None
     ctx = here or fork_context(preload=preload, wait=False)
+    workers = n - 1 if caller_works else n
     with threadpool_limits(1), frozen_for_fork(here is not None), \
-            ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=init_worker, initargs=(preload,)) as ex:
+            ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=init_worker,
+                                initargs=(preload,)) as ex:
         if here is not None:
             ex.submit(os.getpid)   # with ``fork`` the pool forks all its workers on the first submit: now
 
@@ -214,6 +223,11 @@ def worker_map(jobs: int | None, preload: tuple[str, ...] = PRELOAD, *, fork_her
             xs = list(items)
             if len(xs) <= 1:
                 return [fn(x) for x in xs]
-            return list(ex.map(fn, xs, chunksize=max(1, math.ceil(len(xs) / n))))
+            mine = caller_works and threading.current_thread() is threading.main_thread()
+            size = max(1, math.ceil(len(xs) / (workers + mine)))
+            cut = min(len(xs), size * workers) if mine else len(xs)
+            theirs = ex.map(fn, xs[:cut], chunksize=size)   # submitted now; this process runs the rest meanwhile
+            ours = [fn(x) for x in xs[cut:]]
+            return list(theirs) + ours
 
         yield pmap

@@ -168,6 +168,33 @@ def test_identify_workers_are_forked_from_the_command_itself_after_its_imports()
         t.join()
 
 
+def _pid(_: int) -> int:
+    import os
+
+    return os.getpid()
+
+
+def test_identify_counts_its_own_process_among_the_jobs():
+    """``caller_works`` (identify's, which searches while its workers screen): ``jobs`` processes in all,
+    the command's own and ``jobs - 1`` workers; a map from the main thread runs its last share here,
+    one from another thread (a background job's, while the main thread searches) all on the workers."""
+    import multiprocessing
+    import os
+    import threading
+
+    with worker_map(3, ("numpy",), fork_here=True, caller_works=True) as pmap:
+        workers = {p.pid for p in multiprocessing.active_children()}
+        assert len(workers) == 2
+        pids = pmap(_pid, range(6))
+        assert pids[4:] == [os.getpid()] * 2 and set(pids[:4]) <= workers
+        assert pmap(_square, range(7)) == [x * x for x in range(7)]
+        out: list[int] = []
+        t = threading.Thread(target=lambda: out.extend(pmap(_pid, range(6))))
+        t.start()
+        t.join()
+        assert len(out) == 6 and set(out) <= workers
+
+
 def _collection_faults(_: int) -> tuple[int, int, int]:
     """In a worker: the objects frozen, and the page faults of a full collection with them frozen and
     then with them back in the collector's reach (the worker is left as it was)."""

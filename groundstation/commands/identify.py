@@ -56,8 +56,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--segments", choices=("flights", "sysid"), default="flights", help=SEGMENTS_HELP)
     parser.add_argument("--quiet", action="store_true")
     parser.add_argument("--jobs", type=int, default=None,
-                        help="worker processes for reading the logs, the searches' screening refinements and the "
-                             "held-out folds (default: every core; the model is the same for any number)")
+                        help="processes for reading the logs, the searches' screening refinements, the held-out "
+                             "folds and the figures: this command's own (which searches meanwhile) and N-1 workers "
+                             "(default: every core; the model is the same for any number)")
     parser.add_argument("--domain", choices=("time", "frequency", "both"), default="time",
                         help="time: the paper's output-error fit (default); frequency: minimise Tischler's J over the "
                              "flight's frequency responses; both: the time fit, then the frequency cost as a "
@@ -104,7 +105,7 @@ SEGMENTS_HELP = ("which data to use: 'flights' (every in-air interval, default) 
 
 def run(args: argparse.Namespace) -> int:
     preload = IDENTIFY_NO_PLOT_PRELOAD if args.no_plot else IDENTIFY_PRELOAD
-    with about_logs(args.logs), worker_map(args.jobs, preload, fork_here=True) as pmap:
+    with about_logs(args.logs), worker_map(args.jobs, preload, fork_here=True, caller_works=True) as pmap:
         return _run(args, pmap)
 
 
@@ -136,7 +137,7 @@ def _run(args: argparse.Namespace, pmap) -> int:
             if curves:
                 figures.append(("plot_convergence", (curves, args.out.with_name(args.out.stem + "_convergence.png")),
                                 {"title": "search convergence per subsystem: fitness 1/(1+F) vs evaluations"}))
-            pmap(draw, figures)   # on the workers (whose fork server imported matplotlib early): side by side
+            pmap(draw, figures)   # side by side: on a worker and in this process (both imported matplotlib)
         if args.rrd is not None:
             write_rrd(series, channels, args.rrd, "groundstation-identify")
     if not args.quiet:

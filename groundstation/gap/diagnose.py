@@ -47,6 +47,7 @@ from groundstation.gap import (
     candidates,
     compat,
     controller,
+    drift,
     fingerprints,
     hypotheses,
     locate,
@@ -822,8 +823,10 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
                 cons[id(c)] = shares.consistency(
                     c, segs_h, ev, np.asarray(c.hyp.extra.get("theta_refit", ev.theta0)), level,
                     cfg.consistency_min_loss, min_w, rng, cfg.n_boot, cfg.window_alpha, arrays)
+            _drift_checks(ranked, cons, ctx, level, cfg, arrays)
     changing = [c for c in ranked if cons.get(id(c), {}).get("status") == "changes"]
-    kept = [c for c in ranked if c not in changing]
+    # effects named beside the first were found given it: when it changes, none is named
+    kept = [] if ranked and ranked[0] in changing else [c for c in ranked if c not in changing]
     # what each effect removes: the first on its own, later ones given the first (no double count)
     rem = {id(c): shares.removal(c, base_sse, first=(i == 0)) for i, c in enumerate(ranked)}
     if kept and kept[0] is not ranked[0]:
@@ -944,6 +947,29 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
                               others=list(dec.others) + unconfirmed)
     rep["notes_add"] = notes
     return new, {"report": rep, "per_effect": per_effect}
+
+
+def _drift_checks(ranked: list[attribute.Candidate], cons: dict[int, dict[str, Any]], ctx: hypotheses.Context,
+                  level: float, cfg: DiagnoseConfig, arrays: dict[str, Any] | None) -> None:
+    """The whole-flight drift test (:func:`groundstation.gap.drift.drift`) of each named effect the
+    halves did not find changing: a half that does not resolve the effect on its own cannot see a
+    drift, a ramp through the whole flight can. An effect that drifts is marked ``changes`` with the
+    ramp it follows; the halves' verdict stays in the entry."""
+    rng = np.random.default_rng(26)  # its own stream: the shares' bootstrap draws stay as they were
+    for c in ranked:
+        con = cons.get(id(c))
+        if con is None or con.get("status") == "changes":
+            continue
+        if c.hyp.effect == "rotor_vibration":
+            d = drift.line_drift(c, ctx.ev, arrays["resid_raw"], level) if arrays else None
+        else:
+            d = drift.drift(c, ctx, ctx.base_sse, level, rng, cfg.n_boot, cfg.window_alpha)
+        if d is None:
+            continue
+        con["drift"] = d
+        if d["drifts"]:
+            con["halves"] = {"status": con["status"], "why": con["why"]}
+            con["status"], con["why"] = "changes", d["why"]
 
 
 def _confirm_beside_first(kept: list[attribute.Candidate], rem: dict[int, np.ndarray], cons: dict[int, dict[str, Any]],

@@ -338,8 +338,7 @@ def _screen(starts: list[np.ndarray], opt: Any, label: str, costs: tuple, plan: 
         nfev0 = cost_s.nfev
         rs = plan.pmap(partial(_screen_refine, cost_s, bfree, nfev_round, prior, cfg.channel_weighting,
                                cfg.prior_weighting == "effective"), starts)
-        if cost_s.nfev == nfev0:    # refined in worker processes, on copies of the cost
-            cost_s.nfev += sum(int(r.nfev) for r in rs)
+        cost_s.nfev = nfev0 + sum(int(r.nfev) for r in rs)   # also those refined on copies, in worker processes
         scored = sorted(((_score(cost_s, r, rs[0].sig_eff, prior), r.x) for r in rs), key=lambda t: t[0])
         starts = [sx for _, sx in scored[: max(1, len(scored) // 3)]]
         screen_f = scored[0][0]
@@ -480,8 +479,7 @@ def _refine_subsystem(s: _SubSearch, plan: _Plan, cfg: IdentifyConfig,
               float(s.found[0][2].fun), sum(c.nfev for c in s.costs))
     nfev0 = cost.nfev
     refs = plan.pmap(partial(_full_refine, cost, bfree, cfg, pr), x0s)
-    if cost.nfev == nfev0:    # refined in worker processes, on copies of the cost
-        cost.nfev += sum(int(r.nfev) for r in refs)
+    cost.nfev = nfev0 + sum(int(r.nfev) for r in refs)   # also those refined on copies, in worker processes
     found_refs = [refs[own.index(k)] for k in rep]   # a repeated winner shares its first refinement (never wins)
     refs = found_refs + refs[len(own):]
     best: tuple[float, np.ndarray, Any, Any, str] | None = None
@@ -533,13 +531,20 @@ def _record_subsystem(s: _SubSearch, best: tuple[float, np.ndarray, Any, Any, st
     run.nfev += sum(c.nfev for c in costs)
 
 
+def _done(out: Any) -> Callable[[], Any]:
+    """``out`` handed back as a call (like a background job's result)."""
+    return lambda: out
+
+
 def _identify_subsystems(plan: _Plan, cfg: IdentifyConfig, run: _Run, *, refine: bool,
                          callback: Callable[[dict], Any] | None, **search: Any) -> None:
     """Search, screen and refine both subsystems into ``run``. The searches run one after the other in
     this process (they share the random number generator). The screening of each search's starts and
     each subsystem's full refinements draw no random numbers: with worker processes a background
     thread hands them to the workers as soon as their search ends, while this process runs the next
-    search; with the serial map they run after the searches. The same model either way."""
+    search; the last subsystem's refinements this process runs itself once the searches are done (it
+    would only wait), sharing their starts with the workers. With the serial map they run after the
+    searches. The same model either way."""
     subs = ((0, "horizontal", HOR_PARAMS), (1, "vertical", VER_PARAMS))
     parallel = plan.pmap is not serial_map and refine
     with ThreadPoolExecutor(max_workers=1) as bg:   # one thread: the jobs run in the order handed over
@@ -548,11 +553,13 @@ def _identify_subsystems(plan: _Plan, cfg: IdentifyConfig, run: _Run, *, refine:
             return bg.submit(fn).result if parallel else fn
 
         pending = []
-        for sub, sub_name, sub_params in subs:
+        for k, (sub, sub_name, sub_params) in enumerate(subs):
             s = _search_subsystem(sub, sub_name, sub_params, plan, cfg, run, refine=refine, callback=callback,
                                   later=later, **search)
             if s is not None:
-                pending.append((s, later(partial(_refine_subsystem, s, plan, cfg, callback)) if refine else None))
+                job = partial(_refine_subsystem, s, plan, cfg, callback)
+                here = parallel and k == len(subs) - 1
+                pending.append((s, None if not refine else _done(job()) if here else later(job)))
         for s, best in pending:   # recorded in order: the totals add up as before
             _record_subsystem(s, None if best is None else best(), plan, cfg, run)
 

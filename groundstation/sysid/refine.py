@@ -12,8 +12,9 @@ Morelli & Klein (``sum_k R_ch(k) sum_i J_i^T J_{i+k}`` within windows, Bartlett-
 reduces to ``s^2 H^-1`` for white residuals. Smoothed data and model error make residuals coloured;
 without the correction standard errors come out several times too small. Each parameter's reported
 error is the larger of that and the window-clustered sandwich (``M = sum_w g_w g_w^T``, scores
-``g_w = J_w^T r_w``): model error that changes with flight condition (fast legs, near-ground hover)
-makes windows disagree, which only the clustered form sees. On a simulated nonlinear flight this
+``g_w = J_w^T r_w``, each window's corrected for its leverage: :func:`clustered_cov`): model error
+that changes with flight condition (fast legs, near-ground hover) makes windows disagree, which only
+the clustered form sees. On a simulated nonlinear flight this
 took the worst |estimate - truth| / std from 5.0 to 3.2 (X_u, Y_v, Z_col were the ones hit).
 """
 
@@ -429,9 +430,45 @@ def _sandwiches(J: np.ndarray, r: np.ndarray, max_lag: int = 60,
     M = lagged_products(Jt4, R * (1.0 - np.arange(K + 1) / (K + 1))[:, None])  # Bartlett taper: M stays PSD
     cov = Hinv @ M @ Hinv
     s_coloured = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    # window-clustered sandwich: per-window scores g_w = J_w^T r_w; windows that disagree (model
-    # error that differs between flight conditions) widen it where the stationary colour model cannot
-    g = np.einsum("dwk,wk->wd", Jt.reshape(D, W, L * nch), r.reshape(W, L * nch))
-    Mc = g.T @ g * W / max(W - 1, 1)
-    s_cluster = np.sqrt(np.maximum(np.diag(Hinv @ Mc @ Hinv), 0.0))
+    # window-clustered sandwich: windows that disagree (model error that differs between flight
+    # conditions) widen it where the stationary colour model cannot
+    s_cluster = np.sqrt(np.maximum(np.diag(clustered_cov(Jt.reshape(D, W, L * nch), r.reshape(W, L * nch))), 0.0))
     return cov, s_coloured, np.maximum(s_coloured, s_cluster)
+
+
+def clustered_cov(Jw: np.ndarray, rw: np.ndarray) -> np.ndarray:
+    """Window-clustered sandwich covariance (D, D) with each window's leverage corrected (CR2).
+
+    Per-window scores ``g_w = J_w^T r_w``; the fit bends towards each window by its leverage, so a
+    window's own residuals understate its errors, most where a few windows carry a parameter (one
+    channel's doublets in a few windows). CR2 (Bell & McCaffrey 2002) scores each window with
+    ``(I - J_w H^-1 J_w^T)^(-1/2) r_w``, which makes the sandwich unbiased for independent errors,
+    ``H^-1 sum_w g~_w g~_w^T H^-1``. In D x D terms, ``g~_w = H^(1/2) (I - P_w)^(-1/2) H^(-1/2) g_w``
+    with ``P_w = H^(-1/2) J_w^T J_w H^(-1/2)``. The plain form (``W / (W - 1) sum g_w g_w^T``) left
+    the 25-Hz radio flight's key-parameter errors at 1.24 of their standard errors (rms over 8
+    flights, 6 window layouts each); with the correction 1.06.
+
+    Parameters
+    ----------
+    Jw : (D, W, n) Jacobian rows of each window
+    rw : (W, n) residuals of each window
+    """
+    D, W, _ = Jw.shape
+    g = np.einsum("dwk,wk->wd", Jw, rw)
+    Hw = np.einsum("dwk,ewk->wde", Jw, Jw)
+    ev, V = np.linalg.eigh(Hw.sum(axis=0))
+    ok = ev > ev.max(initial=0.0) * 1e-12
+    root = np.where(ok, np.sqrt(np.where(ok, ev, 1.0)), 0.0)
+    Hh = (V * root) @ V.T                                        # H^(1/2)
+    Hmh = (V * np.where(ok, 1.0 / np.where(ok, root, 1.0), 0.0)) @ V.T   # H^(-1/2), pseudo-inverse
+    P = Hmh @ Hw @ Hmh                                           # (W, D, D) each window's leverage
+    lev, U = np.linalg.eigh(P)
+    # a direction one window alone determines (leverage 1: a single window, or a parameter only it
+    # excites) leaves that window's residual nothing to show: no clustered information there (the
+    # colour-corrected errors stand), rather than the optimiser's leftover gradient blown up
+    alone = lev > 1.0 - 1e-6
+    f = np.where(alone, 0.0, 1.0 / np.sqrt(1.0 - np.where(alone, 0.0, np.clip(lev, 0.0, 1.0))))
+    adj = np.einsum("wde,we,wfe->wdf", U, f, U)                  # (I - P_w)^(-1/2)
+    gt = np.einsum("wde,we->wd", adj, g @ Hmh) @ Hh
+    Hinv = Hmh @ Hmh
+    return Hinv @ (gt.T @ gt) @ Hinv

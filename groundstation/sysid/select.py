@@ -130,8 +130,7 @@ def best_refinement(cost: Any, x_model: np.ndarray, plan: Any, cfg: Any, sub_fre
     x0s = [np.clip(x0, bfree[:, 0] + 1e-6 * span, bfree[:, 1] - 1e-6 * span) for x0 in starts]
     nfev0 = cost.nfev
     refs = pmap(partial(_refine_start, cost, bfree, kw), x0s)
-    if cost.nfev == nfev0:    # refined in worker processes, on copies of the cost
-        cost.nfev += sum(int(r.nfev) for r in refs)
+    cost.nfev = nfev0 + sum(int(r.nfev) for r in refs)   # also those refined on copies, in worker processes
     for ref in refs:
         if prior is not None:
             sig_ref = ref.sig_eff if sig_ref is None else sig_ref

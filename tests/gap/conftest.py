@@ -29,7 +29,8 @@ def linear_flight(T_s: float = 90.0, dt: float = 0.02, seed: int = 0, effect: tu
                   alt: bool = True) -> SimpleNamespace:
     """A prepared-data-like object (segments, dt_s, output_trim) of one linear flight.
 
-    effect: ("input_delay", channel, samples) | ("gyro_bias", output index, rad/s) |
+    effect: ("input_delay", channel, samples) | ("growing_delay", channel, samples at the end) |
+            ("gyro_bias", output index, rad/s) |
             ("drifting_bias", output index, rad/s at the end) |
             ("rotor_vibration", frequency_hz, amplitude) | ("velocity_latency", None, samples) |
             ("deadband", channel, half_width) | ("wind_gust", tau_s, sigma_m_s) (horizontal air velocity,
@@ -72,6 +73,8 @@ def linear_flight(T_s: float = 90.0, dt: float = 0.02, seed: int = 0, effect: tu
         hist.append(u[k].copy())
         if effect and effect[0] == "input_delay":
             act[effect[1]] = hist[max(0, k - effect[2])][effect[1]]
+        if effect and effect[0] == "growing_delay":  # from 0 at the start to effect[2] samples at the end
+            act[effect[1]] = hist[max(0, k - round(effect[2] * k / n))][effect[1]]
         if effect and effect[0] == "deadband":
             c, b = effect[1], effect[2]
             act[c] = np.sign(act[c]) * max(abs(act[c]) - b, 0.0)

@@ -113,6 +113,10 @@ def test_named_effect_explains_most_of_the_gap_on_an_exact_linear_flight(reports
     assert "is explained by" in sh["headline"] and case.replace("_", " ") in sh["headline"]
     # a constant effect on a flight long enough to split: it holds (or its stick was not moved in a half)
     assert r["effects"][0]["consistency"]["status"] in ("holds", "not_checked")
+    # nor does a parameter ramping through the whole flight fit it better than the constant
+    drift = r["effects"][0]["consistency"].get("drift")
+    assert (drift is None) == (case == "velocity_latency")
+    assert drift is None or not drift["drifts"]
 
 
 def test_missing_altitude_makes_ground_effect_untestable(flight_factory, start_model):

@@ -49,6 +49,19 @@ def test_a_gyro_bias_drifting_through_the_flight_is_not_named_as_a_constant_one(
     assert effect_values(r)["gyro_bias[q].bias_rad_s"] == pf["estimate"]["bias_rad_s"]
 
 
+def test_a_delay_growing_from_nothing_is_not_named_as_a_constant_one(flight_factory, paper_theta):
+    # lon delay growing from 0 at the start to 0.2 s at the end. The first half alone does not
+    # resolve an input effect that starts at nothing, so the halves cannot tell it from a constant
+    # one; the same effect ramping through the whole flight fits the held-out windows better
+    r = diagnose(_start(paper_theta), flight_factory(T_s=90.0, seed=11, effect=("growing_delay", 1, 10)), seed=0)
+    assert r["verdict"] == "unexplained" and r["effects"] == []
+    ch = r["through_flight"]["changes"]
+    drifting = [c for c in ch if c.get("drift", {}).get("drifts")]
+    assert drifting and drifting[0]["effect"] in ("input_delay", "rate_limit") and drifting[0]["channel"] == "lon"
+    assert drifting[0]["drift"]["p"] < 1e-3
+    assert "changes through the flight" in r["shares"]["headline"]
+
+
 def test_a_flight_too_short_to_split_says_so_and_checks_nothing(flight_factory, paper_theta):
     r = diagnose(_start(paper_theta), flight_factory(T_s=33.0, seed=12, effect=("gyro_bias", 4, 0.01)), seed=0)
     assert not r["through_flight"]["checked"]
