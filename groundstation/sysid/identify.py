@@ -531,20 +531,14 @@ def _record_subsystem(s: _SubSearch, best: tuple[float, np.ndarray, Any, Any, st
     run.nfev += sum(c.nfev for c in costs)
 
 
-def _done(out: Any) -> Callable[[], Any]:
-    """``out`` handed back as a call (like a background job's result)."""
-    return lambda: out
-
-
 def _identify_subsystems(plan: _Plan, cfg: IdentifyConfig, run: _Run, *, refine: bool,
                          callback: Callable[[dict], Any] | None, **search: Any) -> None:
     """Search, screen and refine both subsystems into ``run``. The searches run one after the other in
-    this process (they share the random number generator). The screening of each search's starts and
-    each subsystem's full refinements draw no random numbers: with worker processes a background
-    thread hands them to the workers as soon as their search ends, while this process runs the next
-    search; the last subsystem's refinements this process runs itself once the searches are done (it
-    would only wait), sharing their starts with the workers. With the serial map they run after the
-    searches. The same model either way."""
+    this process (they share the random number generator). The screening of each search's starts draws
+    no random numbers: with worker processes a background thread hands it to the workers as soon as its
+    search ends, while this process runs the next search. The full refinements this process runs once
+    the searches are done (it would only wait), sharing their starts with the workers; with the serial
+    map the screening too runs after the searches. The same model either way."""
     subs = ((0, "horizontal", HOR_PARAMS), (1, "vertical", VER_PARAMS))
     parallel = plan.pmap is not serial_map and refine
     with ThreadPoolExecutor(max_workers=1) as bg:   # one thread: the jobs run in the order handed over
@@ -553,13 +547,11 @@ def _identify_subsystems(plan: _Plan, cfg: IdentifyConfig, run: _Run, *, refine:
             return bg.submit(fn).result if parallel else fn
 
         pending = []
-        for k, (sub, sub_name, sub_params) in enumerate(subs):
+        for sub, sub_name, sub_params in subs:
             s = _search_subsystem(sub, sub_name, sub_params, plan, cfg, run, refine=refine, callback=callback,
                                   later=later, **search)
             if s is not None:
-                job = partial(_refine_subsystem, s, plan, cfg, callback)
-                here = parallel and k == len(subs) - 1
-                pending.append((s, None if not refine else _done(job()) if here else later(job)))
+                pending.append((s, partial(_refine_subsystem, s, plan, cfg, callback) if refine else None))
         for s, best in pending:   # recorded in order: the totals add up as before
             _record_subsystem(s, None if best is None else best(), plan, cfg, run)
 
