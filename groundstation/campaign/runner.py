@@ -105,9 +105,9 @@ class _Pool:
             self.pids = list(self.ex.map(warm_task, [(directory, self.workers)] * self.workers))
 
     def results(self, jobs: Sequence[FlightJob]) -> Iterator[tuple[int, Done]]:
+        """Every job handed to the workers now; their results as they complete."""
         futs = {self.ex.submit(analyse_handing_over, j): i for i, j in enumerate(jobs)}
-        for f in as_completed(futs):
-            yield futs[f], f.result()
+        return ((futs[f], f.result()) for f in as_completed(futs))
 
 
 def warm_task(rendezvous: tuple[str, int], timeout_s: float = 60.0) -> int:
@@ -140,8 +140,7 @@ class _Dask:
         futs = [self.client.submit(analyse_handing_over, j, pure=False, key=f"campaign-{i}-{j.sha256[:12]}")
                 for i, j in enumerate(jobs)]
         index = {f.key: i for i, f in enumerate(futs)}
-        for f in as_completed(futs):
-            yield index[f.key], f.result()
+        return ((index[f.key], f.result()) for f in as_completed(futs))
 
 
 @contextmanager
@@ -225,12 +224,15 @@ def submission_order(jobs: Sequence[FlightJob]) -> list[int]:
 
 def run(jobs: Sequence[FlightJob], *, workers: int = 1, scheduler: str | None = None,
         on_result: OnResult | None = None, local_processes: bool = True,
-        executor: Executor | None = None) -> list[list[dict[str, Any]]]:
+        executor: Executor | None = None, meanwhile: Callable[[], Any] | None = None) -> list[list[dict[str, Any]]]:
     """Analyse every job; returns the rows per job in job order (see module docstring). ``executor``:
-    workers opened by :func:`open_executor` (then ``workers`` and ``scheduler`` are not used)."""
+    workers opened by :func:`open_executor` (then ``workers`` and ``scheduler`` are not used).
+    ``meanwhile`` is called once in this process after the jobs have been handed to the workers and
+    before waiting for them: the caller's own work (imports for what it does after the run) then
+    overlaps theirs instead of following it while the cores idle."""
     if executor is None:
         with open_for(jobs, workers, scheduler, local_processes) as ex:
-            return run(jobs, on_result=on_result, executor=ex)
+            return run(jobs, on_result=on_result, executor=ex, meanwhile=meanwhile)
     jobs = hand_over_plan(jobs)
     order = list(range(len(jobs))) if executor.workers == 1 else submission_order(jobs)
     results: dict[int, list[dict[str, Any]]] = {}
@@ -238,7 +240,10 @@ def run(jobs: Sequence[FlightJob], *, workers: int = 1, scheduler: str | None = 
     data: dict[str, Any] = {}  # log -> prepared (None when it could not be), from the jobs that hand it over
     needed = {j.reference_log: sum(k.reference_log == j.reference_log and k.cross_by_caller for k in jobs)
               for j in jobs if j.cross_by_caller}
-    for k, done in executor.results([jobs[i] for i in order]):
+    completed = executor.results([jobs[i] for i in order])
+    if meanwhile is not None:
+        meanwhile()
+    for k, done in completed:
         i = order[k]
         if jobs[i].hand_over:
             data[jobs[i].log] = done[1].prepared

@@ -24,7 +24,7 @@ from rich.table import Table
 
 from groundstation.campaign import runner
 from groundstation.campaign.job import FlightJob, Settings, file_sha256, find_logs, log_date_utc, page_name
-from groundstation.campaign.plots import plot_trends, write_trends_rrd
+from groundstation.campaign.plots import load_plotting, plot_trends, write_trends_rrd
 from groundstation.campaign.store import CampaignStore, series
 from groundstation.commands.identify import config_from_args
 from groundstation.pipeline import load_aircraft
@@ -117,7 +117,8 @@ def run(args: argparse.Namespace) -> int:
                 info = last["error"] or f"verdict {last.get('verdict')}, held-out {_fmt(last.get('heldout_match_pct'))} %"
                 prog.update(task, advance=1, info=f"{last['log_name']}: {info}"[:80])
 
-            runner.run(jobs, on_result=on_result, executor=ex)
+            # the trends' plotting libraries are imported while the workers analyse, not after them
+            runner.run(jobs, on_result=on_result, executor=ex, meanwhile=load_plotting)
         wall = time.perf_counter() - t0
         for e in store.errors(name):
             con.print(f"[red]error[/]: {e['error']}")

@@ -463,7 +463,11 @@ def clustered_cov(Jw: np.ndarray, rw: np.ndarray) -> np.ndarray:
     Hmh = (V * np.where(ok, 1.0 / np.where(ok, root, 1.0), 0.0)) @ V.T   # H^(-1/2), pseudo-inverse
     P = Hmh @ Hw @ Hmh                                           # (W, D, D) each window's leverage
     lev, U = np.linalg.eigh(P)
-    f = 1.0 / np.sqrt(1.0 - np.clip(lev, 0.0, 1.0 - 1e-9))
+    # a direction one window alone determines (leverage 1: a single window, or a parameter only it
+    # excites) leaves that window's residual nothing to show: no clustered information there (the
+    # colour-corrected errors stand), rather than the optimiser's leftover gradient blown up
+    alone = lev > 1.0 - 1e-6
+    f = np.where(alone, 0.0, 1.0 / np.sqrt(1.0 - np.where(alone, 0.0, np.clip(lev, 0.0, 1.0))))
     adj = np.einsum("wde,we,wfe->wdf", U, f, U)                  # (I - P_w)^(-1/2)
     gt = np.einsum("wde,we->wd", adj, g @ Hmh) @ Hh
     Hinv = Hmh @ Hmh

@@ -19,10 +19,10 @@ class _Recorder:
         pass
 
     def results(self, jobs):
-        self.seen = [j.log for j in jobs]
+        self.seen = [j.log for j in jobs]   # handed over at once, as the pool does
         self.jobs = list(jobs)
-        for k in reversed(range(len(jobs))):  # completion order unlike submission order
-            yield k, ([{"log": jobs[k].log, "flight_index": 0, "error": None}], Handover())
+        return ((k, ([{"log": jobs[k].log, "flight_index": 0, "error": None}], Handover()))
+                for k in reversed(range(len(jobs))))   # completion order unlike submission order
 
 
 def _jobs(tmp_path, sizes):
@@ -40,7 +40,11 @@ def test_a_pool_gets_the_largest_logs_first_and_results_come_back_in_job_order(t
     assert runner.submission_order(jobs) == [1, 3, 4, 0, 2]
     pool = _Recorder(workers=2)
     done = []
-    rows = runner.run(jobs, executor=pool, on_result=lambda job, r: done.append(job.log))
+    # the caller's own work runs once every job is with the workers and before any result is taken
+    meanwhile = []
+    rows = runner.run(jobs, executor=pool, on_result=lambda job, r: done.append(job.log),
+                      meanwhile=lambda: meanwhile.append((len(pool.seen), len(done))))
+    assert meanwhile == [(5, 0)]
     assert pool.seen == [jobs[i].log for i in (1, 3, 4, 0, 2)]
     assert [r[0]["log"] for r in rows] == [j.log for j in jobs]
     assert sorted(done) == sorted(j.log for j in jobs)

@@ -219,3 +219,19 @@ def test_window_clustered_errors_correct_each_windows_leverage():
         plain += np.diag(Hi @ (g.T @ g) @ Hi) * W / (W - 1) / reps
     assert np.all(np.abs(cr2 / np.diag(Hi) - 1.0) < 0.06), cr2 / np.diag(Hi)
     assert plain[2] / Hi[2, 2] < 0.7, plain / np.diag(Hi)
+
+
+def test_a_direction_one_window_alone_determines_keeps_the_colour_corrected_error():
+    """One window (every direction its alone), the optimiser stopped a little short of the optimum: the
+    clustered sandwich has nothing to say and gives 0, so the reported error is the colour-corrected
+    one, not the leftover gradient blown up by the leverage correction."""
+    from groundstation.sysid.refine import _sandwiches, clustered_cov
+
+    rng = np.random.default_rng(2)
+    L, D = 200, 2
+    J = rng.standard_normal((L, D))
+    y = rng.standard_normal(L)
+    r = y - J @ np.linalg.lstsq(J, y, rcond=None)[0] + 1e-3 * rng.standard_normal(L)
+    assert np.allclose(clustered_cov(np.ascontiguousarray(J.T[:, None, :]), r[None]), 0.0)
+    _, s_col, s_max = _sandwiches(J, r.reshape(1, L, 1))
+    assert np.all(s_col > 0) and np.array_equal(s_max, s_col)
