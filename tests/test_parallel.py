@@ -142,9 +142,29 @@ def _has_module(name: str) -> bool:
     return name in sys.modules
 
 
+def _run_alone(name: str) -> None:
+    """Run this file's function ``name`` in a fresh interpreter. Whether ``fork_here`` forks from this
+    process depends on no other thread running here, and an earlier test in a pytest worker may have
+    left one alive (a local Dask cluster's, a zenoh session's): the check needs a process of its own."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
+    out = subprocess.run([sys.executable, "-c", f"import tests.test_parallel as t; t.{name}()"], cwd=root,
+                         env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-4000:]
+
+
 def test_identify_workers_are_forked_from_the_command_itself_after_its_imports():
     """``worker_map(..., fork_here=True)`` (identify's): the workers are this process's children and
     start with the modules it imported for them; with another thread running it keeps the fork server."""
+    _run_alone("_check_forked_from_the_command")
+
+
+def _check_forked_from_the_command() -> None:
     import os
     import sys
     import threading
@@ -178,6 +198,10 @@ def test_identify_counts_its_own_process_among_the_jobs():
     """``caller_works`` (identify's, which searches while its workers screen): ``jobs`` processes in all,
     the command's own and ``jobs - 1`` workers; a map from the main thread runs its last share here,
     one from another thread (a background job's, while the main thread searches) all on the workers."""
+    _run_alone("_check_caller_works")
+
+
+def _check_caller_works() -> None:
     import multiprocessing
     import os
     import threading
@@ -219,11 +243,16 @@ def test_forked_workers_collect_without_copying_the_commands_pages():
     """The objects the command holds when it forks its workers are frozen (``gc.freeze``): a full
     collection in a worker leaves the pages it shares with the command alone, where without the
     freeze it copies thousands of them; the command unfreezes them once its workers are gone."""
-    import gc
     import sys
 
     if sys.platform != "linux":
         pytest.skip("workers are forked from the command on Linux only")
+    _run_alone("_check_collect_without_copying")
+
+
+def _check_collect_without_copying() -> None:
+    import gc
+
     before = gc.get_freeze_count()
     with worker_map(2, ("numpy",), fork_here=True) as pmap:
         frozen, with_freeze, without = pmap(_collection_faults, range(2))[0]

@@ -101,7 +101,7 @@ def _scaling(paths: list[Path], settings: Any) -> tuple[list[dict], list[dict]]:
 
 def _default_campaign(paths: list[Path]) -> dict[str, float]:
     """``groundstation campaign`` of ``paths`` with the default configuration and workers: wall and
-    CPU (the whole process tree: this process, the fork server, every worker) per flight, the workers'
+    CPU (the whole process tree: this process and every worker) per flight, the workers'
     start included (a user's run pays it)."""
     workers = runner.default_workers()
     jobs = _jobs(paths, Settings(config=ServiceConfig(), diagnose=True))   # as the command, before its clock
@@ -129,7 +129,7 @@ def _default_campaign(paths: list[Path]) -> dict[str, float]:
 
 def _print_flights(rows: list[dict], tree_cpu_s: float) -> None:
     """Each flight's wall and CPU in its worker (identify, diagnose, its share of reading its log), and
-    what the rest of the process tree took (workers' start, the fork server, the cross-flight fits)."""
+    what the rest of the process tree took (workers' start, the cross-flight fits, a fork server where one runs)."""
     in_tasks = 0.0
     for r in rows:
         task_cpu = float(r.get("cpu_s") or 0.0)
@@ -139,7 +139,7 @@ def _print_flights(rows: list[dict], tree_cpu_s: float) -> None:
                           if r.get(f"{k}_s") is not None)
         print(f"    {r['log_name']}#{int(r.get('flight_index') or 0)}: {wall:.1f} s wall{f' ({steps})' if steps else ''}, "
               f"{task_cpu:.1f} s CPU in its worker, verdict {r.get('verdict')}", flush=True)
-    print(f"    outside the flights' tasks (workers' start, fork server, cross-flight fits): "
+    print(f"    outside the flights' tasks (workers' start, cross-flight fits, a fork server where one runs): "
           f"{tree_cpu_s - in_tasks:.1f} s CPU", flush=True)
 
 
