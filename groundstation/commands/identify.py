@@ -28,7 +28,7 @@ from groundstation.commands.model_summary import (  # noqa: F401 - importable fr
 )
 from groundstation.commands.validate import write_rrd
 from groundstation.config import load_config
-from groundstation.parallel import IDENTIFY_NO_PLOT_PRELOAD, IDENTIFY_PRELOAD, worker_map
+from groundstation.parallel import IDENTIFY_NO_PLOT_PRELOAD, IDENTIFY_PRELOAD, spare_core_jobs, worker_map
 from groundstation.pipeline import about_logs, load_aircraft, load_logs, with_aircraft
 from groundstation.sysid.plots import draw
 
@@ -58,7 +58,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--jobs", type=int, default=None,
                         help="processes for reading the logs, the searches' screening refinements, the held-out "
                              "folds and the figures: this command's own (which searches meanwhile) and N-1 workers "
-                             "(default: every core; the model is the same for any number)")
+                             "(default: all cores but one, as for diagnose: one stays free for the link; the model is the same "
+                             "for any number)")
     parser.add_argument("--domain", choices=("time", "frequency", "both"), default="time",
                         help="time: the paper's output-error fit (default); frequency: minimise Tischler's J over the "
                              "flight's frequency responses; both: the time fit, then the frequency cost as a "
@@ -105,7 +106,8 @@ SEGMENTS_HELP = ("which data to use: 'flights' (every in-air interval, default) 
 
 def run(args: argparse.Namespace) -> int:
     preload = IDENTIFY_NO_PLOT_PRELOAD if args.no_plot else IDENTIFY_PRELOAD
-    with about_logs(args.logs), worker_map(args.jobs, preload, fork_here=True, caller_works=True) as pmap:
+    with about_logs(args.logs), worker_map(spare_core_jobs() if args.jobs is None else args.jobs, preload, fork_here=True,
+                                                 caller_works=True) as pmap:
         return _run(args, pmap)
 
 
