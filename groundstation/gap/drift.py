@@ -56,18 +56,6 @@ def progress(segs: list[SegmentArrays]) -> list[np.ndarray]:
     return [2.0 * (s.t_s - t0) / span - 1.0 for s in segs]
 
 
-def _backlash(x: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """:func:`hypotheses.backlash` with a width per sample."""
-    y, col = float(x[0]), []
-    for xk, bk in zip(x.tolist(), b.tolist(), strict=True):
-        if xk > y + bk:
-            y = xk - bk
-        elif xk < y - bk:
-            y = xk + bk
-        col.append(y)
-    return np.array(col, dtype=float)
-
-
 def _rate_limit(x: np.ndarray, m: np.ndarray) -> np.ndarray:
     """:func:`hypotheses.rate_limit` with a largest step per sample."""
     y, col = float(x[0]), []
@@ -87,7 +75,7 @@ def _input_variant(effect: str, lab: dict[str, Any], x: np.ndarray, scale: np.nd
     if lab["kind"] == "deadzone":  # hypotheses.deadzone with a width (and centre) per sample
         d = x - float(lab.get("centre", 0.0)) * scale
         return np.sign(d) * np.maximum(np.abs(d) - b, 0.0)
-    return _backlash(x, b)
+    return hypotheses.backlash(x, b)
 
 
 Family = tuple[np.ndarray, np.ndarray, np.ndarray]  # held-out cost (W, 8), blocks, chosen parameters

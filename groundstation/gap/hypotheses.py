@@ -110,16 +110,17 @@ def deadzone(x: np.ndarray, b: float, centre: float = 0.0) -> np.ndarray:
     return np.sign(d) * np.maximum(np.abs(d) - b, 0.0)
 
 
-def backlash(x: np.ndarray, b: float) -> np.ndarray:
-    """Mechanical play of total width 2b: the output follows only when pushed past +-b."""
+def backlash(x: np.ndarray, b: float | np.ndarray) -> np.ndarray:
+    """Mechanical play of total width 2b: the output follows only when pushed past +-b (``b`` one
+    width, or one per sample of ``x``)."""
     xs = x.tolist()  # Python floats: the same arithmetic as numpy's scalars, half the time
-    b = float(b)
+    bs = np.broadcast_to(np.asarray(b, dtype=float), x.shape).tolist()
     y, col = xs[0], []
-    for xk in xs:
-        if xk > y + b:
-            y = xk - b
-        elif xk < y - b:
-            y = xk + b
+    for xk, bk in zip(xs, bs, strict=True):
+        if xk > y + bk:
+            y = xk - bk
+        elif xk < y - bk:
+            y = xk + bk
         col.append(y)
     return np.array(col, dtype=float)
 
