@@ -51,6 +51,7 @@ from groundstation.gap import (
     fingerprints,
     hypotheses,
     locate,
+    margins,
     noise,
     rebase,
     shares,
@@ -248,6 +249,9 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
         e.update(verdict_info["per_effect"].get(id(c), {}))
     if model is not None and controller.may_be_commands(model):
         _controller_finding(report, prepared, model, loc, cfg, seed, pmap)
+    report["verdict_margin"] = margin_stage(att, loc, dec, verdict_info["rule"], cfg, seed)
+    if report["verdict_margin"]["borderline"]:
+        report["notes"].append(report["verdict_margin"]["note"])
     report["structure_tests"] = [{**dataclasses.asdict(t), "effect_to_noise": round(t.effect_to_noise, 2)
                                   if np.isfinite(t.effect_to_noise) else None} for t in tests]
     arrays = {"t_s": ev.T, "Y": ev.Y, "Yraw": ev.Yraw, "yhat": loc.yhat_ho, "mask": ev.mask, "flag": loc.flag,
@@ -970,7 +974,23 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
     new = dataclasses.replace(dec, verdict=verdict, ranked=kept, unexplained=unexplained,
                               others=list(dec.others) + unconfirmed)
     rep["notes_add"] = notes
-    return new, {"report": rep, "per_effect": per_effect}
+    # what decided between naming and "unexplained" (for the verdict's margin): the share rule's interval,
+    # unless a significant gap did not reach it or the channels left decided (rest_small)
+    rule = {"interval": sh_rule.interval_pct if ranked and loc.gap_significant and not rest_small else None,
+            "partial": partial}
+    return new, {"report": rep, "per_effect": per_effect, "rule": rule}
+
+
+def margin_stage(att: Attributed, loc: Located, dec: Decision, rule: dict[str, Any], cfg: DiagnoseConfig,
+                 seed: int) -> dict[str, Any]:
+    """How far the verdict sits from the edges of the tests that decided it (:mod:`groundstation.gap.margins`):
+    the significance of the first named effect and of any candidate that failed on its p-value alone and
+    would have changed the verdict, and the share rule."""
+    rng = np.random.default_rng((seed, 25))
+    fallback = "unexplained" if loc.gap_significant else "none"
+    edges = margins.significance_edges(dec.ranked, dec.others, dec.verdict, fallback, att.ctx, att.crit, cfg, rng)
+    share = margins.share_edge(rule["interval"], dec.verdict, rule["partial"], dec.ranked, cfg)
+    return margins.summary(edges + ([share] if share is not None else []), dec.verdict, cfg)
 
 
 def _drift_checks(ranked: list[attribute.Candidate], cons: dict[int, dict[str, Any]], ctx: hypotheses.Context,
