@@ -117,8 +117,8 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
                 and physical(gust.hyp, cfg)):
             segs_a = hypotheses.apply_input_effect(a.hyp, segs, ev.dt_s)
             ev_a = Evaluator(segs_a, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s,
-                             folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s)
-            ev_a.refine(cfg.refit_iterations, cfg.refine_ridge)
+                             folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s, memo=ev.memo)
+            ev_a.refine(cfg.refit_iterations, cfg.refine_ridge)   # refit_input_effect's, when it ran
             hg = hypotheses.scan_wind_gust(hypotheses.Context(ev_a, segs_a, cfg=cfg))
             assert hg.sse is not None and gust.hyp.sse is not None
             m0, mg = gust.hyp.extra["base_sse"], gust.hyp.sse
