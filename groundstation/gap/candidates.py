@@ -82,6 +82,7 @@ def refit_input_effect(c: attribute.Candidate, ctx: hypotheses.Context, segs: li
     h2.extra["first_pass"] = h.extra.get("first_pass") or {"estimate": dict(h.estimate),
                                                             "score_pct": c.score.score_pct}
     h.estimate, h.sse, h.extra = h2.estimate, h2.sse, {**h.extra, **h2.extra}
+    h.extra["blocks_scored"] = ctx_r.blocks[h.effect]  # the blocks its test used (the verdict's margin)
     c.score = s2
     c.significant = bool(s2.p_value < crit and gain_ok(s2, cfg) and physical(h, cfg))
 

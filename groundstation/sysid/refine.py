@@ -226,9 +226,16 @@ def standard_errors(cost: WindowedCost, x: np.ndarray, sigma: np.ndarray, bounds
         J = holes.marginal_jacobian(cost, x, sigma, J)
     r = cost.residuals(x[None], sigma)[0]
     counted = _counted(cost)
-    if prior_std is None:
+    lines = getattr(cost, "line_holes", None)    # inputs left straight lines in the link's holes
+    if prior_std is None and lines is None:
         return J, coloured_std(J, r, counted=counted), np.zeros(x.size)
-    std, share = posterior_std(coloured_cov(J, r, counted=counted), np.asarray(prior_std, dtype=float))
+    cov = coloured_cov(J, r, counted=counted)
+    extra = None if lines is None else lines.line_covariance(cost, x, sigma, J, np.linalg.pinv(J.T @ J))
+    if extra is not None:
+        cov = cov + extra
+    if prior_std is None:
+        return J, np.sqrt(np.maximum(np.diag(cov), 0.0)), np.zeros(x.size)
+    std, share = posterior_std(cov, np.asarray(prior_std, dtype=float))
     return J, std, share
 
 
