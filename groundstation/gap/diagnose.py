@@ -988,9 +988,11 @@ def margin_stage(att: Attributed, loc: Located, dec: Decision, rule: dict[str, A
     would have changed the verdict, the input effects' encompassing test against an air mass, and the share rule."""
     rng = np.random.default_rng((seed, 25))
     fallback = "unexplained" if loc.gap_significant else "none"
-    edges = margins.significance_edges(dec.ranked, dec.others, dec.verdict, fallback, att.ctx, att.crit, cfg, rng)
-    edges += margins.air_mass_edges(dec.ranked, dec.others, fallback, att.crit, cfg, rng)
-    share = margins.share_edge(rule["interval"], dec.verdict, rule["partial"], dec.ranked, cfg)
+    partial = rule["partial"]
+    edges = margins.significance_edges(dec.ranked, dec.others, dec.verdict, fallback, att.ctx, att.crit, cfg, rng,
+                                       partial)
+    edges += margins.air_mass_edges(dec.ranked, dec.others, fallback, att.crit, cfg, rng, partial)
+    share = margins.share_edge(rule["interval"], dec.verdict, partial, dec.ranked, cfg)
     return margins.summary(edges + ([share] if share is not None else []), dec.verdict, cfg)
 
 
