@@ -25,6 +25,7 @@ Pure numpy; the draws derive from the diagnosis seed.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -91,6 +92,13 @@ def significance_margin(c: attribute.Candidate, ctx: hypotheses.Context, level: 
     return m
 
 
+def _top_gain(named: Sequence[attribute.Candidate], partial: Sequence[attribute.Candidate]) -> float:
+    """The held-out gain a candidate must beat to change the verdict: the first named effect's, else the
+    first partial finding's (which the share rule or the halves set aside), else none."""
+    first = (list(named) or list(partial))[:1]
+    return first[0].score.score_pct if first else -np.inf
+
+
 def _label(c: attribute.Candidate) -> str:
     ch = c.hyp.input or c.hyp.output
     return c.hyp.effect + (f" {ch}" if ch else "")
@@ -98,11 +106,11 @@ def _label(c: attribute.Candidate) -> str:
 
 def significance_edges(named: list[attribute.Candidate], others: list[attribute.Candidate], verdict: str,
                        fallback: str, ctx: hypotheses.Context, crit: float, cfg: DiagnoseConfig,
-                       rng: np.random.Generator) -> list[Edge]:
+                       rng: np.random.Generator, partial: Sequence[attribute.Candidate] = ()) -> list[Edge]:
     """The significance edges of the verdict: the first named effect's own test, and every candidate
     that failed on its p-value alone (practically significant and physical) whose naming would change
-    the verdict (nothing named, or a larger held-out gain than the first named). ``fallback``: the
-    verdict without the first named effect."""
+    the verdict (a larger held-out gain than the first named effect or partial finding, or nothing
+    found at all). ``fallback``: the verdict without the first named effect."""
     edges = []
     if named:
         m = significance_margin(named[0], ctx, crit, cfg, rng)
@@ -111,7 +119,7 @@ def significance_edges(named: list[attribute.Candidate], others: list[attribute.
                               named[1].hyp.effect if len(named) > 1 else fallback,
                               f"held-out gain {named[0].score.score_pct:+.1f} %, p={named[0].score.p_value:.2g} "
                               f"against {crit:.2g}"))
-    top = named[0].score.score_pct if named else -np.inf
+    top = _top_gain(named, partial)
     for c in others:
         if c.score.p_value < crit or not (candidates.gain_ok(c.score, cfg) and candidates.physical(c.hyp, cfg)):
             continue
@@ -125,13 +133,13 @@ def significance_edges(named: list[attribute.Candidate], others: list[attribute.
 
 
 def air_mass_edges(named: list[attribute.Candidate], others: list[attribute.Candidate], fallback: str, crit: float,
-                   cfg: DiagnoseConfig, rng: np.random.Generator) -> list[Edge]:
+                   cfg: DiagnoseConfig, rng: np.random.Generator, partial: Sequence[attribute.Candidate] = ()) -> list[Edge]:
     """The encompassing test of an input effect against an air mass (does it still lower the held-out cost
     once an air-mass motion is allowed? a window bootstrap at ``crit``) where it decided the verdict: the
     first named effect passed it, or a candidate that passed its own test and failed this one would have
     been named first."""
     edges = []
-    top = named[0].score.score_pct if named else -np.inf
+    top = _top_gain(named, partial)
     for c in named[:1] + others:
         d = c.hyp.extra.get("gain_given_air_mass")
         first = bool(named) and c is named[0]

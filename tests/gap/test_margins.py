@@ -77,3 +77,12 @@ def test_the_air_mass_edge_is_measured_where_the_encompassing_test_decided_the_v
     small = _cand("rate_limit", "lon", 2.0, 5e-4, rng.standard_normal(45), 0.3)
     e = margins.air_mass_edges(named, [other, small], "unexplained", 1e-3, cfg, np.random.default_rng(1))
     assert [(x.subject, x.passed, x.alternative) for x in e][1:] == [("input_delay lat", False, "input_delay")]
+
+
+def test_a_candidate_smaller_than_the_first_partial_finding_is_no_edge_of_an_unexplained_verdict():
+    cfg = DiagnoseConfig()
+    deadband = _cand("deadband", "lon", 40.0, 5e-4, np.ones(45), 5e-4)
+    delay = _cand("input_delay", "lat", 3.0, 5e-4, np.ones(45), 0.3)  # passed its own test, not the air mass's
+    assert margins.air_mass_edges([], [delay], "unexplained", 1e-3, cfg, np.random.default_rng(1), [deadband]) == []
+    assert len(margins.air_mass_edges([], [delay], "unexplained", 1e-3, cfg, np.random.default_rng(1))) == 1
+    assert margins._top_gain([], [deadband]) == 40.0 and margins._top_gain([], []) == -np.inf
