@@ -131,7 +131,8 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
             p_g = p_value(hg, None, ma, rng, cfg, conditional=True)
             ret_a = float((mg - mag).sum() / max((m0 - ma).sum(), 1e-300))
             ret_g = float((ma - mag).sum() / max((m0 - mg).sum(), 1e-300))
-            a.hyp.extra.update(p_given_air_mass=p_a, retained_given_air_mass=ret_a)
+            a.hyp.extra.update(p_given_air_mass=p_a, retained_given_air_mass=ret_a,
+                               gain_given_air_mass=mg.sum(1) - mag.sum(1))  # per window (the verdict's margin)
             gust.hyp.extra.update({f"p_given_{a.hyp.effect}": p_g, f"retained_given_{a.hyp.effect}": ret_g})
             a_ok = p_a < crit and float((mg - mag).sum()) > 0
             g_ok = p_g < crit and float((ma - mag).sum()) > 0

@@ -15,6 +15,8 @@ report then names the verdict on the other side of that edge. The verdict itself
   exactly when that quantile is above zero; for a normal sum it is ``z - z_level``). The same
   resampling units as the test (blocks when the whole-window check passes, else the weaker of
   blocks and windows; the air mass also on the attitude angles), with draws of their own.
+* an input effect against an air mass (the encompassing test: what it adds once an air-mass motion
+  is allowed, a window bootstrap): the same quantile margin of the windows' gains;
 * the share rule: the upper end of the share's 5-95 % interval against ``explained_share_min_pct``,
   in the share's standard error ((95 % end - 5 % end) / 3.29).
 
@@ -23,6 +25,7 @@ Pure numpy; the draws derive from the diagnosis seed.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -41,7 +44,7 @@ _DRAWS = 8000
 class Edge:
     """One test that decided the verdict: its statistic's distance from the threshold."""
 
-    test: str  # "significance" or "share"
+    test: str  # "significance", "air_mass" or "share"
     subject: str  # the effect (and channel) tested
     margin_se: float  # signed: positive where the test passed
     passed: bool
@@ -89,6 +92,13 @@ def significance_margin(c: attribute.Candidate, ctx: hypotheses.Context, level: 
     return m
 
 
+def _top_gain(named: Sequence[attribute.Candidate], partial: Sequence[attribute.Candidate]) -> float:
+    """The held-out gain a candidate must beat to change the verdict: the first named effect's, else the
+    first partial finding's (which the share rule or the halves set aside), else none."""
+    first = (list(named) or list(partial))[:1]
+    return first[0].score.score_pct if first else -np.inf
+
+
 def _label(c: attribute.Candidate) -> str:
     ch = c.hyp.input or c.hyp.output
     return c.hyp.effect + (f" {ch}" if ch else "")
@@ -96,11 +106,11 @@ def _label(c: attribute.Candidate) -> str:
 
 def significance_edges(named: list[attribute.Candidate], others: list[attribute.Candidate], verdict: str,
                        fallback: str, ctx: hypotheses.Context, crit: float, cfg: DiagnoseConfig,
-                       rng: np.random.Generator) -> list[Edge]:
+                       rng: np.random.Generator, partial: Sequence[attribute.Candidate] = ()) -> list[Edge]:
     """The significance edges of the verdict: the first named effect's own test, and every candidate
     that failed on its p-value alone (practically significant and physical) whose naming would change
-    the verdict (nothing named, or a larger held-out gain than the first named). ``fallback``: the
-    verdict without the first named effect."""
+    the verdict (a larger held-out gain than the first named effect or partial finding, or nothing
+    found at all). ``fallback``: the verdict without the first named effect."""
     edges = []
     if named:
         m = significance_margin(named[0], ctx, crit, cfg, rng)
@@ -109,7 +119,7 @@ def significance_edges(named: list[attribute.Candidate], others: list[attribute.
                               named[1].hyp.effect if len(named) > 1 else fallback,
                               f"held-out gain {named[0].score.score_pct:+.1f} %, p={named[0].score.p_value:.2g} "
                               f"against {crit:.2g}"))
-    top = named[0].score.score_pct if named else -np.inf
+    top = _top_gain(named, partial)
     for c in others:
         if c.score.p_value < crit or not (candidates.gain_ok(c.score, cfg) and candidates.physical(c.hyp, cfg)):
             continue
@@ -119,6 +129,28 @@ def significance_edges(named: list[attribute.Candidate], others: list[attribute.
         if m is not None:
             edges.append(Edge("significance", _label(c), round(m, 2), False, c.hyp.effect,
                               f"held-out gain {c.score.score_pct:+.1f} %, p={c.score.p_value:.2g} against {crit:.2g}"))
+    return edges
+
+
+def air_mass_edges(named: list[attribute.Candidate], others: list[attribute.Candidate], fallback: str, crit: float,
+                   cfg: DiagnoseConfig, rng: np.random.Generator, partial: Sequence[attribute.Candidate] = ()) -> list[Edge]:
+    """The encompassing test of an input effect against an air mass (does it still lower the held-out cost
+    once an air-mass motion is allowed? a window bootstrap at ``crit``) where it decided the verdict: the
+    first named effect passed it, or a candidate that passed its own test and failed this one would have
+    been named first."""
+    edges = []
+    top = _top_gain(named, partial)
+    for c in named[:1] + others:
+        d = c.hyp.extra.get("gain_given_air_mass")
+        first = bool(named) and c is named[0]
+        p = float(c.hyp.extra.get("p_given_air_mass", np.nan))
+        failed_here = c.score.p_value < crit and not p < crit  # passed its own test, not this one
+        if d is None or not (first or (failed_here and c.score.score_pct > top
+                                       and candidates.gain_ok(c.score, cfg) and candidates.physical(c.hyp, cfg))):
+            continue
+        alt = (named[1].hyp.effect if len(named) > 1 else fallback) if first else c.hyp.effect
+        edges.append(Edge("air_mass", _label(c), round(quantile_margin(np.asarray(d), crit, rng), 2), first, alt,
+                          f"what it adds once an air-mass motion is allowed, p={p:.2g} against {crit:.2g}"))
     return edges
 
 

@@ -103,7 +103,7 @@ def test_report_schema(reports, case):
         assert {"borderline", "alternative", "closest", "edges", "band_se"} <= set(m)
         assert m["borderline"] == (m["alternative"] is not None)
         for e in m["edges"]:
-            assert e["test"] in ("significance", "share") and e["alternative"] != r["verdict"] or not m["borderline"]
+            assert e["test"] in ("significance", "air_mass", "share") and e["alternative"] != r["verdict"] or not m["borderline"]
 
 
 @pytest.mark.parametrize("case", ["gyro_bias", "deadband"])
