@@ -998,25 +998,51 @@ def margin_stage(att: Attributed, loc: Located, dec: Decision, rule: dict[str, A
 
 def _drift_checks(ranked: list[attribute.Candidate], cons: dict[int, dict[str, Any]], ctx: hypotheses.Context,
                   level: float, cfg: DiagnoseConfig, arrays: dict[str, Any] | None) -> None:
-    """The whole-flight drift test (:func:`groundstation.gap.drift.drift`) of each named effect the
-    halves did not find changing: a half that does not resolve the effect on its own cannot see a
-    drift, a ramp through the whole flight can. An effect that drifts is marked ``changes`` with the
-    ramp it follows; the halves' verdict stays in the entry."""
+    """The whole-flight drift test (:func:`groundstation.gap.drift.drift`) of each named effect: a
+    half that does not resolve the effect on its own cannot see a drift, a ramp through the whole
+    flight can. An effect that drifts is marked ``changes`` with the ramp it follows; the halves'
+    verdict stays in the entry. An input effect or gyro bias the halves find changing is tested
+    too (:func:`_halves_change_in_time`). A rotor line is tested only where the halves did not find
+    it changing."""
     rng = np.random.default_rng(26)  # its own stream: the shares' bootstrap draws stay as they were
     for c in ranked:
         con = cons.get(id(c))
-        if con is None or con.get("status") == "changes":
+        if con is None:
             continue
         if c.hyp.effect == "rotor_vibration":
+            if con.get("status") == "changes":
+                continue
             d = drift.line_drift(c, ctx.ev, arrays["resid_raw"], level) if arrays else None
         else:
-            d = drift.drift(c, ctx, ctx.base_sse, level, rng, cfg.n_boot, cfg.window_alpha)
+            # the halves' changes draw from a stream of their own: the other effects' draws stay as they were
+            r = np.random.default_rng(26) if con["status"] == "changes" else rng
+            d = drift.drift(c, ctx, ctx.base_sse, level, r, cfg.n_boot, cfg.window_alpha)
         if d is None:
             continue
         con["drift"] = d
-        if d["drifts"]:
+        if con["status"] == "changes":
+            _halves_change_in_time(con, d)
+        elif d["drifts"]:
             con["halves"] = {"status": con["status"], "why": con["why"]}
             con["status"], con["why"] = "changes", d["why"]
+
+
+def _halves_change_in_time(con: dict[str, Any], d: dict[str, Any]) -> None:
+    """A change the halves found is a change in time only when a parameter following the flight's
+    progress predicts the held-out windows better than a constant one. Each half's value is
+    estimated on that half's own stick excursions; where the catalogue effect only approximates the
+    aircraft's physics (a symmetric deadzone for an asymmetric one), its best value depends on how
+    far each side of the stick was flown, and halves flown differently reject each other's value
+    though nothing changed. When the ramp removes no held-out cost at all beyond the constant (the
+    same windows, chosen inside each training fold), the effect holds; the halves' verdict stays in
+    the entry."""
+    if d["drifts"] or d["ramp_gains"]:
+        return
+    con["halves"] = {"status": con["status"], "why": con["why"]}
+    con["status"] = "holds"
+    con["why"] = (f"{con['why']}, but a value ramping through the flight predicts the held-out windows no "
+                  f"better than a constant one (p={d['p']:.2g}): the halves differ in how the aircraft was "
+                  f"flown, not in time")
 
 
 def _confirm_beside_first(kept: list[attribute.Candidate], rem: dict[int, np.ndarray], cons: dict[int, dict[str, Any]],
