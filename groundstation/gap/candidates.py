@@ -120,9 +120,8 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
     for a in sorted((c for c in cands if c.hyp.effect in hypotheses.INPUT_EFFECTS and c.significant),
                     key=lambda c: -c.score.score_pct):
         # --- air mass: the four models (base, +A, +air mass, +both) in the air-mass protocol
-        # (within-window chunk cross-validation, where a per-window smooth air velocity cannot
-        # follow the fast, input-linked error of an input effect). Input effects go largest first:
-        # an air mass that one of them explains cannot set aside the next (it is that input effect)
+        # (within-window chunk cross-validation). Input effects go largest first: an air mass that
+        # one of them explains cannot set aside the next (it is that input effect)
         if (gust is not None and not gust_explained and gust.score.score_pct > 0 and "base_sse" in gust.hyp.extra
                 and physical(gust.hyp, cfg)):
             segs_a = hypotheses.apply_input_effect(a.hyp, segs, ev.dt_s)
@@ -145,10 +144,15 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
             gust.hyp.extra.update({f"p_given_{a.hyp.effect}": p_g, f"retained_given_{a.hyp.effect}": ret_g})
             a_ok = p_a < crit and float((mg - mag).sum()) > 0
             g_ok = p_g < crit and float((ma - mag).sum()) > 0
-            if not a_ok:
+            if not a_ok and g_ok:
                 a.significant = False
                 a.evidence += f"; adds nothing once an air-mass motion is allowed (p={p_a:.2g})"
                 continue
+            if not a_ok:
+                # neither adds to the other: the same departure, explained by one parameter of the stick
+                # or by a free air velocity in every window; the input effect is the one kept
+                a.evidence += (f"; an air-mass motion explains it as well (p={p_a:.2g} for it given the air mass), "
+                               f"but adds nothing to it (p={p_g:.2g})")
             if gust.significant and not g_ok:
                 gust.significant, gust_explained = False, True
                 gust.evidence += f"; adds nothing once the {a.hyp.input} {a.hyp.effect} is in the model (p={p_g:.2g})"
