@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from groundstation.errors import GapError
 from groundstation.gap.config import DiagnoseConfig
@@ -732,10 +733,12 @@ def scan_wind_gust(ctx: Context, chunk_s: float | None = None, refine_iterations
     variants = []
     for i, fit in enumerate(fits):
         grid = np.moveaxis(_air_columns(ev, fit.theta, n)[0], -1, 0)  # (2 n, L, 8)
-        for tau, fac in factors.items():
-            cols = np.concatenate([np.einsum("klc,kj->jlc", grid[c * n:(c + 1) * n], fac) for c in range(2)])
-            sse, coef = fit.cv(cols, [sig2 / (s * s_air) ** 2 for s in GUST_SIGMA])
-            variants += [((i, tau, s), sse[j], coef[j]) for j, s in enumerate(GUST_SIGMA)]
+        # small products, many of them: one thread (a pool's threads spinning cost more than they do)
+        with threadpool_limits(1):
+            for tau, fac in factors.items():
+                cols = np.concatenate([np.einsum("klc,kj->jlc", grid[c * n:(c + 1) * n], fac) for c in range(2)])
+                sse, coef = fit.cv(cols, [sig2 / (s * s_air) ** 2 for s in GUST_SIGMA])
+                variants += [((i, tau, s), sse[j], coef[j]) for j, s in enumerate(GUST_SIGMA)]
     cost = np.stack([(v[1] * unit).sum(axis=1) for v in variants])  # (V, W) in noise units
     sse_g = np.empty((ev.W, 8))
     picks = []
