@@ -25,6 +25,8 @@ from __future__ import annotations
 import argparse
 import os
 import resource
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -125,6 +127,35 @@ def _default_campaign(paths: list[Path]) -> dict[str, float]:
         print(f"    {_packing(per_job, workers)}", flush=True)
     return {"workers": workers, "wall_s": wall, "cpu_s": cpu, "flights": n, "others_cores": others,
             "core_use": cpu / (wall * cores)}
+
+
+def _as_a_user_runs_it(paths: list[Path], out: Path) -> dict[str, float]:
+    """The whole ``groundstation campaign LOG...`` command (its imports, its workers, the trend test and
+    its files), then ``groundstation identify LOG --out M.json`` of each flight separately, each a
+    process of its own with the default settings: wall and CPU (the process and its workers) of
+    both, and the campaign's ratio to the identify runs (what the speed target compares)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "campaign.sqlite").unlink(missing_ok=True)
+    gs = [sys.executable, "-m", "groundstation"]
+    camp = _timed([*gs, "campaign", *map(str, paths), "--db", str(out / "campaign.sqlite")])
+    sep = [_timed([*gs, "identify", str(p), "--out", str(out / f"{p.stem}.json"), "--quiet"]) for p in paths]
+    wall, cpu = sum(w for w, _ in sep), sum(c for _, c in sep)
+    print(f"  the command as a user runs it (groundstation campaign of the {len(paths)} logs, trend files included): "
+          f"{camp[0]:.1f} s wall, {camp[1]:.1f} s CPU; {len(paths)} separate default groundstation identify runs: "
+          f"{wall:.1f} s wall, {cpu:.1f} s CPU; campaign / identify runs {camp[0] / wall:.2f}x wall, "
+          f"{camp[1] / cpu:.2f}x CPU (load average {os.getloadavg()[0]:.1f}: the wall ratio is a measurement "
+          f"on a quiet machine only)", flush=True)
+    return {"campaign_wall_s": camp[0], "campaign_cpu_s": camp[1], "identify_wall_s": wall, "identify_cpu_s": cpu}
+
+
+def _timed(cmd: list[str]) -> tuple[float, float]:
+    """(wall, CPU of the process and every child it waited for) of one command run to its end."""
+    r0, t0 = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
+    done = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    if done.returncode:
+        raise RuntimeError(f"{' '.join(cmd[2:4])} failed ({done.returncode}): {done.stderr.strip()[-400:]}")
+    wall, r1 = time.perf_counter() - t0, resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
 
 
 def _print_flights(rows: list[dict], tree_cpu_s: float) -> None:
@@ -266,6 +297,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"0. the default campaign of {k} flights (default settings: identify with every check, diagnose, "
                   f"cross-flight fit; --jobs default):", flush=True)
             _default_campaign(paths[:k])
+            _as_a_user_runs_it(paths[:k], d / "as-run")
             if args.only_default:
                 return 0
         print("1. campaign in one process (identify + diagnose + cross-flight fit per flight):", flush=True)

@@ -14,6 +14,9 @@ the held-out match against the loss-free flight's, the diagnosis verdict and nam
 and wall time. A step that refuses gives its one line; a crash is reported as a crash.
 Targets (up to 10 % bursty loss): 8/8 key parameters, >= 97 % of the loss-free held-out match, no
 false alarm on effect-free flights, the loss-free verdict on one-effect flights, no invented effect.
+A verdict the diagnosis reports as borderline (``verdict_margin``: a deciding test within a standard
+error of its threshold) also counts as "same or borderline" when the verdict across that edge is the
+loss-free flight's (or the loss-free flight's own borderline verdict is this one).
 
 How well a flight determines the key parameters: each one's error is also given in the model file's
 own standard errors (z); a parameter is "as determined" when within 10 % or within 3 standard errors,
@@ -110,6 +113,8 @@ def _case(path: Path, truth: dict, val: Any, cfg: Any, diagnose: bool) -> dict[s
             rep = res.gap.report
             out["verdict"] = rep["verdict"]
             out["named"] = [e["effect"] for e in rep.get("effects", [])]
+            margin = rep.get("verdict_margin") or {}
+            out["verdict_edge"] = margin.get("alternative")  # the verdict across a test's edge when borderline
     except ValueError as exc:  # the one clear line a user would see
         out["refused"] = str(exc).splitlines()[0]
     except Exception as exc:  # noqa: BLE001 - a crash is the finding
@@ -118,6 +123,12 @@ def _case(path: Path, truth: dict, val: Any, cfg: Any, diagnose: bool) -> dict[s
     out["wall_s"] = time.perf_counter() - t0
     out["cpu_s"] = time.process_time() - c0
     return out
+
+
+def _same_or_edge(r: dict[str, Any], base: dict[str, Any]) -> bool:
+    """The same verdict as the loss-free flight, or one of the two is borderline with the other across its edge."""
+    return bool(r["verdict"] == base["verdict"] or r.get("verdict_edge") == base["verdict"]
+                or base.get("verdict_edge") == r["verdict"])
 
 
 def _determined(model: Any, truth: dict, err: dict[str, float]) -> dict[str, Any]:
@@ -223,6 +234,7 @@ def run(args: argparse.Namespace) -> int:
                             r["heldout_vs_lossfree_pct"] = 100.0 * r["heldout_match"] / base["heldout_match"]
                         if base is not None and "verdict" in r and "verdict" in base:
                             r["same_verdict"] = r["verdict"] == base["verdict"]
+                            r["same_or_edge"] = _same_or_edge(r, base)
                             r["invented"] = sorted(set(r["named"]) - set(base["named"]) - {label})
                         rows.append(r)
                         con.print(_line(r))
@@ -247,6 +259,8 @@ def _line(r: dict[str, Any]) -> str:
     if "refused" in r:
         return f"{head} {link}; refused: {r['refused']} ({r['cpu_s']:.1f} s CPU)"
     verdict = f", verdict {r['verdict']} {r.get('named')}" if "verdict" in r else ""
+    if r.get("verdict_edge"):
+        verdict += f" (borderline: {r['verdict_edge']} across a test's edge)"
     zk = max(KEY, key=lambda k: abs(r["key_z"][k] or 0.0))
     verdict += (f"; {r['key_as_determined']}/8 within 10 % or {Z_LIM:g} standard errors (largest "
                 f"{zk} {r['key_z'][zk] or 0.0:+.1f})")
@@ -297,7 +311,7 @@ def _rates(rows: list[dict[str, Any]], diagnose: bool) -> Any:
               "median held-out %"):
         t.add_column(c, justify="right")
     if diagnose:
-        for c in ("false alarm", "same verdict", "invented"):
+        for c in ("false alarm", "same verdict", "same or borderline", "invented"):
             t.add_column(c, justify="right")
     groups: dict[tuple, list[dict[str, Any]]] = {}
     for r in rows:
@@ -313,7 +327,8 @@ def _rates(rows: list[dict[str, Any]], diagnose: bool) -> Any:
                  _rms_z(ok), _widening_cell(ok), str(sum(v >= 97.0 for v in rel)), f"{statistics.median(rel):.1f}" if rel else "-"]
         if diagnose:
             cells += [str(sum(r.get("verdict") not in (None, "none") for r in ok)) if flight == "none" else "-",
-                      str(sum(bool(r.get("same_verdict")) for r in ok)), str(sum(bool(r.get("invented")) for r in ok))]
+                      str(sum(bool(r.get("same_verdict")) for r in ok)), str(sum(bool(r.get("same_or_edge")) for r in ok)),
+                      str(sum(bool(r.get("invented")) for r in ok))]
         t.add_row(*cells)
     return t
 

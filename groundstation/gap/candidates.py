@@ -93,6 +93,7 @@ def refit_input_effect(c: attribute.Candidate, ctx: hypotheses.Context, segs: li
     h2.extra["first_pass"] = h.extra.get("first_pass") or {"estimate": dict(h.estimate),
                                                             "score_pct": c.score.score_pct}
     h.estimate, h.sse, h.extra = h2.estimate, h2.sse, {**h.extra, **h2.extra}
+    h.extra["blocks_scored"] = ctx_r.blocks[h.effect]  # the blocks its test used (the verdict's margin)
     c.score = s2
     c.significant = bool(s2.p_value < crit and gain_ok(s2, cfg) and physical(h, cfg))
 
@@ -126,8 +127,8 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
                 and physical(gust.hyp, cfg)):
             segs_a = hypotheses.apply_input_effect(a.hyp, segs, ev.dt_s)
             ev_a = Evaluator(segs_a, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s,
-                             folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s)
-            ev_a.refine(cfg.refit_iterations, cfg.refine_ridge)
+                             folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s, memo=ev.memo)
+            ev_a.refine(cfg.refit_iterations, cfg.refine_ridge)   # refit_input_effect's, when it ran
             hg = hypotheses.scan_wind_gust(hypotheses.Context(ev_a, segs_a, cfg=cfg, noise_unit=ctx.noise_unit))
             assert hg.sse is not None and gust.hyp.sse is not None
             m0, mg = gust.hyp.extra["base_sse"], gust.hyp.sse
@@ -140,7 +141,8 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
             p_g = p_value(hg, None, ma, rng, cfg, conditional=True)
             ret_a = float((mg - mag).sum() / max((m0 - ma).sum(), 1e-300))
             ret_g = float((ma - mag).sum() / max((m0 - mg).sum(), 1e-300))
-            a.hyp.extra.update(p_given_air_mass=p_a, retained_given_air_mass=ret_a)
+            a.hyp.extra.update(p_given_air_mass=p_a, retained_given_air_mass=ret_a,
+                               gain_given_air_mass=mg.sum(1) - mag.sum(1))  # per window (the verdict's margin)
             gust.hyp.extra.update({f"p_given_{a.hyp.effect}": p_g, f"retained_given_{a.hyp.effect}": ret_g})
             a_ok = p_a < crit and float((mg - mag).sum()) > 0
             g_ok = p_g < crit and float((ma - mag).sum()) > 0

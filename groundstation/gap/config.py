@@ -148,6 +148,11 @@ class DiagnoseConfig:
     #: than this fraction of the effect's own gain in a half (besides being rejected at the level)
     consistency_min_loss: float = 0.25
 
+    #: the verdict is reported ``borderline`` (``verdict_margin``) when a test that decided it has its
+    #: statistic within this many of its own standard errors of the threshold: a verdict that close
+    #: to an edge can come out either way when the same flight is cut into windows half a second later
+    borderline_se: float = 1.0
+
     # ------------------------------------------------------------------ data compatibility
     #: window over which the kinematics are integrated (s): long enough to lever a scale factor,
     #: short enough that the integrated gyro noise (a random walk) stays near the angle noise

@@ -51,7 +51,9 @@ from groundstation.gap import (
     fingerprints,
     hypotheses,
     locate,
+    margins,
     noise,
+    rebase,
     shares,
     structure,
 )
@@ -215,6 +217,11 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
     base = base_stage(model, prepared, cfg, seed, pmap)
     loc = locate_stage(base, prepared, cfg)
     att = attribute_stage(base, loc, prepared, cfg, rng, seed, pmap)
+    again = _base_searched_again(base, att, prepared, cfg, seed, pmap)
+    if again is not None:
+        base, rng = again, np.random.default_rng(seed)
+        loc = locate_stage(base, prepared, cfg)
+        att = attribute_stage(base, loc, prepared, cfg, rng, seed, pmap)
     tests = structure_stage(base, loc, att, cfg, rng)
     dec = decide_stage(base, loc, att, comp, tests, cfg)
     dec, verdict_info = verdict_stage(base, loc, att, dec, tests, cfg, np.random.default_rng((seed, 26)))
@@ -242,6 +249,9 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
         e.update(verdict_info["per_effect"].get(id(c), {}))
     if model is not None and controller.may_be_commands(model):
         _controller_finding(report, prepared, model, loc, cfg, seed, pmap)
+    report["verdict_margin"] = margin_stage(att, loc, dec, verdict_info["rule"], cfg, seed)
+    if report["verdict_margin"]["borderline"]:
+        report["notes"].append(report["verdict_margin"]["note"])
     report["structure_tests"] = [{**dataclasses.asdict(t), "effect_to_noise": round(t.effect_to_noise, 2)
                                   if np.isfinite(t.effect_to_noise) else None} for t in tests]
     arrays = {"t_s": ev.T, "Y": ev.Y, "Yraw": ev.Yraw, "yhat": loc.yhat_ho, "mask": ev.mask, "flag": loc.flag,
@@ -250,6 +260,24 @@ def run_diagnosis(model: HoverModel | None, prepared: Any, *, seed: int = 0,
     if ev.memo is not None:
         ev.memo.clear()  # the Jacobians shared between the stages: not kept with the report
     return Diagnosis(report=report, arrays=arrays)
+
+
+def _base_searched_again(base: Base, att: Attributed, prepared: Any, cfg: DiagnoseConfig, seed: int,
+                         pmap: Map) -> Base | None:
+    """The base searched for again without the first named effect's velocity latency, when the
+    diagnosis identified the base and that search lowers its cost (:mod:`groundstation.gap.rebase`);
+    None otherwise."""
+    ranked = rank_named(att.candidates)
+    if base.given_metrics is not None or not ranked or ranked[0].hyp.effect != "velocity_latency":
+        return None
+    latency_s = float(ranked[0].hyp.estimate["latency_s"])
+    ev2, cost2, cost = rebase.searched_again(base.ev, base.segs, latency_s, prepared, cfg, seed, pmap)
+    if not rebase.lower(cost2, cost, cfg):
+        return None
+    note = (f"base model searched for again with the {1000 * latency_s:.0f} ms velocity latency taken off the "
+            f"velocities: its cost on this flight is {100 * (1 - cost2 / cost):.0f} % lower than the first "
+            "search's; the diagnosis is against it")
+    return dataclasses.replace(base, ev=ev2, notes=[*base.notes, note])
 
 
 def _controller_finding(report: dict[str, Any], prepared: Any, model: HoverModel, loc: Located, cfg: DiagnoseConfig,
@@ -948,30 +976,75 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
     new = dataclasses.replace(dec, verdict=verdict, ranked=kept, unexplained=unexplained,
                               others=list(dec.others) + unconfirmed)
     rep["notes_add"] = notes
-    return new, {"report": rep, "per_effect": per_effect}
+    # what decided between naming and "unexplained" (for the verdict's margin): the share rule's interval,
+    # unless a significant gap did not reach it or the channels left decided (rest_small)
+    rule = {"interval": sh_rule.interval_pct if ranked and loc.gap_significant and not rest_small else None,
+            "partial": partial}
+    return new, {"report": rep, "per_effect": per_effect, "rule": rule}
+
+
+def margin_stage(att: Attributed, loc: Located, dec: Decision, rule: dict[str, Any], cfg: DiagnoseConfig,
+                 seed: int) -> dict[str, Any]:
+    """How far the verdict sits from the edges of the tests that decided it (:mod:`groundstation.gap.margins`):
+    the significance of the first named effect and of any candidate that failed on its p-value alone and
+    would have changed the verdict, the input effects' encompassing test against an air mass, and the share rule."""
+    rng = np.random.default_rng((seed, 25))
+    fallback = "unexplained" if loc.gap_significant else "none"
+    partial = rule["partial"]
+    edges = margins.significance_edges(dec.ranked, dec.others, dec.verdict, fallback, att.ctx, att.crit, cfg, rng,
+                                       partial)
+    edges += margins.air_mass_edges(dec.ranked, dec.others, fallback, att.crit, cfg, rng, partial)
+    share = margins.share_edge(rule["interval"], dec.verdict, partial, dec.ranked, cfg)
+    return margins.summary(edges + ([share] if share is not None else []), dec.verdict, cfg)
 
 
 def _drift_checks(ranked: list[attribute.Candidate], cons: dict[int, dict[str, Any]], ctx: hypotheses.Context,
                   level: float, cfg: DiagnoseConfig, arrays: dict[str, Any] | None) -> None:
-    """The whole-flight drift test (:func:`groundstation.gap.drift.drift`) of each named effect the
-    halves did not find changing: a half that does not resolve the effect on its own cannot see a
-    drift, a ramp through the whole flight can. An effect that drifts is marked ``changes`` with the
-    ramp it follows; the halves' verdict stays in the entry."""
+    """The whole-flight drift test (:func:`groundstation.gap.drift.drift`) of each named effect: a
+    half that does not resolve the effect on its own cannot see a drift, a ramp through the whole
+    flight can. An effect that drifts is marked ``changes`` with the ramp it follows; the halves'
+    verdict stays in the entry. An input effect or gyro bias the halves find changing is tested
+    too (:func:`_halves_change_in_time`). A rotor line is tested only where the halves did not find
+    it changing."""
     rng = np.random.default_rng(26)  # its own stream: the shares' bootstrap draws stay as they were
     for c in ranked:
         con = cons.get(id(c))
-        if con is None or con.get("status") == "changes":
+        if con is None:
             continue
         if c.hyp.effect == "rotor_vibration":
+            if con.get("status") == "changes":
+                continue
             d = drift.line_drift(c, ctx.ev, arrays["resid_raw"], level) if arrays else None
         else:
-            d = drift.drift(c, ctx, ctx.base_sse, level, rng, cfg.n_boot, cfg.window_alpha)
+            # the halves' changes draw from a stream of their own: the other effects' draws stay as they were
+            r = np.random.default_rng(26) if con["status"] == "changes" else rng
+            d = drift.drift(c, ctx, ctx.base_sse, level, r, cfg.n_boot, cfg.window_alpha)
         if d is None:
             continue
         con["drift"] = d
-        if d["drifts"]:
+        if con["status"] == "changes":
+            _halves_change_in_time(con, d)
+        elif d["drifts"]:
             con["halves"] = {"status": con["status"], "why": con["why"]}
             con["status"], con["why"] = "changes", d["why"]
+
+
+def _halves_change_in_time(con: dict[str, Any], d: dict[str, Any]) -> None:
+    """A change the halves found is a change in time only when a parameter following the flight's
+    progress predicts the held-out windows better than a constant one. Each half's value is
+    estimated on that half's own stick excursions; where the catalogue effect only approximates the
+    aircraft's physics (a symmetric deadzone for an asymmetric one), its best value depends on how
+    far each side of the stick was flown, and halves flown differently reject each other's value
+    though nothing changed. When the ramp removes no held-out cost at all beyond the constant (the
+    same windows, chosen inside each training fold), the effect holds; the halves' verdict stays in
+    the entry."""
+    if d["drifts"] or d["ramp_gains"]:
+        return
+    con["halves"] = {"status": con["status"], "why": con["why"]}
+    con["status"] = "holds"
+    con["why"] = (f"{con['why']}, but a value ramping through the flight predicts the held-out windows no "
+                  f"better than a constant one (p={d['p']:.2g}): the halves differ in how the aircraft was "
+                  f"flown, not in time")
 
 
 def _confirm_beside_first(kept: list[attribute.Candidate], rem: dict[int, np.ndarray], cons: dict[int, dict[str, Any]],

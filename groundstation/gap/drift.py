@@ -125,9 +125,10 @@ def drift(c: attribute.Candidate, ctx: hypotheses.Context, base_sse: np.ndarray,
     """The ramp test of named effect ``c`` on the base context ``ctx`` (see the module docstring).
 
     Returns None for an effect it does not test, else ``{"drifts", "p", "gain_pct", "cost_pct",
-    "ramp", "why"}``: ``gain_pct`` what the ramp removes beyond the constant, in % of what the
-    constant removes from the base (``base_sse`` (W, 8)), ``cost_pct`` in % of the base's held-out
-    cost; ``ramp`` the chosen value at take-off and at the end of the flight."""
+    "ramp_gains", "ramp", "why"}``: ``gain_pct`` what the ramp removes beyond the constant, in % of
+    what the constant removes from the base (``base_sse`` (W, 8)), ``cost_pct`` in % of the base's
+    held-out cost; ``ramp_gains`` whether the ramp removes any held-out cost beyond the constant;
+    ``ramp`` the chosen value at take-off and at the end of the flight."""
     e = c.hyp.effect
     fams: tuple[Family, Family] | None
     if e in hypotheses.INPUT_EFFECTS and "label" in c.hyp.extra:
@@ -150,7 +151,7 @@ def drift(c: attribute.Candidate, ctx: hypotheses.Context, base_sse: np.ndarray,
            f"removes {gain_pct:.0f} % more held-out cost than a constant one (paired tests over held-out "
            f"blocks, p={p:.2g} against {level:.2g})")
     return {"drifts": drifts, "p": float(f"{p:.3g}"), "gain_pct": round(gain_pct, 1),
-            "cost_pct": round(100.0 * more / float(base_sse.sum()), 2),
+            "cost_pct": round(100.0 * more / float(base_sse.sum()), 2), "ramp_gains": bool(more > 0),
             "ramp": [round(float(x), 6) for x in ends], "why": why}
 
 

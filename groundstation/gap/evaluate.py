@@ -84,9 +84,13 @@ class JacobianMemo:
     then form the Jacobian once; a state is the same arrays, never recomputed differently. Bounded, and
     :meth:`clear` drops the states when the diagnosis is done; a copy in another process starts empty."""
 
+    #: refinements remembered (end point and cost, a few hundred bytes each)
+    REFINED = 16
+
     def __init__(self, size: int = 2):
         self.size = int(size)
         self._states: OrderedDict[bytes, tuple[np.ndarray, ...]] = OrderedDict()
+        self._refined: OrderedDict[bytes, tuple[np.ndarray, float]] = OrderedDict()
 
     def get(self, key: bytes) -> tuple[np.ndarray, ...] | None:
         state = self._states.get(key)
@@ -100,8 +104,19 @@ class JacobianMemo:
         while len(self._states) > self.size:
             self._states.popitem(last=False)
 
+    def refined(self, key: bytes) -> tuple[np.ndarray, float] | None:
+        """The end point and cost of a refinement already run from the state ``key`` (see
+        :meth:`Evaluator.refine`), or None."""
+        return self._refined.get(key)
+
+    def put_refined(self, key: bytes, theta: np.ndarray, cost: float) -> None:
+        self._refined[key] = (theta.copy(), cost)
+        while len(self._refined) > self.REFINED:
+            self._refined.popitem(last=False)
+
     def clear(self) -> None:
         self._states.clear()
+        self._refined.clear()
 
     def __getstate__(self) -> dict:
         # a copy sent to a worker process starts empty: the states are large and only save work here
@@ -204,17 +219,43 @@ class Evaluator:
         return r * self.wmask
 
     def set_theta(self, theta: np.ndarray) -> None:
-        """Set the base parameters; recompute base residual and Jacobian (batched finite differences),
-        or take them from :attr:`memo` when an evaluator of the family had this state."""
+        """Set the base parameters. The base state at them (residual and Jacobian, batched finite
+        differences; or :attr:`memo`'s when an evaluator of the family had this state) is formed on
+        first use: an evaluator whose parameters or data are set again before it is used (built, then
+        given nuisance columns or a changed target) never forms the one in between."""
         self.theta0 = np.asarray(theta, float).copy()
-        key = self._state_key() if self.memo is not None else b""
-        state = self.memo.get(key) if self.memo is not None else None
-        if state is not None:
-            self.r0, self.col, self.Jn, self.JtJ = state
-            return
-        self._base_state()
-        if self.memo is not None:
-            self.memo.put(key, (self.r0, self.col, self.Jn, self.JtJ))
+        self._state: tuple[np.ndarray, ...] | None = None
+
+    @property
+    def r0(self) -> np.ndarray:
+        """Weighted, masked residual (W, L, 8) of the base parameters."""
+        return self._base()[0]
+
+    @property
+    def col(self) -> np.ndarray:
+        """Column norms (31,) of the base Jacobian."""
+        return self._base()[1]
+
+    @property
+    def Jn(self) -> np.ndarray:
+        """Column-normalised base Jacobian per window (W, L 8, 31), formed once for every held-out re-fit."""
+        return self._base()[2]
+
+    @property
+    def JtJ(self) -> np.ndarray:
+        """Its normal matrix per window (W, 31, 31)."""
+        return self._base()[3]
+
+    def _base(self) -> tuple[np.ndarray, ...]:
+        if self._state is None:
+            key = self._state_key() if self.memo is not None else b""
+            state = self.memo.get(key) if self.memo is not None else None
+            if state is None:
+                state = self._base_state()
+                if self.memo is not None:
+                    self.memo.put(key, state)
+            self._state = state
+        return self._state
 
     def _state_key(self) -> bytes:
         """Digest of everything the base state depends on (see :class:`JacobianMemo`)."""
@@ -228,26 +269,25 @@ class Evaluator:
                 h.update(a.tobytes())
         return h.digest()
 
-    def _base_state(self) -> None:
-        """The base residual ``r0`` and the Jacobian at ``theta0`` (batched finite differences)."""
+    def _base_state(self) -> tuple[np.ndarray, ...]:
+        """(``r0``, ``col``, ``Jn``, ``JtJ``): the base residual and the Jacobian at ``theta0`` (batched
+        finite differences)."""
         h = 1e-4 * np.maximum(np.abs(self.theta0), 1e-2)
         nuisance_blocks = self._nuisance_blocks()
         if nuisance_blocks is None:  # columns fitted across both subsystems: one joint batch
             batch = np.vstack([self.theta0[None], self.theta0[None] + np.diag(h)])
             r = self.residual(self.simulate(batch))
-            self.r0 = r[0]
             # d residual / d theta ; column-normalised for conditioning
             J = (r[1:] - r[0][None]) / h[:, None, None, None]  # (31, W, L, 8)
             # C order: a worker process gets this array unpickled in C order, and products of another
             # layout round differently (the report must not depend on --jobs)
-            self._prepare_folds([(np.arange(N_PARAMS), np.arange(8), np.ascontiguousarray(np.moveaxis(J, 0, -1)))])
-            return
+            return (r[0], *self._prepare_folds([(np.arange(N_PARAMS), np.arange(8),
+                                                 np.ascontiguousarray(np.moveaxis(J, 0, -1)))]))
         gram: dict = {}
         y0 = simulate(self.theta0, self.U, self.Y, self.dt_s, weights=self.w8, available=self.available,
                       start=self.start, gram=gram, nuisance=self.nuisance, nuisance_prec=self.nuisance_prec)
         assert isinstance(y0, np.ndarray)
-        self.r0 = self.residual(y0)[0]
-        self._prepare_folds(self._block_jacobian(h, gram, nuisance_blocks))
+        return (self.residual(y0)[0], *self._prepare_folds(self._block_jacobian(h, gram, nuisance_blocks)))
 
     def _nuisance_blocks(self) -> tuple[bool, bool] | None:
         """Which subsystems' outputs the nuisance columns reach ((False, False) without any); None when
@@ -285,26 +325,26 @@ class Evaluator:
             pieces.append((idx, oc, np.ascontiguousarray(np.moveaxis(r[1:], 0, -1))))
         return pieces
 
-    def _prepare_folds(self, pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> None:
-        """Column norms ``col``, the column-normalised Jacobian per window ``Jn`` (W, L 8, 31) and its
-        normal matrix per window ``JtJ`` (W, 31, 31) from the Jacobian's non-zero blocks ``pieces``
+    def _prepare_folds(self, pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(``col``, ``Jn``, ``JtJ``): column norms, the column-normalised Jacobian per window (W, L 8, 31)
+        and its normal matrix per window (W, 31, 31) from the Jacobian's non-zero blocks ``pieces``
         (parameter indices, output channels, d residual (W, L, ny, k)); zero elsewhere."""
         W = self.W
-        self.col = np.empty(N_PARAMS)
+        col = np.empty(N_PARAMS)
         Jn = np.zeros((W, self.L, 8, N_PARAMS)) if len(pieces) > 1 else None
-        self.JtJ = np.zeros((W, N_PARAMS, N_PARAMS))
+        JtJ = np.zeros((W, N_PARAMS, N_PARAMS))
         for idx, oc, P in pieces:
             Pf = P.reshape(W, -1, len(idx))
-            self.col[idx] = np.sqrt((Pf ** 2).sum(axis=(0, 1))) + 1e-30
-            Pn = Pf / self.col[idx]
-            self.JtJ[:, idx[:, None], idx[None, :]] = np.matmul(np.swapaxes(Pn, 1, 2), Pn)
+            col[idx] = np.sqrt((Pf ** 2).sum(axis=(0, 1))) + 1e-30
+            Pn = Pf / col[idx]
+            JtJ[:, idx[:, None], idx[None, :]] = np.matmul(np.swapaxes(Pn, 1, 2), Pn)
             if Jn is None:
                 Jn = Pn.reshape(W, self.L, 8, N_PARAMS)
             else:
                 Jn[:, :, oc[:, None], idx[None, :]] = Pn.reshape(P.shape)
         assert Jn is not None
-        #: column-normalised Jacobian per window (W, n, 31), formed once for every held-out re-fit
-        self.Jn = Jn.reshape(W, -1, N_PARAMS)
+        return col, Jn.reshape(W, -1, N_PARAMS), JtJ
 
     # ---------------------------------------------------------------------------------------
     def heldout(self, r: np.ndarray, X: np.ndarray | None = None,
@@ -466,7 +506,26 @@ class Evaluator:
 
     def refine(self, iterations: int, ridge: float = DiagnoseConfig.refine_ridge) -> float:
         """Levenberg-Marquardt refinement of theta0 on all windows (``ridge``: the starting damping,
-        ``[diagnose] refine_ridge``); returns the final total cost."""
+        ``[diagnose] refine_ridge``); returns the final total cost.
+
+        A refinement is a function of the state it starts from (:meth:`_state_key`), the iterations
+        and the damping: with a :attr:`memo`, one already run in the family (the same effect applied
+        to the same data from the same parameters, by two stages) is not run again; its end point is
+        set (its base state formed once, or taken from the memo)."""
+        if self.memo is None:
+            return self._refine(iterations, ridge)
+        key = self._state_key() + np.array([iterations, ridge], float).tobytes()
+        done = self.memo.refined(key)
+        if done is not None:
+            theta, cost = done
+            if not np.array_equal(theta, self.theta0):
+                self.set_theta(theta)
+            return cost
+        cost = self._refine(iterations, ridge)
+        self.memo.put_refined(key, self.theta0, cost)
+        return cost
+
+    def _refine(self, iterations: int, ridge: float) -> float:
         cost = float((self.r0 ** 2).sum())
         lam = ridge
         for _ in range(iterations):

@@ -516,8 +516,9 @@ def _line_consistency(c: attribute.Candidate, ev: Evaluator, arrays: dict[str, A
     else:
         # half the data at a stricter level: a line not found in a half is not resolved there,
         # which is not the same as absent (a real rotor line on a bench flight was missed in one half)
-        half = "second" if found[0] is not None else "first"
-        out["why"] = f"the line at {f0:.2f} Hz is not resolved in the {half} half"
+        where = ("is not resolved in the second half" if found[0] is not None else
+                 "is not resolved in the first half" if found[1] is not None else "is resolved in neither half")
+        out["why"] = f"the line at {f0:.2f} Hz {where}"
     return out
 
 

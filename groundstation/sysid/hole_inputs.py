@@ -167,6 +167,42 @@ def line_error_var(u: np.ndarray, bridged: np.ndarray, n_hole: int, default: Any
     return np.mean((mid - line) ** 2, axis=(0, 1))
 
 
+def line_shape_var(u: np.ndarray, bridged: np.ndarray, n_hole: int) -> np.ndarray | None:
+    """(n_hole, inputs) mean square of a straight line's error over ``n_hole`` samples in each half-sine
+    shape ``sin(k pi s)`` (k = 1 .. n_hole: a complete basis of the hole's samples), measured as
+    :func:`line_error_var` on the stretches of ``u (n, inputs)`` without a bridged sample; None when
+    there is no such stretch. Their sum over the shapes is ``2 n_hole / (n_hole + 1)`` times the
+    line's mean square error."""
+    n = u.shape[0]
+    span = n_hole + 1
+    if n <= span:
+        return None
+    br = np.concatenate([[0], np.cumsum(np.asarray(bridged, dtype=int))])
+    starts = np.flatnonzero(br[span + 1:] - br[:n - span] == 0)
+    if starts.size == 0:
+        return None
+    s = np.arange(1, span) / span
+    mid = u[starts[:, None] + np.arange(1, span)[None, :]]
+    line = u[starts][:, None] * (1 - s)[None, :, None] + u[starts + span][:, None] * s[None, :, None]
+    c = np.einsum("snj,nk->skj", mid - line, _basis(n_hole, n_hole)) * (2.0 / span)   # the shapes are orthogonal
+    return np.mean(c ** 2, axis=0)
+
+
+def _shape_var(cache: dict, u: np.ndarray, bridged: np.ndarray, a: int, b: int, local_n: int) -> np.ndarray:
+    """(b - a, inputs) :func:`line_shape_var` of the hole ``[a, b)``, over ``local_n`` samples either side
+    of it (the segment's when that stretch has none without a bridged sample; zeros when neither has)."""
+    key = ("shapes", b - a, a if local_n else 0)
+    if key not in cache:
+        v = None
+        if local_n:
+            lo, hi = max(0, a - local_n), min(bridged.size, b + local_n)
+            v = line_shape_var(u[lo:hi], bridged[lo:hi], b - a)
+        if v is None:
+            v = line_shape_var(u, bridged, b - a)
+        cache[key] = np.zeros((b - a, u.shape[1])) if v is None else v
+    return cache[key]
+
+
 def _prior_var(cache: dict, u: np.ndarray, bridged: np.ndarray, a: int, b: int, local_n: int) -> np.ndarray:
     """(inputs,) prior variance of the coefficients of the hole ``[a, b)``: :func:`line_error_var` over
     the segment (``local_n`` 0), else over ``local_n`` samples either side of the hole (the segment's
@@ -266,6 +302,9 @@ class WindowHoles:
     subsystems: tuple[int, ...] = (0, 1)
     hole: np.ndarray | None = None
     runs: tuple[tuple[int, int, int], ...] = ()
+    #: per row (b - a, 4): the straight line's error's mean square in each shape (:func:`line_shape_var`),
+    #: for the holes whose inputs keep the line (:meth:`line_covariance`); None when not measured
+    shape_var: tuple[np.ndarray, ...] | None = None
 
     def columns(self, theta: np.ndarray, inputs: tuple[int, ...], L: int, dt_s: float
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -382,6 +421,32 @@ class WindowHoles:
             new[si][a:b, i] += _basis(b - a, c.size) @ c
         return [replace(s, inputs=new[j]) if j in new else s for j, s in enumerate(segments)]
 
+    def line_covariance(self, cost: Any, x: np.ndarray, sigma: np.ndarray, J: np.ndarray,
+                        Hinv: np.ndarray) -> np.ndarray | None:
+        """(D, D) the parameters' covariance from the straight lines' errors in the holes: each hole's
+        input error is its shapes times coefficients of zero mean and the variance measured on the
+        received inputs around it (``shape_var``), it moves the residuals by their responses ``Jc``
+        (through each window's initial-state least squares), and the fit passes that on:
+        ``Hinv B^T diag(var) B Hinv`` with ``B = Jc^T J`` (``J`` (W L n_used, D) the Jacobian of
+        ``cost``'s weighted residuals at ``x``, ``Hinv`` the inverse of its ``J^T J``). None without any."""
+        if self.shape_var is None:
+            return None
+        got = self.responses(cost, x, sigma)
+        if got is None:
+            return None
+        w_idx, coef, Jc, _, keys = got
+        var = np.array([float(self.shape_var[self._row_of(h)][j, i]) for h, i, j in keys])
+        Jw = np.asarray(J, dtype=float).reshape(cost.sim.W, -1, J.shape[1])
+        B = np.zeros((var.size, J.shape[1]))
+        for q in range(w_idx.size):
+            B[coef[q]] += Jc[q] @ Jw[w_idx[q]]
+        C = Hinv @ (B.T * var) @ B @ Hinv
+        return 0.5 * (C + C.T)
+
+    def _row_of(self, hid: int) -> int:
+        hole = np.arange(self.window.size) if self.hole is None else self.hole
+        return int(np.flatnonzero(hole == hid)[0])
+
     def marginal_jacobian(self, cost: Any, x: np.ndarray, sigma: np.ndarray, J: np.ndarray) -> np.ndarray:
         """``J`` (W L n_used, D), the Jacobian of ``cost``'s weighted residuals at ``x`` (channel scales
         ``sigma`` (8,)), with the hole-input coefficients projected out:
@@ -399,12 +464,15 @@ class WindowHoles:
 
 
 def window_holes(segments: list, win: Any, band_factor: float = IdentifyConfig.hole_input_band,
-                 subsystems: tuple[int, ...] = (0, 1), local_s: float = IdentifyConfig.hole_input_prior_s) -> WindowHoles | None:
+                 subsystems: tuple[int, ...] = (0, 1), local_s: float = IdentifyConfig.hole_input_prior_s,
+                 shapes: bool = False) -> WindowHoles | None:
     """Where the bridged holes of ``segments`` lie in the windows ``win``
-    (:class:`~groundstation.sysid.cost.Windows` cut from them); None without any."""
+    (:class:`~groundstation.sysid.cost.Windows` cut from them); None without any. ``shapes``: also
+    measure each hole's line error per shape (``WindowHoles.shape_var``, over ``local_s`` either side)."""
     L = win.length
     local_n = int(round(local_s / win.dt_s))
     rows: list[tuple[int, int, int, np.ndarray, int]] = []
+    svar: list[np.ndarray] = []
     cache: dict[int, tuple[list[tuple[int, int]], dict[tuple[int, int], np.ndarray]]] = {}
     ids: dict[tuple[int, int, int], int] = {}
     for w in range(win.count):
@@ -420,9 +488,12 @@ def window_holes(segments: list, win: Any, band_factor: float = IdentifyConfig.h
         for a, b in runs:
             if b > s and a < s + L:
                 hid = ids.setdefault((si, a, b), len(ids))
-                rows.append((w, a - s, b - s, _prior_var(var, seg.inputs, np.asarray(br, dtype=bool), a, b, local_n), hid))
+                brb = np.asarray(br, dtype=bool)
+                rows.append((w, a - s, b - s, _prior_var(var, seg.inputs, brb, a, b, local_n), hid))
+                if shapes:
+                    svar.append(_shape_var(var, seg.inputs, brb, a, b, local_n))
     if not rows:
         return None
     w_, a_, b_, v_, h_ = zip(*rows, strict=True)
     return WindowHoles(np.array(w_), np.array(a_), np.array(b_), np.array(v_), float(band_factor), tuple(subsystems),
-                       np.array(h_), tuple(ids))
+                       np.array(h_), tuple(ids), tuple(svar) if shapes else None)

@@ -198,6 +198,9 @@ class _Plan:
     pmap: Callable[[Callable[[Any], Any], Any], list[Any]] = field(default=serial_map)
     #: where the link's holes lie in ``win`` when their inputs are estimated (for the standard errors)
     holes: Any = None
+    #: the holes whose inputs keep the straight line, with its error measured per shape (for the
+    #: standard errors: :meth:`~groundstation.sysid.hole_inputs.WindowHoles.line_covariance`)
+    lines: Any = None
 
 
 def _check(cfg: IdentifyConfig, algorithm: str, prepared: Any) -> None:
@@ -255,10 +258,20 @@ def _plan(prepared: Any, cfg: IdentifyConfig, refine: bool, bounds: dict | None,
     pr = _prior_arrays(prior)
     if pr is not None and cfg.prior_scale != 1.0:
         pr = (pr[0], pr[1] * float(cfg.prior_scale))
-    holes = window_holes(prepared.segments, win, cfg.hole_input_band, _hole_subsystems(cfg), cfg.hole_input_prior_s) \
-        if estimates_hole_inputs(prepared, cfg) else None
+    estimated = _hole_subsystems(cfg) if estimates_hole_inputs(prepared, cfg) else ()
+    holes = window_holes(prepared.segments, win, cfg.hole_input_band, estimated, cfg.hole_input_prior_s) \
+        if estimated else None
     return _Plan(win, win_s, forcing, forcing_s, free, reasons, bounds_array(bounds), pr,
-                 kf if refine else [], pmap, holes)
+                 kf if refine else [], pmap, holes, _line_holes(prepared, win, cfg, estimated))
+
+
+def _line_holes(prepared: Any, win: Any, cfg: IdentifyConfig, estimated: tuple[int, ...]) -> Any:
+    """The holes of ``win`` whose inputs keep the straight line (the subsystems not in ``estimated``),
+    their line error measured per shape; None when there are none or ``line_error_in_std`` is off."""
+    subs = tuple(s for s in (0, 1) if s not in estimated)
+    if not (cfg.line_error_in_std and subs and has_bridged_inputs(prepared.segments)):
+        return None
+    return window_holes(prepared.segments, win, cfg.hole_input_band, subs, cfg.hole_input_prior_s, shapes=True)
 
 
 def _costs(plan: _Plan, cfg: IdentifyConfig, sub: int, sub_free: np.ndarray, theta: np.ndarray,
@@ -277,6 +290,7 @@ def _refine_cost(plan: _Plan, cfg: IdentifyConfig, sub: int, sub_free: np.ndarra
     cost = WindowedCost(plan.win, sub_free, theta, forcing=plan.forcing, **_offsets(cfg, trim),
                         estimate_all_initial=cfg.estimate_all_initial, subsystems=(sub,))
     cost.input_holes = plan.holes   # type: ignore[attr-defined]
+    cost.line_holes = plan.lines    # type: ignore[attr-defined]
     return cost
 
 

@@ -16,6 +16,8 @@ error is the larger of that and the window-clustered sandwich (``M = sum_w g_w g
 that changes with flight condition (fast legs, near-ground hover) makes windows disagree, which only
 the clustered form sees. On a simulated nonlinear flight this
 took the worst |estimate - truth| / std from 5.0 to 3.2 (X_u, Y_v, Z_col were the ones hit).
+On a lossy link, inputs left straight lines over the holes add their error's covariance to the
+colour-corrected sandwich (:func:`coloured_cov`).
 """
 
 from __future__ import annotations
@@ -226,9 +228,14 @@ def standard_errors(cost: WindowedCost, x: np.ndarray, sigma: np.ndarray, bounds
         J = holes.marginal_jacobian(cost, x, sigma, J)
     r = cost.residuals(x[None], sigma)[0]
     counted = _counted(cost)
-    if prior_std is None:
+    lines = getattr(cost, "line_holes", None)    # inputs left straight lines in the link's holes
+    extra = None if lines is None else lines.line_covariance(cost, x, sigma, J, np.linalg.pinv(J.T @ J))
+    if prior_std is None and extra is None:
         return J, coloured_std(J, r, counted=counted), np.zeros(x.size)
-    std, share = posterior_std(coloured_cov(J, r, counted=counted), np.asarray(prior_std, dtype=float))
+    cov = coloured_cov(J, r, counted=counted, lines=extra)
+    if prior_std is None:
+        return J, np.sqrt(np.maximum(np.diag(cov), 0.0)), np.zeros(x.size)
+    std, share = posterior_std(cov, np.asarray(prior_std, dtype=float))
     return J, std, share
 
 
@@ -364,10 +371,20 @@ def _jacobian_buffer(cost: WindowedCost, D: int, n_res: int) -> np.ndarray:
     return buf
 
 
-def coloured_cov(J: np.ndarray, r: np.ndarray, max_lag: int = 60, counted: np.ndarray | None = None) -> np.ndarray:
+def coloured_cov(J: np.ndarray, r: np.ndarray, max_lag: int = 60, counted: np.ndarray | None = None,
+                 lines: np.ndarray | None = None) -> np.ndarray:
     """Data covariance (D, D): the residual-colour-corrected sandwich with its diagonal raised to the
-    window-clustered one where that is larger (the standard errors of :func:`coloured_std`)."""
+    window-clustered one where that is larger (the standard errors of :func:`coloured_std`).
+
+    ``lines`` (D, D): what the straight lines over the link's holes add
+    (:meth:`~groundstation.sysid.hole_inputs.WindowHoles.line_covariance`), added to the colour-corrected
+    sandwich, which models the residual as stationary noise and so leaves it out. Not to the clustered
+    one: its window scores already hold the part of the lines' error that shows in the residuals."""
     cov, s_col, s_max = _sandwiches(J, r, max_lag, counted)
+    if lines is not None:
+        cov = cov + lines
+        s_col = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        s_max = np.maximum(s_max, s_col)
     scale = np.where(s_col > 0, s_max / np.maximum(s_col, 1e-300), 1.0)
     return cov * scale[:, None] * scale[None, :]
 

@@ -15,6 +15,19 @@ def test_tree_cpu_counts_a_finished_child_process():
     assert _tree_cpu_s() - before >= 0.35  # the child's 0.4 s of CPU, whatever the wall time it took
 
 
+def test_timed_counts_the_workers_a_command_waits_for_and_names_a_failure():
+    import pytest
+
+    from groundstation.bench.campaign import _timed
+
+    # a command whose CPU is in a child it starts and waits for (the campaign's workers)
+    burn = "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.4: pass"
+    wall, cpu = _timed([sys.executable, "-c", f"import subprocess, sys; subprocess.run([sys.executable, '-c', {burn!r}])"])
+    assert cpu >= 0.35 and wall >= 0.0
+    with pytest.raises(RuntimeError, match="boom"):
+        _timed([sys.executable, "-c", "import sys; sys.exit('boom')"])
+
+
 def test_makespan_hands_each_task_to_the_first_free_worker():
     assert _makespan([4.0, 3.0, 3.0, 4.0], 2) == 8.0  # 4, then 4 | 3, then 3: in submission order
     assert _makespan([5.0, 1.0, 1.0, 1.0], 2) == 5.0

@@ -302,6 +302,67 @@ def test_standard_errors_widen_by_what_the_estimated_hole_inputs_take(lossy):
     assert holes.marginal_jacobian(WindowedCost(win, free, theta, subsystems=(1,)), x, sigma, J) is J
 
 
+def test_line_error_per_shape_adds_up_to_the_lines_error():
+    """The line's error measured per half-sine shape holds all of it (the shapes are a complete,
+    orthogonal basis of the hole's samples); a straight input has none; a bridged stretch is not used."""
+    from groundstation.sysid.hole_inputs import line_error_var, line_shape_var
+
+    t = np.arange(400) * 0.02
+    u = np.stack([np.sin(2.0 * t), np.cos(5.0 * t) + 0.1 * np.sin(23.0 * t), 0.3 * t], axis=1)
+    br = np.zeros(400, bool)
+    n = 9
+    v = line_shape_var(u, br, n)
+    assert v.shape == (n, 3)
+    np.testing.assert_allclose(v.sum(axis=0), 2 * n / (n + 1) * line_error_var(u, br, n), rtol=1e-10)
+    assert v[:, 2].max() < 1e-20 and v[0, 0] > 10 * v[1:, 0].max()   # a smooth input's error is the first shape
+    br[10:390] = True
+    assert line_shape_var(u, br, n) is None
+
+
+def test_standard_errors_cover_what_the_straight_lines_in_holes_move_the_parameters(lossy):
+    """Inputs left straight lines over holes move the estimate by what the lines miss. The line error,
+    measured per shape on the received inputs around each hole and passed through the model and the fit,
+    predicts that move: over several hole patterns its z is about one. The noise alone would put it at
+    several standard errors on this 25-Hz flight."""
+    from dataclasses import replace
+
+    from groundstation.sysid.cost import WindowedCost, make_windows
+    from groundstation.sysid.hole_inputs import window_holes
+    from groundstation.sysid.model import HOR_PARAMS, PARAM_INDEX, bounds_array, theta_from_dict
+    from groundstation.sysid.refine import jac_final
+
+    _, clean, truth = lossy
+    c = prepare([clean])
+    free = np.zeros(31, bool)
+    free[[PARAM_INDEX[n] for n in HOR_PARAMS]] = True
+    theta = theta_from_dict(truth)
+    x, b = theta[free], bounds_array()[free]
+    z, z_noise = [], []
+    for seed in range(6):
+        p = replace(c, segments=[_holed(s, np.random.default_rng(seed)) for s in c.segments])
+        # the same holes with the true inputs in them: what the lines change
+        q = replace(p, segments=[replace(s, inputs=s0.inputs) for s, s0 in zip(p.segments, c.segments, strict=True)])
+        win = make_windows(p.segments, p.dt_s, 3.0)
+        lines = window_holes(p.segments, win, subsystems=(0,), shapes=True)
+        assert lines is not None and lines.shape_var is not None
+        cost, cost_q = (WindowedCost(w, free, theta, estimate_all_initial=True, subsystems=(0,))
+                        for w in (win, make_windows(q.segments, q.dt_s, 3.0)))
+        sse, n = cost_q.sim.sse(theta[None])[0], cost_q.sim.smask.sum(axis=(0, 1))
+        sigma = np.where(n > 0, np.sqrt(sse / np.maximum(n, 1)), 1.0)    # the measurement noise
+        J = jac_final(cost, x, sigma, b[:, 1] - b[:, 0], b[:, 1])
+        Hinv = np.linalg.pinv(J.T @ J)
+        C = lines.line_covariance(cost, x, sigma, J, Hinv)
+        assert np.all(np.linalg.eigvalsh(C) > -1e-12 * np.abs(C).max())
+        moved = -Hinv @ (J.T @ (cost.residuals(x[None], sigma) - cost_q.residuals(x[None], sigma)).reshape(-1))
+        z.append(moved / np.sqrt(np.diag(C)))
+        z_noise.append(moved / np.sqrt(np.diag(Hinv)))
+    rms, rms_noise = np.sqrt(np.mean(np.square(z))), np.sqrt(np.mean(np.square(z_noise)))
+    assert 0.7 < rms < 1.4 and rms_noise > 3.0, (rms, rms_noise)   # 1.04 and 7.4 here
+    # no hole, nothing to add; a vertical cost has no line of a horizontal input to answer for
+    assert window_holes(c.segments, make_windows(c.segments, c.dt_s, 3.0), shapes=True) is None
+    assert lines.line_covariance(WindowedCost(win, free, theta, subsystems=(1,)), x, sigma, J, Hinv) is None
+
+
 def test_hole_inputs_are_estimated_only_on_streams_at_the_grid_rate(lossy):
     """25 Hz input streams on the 50 Hz grid keep their straight lines (there the estimate did not
     help); allowing a stride of 2 grid steps estimates them; a flight without holes never does."""

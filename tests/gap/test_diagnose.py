@@ -99,6 +99,20 @@ def test_report_schema(reports, case):
         assert r["shares"]["headline"] and r["shares"]["rule"]
         for e in r["effects"]:
             assert e["consistency"]["status"] in ("holds", "changes", "not_checked")
+        m = r["verdict_margin"]
+        assert {"borderline", "alternative", "closest", "edges", "band_se"} <= set(m)
+        assert m["borderline"] == (m["alternative"] is not None)
+        for e in m["edges"]:
+            assert e["test"] in ("significance", "air_mass", "share") and e["alternative"] != r["verdict"] or not m["borderline"]
+
+
+@pytest.mark.parametrize("case", ["gyro_bias", "deadband"])
+def test_a_clear_effect_is_not_borderline(reports, case):
+    # an injected effect that removes most of the gap: its significance clears the level by standard errors
+    m = reports[case]["verdict_margin"]
+    sig = [e for e in m["edges"] if e["test"] == "significance" and e["passed"]]
+    assert sig and sig[0]["subject"].startswith(case) and sig[0]["margin_se"] > m["band_se"]
+    assert not m["borderline"]
 
 
 @pytest.mark.parametrize("case", ["input_delay", "gyro_bias", "velocity_latency", "deadband"])

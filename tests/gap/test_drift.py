@@ -33,3 +33,20 @@ def test_a_line_of_steady_size_holds_and_one_growing_through_the_flight_drifts()
     grow = drift.line_drift(*_line_case(np.linspace(0.0, 1.6, W), seed=1), level=0.005)
     assert grow["drifts"] and grow["rho"] > 0 and grow["ratio"] > 2 and grow["p"] < 1e-4
     assert "grows through the flight" in grow["why"]
+
+
+def test_halves_flown_differently_are_no_change_in_time_when_no_ramp_predicts_better():
+    # held-back seed 3 case 3: a constant asymmetric col deadband (play wider on one side) that the
+    # catalogue's deadzone only approximates. The halves move col with twice the spread in the second,
+    # so the width each half estimates differs (0.016 and 0.022) and each half's data reject the
+    # other's value; a width ramping through the flight predicts the held-out windows no better than a
+    # constant one. Before, the deadband read as changing and the flight as unexplained
+    from groundstation.bench import diagnose as bd
+    from hil_replay import scenarios
+
+    r = bd.run_case(scenarios.job(scenarios.ScenarioSet(cases=0, held_back=12, seed=3), 3))
+    assert r["truth_effects"] == ["asym_deadband"]
+    assert r["verdict"] == "deadband" and r["effects"][0]["input"] == "col", r["headline"]
+    con = r["consistency"][0]
+    assert con["status"] == "holds" and con["first"] / con["second"] < 0.8  # the halves' widths differ
+    assert "explained by deadband col" in r["headline"]

@@ -42,3 +42,36 @@ def test_evaluators_of_one_family_form_a_base_state_once_with_the_same_numbers(f
     assert len(pickle.loads(pickle.dumps(memo))._states) == 0
     memo.clear()
     assert _evaluator(segs, avail, ev.theta0, memo).Jn is not ev.Jn
+
+
+def test_a_refinement_run_again_in_a_family_ends_where_running_it_ends_without_forming_anything(
+        flight_factory, paper_theta):
+    """Two stages that refine the same data from the same parameters (an input effect's re-fit, then
+    its encompassing test) run it once: the second gets the end point, cost and base state of the
+    first, bit for bit those of an evaluator outside the family that runs it; and a base state is
+    formed only when used (data set again after construction: the state in between is never formed)."""
+    prep = flight_factory(T_s=30.0, seed=3)
+    segs, avail = segments_from_prepared(prep)
+    memo = JacobianMemo(size=8)
+    first = _evaluator(segs, avail, paper_theta * 1.03, memo)
+    cost = first.refine(2)
+    end_state = first.Jn   # formed on first use
+    formed = len(memo._states)
+    second = _evaluator(segs, avail, paper_theta * 1.03, memo)
+    alone = _evaluator(segs, avail, paper_theta * 1.03)
+    assert second.refine(2) == cost == alone.refine(2)
+    assert not np.array_equal(alone.theta0, paper_theta * 1.03)   # it moved
+    np.testing.assert_array_equal(second.theta0, alone.theta0)
+    assert second.Jn is end_state and len(memo._states) == formed   # nothing formed again
+    for name in ("r0", "col", "Jn", "JtJ"):
+        np.testing.assert_array_equal(getattr(second, name), getattr(alone, name))
+    third = _evaluator(segs, avail, paper_theta * 1.03, memo)
+    third.refine(1)   # another refinement: run
+    assert not np.array_equal(third.theta0, second.theta0)
+
+    lazy_memo = JacobianMemo(size=8)
+    changed = _evaluator(segs, avail, paper_theta, lazy_memo)
+    changed.Y = changed.Y + 0.01
+    changed.set_theta(changed.theta0)
+    assert len(lazy_memo._states) == 0
+    assert np.isfinite(changed.r0).all() and len(lazy_memo._states) == 1

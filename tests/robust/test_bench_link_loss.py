@@ -35,10 +35,12 @@ def test_rates_table_counts_the_targets_over_seeds():
     rows = [
         {"seed": 1, "flight": "none", "kind": "bursty", "loss_pct": 10.0, "key_within_10": 8, "key_lossfree": 8,
          "key_as_determined": 8, "key_z": dict.fromkeys(KEY, 1.0), "std_vs_lossfree": 1.2, "std_predicted": 1.25,
-         "heldout_vs_lossfree_pct": 99.0, "verdict": "none", "same_verdict": True, "invented": []},
+         "heldout_vs_lossfree_pct": 99.0, "verdict": "none", "same_verdict": True, "same_or_edge": True,
+         "invented": []},
         {"seed": 2, "flight": "none", "kind": "bursty", "loss_pct": 10.0, "key_within_10": 6, "key_lossfree": 5,
          "key_as_determined": 7, "key_z": dict.fromkeys(KEY, -2.0), "std_vs_lossfree": 1.0, "std_predicted": 1.15,
-         "heldout_vs_lossfree_pct": 95.0, "verdict": "unexplained", "same_verdict": False, "invented": []},
+         "heldout_vs_lossfree_pct": 95.0, "verdict": "unexplained", "same_verdict": False, "same_or_edge": True,
+         "invented": []},
         {"seed": 3, "flight": "none", "kind": "bursty", "loss_pct": 10.0, "crash": "ValueError: x"},
     ]
     con = Console(width=200, record=True)
@@ -46,9 +48,20 @@ def test_rates_table_counts_the_targets_over_seeds():
     line = next(ln for ln in con.export_text().splitlines() if "bursty" in ln)
     cells = [c.strip() for c in line.split("│") if c.strip()]
     # flight kind loss cases crash 8/8 8/8-as-determined as-loss-free rms-z SE-widening(predicted)
-    # >=97% median false-alarm same invented
+    # >=97% median false-alarm same same-or-borderline invented
     assert cells == ["none", "bursty", "10", "3", "1", "1", "1", "2", "1.58", "1.10 (1.20)", "1", "97.0", "1", "1",
-                     "0"]
+                     "2", "0"]
+
+
+def test_a_borderline_verdict_counts_as_the_same_only_across_its_own_edge():
+    from groundstation.bench.link_loss import _same_or_edge
+
+    base = {"verdict": "rate_limit", "verdict_edge": None}
+    assert _same_or_edge({"verdict": "rate_limit"}, base)
+    assert _same_or_edge({"verdict": "none", "verdict_edge": "rate_limit"}, base)
+    assert not _same_or_edge({"verdict": "none", "verdict_edge": None}, base)
+    assert not _same_or_edge({"verdict": "none", "verdict_edge": "deadband"}, base)
+    assert _same_or_edge({"verdict": "unexplained"}, {"verdict": "wind_gust", "verdict_edge": "unexplained"})
 
 
 def test_key_parameters_are_judged_in_the_model_files_own_standard_errors():
