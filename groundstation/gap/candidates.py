@@ -155,6 +155,7 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
                 # or by a free air velocity in every window; the input effect is the one kept
                 a.evidence += (f"; an air-mass motion explains it as well (p={p_a:.2g} for it given the air mass), "
                                f"but adds nothing to it (p={p_g:.2g})")
+                a.hyp.extra["air_mass_adds_nothing_p"] = p_g   # kept by the air mass's test, not its own
             if gust.significant and not g_ok:
                 gust.significant, gust_explained = False, True
                 gust.evidence += f"; adds nothing once the {a.hyp.input} {a.hyp.effect} is in the model (p={p_g:.2g})"
