@@ -114,7 +114,7 @@ def _case(path: Path, truth: dict, val: Any, cfg: Any, diagnose: bool) -> dict[s
             out["verdict"] = rep["verdict"]
             out["named"] = [e["effect"] for e in rep.get("effects", [])]
             margin = rep.get("verdict_margin") or {}
-            out["verdict_edge"] = margin.get("alternative")  # the verdict across a test's edge when borderline
+            out["verdict_edge"] = margin.get("alternatives") or []  # the verdicts across the edges when borderline
     except ValueError as exc:  # the one clear line a user would see
         out["refused"] = str(exc).splitlines()[0]
     except Exception as exc:  # noqa: BLE001 - a crash is the finding
@@ -127,8 +127,8 @@ def _case(path: Path, truth: dict, val: Any, cfg: Any, diagnose: bool) -> dict[s
 
 def _same_or_edge(r: dict[str, Any], base: dict[str, Any]) -> bool:
     """The same verdict as the loss-free flight, or one of the two is borderline with the other across its edge."""
-    return bool(r["verdict"] == base["verdict"] or r.get("verdict_edge") == base["verdict"]
-                or base.get("verdict_edge") == r["verdict"])
+    return bool(r["verdict"] == base["verdict"] or base["verdict"] in (r.get("verdict_edge") or [])
+                or r["verdict"] in (base.get("verdict_edge") or []))
 
 
 def _determined(model: Any, truth: dict, err: dict[str, float]) -> dict[str, Any]:
@@ -260,7 +260,7 @@ def _line(r: dict[str, Any]) -> str:
         return f"{head} {link}; refused: {r['refused']} ({r['cpu_s']:.1f} s CPU)"
     verdict = f", verdict {r['verdict']} {r.get('named')}" if "verdict" in r else ""
     if r.get("verdict_edge"):
-        verdict += f" (borderline: {r['verdict_edge']} across a test's edge)"
+        verdict += f" (borderline: {', '.join(r['verdict_edge'])} across a test's edge)"
     zk = max(KEY, key=lambda k: abs(r["key_z"][k] or 0.0))
     verdict += (f"; {r['key_as_determined']}/8 within 10 % or {Z_LIM:g} standard errors (largest "
                 f"{zk} {r['key_z'][zk] or 0.0:+.1f})")

@@ -19,7 +19,7 @@ from groundstation.trends.change import Trend
 
 def load_plotting() -> None:
     """Import what :func:`plot_trends` and :func:`write_trends_rrd` need (matplotlib, Rerun: about
-    0.8 s of CPU), e.g. while the campaign's workers analyse the flights."""
+    0.7 s of CPU), e.g. on a core the campaign's workers have left idle while the last flights finish."""
     import matplotlib
 
     matplotlib.use("Agg")

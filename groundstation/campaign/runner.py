@@ -227,9 +227,10 @@ def run(jobs: Sequence[FlightJob], *, workers: int = 1, scheduler: str | None = 
         executor: Executor | None = None, meanwhile: Callable[[], Any] | None = None) -> list[list[dict[str, Any]]]:
     """Analyse every job; returns the rows per job in job order (see module docstring). ``executor``:
     workers opened by :func:`open_executor` (then ``workers`` and ``scheduler`` are not used).
-    ``meanwhile`` is called once in this process after the jobs have been handed to the workers and
-    before waiting for them: the caller's own work (imports for what it does after the run) then
-    overlaps theirs instead of following it while the cores idle."""
+    ``meanwhile`` is called once in this process, after the jobs have been handed to the workers, as
+    soon as a worker has no job left (:func:`idle_after`): the caller's own work (imports for what it
+    does after the run) then runs on a core that would otherwise idle while the last flights finish,
+    instead of taking one from the workers or following the run."""
     if executor is None:
         with open_for(jobs, workers, scheduler, local_processes) as ex:
             return run(jobs, on_result=on_result, executor=ex, meanwhile=meanwhile)
@@ -241,9 +242,10 @@ def run(jobs: Sequence[FlightJob], *, workers: int = 1, scheduler: str | None = 
     needed = {j.reference_log: sum(k.reference_log == j.reference_log and k.cross_by_caller for k in jobs)
               for j in jobs if j.cross_by_caller}
     completed = executor.results([jobs[i] for i in order])
-    if meanwhile is not None:
+    idle = idle_after(len(jobs), executor.workers)
+    if meanwhile is not None and idle == 0:
         meanwhile()
-    for k, done in completed:
+    for finished, (k, done) in enumerate(completed, 1):
         i = order[k]
         if jobs[i].hand_over:
             data[jobs[i].log] = done[1].prepared
@@ -259,7 +261,16 @@ def run(jobs: Sequence[FlightJob], *, workers: int = 1, scheduler: str | None = 
             results[w] = rows
             if on_result is not None:
                 on_result(jobs[w], rows)
+        if meanwhile is not None and finished == idle:
+            meanwhile()
     return [results[i] for i in range(len(jobs))]
+
+
+def idle_after(jobs: int, workers: int) -> int:
+    """How many of ``jobs`` have finished when one of ``workers`` (the caller's cores; 0: not known, a
+    remote cluster) has no job left: 0 when there are fewer jobs than workers (or the workers are
+    remote: the caller's core is its own), the last job with one worker."""
+    return 0 if workers <= 0 or jobs < workers else jobs - workers + 1
 
 
 def hand_over_plan(jobs: Sequence[FlightJob]) -> list[FlightJob]:

@@ -117,7 +117,8 @@ def run(args: argparse.Namespace) -> int:
                 info = last["error"] or f"verdict {last.get('verdict')}, held-out {_fmt(last.get('heldout_match_pct'))} %"
                 prog.update(task, advance=1, info=f"{last['log_name']}: {info}"[:80])
 
-            # the trends' plotting libraries are imported while the workers analyse, not after them
+            # the trends' plotting libraries are imported on the core the first worker without a flight
+            # left leaves idle, not after the run nor on a core the workers need
             runner.run(jobs, on_result=on_result, executor=ex, meanwhile=load_plotting)
         wall = time.perf_counter() - t0
         for e in store.errors(name):

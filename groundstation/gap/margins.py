@@ -175,12 +175,17 @@ def share_edge(interval: tuple[float, float] | None, verdict: str, partial: list
 
 
 def summary(edges: list[Edge], verdict: str, cfg: DiagnoseConfig) -> dict[str, Any]:
-    """The report's ``verdict_margin``: every deciding edge, the closest, and whether the verdict is borderline."""
+    """The report's ``verdict_margin``: every deciding edge, the closest, whether the verdict is borderline, and
+    the verdicts across the edges within the band (closest first)."""
     if not edges:
-        return {"borderline": False, "alternative": None, "closest": None, "edges": [], "band_se": cfg.borderline_se}
-    closest = min(edges, key=lambda e: abs(e.margin_se))
-    near = abs(closest.margin_se) < cfg.borderline_se and closest.alternative != verdict
-    out = {"borderline": bool(near), "alternative": closest.alternative if near else None,
+        return {"borderline": False, "alternative": None, "alternatives": [], "closest": None, "edges": [],
+                "band_se": cfg.borderline_se}
+    inside = sorted((e for e in edges if abs(e.margin_se) < cfg.borderline_se and e.alternative != verdict),
+                    key=lambda e: abs(e.margin_se))
+    closest = inside[0] if inside else min(edges, key=lambda e: abs(e.margin_se))
+    near = bool(inside)
+    out = {"borderline": near, "alternative": closest.alternative if near else None,
+           "alternatives": list(dict.fromkeys(e.alternative for e in inside)),
            "closest": asdict(closest), "edges": [asdict(e) for e in edges], "band_se": cfg.borderline_se}
     if near:
         out["note"] = (f"the verdict is borderline: the {closest.test} test of the {closest.subject.replace('_', ' ')} "

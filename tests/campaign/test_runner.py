@@ -40,11 +40,13 @@ def test_a_pool_gets_the_largest_logs_first_and_results_come_back_in_job_order(t
     assert runner.submission_order(jobs) == [1, 3, 4, 0, 2]
     pool = _Recorder(workers=2)
     done = []
-    # the caller's own work runs once every job is with the workers and before any result is taken
+    # the caller's own work runs once every job is with the workers and one of them has no job left:
+    # 4 of 5 jobs finished on 2 workers
     meanwhile = []
     rows = runner.run(jobs, executor=pool, on_result=lambda job, r: done.append(job.log),
                       meanwhile=lambda: meanwhile.append((len(pool.seen), len(done))))
-    assert meanwhile == [(5, 0)]
+    assert meanwhile == [(5, 4)]
+    assert [runner.idle_after(n, w) for n, w in ((5, 2), (4, 2), (1, 2), (0, 2), (3, 1), (3, 0))] == [4, 3, 0, 0, 3, 0]
     assert pool.seen == [jobs[i].log for i in (1, 3, 4, 0, 2)]
     assert [r[0]["log"] for r in rows] == [j.log for j in jobs]
     assert sorted(done) == sorted(j.log for j in jobs)

@@ -36,8 +36,11 @@ def test_a_verdict_is_borderline_only_when_its_closest_edge_is_within_the_band()
     assert s["borderline"] and s["alternative"] == "rate_limit" and s["closest"]["margin_se"] == 0.4
     assert "borderline" in s["note"] and "rate limit lat" in s["note"] and "give rate_limit" in s["note"]
     assert not margins.summary([far], "none", cfg)["borderline"]
-    assert margins.summary([], "none", cfg) == {"borderline": False, "alternative": None, "closest": None,
-                                                "edges": [], "band_se": cfg.borderline_se}
+    assert margins.summary([], "none", cfg) == {"borderline": False, "alternative": None, "alternatives": [],
+                                                "closest": None, "edges": [], "band_se": cfg.borderline_se}
+    # every verdict across an edge within the band is named, closest first
+    other = margins.Edge("air_mass", "deadband col", -0.8, False, "deadband", "")
+    assert margins.summary([far, other, near], "none", cfg)["alternatives"] == ["rate_limit", "deadband"]
 
 
 def test_the_share_edge_is_the_interval_end_against_the_level_in_standard_errors():

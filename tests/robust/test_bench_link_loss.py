@@ -56,12 +56,12 @@ def test_rates_table_counts_the_targets_over_seeds():
 def test_a_borderline_verdict_counts_as_the_same_only_across_its_own_edge():
     from groundstation.bench.link_loss import _same_or_edge
 
-    base = {"verdict": "rate_limit", "verdict_edge": None}
+    base = {"verdict": "rate_limit", "verdict_edge": []}
     assert _same_or_edge({"verdict": "rate_limit"}, base)
-    assert _same_or_edge({"verdict": "none", "verdict_edge": "rate_limit"}, base)
-    assert not _same_or_edge({"verdict": "none", "verdict_edge": None}, base)
-    assert not _same_or_edge({"verdict": "none", "verdict_edge": "deadband"}, base)
-    assert _same_or_edge({"verdict": "unexplained"}, {"verdict": "wind_gust", "verdict_edge": "unexplained"})
+    assert _same_or_edge({"verdict": "wind_gust", "verdict_edge": ["none", "rate_limit"]}, base)
+    assert not _same_or_edge({"verdict": "none", "verdict_edge": []}, base)
+    assert not _same_or_edge({"verdict": "none", "verdict_edge": ["deadband"]}, base)
+    assert _same_or_edge({"verdict": "unexplained"}, {"verdict": "wind_gust", "verdict_edge": ["unexplained"]})
 
 
 def test_key_parameters_are_judged_in_the_model_files_own_standard_errors():
