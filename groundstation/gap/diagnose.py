@@ -526,6 +526,7 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
     ev, segs, avail, dt, nf = base.ev, base.segs, base.avail, base.dt_s, loc.nf
     ctx = hypotheses.Context(ev, segs, cfg=cfg)
     ctx.pwm_per_unit = float(getattr(prepared, "pwm_per_unit", 500.0))
+    ctx.noise_unit = hypotheses.noise_unit(ev, nf["sigma_smoothed"])
     hyps = _scan_all(ctx, loc.in_excited, pmap)
 
     # model-free fingerprints
@@ -632,6 +633,7 @@ def _structure_context(t: structure.StructureTest, base: Base, att: Attributed, 
         ev_s.refine(cfg.refit_iterations, cfg.refine_ridge)
         ctx_s = hypotheses.Context(ev_s, segs_s, cfg=cfg)
         ctx_s.pwm_per_unit = att.ctx.pwm_per_unit
+        ctx_s.noise_unit = att.ctx.noise_unit
         if it == cfg.outer_iterations:
             break
         more = structure.retest(ctx_s, [t], rng, cfg, 1.0)[0]
@@ -870,16 +872,16 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
     sh = shares.compute_shares([(_effect_label(c), rem[id(c)]) for c in kept], base_sse, noise_sse, avail,
                                rng, cfg.share_n_boot, cfg.share_min_gap_ratio)
     if any(c.hyp.effect == "wind_gust" for c in kept):
-        # the air-mass protocol scores the horizontal velocities and the attitude angles only (the
-        # rates carry the air velocity's rough part, which no smooth air velocity predicts, and w no
-        # horizontal air): it cannot say how much of the other channels' gap the air mass is, so the
-        # rule is decided on the channels it is scored on
+        # the air-mass protocol scores the outputs of the horizontal block only (a horizontal air
+        # velocity leaves w and r as they are): it cannot say how much of the other channels' gap
+        # the air mass is, so the rule is decided on the channels it is scored on
         gust_ch = np.zeros(8, bool)
         gust_ch[list(hypotheses.GUST_CHANNELS)] = True
         sh_rule = shares.compute_shares([(_effect_label(c), rem[id(c)]) for c in kept], base_sse, noise_sse,
                                         avail & gust_ch, rng, cfg.share_n_boot, cfg.share_min_gap_ratio)
+        names = ", ".join(OUTPUTS[k] for k in hypotheses.GUST_CHANNELS)
         notes.append("an air mass is named: the share rule is decided on the channels the air-mass protocol "
-                     f"scores (u, v, theta, phi): {sh_rule.explained_pct or 0.0:.0f} % of their gap above noise")
+                     f"scores ({names}): {sh_rule.explained_pct or 0.0:.0f} % of their gap above noise")
     else:
         sh_rule = sh
     per_effect: dict[int, dict[str, Any]] = {}
