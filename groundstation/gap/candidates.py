@@ -27,23 +27,34 @@ def p_value(h: hypotheses.Hypothesis, ctx: hypotheses.Context | None, base: np.n
     ``conditional``: the test of a second effect given a first (analytic paired tests, :func:`attribute.conditional_p`)
     instead of the bootstrap of the first step."""
     assert h.sse is not None
+    if h.effect == "wind_gust":
+        return _air_mass_p(h, base, rng, cfg, conditional)
     blocks = ctx is not None and h.effect in ctx.blocks
     bb = ctx.base_blocks if blocks and ctx else None
     ab = ctx.blocks[h.effect] if blocks and ctx else None
     if conditional:
-        p = attribute.conditional_p(base.sum(1), h.sse.sum(1), rng, cfg.n_boot, cfg.window_alpha, bb, ab)
-    else:
-        p = attribute.combined_p(base.sum(1), h.sse.sum(1), rng, cfg.n_boot, cfg.window_alpha, bb, ab)
-    if h.effect == "wind_gust":
-        # an air-mass motion moves the attitude too (speed-stability moments): demand that of the
-        # attitude angles, which integrate those moments; the body rates also carry the air
-        # velocity's rough part, which no smooth air-velocity model predicts between its knots
-        att = [6, 7]
-        p_att = (attribute.paired_t_p(base[:, att].sum(1), h.sse[:, att].sum(1)) if conditional else
-                 attribute.paired_bootstrap(base[:, att].sum(1), h.sse[:, att].sum(1), rng, cfg.n_boot))
-        h.extra["p_attitude"] = p_att
-        p = max(p, p_att)
-    return p
+        return attribute.conditional_p(base.sum(1), h.sse.sum(1), rng, cfg.n_boot, cfg.window_alpha, bb, ab)
+    return attribute.combined_p(base.sum(1), h.sse.sum(1), rng, cfg.n_boot, cfg.window_alpha, bb, ab)
+
+
+def _air_mass_p(h: hypotheses.Hypothesis, base: np.ndarray, rng: np.random.Generator, cfg: DiagnoseConfig,
+                conditional: bool) -> float:
+    """:func:`p_value` of the air mass (its own protocol, no blocks): over the windows, in multiples of
+    each channel's noise (``extra['unit']``, the units its variant was chosen in and the gap's shares'
+    units; in the cost's weights the noisy body rates would drown the attitude's gain). An air-mass
+    motion moves the attitude too (speed-stability moments): the same is demanded of the attitude
+    angles alone, which integrate those moments (``extra['p_attitude']``); the larger p counts."""
+    assert h.sse is not None
+    unit = np.asarray(h.extra.get("unit", np.ones(8)), float)
+
+    def test(cb: np.ndarray, ca: np.ndarray) -> float:
+        return attribute.paired_t_p(cb, ca) if conditional else attribute.paired_bootstrap(cb, ca, rng, cfg.n_boot)
+
+    p = test((base * unit).sum(1), (h.sse * unit).sum(1))
+    att = [6, 7]
+    p_att = test(base[:, att].sum(1), h.sse[:, att].sum(1))
+    h.extra["p_attitude"] = p_att
+    return max(p, p_att)
 
 
 def p_pair(base: np.ndarray, base_blocks: np.ndarray, alt: np.ndarray, alt_blocks: np.ndarray,
@@ -110,16 +121,15 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
     for a in sorted((c for c in cands if c.hyp.effect in hypotheses.INPUT_EFFECTS and c.significant),
                     key=lambda c: -c.score.score_pct):
         # --- air mass: the four models (base, +A, +air mass, +both) in the air-mass protocol
-        # (within-window chunk cross-validation, where a per-window smooth air velocity cannot
-        # follow the fast, input-linked error of an input effect). Input effects go largest first:
-        # an air mass that one of them explains cannot set aside the next (it is that input effect)
+        # (within-window chunk cross-validation). Input effects go largest first: an air mass that
+        # one of them explains cannot set aside the next (it is that input effect)
         if (gust is not None and not gust_explained and gust.score.score_pct > 0 and "base_sse" in gust.hyp.extra
                 and physical(gust.hyp, cfg)):
             segs_a = hypotheses.apply_input_effect(a.hyp, segs, ev.dt_s)
             ev_a = Evaluator(segs_a, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s,
                              folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s, memo=ev.memo)
             ev_a.refine(cfg.refit_iterations, cfg.refine_ridge)   # refit_input_effect's, when it ran
-            hg = hypotheses.scan_wind_gust(hypotheses.Context(ev_a, segs_a, cfg=cfg))
+            hg = hypotheses.scan_wind_gust(hypotheses.Context(ev_a, segs_a, cfg=cfg, noise_unit=ctx.noise_unit))
             assert hg.sse is not None and gust.hyp.sse is not None
             m0, mg = gust.hyp.extra["base_sse"], gust.hyp.sse
             ma, mag = hg.extra["base_sse"], hg.sse
@@ -136,10 +146,16 @@ def encompass(cands: list[attribute.Candidate], ctx: hypotheses.Context, segs: l
             gust.hyp.extra.update({f"p_given_{a.hyp.effect}": p_g, f"retained_given_{a.hyp.effect}": ret_g})
             a_ok = p_a < crit and float((mg - mag).sum()) > 0
             g_ok = p_g < crit and float((ma - mag).sum()) > 0
-            if not a_ok:
+            if not a_ok and g_ok:
                 a.significant = False
                 a.evidence += f"; adds nothing once an air-mass motion is allowed (p={p_a:.2g})"
                 continue
+            if not a_ok:
+                # neither adds to the other: the same departure, explained by one parameter of the stick
+                # or by a free air velocity in every window; the input effect is the one kept
+                a.evidence += (f"; an air-mass motion explains it as well (p={p_a:.2g} for it given the air mass), "
+                               f"but adds nothing to it (p={p_g:.2g})")
+                a.hyp.extra["air_mass_adds_nothing_p"] = p_g   # kept by the air mass's test, not its own
             if gust.significant and not g_ok:
                 gust.significant, gust_explained = False, True
                 gust.evidence += f"; adds nothing once the {a.hyp.input} {a.hyp.effect} is in the model (p={p_g:.2g})"
@@ -260,7 +276,7 @@ def conditioned_context(a: attribute.Candidate, ctx: hypotheses.Context, segs: l
     """A context whose base model already contains effect ``a`` (None when it cannot be put in)."""
     ev, h = ctx.ev, a.hyp
     if h.effect in ("ground_effect", "quadratic_drag") and h.extra.get("X") is not None:
-        return hypotheses.Context(ev, segs, given=h.extra["X"], cfg=ctx.cfg)
+        return hypotheses.Context(ev, segs, given=h.extra["X"], cfg=ctx.cfg, noise_unit=ctx.noise_unit)
     segs_a = applied(h, segs, ev.dt_s)
     if segs_a is None:
         return None  # rotor vibration (raw residual only), air mass (its own protocol, see encompass)
@@ -273,7 +289,7 @@ def _context_on(ctx: hypotheses.Context, segs: list[SegmentArrays], theta: np.nd
     ev = ctx.ev
     ev_x = Evaluator(segs, ev.dt_s, theta, ev.available, window_s=ev.L * ev.dt_s, folds=ev.folds,
                      ridge=ev.ridge, start_s=ev.start_s, memo=ev.memo)
-    out = hypotheses.Context(ev_x, segs, cfg=ctx.cfg)
+    out = hypotheses.Context(ev_x, segs, cfg=ctx.cfg, noise_unit=ctx.noise_unit)
     out.pwm_per_unit = ctx.pwm_per_unit
     return out
 
@@ -546,7 +562,7 @@ def _with_effect_removed(b: attribute.Candidate, ctx: hypotheses.Context, segs: 
         w = np.where(ev.w8 > 0, ev.w8, 1.0)
         ev_b.Y = ev.Y - np.einsum("wlck,k->wlc", X, c) / w
         ev_b.set_theta(ev.theta0)
-        return hypotheses.Context(ev_b, segs, cfg=ctx.cfg)
+        return hypotheses.Context(ev_b, segs, cfg=ctx.cfg, noise_unit=ctx.noise_unit)
     return conditioned_context(b, ctx, segs)
 
 

@@ -91,7 +91,8 @@ class DiagnoseConfig:
     #: the air-mass scan's within-window cross-validation: initial states and the air velocity are
     #: fitted on alternate chunks of this length (s) and scored on the chunks between them
     gust_chunk_s: float = 0.5
-    #: spacing (s) of the knots of the piecewise-linear air velocity in each window
+    #: spacing (s) of the knots of the smooth (piecewise-linear) air velocity under which the base is
+    #: re-identified for the air-mass scan
     gust_knot_s: float = 1.5
     #: Levenberg-Marquardt iterations re-identifying the base under the per-window air velocity (0:
     #: the base as it is)

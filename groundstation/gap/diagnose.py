@@ -526,6 +526,7 @@ def attribute_stage(base: Base, loc: Located, prepared: Any, cfg: DiagnoseConfig
     ev, segs, avail, dt, nf = base.ev, base.segs, base.avail, base.dt_s, loc.nf
     ctx = hypotheses.Context(ev, segs, cfg=cfg)
     ctx.pwm_per_unit = float(getattr(prepared, "pwm_per_unit", 500.0))
+    ctx.noise_unit = hypotheses.noise_unit(ev, nf["sigma_smoothed"])
     hyps = _scan_all(ctx, loc.in_excited, pmap)
 
     # model-free fingerprints
@@ -632,6 +633,7 @@ def _structure_context(t: structure.StructureTest, base: Base, att: Attributed, 
         ev_s.refine(cfg.refit_iterations, cfg.refine_ridge)
         ctx_s = hypotheses.Context(ev_s, segs_s, cfg=cfg)
         ctx_s.pwm_per_unit = att.ctx.pwm_per_unit
+        ctx_s.noise_unit = att.ctx.noise_unit
         if it == cfg.outer_iterations:
             break
         more = structure.retest(ctx_s, [t], rng, cfg, 1.0)[0]
@@ -852,6 +854,7 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
                     c, segs_h, ev, np.asarray(c.hyp.extra.get("theta_refit", ev.theta0)), level,
                     cfg.consistency_min_loss, min_w, rng, cfg.n_boot, cfg.window_alpha, arrays)
             _drift_checks(ranked, cons, ctx, level, cfg, arrays)
+    ranked, dec = _drop_unresolved_lines(ranked, cons, dec, loc, tests, cfg, notes)
     changing = [c for c in ranked if cons.get(id(c), {}).get("status") == "changes"]
     # effects named beside the first were found given it: when it changes, none is named
     kept = [] if ranked and ranked[0] in changing else [c for c in ranked if c not in changing]
@@ -869,16 +872,16 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
     sh = shares.compute_shares([(_effect_label(c), rem[id(c)]) for c in kept], base_sse, noise_sse, avail,
                                rng, cfg.share_n_boot, cfg.share_min_gap_ratio)
     if any(c.hyp.effect == "wind_gust" for c in kept):
-        # the air-mass protocol scores the horizontal velocities and the attitude angles only (the
-        # rates carry the air velocity's rough part, which no smooth air velocity predicts, and w no
-        # horizontal air): it cannot say how much of the other channels' gap the air mass is, so the
-        # rule is decided on the channels it is scored on
+        # the air-mass protocol scores the outputs of the horizontal block only (a horizontal air
+        # velocity leaves w and r as they are): it cannot say how much of the other channels' gap
+        # the air mass is, so the rule is decided on the channels it is scored on
         gust_ch = np.zeros(8, bool)
         gust_ch[list(hypotheses.GUST_CHANNELS)] = True
         sh_rule = shares.compute_shares([(_effect_label(c), rem[id(c)]) for c in kept], base_sse, noise_sse,
                                         avail & gust_ch, rng, cfg.share_n_boot, cfg.share_min_gap_ratio)
+        names = ", ".join(OUTPUTS[k] for k in hypotheses.GUST_CHANNELS)
         notes.append("an air mass is named: the share rule is decided on the channels the air-mass protocol "
-                     f"scores (u, v, theta, phi): {sh_rule.explained_pct or 0.0:.0f} % of their gap above noise")
+                     f"scores ({names}): {sh_rule.explained_pct or 0.0:.0f} % of their gap above noise")
     else:
         sh_rule = sh
     per_effect: dict[int, dict[str, Any]] = {}
@@ -994,6 +997,32 @@ def margin_stage(att: Attributed, loc: Located, dec: Decision, rule: dict[str, A
     edges += margins.air_mass_edges(dec.ranked, dec.others, fallback, att.crit, cfg, rng, partial)
     share = margins.share_edge(rule["interval"], dec.verdict, partial, dec.ranked, cfg)
     return margins.summary(edges + ([share] if share is not None else []), dec.verdict, cfg)
+
+
+def _drop_unresolved_lines(ranked: list[attribute.Candidate], cons: dict[int, dict[str, Any]], dec: Decision,
+                           loc: Located, tests: list[structure.StructureTest], cfg: DiagnoseConfig,
+                           notes: list[str]) -> tuple[list[attribute.Candidate], Decision]:
+    """A rotor line one half of the flight does not show (``not_resolved``) and the whole-flight
+    drift test does not find growing (:func:`_drift_checks`) is not named: it goes to the notes and
+    the unnamed candidates. When it led, the verdict is chosen again from what is left
+    as :func:`decide_stage` chooses it (a sensor error found first is not the verdict here: it led
+    over no line)."""
+    gone = [c for c in ranked if cons.get(id(c), {}).get("status") == "not_resolved"]
+    if not gone:
+        return ranked, dec
+    for c in gone:
+        notes.append(f"rotor vibration not named ({c.evidence.split(';')[0]}): {cons[id(c)]['why']}")
+    left = [c for c in ranked if c not in gone]
+    verdict = dec.verdict
+    if ranked[0] in gone:
+        if left:
+            verdict = left[0].hyp.effect
+        elif any(t.significant for t in tests) or (loc.gap_significant
+                                                    and loc.flagged_share > cfg.unexplained_flagged_share):
+            verdict = "unexplained"
+        else:
+            verdict = "none"
+    return left, dataclasses.replace(dec, verdict=verdict, ranked=left, others=list(dec.others) + gone)
 
 
 def _drift_checks(ranked: list[attribute.Candidate], cons: dict[int, dict[str, Any]], ctx: hypotheses.Context,

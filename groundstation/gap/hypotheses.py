@@ -25,11 +25,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from groundstation.errors import GapError
 from groundstation.gap.config import DiagnoseConfig
 from groundstation.gap.evaluate import Evaluator, SegmentArrays
-from groundstation.gap.linsim import full_matrices
+from groundstation.gap.linsim import free_responses, full_matrices
 from groundstation.gap.linsim import simulate as lsim
 from groundstation.sysid.model import INPUTS
 
@@ -55,8 +56,15 @@ DEADBAND_CENTRE = (-0.5, 0.0, 0.5)
 GROUND_DECAY_M = (0.25, 0.5, 1.0, 2.0)
 
 VEL = (0, 1, 2)
-#: channels on which an air-mass motion is scored: horizontal velocities and attitude angles
-GUST_CHANNELS = (0, 1, 6, 7)
+#: channels on which an air-mass motion is scored: the outputs of the horizontal block (u v p q theta
+#: phi); a horizontal air velocity leaves w and r as they are
+GUST_CHANNELS = (0, 1, 3, 4, 6, 7)
+#: grid (s) of the per-window air velocity (linear between the grid times)
+GUST_GRID_S = 0.1
+#: time scales (s) of the air velocity's Gauss-Markov prior the data choose from
+GUST_TAU_S = (0.3, 1.0, 3.0)
+#: its intensities, in multiples of the measured horizontal speed
+GUST_SIGMA = (0.25, 0.5, 1.0, 2.0)
 RATE_CH = {"p": 3, "q": 4, "r": 5}
 
 
@@ -130,7 +138,7 @@ class Context:
     """Base-model windows plus the cached base held-out cost, shared by every scan."""
 
     def __init__(self, ev: Evaluator, segments: list[SegmentArrays], given: np.ndarray | None = None,
-                 cfg: DiagnoseConfig | None = None):
+                 cfg: DiagnoseConfig | None = None, noise_unit: np.ndarray | None = None):
         self.ev = ev
         self.cfg = cfg or DiagnoseConfig()  # the scans' own settings (the air-mass scan's chunks and knots)
         self.segments = segments
@@ -143,6 +151,9 @@ class Context:
         self.blocks: dict[str, np.ndarray] = {}  # effect -> (W, n_blocks) nested held-out cost
         self.base_blocks = ev.last_blocks.copy()
         self.pwm_per_unit = 500.0
+        # (8,) multiples of each channel's noise per unit of held-out cost (the gap shares' units),
+        # when the flight's noise floor is known; the air-mass scan chooses its variant in them
+        self.noise_unit = noise_unit
         # input_variants' caches: theta0 they were made for, the context's windowed inputs and
         # residual at theta0, the weighted response of the fitted simulation per input channel
         self._linear: tuple[bytes, np.ndarray, np.ndarray] | None = None
@@ -608,25 +619,98 @@ def _air_columns(ev: Evaluator, theta: np.ndarray, n_knots: int = 3) -> np.ndarr
     return np.moveaxis(cols, 0, -1)[None] * ev.available[None, None, :, None]
 
 
+def gauss_markov_factor(n: int, span_s: float, tau_s: float) -> np.ndarray:
+    """(n, n) lower Cholesky factor of a first-order Gauss-Markov process's correlation
+    ``exp(-|t_i - t_j| / tau_s)`` at ``n`` evenly spaced times over ``span_s`` seconds: unit white
+    coefficients times it are a sample of the process (the whitened basis of the air velocity)."""
+    t = np.linspace(0.0, span_s, n)
+    return np.linalg.cholesky(np.exp(-np.abs(t[:, None] - t[None]) / tau_s) + 1e-9 * np.eye(n))
+
+
+class _ChunkFit:
+    """The air-mass protocol's least squares for one parameter set: every window's initial states (and
+    shared columns, with a prior) fitted on alternate chunks of ``chunk_s``, scored on the chunks
+    between them, both ways round. The free responses of the initial states and the columns are the
+    same in every window, so one normal matrix per protocol half serves every window and each prior
+    costs one small solve: the same numbers as :func:`groundstation.gap.linsim.simulate` with the
+    columns as shared nuisance (to round-off), without simulating the windows again."""
+
+    def __init__(self, ev: Evaluator, theta: np.ndarray, chunk_s: float):
+        self.ev, self.theta = ev, theta
+        self.wf = np.where(ev.available, ev.w8, 0.0)  # the least squares' weights
+        y0 = lsim(theta, ev.U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available, fit_initial=False)[0]
+        self.r = ev.Y - y0  # (W, L, 8): what the fitted columns are to explain
+        self.S = free_responses(theta, ev.L, ev.dt_s, ev.available)  # (nu, L, 8)
+        chunk = max(int(round(chunk_s / ev.dt_s)), 2)
+        k = np.arange(ev.L) // chunk
+        self.halves = [(np.flatnonzero((k % 2 == p) & ev.mask), np.flatnonzero((k % 2 != p) & ev.mask)) for p in (0, 1)]
+
+    def cv(self, cols: np.ndarray | None = None, precs: Sequence[float] = (0.0,)) -> tuple[np.ndarray, np.ndarray]:
+        """Held-out costs (V, W, 8) with the shared columns ``cols`` (K, L, 8) (None: the initial states
+        alone) under each of the V prior precisions ``precs`` of their coefficients, and the
+        coefficients (V, W, K) of the second fit."""
+        ev = self.ev
+        D = self.S if cols is None else np.concatenate([self.S, cols])
+        P, nu = D.shape[0], self.S.shape[0]
+        V = len(precs)
+        sse = np.zeros((V, ev.W, 8))
+        a = np.zeros((V, ev.W, P))
+        for fit, score in self.halves:
+            Df = (D[:, fit] * self.wf).reshape(P, -1)
+            G = np.tile(Df @ Df.T, (V, 1, 1))
+            G += (1e-9 * np.trace(G[0]) / P + 1e-12) * np.eye(P)
+            G[:, np.arange(nu, P), np.arange(nu, P)] += np.asarray(precs, float)[:, None]
+            h = Df @ (self.r[:, fit] * self.wf).reshape(ev.W, -1).T  # (P, W)
+            a = np.swapaxes(np.linalg.solve(G, np.broadcast_to(h, (V, P, ev.W))), 1, 2)  # (V, W, P)
+            e = self.r[None, :, score] - (a @ D[:, score].reshape(P, -1)).reshape(V, ev.W, score.size, 8)
+            e2 = (e * ev.w8) ** 2
+            sse += (e2 if ev.M is None else e2 * ev.M[None, :, score]).sum(axis=2)   # holes of the link not scored
+        return sse, a[..., nu:]
+
+
+def _refined_theta(ctx: Context, knot_s: float, prec_scale: float, iterations: int) -> np.ndarray:
+    """The base re-identified (Levenberg-Marquardt) under a per-window piecewise-linear air velocity
+    with knots every ``knot_s``: an unmodelled air mass distorts the identified parameters."""
+    ev = ctx.ev
+    n_knots = max(int(round(ev.L * ev.dt_s / knot_s)) + 1, 2)
+    if ctx.segments is ev.segments:  # the context's evaluator as it is: its Jacobian is recomputed below
+        evg = copy.copy(ev)
+    else:
+        evg = Evaluator(ctx.segments, ev.dt_s, ev.theta0, ev.available, window_s=ev.L * ev.dt_s,
+                        folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s)
+    evg.nuisance = _air_columns(evg, ev.theta0, n_knots)
+    evg.nuisance_prec = np.full(2 * n_knots, prec_scale)
+    evg.set_theta(ev.theta0)
+    evg.refine(iterations, ctx.cfg.refine_ridge)
+    return evg.theta0
+
+
 def scan_wind_gust(ctx: Context, chunk_s: float | None = None, refine_iterations: int | None = None,
                    knot_s: float | None = None) -> Hypothesis:
-    """Air-mass motion: a smooth horizontal air velocity entering wherever the body velocity does.
+    """Air-mass motion: a horizontal air velocity entering wherever the body velocity does.
 
-    In each window the air velocity is piecewise linear in time (three knots per component) and
-    enters the model through the columns of A for u and v (drag and the speed-stability moments
-    act on airspeed; GPS measures ground speed), with a zero-mean prior whose spread is the measured
-    horizontal speed. Because an unmodelled air mass distorts the identified parameters, the base
-    parameters are first re-identified with that per-window air velocity (Levenberg-Marquardt).
-    Scoring is *within-window* cross-validation: initial states (and the air velocity) are fitted on
+    In each window each horizontal component of the air velocity is a first-order Gauss-Markov
+    process on a grid of :data:`GUST_GRID_S` (linear between the grid times), entering the model
+    through the columns of A for u and v (drag and the speed-stability moments act on airspeed;
+    GPS measures ground speed). It is fitted in its whitened basis (the model's responses to the
+    Cholesky factor of the process's covariance) by the same regularised least squares as the
+    initial states: the posterior mean of a smoother with the air velocity as a Gauss-Markov state.
+    Its time scale (:data:`GUST_TAU_S`) and intensity (:data:`GUST_SIGMA` x the measured horizontal
+    speed) are chosen by the data, and so is the parameter set: the base as it is, or re-identified
+    under a smooth air velocity (knots every ``knot_s``; an unmodelled air mass distorts the
+    identified parameters, and the re-identification can also over-fit them).
+    Scoring is *within-window* cross-validation: initial states and the air velocity are fitted on
     alternate chunks of ``chunk_s`` and the residual is scored on the other chunks, both ways
-    round; the base model goes through the same protocol. A smooth air-mass motion fitted on some
-    chunks predicts the chunks between them; parameters fitted to noise (correlated over a few
-    samples only) do not. The air-mass model's parameters (the base as it is, or re-identified
-    under the air velocity, which can also over-fit) are chosen per fold on the other folds'
-    windows. Scored on :data:`GUST_CHANNELS` only (the rates also carry the air velocity's rough
-    part, which no smooth air velocity predicts between its knots; w sees no horizontal air).
-    ``chunk_s``, ``refine_iterations`` and ``knot_s`` default to the context's ``gust_chunk_s``,
-    ``gust_refine_iterations`` and ``gust_knot_s``.
+    round; the base model goes through the same protocol. An air-mass motion fitted on some chunks
+    predicts the chunks between them as far as its time scale carries; parameters fitted to noise
+    (correlated over a few samples only) do not. The variant (time scale, intensity, parameter set)
+    is chosen per fold on the other folds' windows, by their held-out cost in multiples of each
+    channel's noise (``ctx.noise_unit``; without it, of the base model's cost in each channel), the
+    units of the gap's shares: in the cost's own weights a channel whose signal is small against
+    its noise (v) could be wrecked unseen. Scored on :data:`GUST_CHANNELS`, the outputs of the
+    horizontal block (w and r see no horizontal air). ``chunk_s``, ``refine_iterations`` and
+    ``knot_s`` default to the context's ``gust_chunk_s``, ``gust_refine_iterations`` and
+    ``gust_knot_s``.
     """
     chunk_s = ctx.cfg.gust_chunk_s if chunk_s is None else chunk_s
     knot_s = ctx.cfg.gust_knot_s if knot_s is None else knot_s
@@ -634,62 +718,61 @@ def scan_wind_gust(ctx: Context, chunk_s: float | None = None, refine_iterations
     ev = ctx.ev
     if not ev.available[[0, 1]].all():
         return Hypothesis("wind_gust", testable=False, reason="no horizontal velocity measurements")
-    L = ev.L
     # prior: air velocity of the order of the measured horizontal speed (weighted-residual units)
     s_air = float(np.sqrt((ev.Y[:, :, :2] ** 2).mean())) + 1e-6
     n_scored = ev.mask.sum() * ev.W * ev.available.sum() if ev.M is None else (ev.score_mask & ev.available).sum()
     sig2 = float((ev.r0 ** 2).sum() / max(n_scored, 1))
-    n_knots = max(int(round(L * ev.dt_s / knot_s)) + 1, 2)
-    prec = np.full(2 * n_knots, sig2 / s_air ** 2)
-    if ctx.segments is ev.segments:  # the context's evaluator as it is: its Jacobian is recomputed below
-        evg = copy.copy(ev)
-    else:
-        evg = Evaluator(ctx.segments, ev.dt_s, ev.theta0, ev.available, window_s=L * ev.dt_s,
-                        folds=ev.folds, ridge=ev.ridge, start_s=ev.start_s)
-    evg.nuisance = _air_columns(evg, ev.theta0, n_knots)
-    evg.nuisance_prec = prec
-    evg.set_theta(ev.theta0)
+    fits = [_ChunkFit(ev, ev.theta0, chunk_s)]
+    sse_b = fits[0].cv()[0][0]
+    unit = _cost_unit(ctx, sse_b)
     if refine_iterations > 0:
-        evg.refine(refine_iterations, ctx.cfg.refine_ridge)
-    chunk = max(int(round(chunk_s / ev.dt_s)), 2)
-    even = ((np.arange(L) // chunk) % 2 == 0) & ev.mask
-    odd = ((np.arange(L) // chunk) % 2 == 1) & ev.mask
-
-    def chunk_cv(theta: np.ndarray, nuis: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
-        sse = np.zeros((ev.W, 8))
-        coef = None
-        for fit_m, score_m in ((even, odd), (odd, even)):
-            y, coef = lsim(theta, ev.U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available, nuisance=nuis,
-                           fit_mask=fit_m, return_coef=True, nuisance_prec=None if nuis is None else prec)
-            e2 = ((ev.Y - y[0]) * ev.w8)[:, score_m] ** 2
-            sse += (e2 if ev.M is None else e2 * ev.M[:, score_m]).sum(axis=1)   # holes of the link not scored
-        return sse, coef
-
-    sse_b, _ = chunk_cv(ev.theta0, None)
-    # two parameter sets for the air-mass model: the base as it is, and the base re-identified under
-    # the air velocity (which can also over-fit it); chosen per fold on the other folds' windows
-    # (nested selection, like every other hypothesis)
-    thetas = [ev.theta0] if refine_iterations <= 0 else [ev.theta0, evg.theta0]
-    cv = [chunk_cv(th, _air_columns(ev, th, n_knots)) for th in thetas]
+        fits.append(_ChunkFit(ev, _refined_theta(ctx, knot_s, sig2 / s_air ** 2, refine_iterations), chunk_s))
+    span_s = (ev.L - 1) * ev.dt_s
+    n = max(int(round(span_s / GUST_GRID_S)) + 1, 2)
+    factors = {tau: gauss_markov_factor(n, span_s, tau) for tau in GUST_TAU_S}
+    variants = []
+    for i, fit in enumerate(fits):
+        grid = np.moveaxis(_air_columns(ev, fit.theta, n)[0], -1, 0)  # (2 n, L, 8)
+        # small products, many of them: one thread (a pool's threads spinning cost more than they do)
+        with threadpool_limits(1):
+            for tau, fac in factors.items():
+                cols = np.concatenate([np.einsum("klc,kj->jlc", grid[c * n:(c + 1) * n], fac) for c in range(2)])
+                sse, coef = fit.cv(cols, [sig2 / (s * s_air) ** 2 for s in GUST_SIGMA])
+                variants += [((i, tau, s), sse[j], coef[j]) for j, s in enumerate(GUST_SIGMA)]
+    cost = np.stack([(v[1] * unit).sum(axis=1) for v in variants])  # (V, W) in noise units
     sse_g = np.empty((ev.W, 8))
     picks = []
     for f in range(ev.folds):
         tr, te = ev.fold != f, ev.fold == f
-        k = int(np.argmin([c[0][tr].sum() for c in cv]))
-        picks.append(k)
-        sse_g[te] = cv[k][0][te]
-    best = int(np.argmin([c[0].sum() for c in cv]))
-    # scored on the channels an air mass moves at low frequency (horizontal velocities, attitude
-    # angles); the body rates also carry its rough part, which no smooth air velocity predicts
-    # between its knots, and w is untouched (horizontal air velocity): those keep the base cost
-    rough = [c for c in range(8) if c not in GUST_CHANNELS]
-    sse_g[:, rough] = sse_b[:, rough]
-    coef = cv[best][1]
-    assert coef is not None
-    air = coef[0, :, -2 * n_knots:].reshape(ev.W, 2, n_knots)
+        k = int(np.argmin(cost[:, tr].sum(axis=1)))
+        picks.append(variants[k][0])
+        sse_g[te] = variants[k][1][te]
+    (i, tau, s), _, coef = variants[int(np.argmin(cost.sum(axis=1)))]
+    off = [c for c in range(8) if c not in GUST_CHANNELS]  # untouched by a horizontal air velocity
+    sse_g[:, off] = sse_b[:, off]
+    air = coef.reshape(ev.W, 2, n) @ factors[tau].T  # (W, 2, n) m/s at the grid times
     rms = float(np.sqrt((air ** 2).sum(axis=1).mean()))
     return Hypothesis("wind_gust", estimate={"air_velocity_rms_m_s": rms}, sse=sse_g,
                       channels=GUST_CHANNELS,
-                      extra={"base_sse": sse_b, "theta": thetas[best], "n_knots": n_knots, "air_knots": air,
-                             "reidentified": [bool(k) for k in picks]})
+                      extra={"base_sse": sse_b, "theta": fits[i].theta, "n_knots": n, "air_knots": air,
+                             "tau_s": tau, "sigma_factor": s, "unit": unit,
+                             "reidentified": [bool(p[0]) for p in picks],
+                             "variants": [[float(p[1]), float(p[2])] for p in picks]})
 
+
+def _cost_unit(ctx: Context, base_sse: np.ndarray) -> np.ndarray:
+    """(8,) weights turning a held-out cost per channel into multiples of the channel's noise: the
+    context's ``noise_unit`` when it has one, else the base model's own cost in the channel (0 for
+    a channel without one)."""
+    if ctx.noise_unit is not None:
+        return np.asarray(ctx.noise_unit, float)
+    tot = base_sse.sum(axis=0)
+    return np.where(tot > 0, 1.0 / np.where(tot > 0, tot, 1.0), 0.0)
+
+
+def noise_unit(ev: Evaluator, sigma_smoothed: np.ndarray) -> np.ndarray:
+    """(8,) per-sample weights turning the held-out cost of each channel into multiples of its noise
+    (``sigma_smoothed`` (8,) the flight's measured white noise after the smoothing, in the channel's
+    units); 0 for a channel without a noise figure or weight."""
+    s = np.nan_to_num(np.asarray(sigma_smoothed, float)) * ev.w8
+    return np.where(s > 0, 1.0 / np.where(s > 0, s, 1.0) ** 2, 0.0)

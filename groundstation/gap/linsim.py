@@ -310,6 +310,21 @@ def simulate(
     return yhat
 
 
+def free_responses(theta: np.ndarray, L: int, dt_s: float, available: np.ndarray | None = None,
+                   all_initial: bool = True) -> np.ndarray:
+    """(n_unknown, L, 8) output responses to a unit value of each initial state :func:`simulate` fits
+    (the unmeasured states and unavailable channels' states, or all with ``all_initial``), in the
+    order it fits them: the same in every window, so a caller can form the least squares of the
+    initial states with other shared columns itself. ``theta`` (31,)."""
+    A, B = full_matrices(np.atleast_2d(np.asarray(theta, dtype=float)))
+    Ad, Bd = discretize(A, B, dt_s)
+    b = max(1, min(LIFT_BLOCK, L))
+    avail = np.ones(8, bool) if available is None else np.asarray(available, bool)
+    unknown = list(UNMEASURED) + [int(OUT_STATE[c]) for c in range(8) if not avail[c] or all_initial]
+    Phi = _lift(Ad, Bd[:, :, :4], b, -(-L // b))[4]  # (1, nb b, 8, 11)
+    return np.ascontiguousarray(np.moveaxis(Phi[0, :L][:, :, unknown], 2, 0))
+
+
 def _restrict(block: Block, A: np.ndarray, B: np.ndarray, inputs: np.ndarray, forcing: np.ndarray | None,
               outputs: np.ndarray, avail: np.ndarray, w8: np.ndarray, nuisance: np.ndarray | None) -> tuple:
     """:func:`simulate`'s matrices and arrays cut to one block: A, B (its input then forcing columns),

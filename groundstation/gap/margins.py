@@ -137,11 +137,14 @@ def air_mass_edges(named: list[attribute.Candidate], others: list[attribute.Cand
     """The encompassing test of an input effect against an air mass (does it still lower the held-out cost
     once an air-mass motion is allowed? a window bootstrap at ``crit``) where it decided the verdict: the
     first named effect passed it, or a candidate that passed its own test and failed this one would have
-    been named first."""
+    been named first. An input effect the air mass explained as well, kept because the air mass added
+    nothing to it, was not decided by this test."""
     edges = []
     top = _top_gain(named, partial)
     for c in named[:1] + others:
         d = c.hyp.extra.get("gain_given_air_mass")
+        if c.hyp.extra.get("air_mass_adds_nothing_p") is not None:
+            continue
         first = bool(named) and c is named[0]
         p = float(c.hyp.extra.get("p_given_air_mass", np.nan))
         failed_here = c.score.p_value < crit and not p < crit  # passed its own test, not this one

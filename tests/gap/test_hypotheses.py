@@ -52,9 +52,9 @@ def test_apply_input_effect_rejects_other_effects():
         apply_input_effect(Hypothesis("gyro_bias", extra={"label": {"channel": 0}}), [_segment()], 0.02)
 
 
-def test_air_mass_predicts_velocities_between_its_chunks_and_leaves_rates_alone(flight_factory, paper_theta):
-    """A smooth air velocity fitted on alternate 0.5 s chunks predicts the horizontal velocities of
-    the chunks between them on a gusty flight; the rates and w keep the base cost (not scored)."""
+def test_air_mass_predicts_velocities_between_its_chunks_and_leaves_w_and_r_alone(flight_factory, paper_theta):
+    """An air velocity fitted on alternate 0.5 s chunks predicts the horizontal velocities of the
+    chunks between them on a gusty flight; w and r keep the base cost (no horizontal air reaches them)."""
     from groundstation.gap.diagnose import segments_from_prepared
     from groundstation.gap.evaluate import Evaluator
     from groundstation.gap.hypotheses import GUST_CHANNELS, Context, scan_wind_gust
@@ -77,6 +77,52 @@ def test_air_mass_predicts_velocities_between_its_chunks_and_leaves_rates_alone(
     assert h0.sse.sum() > 0.97 * h0.extra["base_sse"].sum()
 
 
+def test_fast_air_mass_is_followed_on_its_own_time_scale_and_credited_in_the_rates(flight_factory, paper_theta):
+    """A Gauss-Markov air velocity of 0.3 s time scale (faster than a 1.5 s spline follows): the scan
+    chooses the short time scale in every fold, and the rates it drives count as explained between
+    the fitting chunks (held out), as u, v and the attitude angles do; w and r are not scored."""
+    from groundstation.gap.diagnose import segments_from_prepared
+    from groundstation.gap.evaluate import Evaluator
+    from groundstation.gap.hypotheses import Context, scan_wind_gust
+
+    prep = flight_factory(T_s=60.0, seed=21, effect=("wind_gust", 0.3, 1.5))
+    segs, avail = segments_from_prepared(prep)
+    ev = Evaluator(segs, prep.dt_s, paper_theta, avail, window_s=3.0, folds=3)
+    h = scan_wind_gust(Context(ev, segs), refine_iterations=0)
+    assert [tau for tau, _ in h.extra["variants"]] == [0.3, 0.3, 0.3]
+    gain = 1 - h.sse.sum(0) / h.extra["base_sse"].sum(0)
+    assert min(gain[[0, 1, 3, 4, 6, 7]]) > 0.3, gain  # u v p q theta phi
+    assert gain[2] == 0 and gain[5] == 0, gain
+    assert h.extra["air_knots"].shape == (ev.W, 2, 31)  # the air velocity on the 0.1 s grid of each 3 s window
+
+
+def test_air_mass_least_squares_is_the_simulation_with_shared_nuisance_columns(flight_factory, paper_theta):
+    """The air-mass protocol's own least squares (one normal matrix for every window, every prior in one
+    solve) gives the numbers of :func:`linsim.simulate` with the same columns as shared nuisance."""
+    from groundstation.gap import hypotheses as H
+    from groundstation.gap.diagnose import segments_from_prepared
+    from groundstation.gap.evaluate import Evaluator
+    from groundstation.gap.linsim import simulate
+
+    prep = flight_factory(T_s=18.0, seed=21, effect=("wind_gust", 0.5, 1.5))
+    segs, avail = segments_from_prepared(prep)
+    ev = Evaluator(segs, prep.dt_s, paper_theta, avail, window_s=3.0, folds=3)
+    n = 31
+    cols = H._air_columns(ev, paper_theta, n) @ np.kron(np.eye(2), H.gauss_markov_factor(n, (ev.L - 1) * ev.dt_s, 0.3))
+    fit = H._ChunkFit(ev, paper_theta, 0.5)
+    sse, coef = fit.cv(np.moveaxis(cols[0], -1, 0), [0.5, 2.0])
+    for j, prec in enumerate((0.5, 2.0)):
+        ref = np.zeros((ev.W, 8))
+        for fit_m, score_m in zip(*[[h[k] for h in fit.halves] for k in (0, 1)], strict=True):
+            fm = np.zeros(ev.L, bool)
+            fm[fit_m] = True
+            y, c = simulate(paper_theta, ev.U, ev.Y, ev.dt_s, weights=ev.w8, available=ev.available, nuisance=cols,
+                            fit_mask=fm, return_coef=True, nuisance_prec=np.full(2 * n, prec))
+            ref += (((ev.Y - y[0]) * ev.w8)[:, score_m] ** 2).sum(axis=1)
+        np.testing.assert_allclose(sse[j], ref, rtol=1e-9)
+        np.testing.assert_allclose(coef[j], c[0][:, -2 * n:], rtol=1e-7, atol=1e-9 * np.abs(c).max())
+
+
 def test_air_mass_scan_settings_come_from_the_diagnosis_configuration(flight_factory, paper_theta):
     """``[diagnose] gust_chunk_s / gust_knot_s / gust_refine_iterations`` reach the air-mass scan
     through its context (the same scan as with the values passed by hand, another one than the
@@ -89,12 +135,15 @@ def test_air_mass_scan_settings_come_from_the_diagnosis_configuration(flight_fac
     prep = flight_factory(T_s=18.0, seed=21, effect=("wind_gust", 2.0, 1.5))
     segs, avail = segments_from_prepared(prep)
     ev = Evaluator(segs, prep.dt_s, paper_theta, avail, window_s=3.0, folds=3)
-    cfg = DiagnoseConfig(gust_chunk_s=1.0, gust_knot_s=1.0, gust_refine_iterations=0)
+    cfg = DiagnoseConfig(gust_chunk_s=1.0, gust_knot_s=1.0, gust_refine_iterations=1)
     h_cfg = scan_wind_gust(Context(ev, segs, cfg=cfg))
-    h_arg = scan_wind_gust(Context(ev, segs), chunk_s=1.0, knot_s=1.0, refine_iterations=0)
+    h_arg = scan_wind_gust(Context(ev, segs), chunk_s=1.0, knot_s=1.0, refine_iterations=1)
     np.testing.assert_array_equal(h_cfg.sse, h_arg.sse)
     h_def = scan_wind_gust(Context(ev, segs), refine_iterations=0)
     assert not np.array_equal(h_cfg.sse, h_def.sse)
+    # the knots of the smooth air velocity the base is re-identified under
+    h_knots = scan_wind_gust(Context(ev, segs), chunk_s=1.0, knot_s=1.5, refine_iterations=1)
+    assert not np.array_equal(h_cfg.extra["theta"], h_knots.extra["theta"])
 
 
 def test_score_takes_its_test_resamples_from_the_caller():
