@@ -854,6 +854,7 @@ def verdict_stage(base: Base, loc: Located, att: Attributed, dec: Decision, test
                     c, segs_h, ev, np.asarray(c.hyp.extra.get("theta_refit", ev.theta0)), level,
                     cfg.consistency_min_loss, min_w, rng, cfg.n_boot, cfg.window_alpha, arrays)
             _drift_checks(ranked, cons, ctx, level, cfg, arrays)
+    ranked, dec = _drop_unresolved_lines(ranked, cons, dec, loc, tests, cfg, notes)
     changing = [c for c in ranked if cons.get(id(c), {}).get("status") == "changes"]
     # effects named beside the first were found given it: when it changes, none is named
     kept = [] if ranked and ranked[0] in changing else [c for c in ranked if c not in changing]
@@ -996,6 +997,32 @@ def margin_stage(att: Attributed, loc: Located, dec: Decision, rule: dict[str, A
     edges += margins.air_mass_edges(dec.ranked, dec.others, fallback, att.crit, cfg, rng, partial)
     share = margins.share_edge(rule["interval"], dec.verdict, partial, dec.ranked, cfg)
     return margins.summary(edges + ([share] if share is not None else []), dec.verdict, cfg)
+
+
+def _drop_unresolved_lines(ranked: list[attribute.Candidate], cons: dict[int, dict[str, Any]], dec: Decision,
+                           loc: Located, tests: list[structure.StructureTest], cfg: DiagnoseConfig,
+                           notes: list[str]) -> tuple[list[attribute.Candidate], Decision]:
+    """A rotor line one half of the flight does not show (``not_resolved``) and the whole-flight
+    drift test does not find growing (:func:`_drift_checks`) is not named: it goes to the notes and
+    the unnamed candidates. When it led, the verdict is chosen again from what is left
+    as :func:`decide_stage` chooses it (a sensor error found first is not the verdict here: it led
+    over no line)."""
+    gone = [c for c in ranked if cons.get(id(c), {}).get("status") == "not_resolved"]
+    if not gone:
+        return ranked, dec
+    for c in gone:
+        notes.append(f"rotor vibration not named ({c.evidence.split(';')[0]}): {cons[id(c)]['why']}")
+    left = [c for c in ranked if c not in gone]
+    verdict = dec.verdict
+    if ranked[0] in gone:
+        if left:
+            verdict = left[0].hyp.effect
+        elif any(t.significant for t in tests) or (loc.gap_significant
+                                                    and loc.flagged_share > cfg.unexplained_flagged_share):
+            verdict = "unexplained"
+        else:
+            verdict = "none"
+    return left, dataclasses.replace(dec, verdict=verdict, ranked=left, others=list(dec.others) + gone)
 
 
 def _drift_checks(ranked: list[attribute.Candidate], cons: dict[int, dict[str, Any]], ctx: hypotheses.Context,

@@ -147,3 +147,27 @@ def test_a_rotor_line_that_grows_through_the_flight_changes_and_a_steady_one_hol
     assert grows["status"] == "changes", grows["why"]
     assert grows["amplitude_ratio"] > 1.5 and grows["p_values"]["strength_differs"] < 0.005
     assert "as strong in the second half" in grows["why"]
+
+
+def test_a_rotor_line_one_half_does_not_show_is_not_resolved_and_not_named():
+    from types import SimpleNamespace
+
+    from groundstation.gap.config import DiagnoseConfig
+    from groundstation.gap.diagnose import Decision, _drop_unresolved_lines
+    from groundstation.gap.shares import consistency
+
+    # a line in the second half only: the rotor does not shake the aircraft through the flight
+    cand, ev, arrays = _line_flight(lambda w: 0.0 if w < 20 else 0.02)
+    con = consistency(cand, ([], []), ev, np.zeros(1), 0.005, 0.5, 6, np.random.default_rng(0), 100, 0.1, arrays)
+    assert con["status"] == "not_resolved", con["why"]
+    assert con["first"] is None and con["second"] is not None and "first half" in con["why"]
+    # a line that led is not named; with nothing else named and no significant gap the verdict is none
+    dec = Decision("rotor_vibration", [cand], [], {}, {}, None)
+    loc = SimpleNamespace(gap_significant=False, flagged_share=0.0)
+    notes: list[str] = []
+    left, new = _drop_unresolved_lines([cand], {id(cand): con}, dec, loc, [], DiagnoseConfig(), notes)
+    assert left == [] and new.verdict == "none" and new.ranked == [] and cand in new.others
+    assert len(notes) == 1 and "rotor vibration not named" in notes[0]
+    # a line both halves show is left alone
+    steady = {id(cand): {"status": "holds"}}
+    assert _drop_unresolved_lines([cand], steady, dec, loc, [], DiagnoseConfig(), []) == ([cand], dec)
