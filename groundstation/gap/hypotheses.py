@@ -715,9 +715,16 @@ def scan_wind_gust(ctx: Context, chunk_s: float | None = None, refine_iterations
     chunk_s = ctx.cfg.gust_chunk_s if chunk_s is None else chunk_s
     knot_s = ctx.cfg.gust_knot_s if knot_s is None else knot_s
     refine_iterations = ctx.cfg.gust_refine_iterations if refine_iterations is None else refine_iterations
-    ev = ctx.ev
-    if not ev.available[[0, 1]].all():
+    if not ctx.ev.available[[0, 1]].all():
         return Hypothesis("wind_gust", testable=False, reason="no horizontal velocity measurements")
+    # small products, many of them: one thread (a pool's threads spinning cost more than they do)
+    with threadpool_limits(1):
+        return _air_mass(ctx, chunk_s, knot_s, refine_iterations)
+
+
+def _air_mass(ctx: Context, chunk_s: float, knot_s: float, refine_iterations: int) -> Hypothesis:
+    """:func:`scan_wind_gust`'s work, its settings resolved."""
+    ev = ctx.ev
     # prior: air velocity of the order of the measured horizontal speed (weighted-residual units)
     s_air = float(np.sqrt((ev.Y[:, :, :2] ** 2).mean())) + 1e-6
     n_scored = ev.mask.sum() * ev.W * ev.available.sum() if ev.M is None else (ev.score_mask & ev.available).sum()
@@ -733,12 +740,10 @@ def scan_wind_gust(ctx: Context, chunk_s: float | None = None, refine_iterations
     variants = []
     for i, fit in enumerate(fits):
         grid = np.moveaxis(_air_columns(ev, fit.theta, n)[0], -1, 0)  # (2 n, L, 8)
-        # small products, many of them: one thread (a pool's threads spinning cost more than they do)
-        with threadpool_limits(1):
-            for tau, fac in factors.items():
-                cols = np.concatenate([np.einsum("klc,kj->jlc", grid[c * n:(c + 1) * n], fac) for c in range(2)])
-                sse, coef = fit.cv(cols, [sig2 / (s * s_air) ** 2 for s in GUST_SIGMA])
-                variants += [((i, tau, s), sse[j], coef[j]) for j, s in enumerate(GUST_SIGMA)]
+        for tau, fac in factors.items():
+            cols = np.concatenate([np.einsum("klc,kj->jlc", grid[c * n:(c + 1) * n], fac) for c in range(2)])
+            sse, coef = fit.cv(cols, [sig2 / (s * s_air) ** 2 for s in GUST_SIGMA])
+            variants += [((i, tau, s), sse[j], coef[j]) for j, s in enumerate(GUST_SIGMA)]
     cost = np.stack([(v[1] * unit).sum(axis=1) for v in variants])  # (V, W) in noise units
     sse_g = np.empty((ev.W, 8))
     picks = []
