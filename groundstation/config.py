@@ -65,6 +65,9 @@ class ServiceSection:
     #: campaign table (SQLite) in the recording directory: every identified flight is a row and the
     #: trend summary over the vehicle's flights is published on heli/{vehicle}/trends; "" = off
     campaign_db: str = "campaign.sqlite"
+    #: CPU priority (nice, 0-19) of the process that identifies and diagnoses each flight: 19 keeps the
+    #: link and the live path ahead of it on a busy laptop; 0 gives it a fair share of the cores
+    worker_nice: int = 19
 
 
 @dataclass(frozen=True)

@@ -309,10 +309,10 @@ class Service:
         self.report.stopped_by = self._stop_reason
         return self.report
 
-    @staticmethod
-    def _new_executor() -> concurrent.futures.ProcessPoolExecutor:
+    def _new_executor(self) -> concurrent.futures.ProcessPoolExecutor:
         return concurrent.futures.ProcessPoolExecutor(
-            max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init)
+            max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init,
+            initargs=(self.config.service.worker_nice,))
 
     def _install_signals(self, loop: asyncio.AbstractEventLoop) -> list[int]:
         installed: list[int] = []
@@ -879,11 +879,11 @@ def _excitation_doc(vehicle: str, rep: ExcitationReport, final: bool) -> dict[st
     return {"vehicle": vehicle, **rep.to_json(), "final": final}
 
 
-def _worker_init() -> None:
-    """Worker process: lowest CPU priority and one BLAS/OpenMP thread, so the live path keeps a core
-    to itself while identification and diagnosis run."""
+def _worker_init(nice: int = 19) -> None:
+    """Worker process: low CPU priority (``[service] worker_nice``, the lowest by default) and one
+    BLAS/OpenMP thread, so the live path keeps a core to itself while identification and diagnosis run."""
     try:
-        os.nice(19)
+        os.nice(nice)
     except OSError:
         pass
     threadpool_limits(1)            # process-wide (not a context manager here)

@@ -81,9 +81,11 @@ class ScriptedHelicopter:
 
 
 def service_config(tmp_path, **sections) -> ServiceConfig:
-    """A test config: files under tmp_path, a fixed zenoh port, small windows."""
+    """A test config: files under tmp_path, a fixed zenoh port, small windows, and the worker at a fair
+    share of the cores (at the lowest priority it can starve behind the suite's other processes)."""
     cfg = ServiceConfig()
-    cfg = cfg.replace("service", record_dir=str(tmp_path / "rec"), vehicle="testheli", status_rate_hz=5.0)
+    cfg = cfg.replace("service", record_dir=str(tmp_path / "rec"), vehicle="testheli", status_rate_hz=5.0,
+                      worker_nice=0)
     cfg = cfg.replace("zenoh", listen_port=free_tcp_port())
     cfg = cfg.replace("live", window_s=2.0, hop_s=0.25)
     for name, changes in sections.items():

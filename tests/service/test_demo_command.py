@@ -17,8 +17,10 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def test_demo_records_identifies_publishes_and_prints_the_match_table(tmp_path):
     out = tmp_path / "demo_out"
+    cfg = tmp_path / "fair.toml"  # the worker at a fair share: at the lowest priority the suite's load starves it
+    cfg.write_text("[service]\nworker_nice = 0\n")
     proc = subprocess.run([sys.executable, "-m", "groundstation.cli", "demo", "--out", str(out),
-                           "--flight-s", "30", "--speed", "20"],
+                           "--flight-s", "30", "--speed", "20", "--config", str(cfg)],
                           capture_output=True, text=True, timeout=240, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr
     text = proc.stdout
